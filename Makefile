@@ -1,0 +1,26 @@
+# Every target sets up .venv by itself when it is missing.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+OUT ?= out
+
+.PHONY: run test bench clean
+
+$(BIN)/flyscan: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[test]'
+	touch $@
+
+run: $(BIN)/flyscan
+	$(BIN)/flyscan scan --demo --out $(OUT)/demo
+
+test: $(BIN)/flyscan
+	$(BIN)/python -m pytest -q
+
+bench: $(BIN)/flyscan
+	$(BIN)/flyscan bench stripe --out $(OUT)/bench/stripe
+	$(BIN)/flyscan bench scan --out $(OUT)/bench/scan
+
+clean:
+	rm -rf $(VENV) $(OUT) *.egg-info
