@@ -1,0 +1,77 @@
+"""The device interface: one Camera and one Robot protocol.
+
+The simulated devices (``simulator.devices``) and the real backends (``service``) implement
+these; the pipeline and the service only ever see the protocol. Constructing a device does no
+I/O; ``open``/``connect`` does.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from scanner_core.types import Frame
+
+
+class CameraTimeout(TimeoutError):
+    """No frame arrived within the timeout."""
+
+
+class CameraClosed(RuntimeError):
+    """The camera is closed or its stream has ended."""
+
+
+@runtime_checkable
+class Camera(Protocol):
+    width: int
+    height: int
+    fps: float
+
+    def open(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def grab(self, timeout: float) -> Frame:
+        """Next frame; raises CameraTimeout, or CameraClosed when the stream has ended."""
+        ...
+
+
+@dataclass(frozen=True)
+class TcpPose:
+    """A TCP pose reported by the robot.
+
+    Attributes
+    ----------
+    t : float
+        Robot clock, seconds.
+    position : (3,) float64
+        TCP position in {B}, mm.
+    rotation : (3, 3) float64
+        Rotation of {T} in {B} (columns are the {T} axes).
+    """
+
+    t: float
+    position: np.ndarray
+    rotation: np.ndarray
+
+
+@runtime_checkable
+class Robot(Protocol):
+    def connect(self) -> None: ...
+
+    def disconnect(self) -> None: ...
+
+    @property
+    def connected(self) -> bool: ...
+
+    def latest(self) -> TcpPose:
+        """Newest pose; raises RuntimeError when none has arrived."""
+        ...
+
+    def pose_at(self, t: float) -> TcpPose:
+        """Pose interpolated at robot time ``t`` from the bounded history.
+
+        Raises LookupError when ``t`` lies outside the history.
+        """
+        ...

@@ -1,0 +1,118 @@
+"""The data of one pass: frames in, profiles per frame, one scan out.
+
+Units: millimetres and seconds. Frames are named in the attribute docs: {B} robot base,
+{C} camera, {T} gripper (TCP), {P} part.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera image.
+
+    Attributes
+    ----------
+    image : (H, W) uint8
+        The raw mono image.
+    frame_id : int
+        Camera frame counter; a gap between consecutive ids is a dropped frame.
+    t : float
+        Camera clock at exposure, seconds.
+    """
+
+    image: np.ndarray
+    frame_id: int
+    t: float
+
+
+@dataclass(frozen=True)
+class MarkerObservation:
+    """The LED marker in the three views of one frame.
+
+    Attributes
+    ----------
+    pixels : (3, 2) float64
+        Sub-pixel centroid (column, row) in the direct, left-mirror and right-mirror views;
+        NaN where the marker was not found in that view.
+    position_b : (3,) float64
+        Triangulated marker position in {B}, mm; NaN when fewer than two views saw it.
+    residual_px : float
+        RMS reprojection residual of the triangulation, pixels.
+    """
+
+    pixels: np.ndarray
+    position_b: np.ndarray
+    residual_px: float
+
+    @property
+    def views(self) -> int:
+        return int(np.isfinite(self.pixels[:, 0]).sum())
+
+    @property
+    def valid(self) -> bool:
+        return bool(np.all(np.isfinite(self.position_b)))
+
+
+@dataclass(frozen=True)
+class Profile:
+    """What one frame yields: the stripe points and the gripper position.
+
+    Attributes
+    ----------
+    frame_id : int
+    t : float
+        Camera clock, seconds.
+    points_b : (N, 3) float64
+        Stripe points in {B}, mm.
+    columns : (N,) int32
+        Image column each point came from.
+    quality : (N,) float32
+        Peak intensity of the stripe at that column, DN (a proxy for the point's reliability).
+    marker : MarkerObservation
+    """
+
+    frame_id: int
+    t: float
+    points_b: np.ndarray
+    columns: np.ndarray
+    quality: np.ndarray
+    marker: MarkerObservation
+
+
+@dataclass
+class Scan:
+    """The stitched result of one pass, in {T}.
+
+    Attributes
+    ----------
+    cloud : (N, 3) float32
+        Surface points in {T}, mm.
+    frame_ids : (N,) int32
+        Frame each point came from.
+    quality : (N,) float32
+        Stripe peak intensity, DN.
+    edges : (M, 3) float32
+        Edge points in {T}, mm (empty until edge extraction exists).
+    tcp_positions_b : (F, 3) float64
+        Marker-derived TCP position per used frame, {B}, mm.
+    frames : int
+        Frames that contributed a profile.
+    frames_dropped : int
+        Gaps in the camera's frame ids during the pass.
+    timings_ms : dict
+        Wall time per stage.
+    """
+
+    cloud: np.ndarray
+    frame_ids: np.ndarray
+    quality: np.ndarray
+    edges: np.ndarray
+    tcp_positions_b: np.ndarray
+    tcp_times: np.ndarray
+    frames: int
+    frames_dropped: int
+    timings_ms: dict = field(default_factory=dict)

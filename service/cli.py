@@ -1,0 +1,129 @@
+"""The ``flyscan`` command line.
+
+Every command calls the same library functions the service and the benchmarks use; this
+module only parses arguments, reports errors clearly and exits non-zero on failure.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from threadpoolctl import threadpool_limits
+
+
+class UsageError(ValueError):
+    """Bad command-line input."""
+
+
+def _parse_args(argv):
+    parser = argparse.ArgumentParser(prog="flyscan", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    scan = sub.add_parser("scan", help="scan a CAD part in the simulated cell")
+    src = scan.add_mutually_exclusive_group(required=True)
+    src.add_argument("--part", type=Path, help="mesh file (STL, OBJ, PLY)")
+    src.add_argument("--demo", action="store_true", help="the built-in procedural block")
+    scan.add_argument("--units", default=None, help="unit of the mesh file: mm, cm, m or inch")
+    scan.add_argument("--preset", choices=["default", "fast", "slow"], default="default",
+                      help="pass preset: default 200 mm/s at 162 fps; the paper's fast (1 m/s, "
+                           "162 fps) and slow (50 mm/s, 16 fps) configurations")
+    scan.add_argument("--speed", type=float, help="nominal pass speed, mm/s")
+    scan.add_argument("--fps", type=float, help="camera frame rate, Hz")
+    scan.add_argument("--misplace", default=None, help="'tx,ty,tz,rx,ry,rz': mm and degrees, in {T}")
+    scan.add_argument("--seed", type=int, default=0, help="image noise seed")
+    scan.add_argument("--perturb-seed", type=int, default=None,
+                      help="perturb the simulated cell's true geometry (repeatably)")
+    scan.add_argument("--calibration", type=Path, default=None,
+                      help="calibration JSON the scanner uses (default: the cell's truth)")
+    scan.add_argument("--method", default="cog", help="stripe estimator")
+    scan.add_argument("--drop-rate", type=float, default=0.0, help="fraction of frames lost")
+    scan.add_argument("--no-eval", action="store_true", help="skip the ground-truth accuracy")
+    scan.add_argument("--out", type=Path, required=True)
+
+    bench = sub.add_parser("bench", help="benchmarks: JSON figures and PNG charts")
+    bench.add_argument("what", choices=["stripe", "scan"])
+    bench.add_argument("--out", type=Path, required=True)
+    bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
+    return parser.parse_args(argv)
+
+
+def _cmd_scan(args) -> int:
+    from scanner_core.calibration import load_calibration
+    from scanner_core.pipeline import PipelineParams
+    from scanner_core.scanio import save_scan
+    from scanner_core.stripe import METHODS
+    from simulator.cell import PASS_PRESETS, load_cell
+    from simulator.parts import block_with_holes_and_steps, check_fits, load_part, part_from_mesh
+    from simulator.session import parse_misplacement, run_simulated_scan
+
+    # Everything is checked before the pass is simulated: a bad input writes nothing.
+    if args.method not in METHODS:
+        raise UsageError(f"--method must be one of {', '.join(METHODS)}, got {args.method!r}")
+    if args.part is not None and args.units is None:
+        raise UsageError("--units is required with --part: a mesh file carries no reliable unit")
+    for name in ("speed", "fps"):
+        value = getattr(args, name)
+        if value is not None and not value > 0:
+            raise UsageError(f"--{name} must be positive, got {value}")
+    if not 0.0 <= args.drop_rate < 1.0:
+        raise UsageError(f"--drop-rate must be in [0, 1), got {args.drop_rate}")
+    misplacement = parse_misplacement(args.misplace)
+    if args.demo:
+        part = part_from_mesh(block_with_holes_and_steps(), name="demo-block")
+    else:
+        part = load_part(args.part, args.units)
+    check_fits(part)
+    cell = load_cell(perturb_seed=args.perturb_seed)
+    preset = PASS_PRESETS[args.preset]
+    cell = cell.with_pass(speed_mm_s=args.speed or preset.speed_mm_s, fps=args.fps or preset.fps)
+    calibration = load_calibration(args.calibration) if args.calibration else None
+    t0 = time.perf_counter()
+    scan, report = run_simulated_scan(part, cell, calibration=calibration,
+                                      misplacement=misplacement, seed=args.seed,
+                                      drop_rate=args.drop_rate,
+                                      params=PipelineParams(stripe_method=args.method),
+                                      evaluate=not args.no_eval)
+    if scan.frames == 0:
+        raise RuntimeError("the marker never triggered: no profile was acquired")
+    report["wall_s"] = round(time.perf_counter() - t0, 3)
+    paths = save_scan(args.out, scan, report)
+    acc = report["ground_truth"].get("accuracy", {})
+    print(f"scanned {part.name}: {report['frames']} frames, {report['points']} points, "
+          f"processing {report['timings_ms']['processing']:.0f} ms for "
+          f"{report['camera_time_s']:.2f} s of camera time")
+    if acc.get("points_evaluated"):
+        print(f"accuracy: RMS {acc['rms_um']:.1f} um, p99 {acc['p99_um']:.1f} um, "
+              f"unseen points {acc.get('unseen_points')}")
+    for key, path in paths.items():
+        print(f"{key}: {path}")
+    return 0
+
+
+def _cmd_bench(args) -> int:
+    if args.what == "stripe":
+        from service.bench import stripe as bench
+    else:
+        from service.bench import scan as bench
+    result = bench.run(args.out, quick=args.quick)
+    print(json.dumps(result.get("summary", {}), indent=2))
+    print(f"written to {args.out}")
+    return 0
+
+
+def main(argv=None) -> int:
+    args = _parse_args(argv)
+    # A real-time process keeps BLAS to one thread: OpenBLAS workers spin for ~100 ms after
+    # each call and steal the other core (NOTES.md).
+    with threadpool_limits(limits=1, user_api="blas"):
+        try:
+            return {"scan": _cmd_scan, "bench": _cmd_bench}[args.command](args)
+        except (UsageError, ValueError, FileNotFoundError, RuntimeError) as exc:
+            print(f"flyscan {args.command}: error: {exc}", file=sys.stderr)
+            return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

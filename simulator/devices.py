@@ -1,0 +1,157 @@
+"""Simulated camera and robot: ordinary devices implementing ``scanner_core.devices``.
+
+They share a ``SimClock`` (seconds since the pass was started). Offline, the camera drives
+the clock: each grab renders the next frame and moves the clock to its exposure time, so the
+robot can only report poses up to "now", as a real one would.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from scanner_core.devices import CameraClosed, TcpPose
+from scanner_core.types import Frame
+from simulator.motion import PassMotion
+from simulator.render import FrameTruth, PartScene
+
+#: Robot reporting rate (UR controllers with major version > 3 stream RTDE at 500 Hz).
+ROBOT_RATE_HZ = 500.0
+#: How much pose history the robot keeps for look-ups by time.
+ROBOT_HISTORY_S = 10.0
+
+
+@dataclass
+class SimClock:
+    """Simulated time, seconds."""
+
+    now: float = 0.0
+
+
+@dataclass
+class SimCamera:
+    """Renders the pass frame by frame.
+
+    Parameters
+    ----------
+    scene : PartScene
+    motion : PassMotion
+    grasp : (4, 4) float64
+        True ^T X_P (nominal grasp composed with any misplacement).
+    seed : int
+        Seeds image noise and dropped frames.
+    drop_rate : float
+        Probability that a frame is lost between camera and host (its id is skipped).
+    clock : SimClock
+    lead_out_s : float
+        Frames keep coming for this long after the pass (the marker then leaves the view).
+    """
+
+    scene: PartScene
+    motion: PassMotion
+    grasp: np.ndarray
+    seed: int = 0
+    drop_rate: float = 0.0
+    clock: SimClock = field(default_factory=SimClock)
+    lead_out_s: float = 0.05
+    truths: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self):
+        cam = self.scene.cell.calibration.camera
+        self.width, self.height = cam.width, cam.height
+        self.fps = self.scene.cell.pass_profile.fps
+        self._next_id = 0
+        self._rng = None
+
+    def open(self) -> None:
+        self._rng = np.random.default_rng(self.seed)
+        self._next_id = 0
+        self.truths.clear()
+
+    def close(self) -> None:
+        self._rng = None
+
+    @property
+    def frame_count(self) -> int:
+        """Frames the pass spans from lead-in to lead-out."""
+        p = self.scene.cell.pass_profile
+        return int(np.floor((p.lead_in_s + self.motion.duration_s + self.lead_out_s) * self.fps)) + 1
+
+    def time_of(self, frame_id: int) -> float:
+        """Exposure time of a frame on the pass clock (lead-in before t = 0)."""
+        return frame_id / self.fps - self.scene.cell.pass_profile.lead_in_s
+
+    def grab(self, timeout: float = 1.0) -> Frame:
+        if self._rng is None:
+            raise CameraClosed("SimCamera is not open")
+        while True:
+            frame_id = self._next_id
+            if frame_id >= self.frame_count:
+                raise CameraClosed("the simulated pass has ended")
+            self._next_id += 1
+            dropped = self.drop_rate > 0 and self._rng.random() < self.drop_rate
+            if not dropped:
+                break
+        t = self.time_of(frame_id)
+        self.clock.now = t
+        image, truth = self.scene.render(self.motion.tcp_position(t), self.grasp, self._rng)
+        self.truths[frame_id] = truth
+        return Frame(image, frame_id, t)
+
+
+@dataclass
+class SimRobot:
+    """Reports the TCP pose of the pass at 500 Hz, up to the shared clock's "now"."""
+
+    motion: PassMotion
+    rotation: np.ndarray
+    clock: SimClock = field(default_factory=SimClock)
+
+    def __post_init__(self):
+        self._connected = False
+        self._history: deque[TcpPose] = deque(maxlen=int(ROBOT_HISTORY_S * ROBOT_RATE_HZ))
+
+    def connect(self) -> None:
+        self._connected = True
+
+    def disconnect(self) -> None:
+        self._connected = False
+
+    @property
+    def connected(self) -> bool:
+        return self._connected
+
+    def _pose(self, t: float) -> TcpPose:
+        return TcpPose(float(t), self.motion.tcp_position(t), self.rotation.copy())
+
+    def _sample_times(self) -> np.ndarray:
+        now = self.clock.now
+        first = max(now - ROBOT_HISTORY_S, -self.motion.profile.lead_in_s)
+        k0, k1 = np.ceil(first * ROBOT_RATE_HZ), np.floor(now * ROBOT_RATE_HZ)
+        return np.arange(k0, k1 + 1) / ROBOT_RATE_HZ
+
+    def latest(self) -> TcpPose:
+        if not self._connected:
+            raise RuntimeError("SimRobot is not connected")
+        times = self._sample_times()
+        if len(times) == 0:
+            raise RuntimeError("no pose has arrived yet")
+        return self._pose(times[-1])
+
+    def pose_at(self, t: float) -> TcpPose:
+        """Linear interpolation between the 500 Hz samples around ``t``."""
+        if not self._connected:
+            raise RuntimeError("SimRobot is not connected")
+        times = self._sample_times()
+        if len(times) == 0 or not times[0] <= t <= times[-1]:
+            raise LookupError(f"t = {t:.4f} s is outside the robot's history")
+        i = int(np.clip(np.searchsorted(times, t), 1, len(times) - 1))
+        t0, t1 = times[i - 1], times[i]
+        w = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
+        pos = (1 - w) * self.motion.tcp_position(t0) + w * self.motion.tcp_position(t1)
+        return TcpPose(float(t), pos, self.rotation.copy())
+
+
+def frame_truth(camera: SimCamera, frame_id: int) -> FrameTruth:
+    return camera.truths[frame_id]

@@ -1,0 +1,55 @@
+"""The robot's pass through the sheet: an accelerating, slightly curved path.
+
+Never constant speed, never a straight line: the scanner must not depend on either
+(paper section II). Time is the simulated clock in seconds from the start of the pass.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from simulator.cell import PassProfile
+
+
+@dataclass(frozen=True)
+class PassMotion:
+    """TCP position along the pass as a function of time.
+
+    The speed ramps linearly from ``v (1 - a)`` to ``v (1 + a)`` over the pass, so the mean
+    speed is ``v`` and the duration ``L / v``; the path bows sideways (x) by a half sine and
+    rises (z) quadratically with the distance travelled.
+    """
+
+    profile: PassProfile
+
+    @property
+    def length_mm(self) -> float:
+        return self.profile.end_y_mm - self.profile.start_y_mm
+
+    @property
+    def duration_s(self) -> float:
+        return self.length_mm / self.profile.speed_mm_s
+
+    def distance(self, t) -> np.ndarray:
+        """Distance travelled along y at time ``t`` (s), clamped to the pass. mm."""
+        p = self.profile
+        tau = np.clip(np.asarray(t, dtype=np.float64), 0.0, self.duration_s)
+        v, a, dur = p.speed_mm_s, p.accel_fraction, self.duration_s
+        return v * ((1.0 - a) * tau + a * tau**2 / dur)
+
+    def speed(self, t) -> np.ndarray:
+        """Speed along y, mm/s (zero outside the pass)."""
+        p = self.profile
+        t = np.asarray(t, dtype=np.float64)
+        v = p.speed_mm_s * (1.0 - p.accel_fraction + 2.0 * p.accel_fraction * t / self.duration_s)
+        return np.where((t >= 0) & (t <= self.duration_s), v, 0.0)
+
+    def tcp_position(self, t) -> np.ndarray:
+        """TCP position in {B} at time(s) ``t``: (..., 3) mm."""
+        p = self.profile
+        s = self.distance(t)
+        frac = s / self.length_mm
+        return np.stack([p.bow_mm * np.sin(np.pi * frac),
+                         p.start_y_mm + s,
+                         p.height_mm + p.rise_mm * frac**2], axis=-1)

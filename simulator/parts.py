@@ -1,0 +1,476 @@
+"""CAD parts: a mesh in millimetres with its unit, its source and its nominal grasp.
+
+A mesh file carries no reliable unit, so every loader takes one and converts to mm. The part
+frame {P} is the CAD file's own frame. The gripper frame {T} has z_T pointing down in the robot
+base: the gripper holds the part from above, so the part hangs along +z_T, and the scanner (the
+laser sheet below) sees the part's max-z_T face. The nominal grasp ^T X_P maps points of {P} to
+{T}: X_T = R X_P + t.
+
+The four reference parts of ``shared/data/meshes`` are read from there at run time
+(`load_reference_part`); the project's tests build their parts procedurally
+(`block_with_holes_and_steps`).
+"""
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+__all__ = [
+    "UNITS_MM", "PartError", "PartUnitWarning", "Part", "load_part", "part_from_mesh",
+    "load_reference_part", "reference_meshes_dir", "centred_grasp", "check_fits",
+    "block_with_holes_and_steps", "INSPECTION_VOLUME_MM",
+]
+
+#: Length of one unit in millimetres.
+UNITS_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "inch": 25.4}
+# Other spellings accepted for the same units (CAD exports and manifests use them).
+_UNIT_ALIASES = {
+    "millimetre": "mm", "millimeter": "mm", "millimetres": "mm", "millimeters": "mm",
+    "centimetre": "cm", "centimeter": "cm", "metre": "m", "meter": "m", "metres": "m",
+    "meters": "m", "in": "inch", "inches": "inch",
+}
+#: The reference cell's inspection volume (x, y, z in {T}), mm.
+INSPECTION_VOLUME_MM = (150.0, 150.0, 100.0)
+# A part whose largest extent falls outside this range (mm) probably has the wrong unit: a
+# part the gripper picks is bigger than a millimetre and smaller than two metres.
+_PLAUSIBLE_SIZE_MM = (1.0, 2000.0)
+# Slack when comparing a part's size with the volume, mm: float noise of unit conversion.
+_FIT_TOL_MM = 1e-6
+_FORMATS = (".stl", ".obj", ".ply")
+MESHES_ENV = "FLYSCAN_MESHES"
+
+
+class PartError(ValueError):
+    """A part cannot be used: bad unit, unreadable or empty file, bad geometry, too large."""
+
+
+class PartUnitWarning(UserWarning):
+    """The part's size in mm is implausible for the unit given: probably the wrong unit."""
+
+
+@dataclass(frozen=True, eq=False)
+class Part:
+    """A CAD part, in millimetres.
+
+    Attributes
+    ----------
+    name : str
+        Name of the part (by default the file's stem).
+    mesh : trimesh.Trimesh
+        Triangle mesh in mm in the part's CAD frame {P}; not necessarily watertight. Treat as
+        read-only.
+    source : str
+        The file it came from, or ``"procedural:..."``.
+    units : str
+        The unit of the source file, one of `UNITS_MM`.
+    grasp : (4, 4) float64
+        Nominal ^T X_P, mm: X_T = R X_P + t. Read-only.
+    """
+
+    name: str
+    mesh: trimesh.Trimesh
+    source: str
+    units: str
+    grasp: np.ndarray = field(repr=False)
+
+    @property
+    def extents(self) -> np.ndarray:
+        """(3,) float64, mm: bounding-box size in {P}."""
+        return np.asarray(self.mesh.extents, dtype=np.float64)
+
+    @property
+    def extents_t(self) -> np.ndarray:
+        """(3,) float64, mm: bounding-box size in {T} after the nominal grasp."""
+        lo, hi = _bounds_t(self.mesh, self.grasp)
+        return hi - lo
+
+    def vertices_t(self) -> np.ndarray:
+        """(V, 3) float64, mm: the mesh vertices in {T} under the nominal grasp."""
+        return _transform(self.grasp, self.mesh.vertices)
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+# --------------------------------------------------------------------------------------------
+
+def load_part(path, units: str, *, name: str | None = None,
+              grasp: np.ndarray | None = None) -> Part:
+    """Load a CAD part from an STL, OBJ or PLY file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The mesh file. Open (non-watertight) meshes are accepted.
+    units : str
+        Unit of the file's coordinates: one of ``mm``, ``cm``, ``m``, ``inch`` (``metre``,
+        ``in`` and similar spellings are accepted).
+    name : str, optional
+        Part name; default the file's stem.
+    grasp : (4, 4) array_like, optional
+        Nominal ^T X_P in mm; default `centred_grasp` of the mesh (real CAD origins are
+        arbitrary).
+
+    Returns
+    -------
+    Part
+        The mesh in mm, with degenerate faces and unreferenced vertices removed.
+
+    Raises
+    ------
+    PartError
+        Unknown unit, missing, empty or unparseable file, no triangles, non-finite vertices.
+
+    Warns
+    -----
+    PartUnitWarning
+        When the size in mm is implausible for the unit (largest extent < 1 mm or > 2 m).
+    """
+    unit = _canonical_unit(units)
+    p = Path(path)
+    if not p.exists():
+        raise PartError(f"part file not found: {p}")
+    if not p.is_file():
+        raise PartError(f"part path is not a file: {p}")
+    if p.suffix.lower() not in _FORMATS:
+        raise PartError(f"part file {p} has an unsupported format {p.suffix!r}; "
+                        f"supported: {', '.join(_FORMATS)}")
+    if p.stat().st_size == 0:
+        raise PartError(f"part file is empty: {p}")
+    _check_content(p)
+    try:
+        with warnings.catch_warnings():
+            # trimesh's own warnings on odd files are not ours to raise; we check the result.
+            warnings.simplefilter("ignore")
+            loaded = trimesh.load(str(p), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types on a bad file; re-raised with the path
+        raise PartError(f"cannot read part file {p}: {type(exc).__name__}: {exc}") from exc
+    name = p.stem if name is None else name
+    return _make_part(loaded, name=name, unit=unit, source=str(p), grasp=grasp)
+
+
+def _check_content(p: Path) -> None:
+    """Reject binary garbage in formats trimesh would otherwise try to decode as text.
+
+    (Without this, trimesh's text fallback fails with an unrelated error, such as a missing
+    optional charset-detection module.)
+    """
+    suffix = p.suffix.lower()
+    if suffix == ".stl":
+        with open(p, "rb") as fh:
+            head = fh.read(84)
+        size = p.stat().st_size
+        if len(head) == 84:
+            n = int(np.frombuffer(head[80:84], "<u4")[0])
+            if size == 84 + 50 * n:
+                return  # a consistent binary STL
+        if not _is_text(p):
+            expected = f"{84 + 50 * n} bytes for its {n} triangles" if len(head) == 84 else "84"
+            raise PartError(f"cannot read part file {p}: neither a binary STL (its header needs "
+                            f"{expected}, the file has {size}) nor an ASCII STL")
+    elif suffix == ".obj" and not _is_text(p):
+        raise PartError(f"cannot read part file {p}: an OBJ file must be text, this one is binary")
+
+
+def _is_text(p: Path) -> bool:
+    data = p.read_bytes()
+    if b"\x00" in data:
+        return False
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    return True
+
+
+def part_from_mesh(mesh: trimesh.Trimesh, *, name: str, units: str = "mm",
+                   source: str = "procedural", grasp: np.ndarray | None = None) -> Part:
+    """Make a Part from a mesh in memory (copied, converted to mm and cleaned).
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        Triangle mesh in `units`, in the part frame {P}.
+    name : str
+        Part name.
+    units : str
+        Unit of `mesh`, as for `load_part`.
+    source : str
+        Where it came from, e.g. ``"procedural:block"``.
+    grasp : (4, 4) array_like, optional
+        Nominal ^T X_P in mm; default `centred_grasp`.
+
+    Returns
+    -------
+    Part
+
+    Raises
+    ------
+    PartError
+        As `load_part`, for the mesh content.
+    """
+    unit = _canonical_unit(units)
+    return _make_part(mesh, name=name, unit=unit, source=source, grasp=grasp)
+
+
+def reference_meshes_dir() -> Path:
+    """The folder of the reference meshes: ``$FLYSCAN_MESHES`` or ``<repo>/../shared/data/meshes``."""
+    env = os.environ.get(MESHES_ENV)
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[1].parent / "shared" / "data" / "meshes"
+
+
+def load_reference_part(name: str) -> Part:
+    """Load one of the reference parts, with the unit its manifest gives.
+
+    Parameters
+    ----------
+    name : str
+        File name (``"idler_riser.STL"``) or its stem, case-insensitive (``"idler_riser"``).
+
+    Returns
+    -------
+    Part
+
+    Raises
+    ------
+    PartError
+        When the folder or its ``manifest.json`` is missing, or `name` is not in it (the
+        message lists the names available).
+    """
+    folder = reference_meshes_dir()
+    manifest_path = folder / "manifest.json"
+    if not manifest_path.is_file():
+        raise PartError(f"no reference meshes at {folder} (missing manifest.json); "
+                        f"set {MESHES_ENV} to the folder")
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise PartError(f"cannot read {manifest_path}: {exc}") from exc
+    wanted = name.lower()
+    for file_name, entry in manifest.items():
+        if wanted in (file_name.lower(), Path(file_name).stem.lower()):
+            return load_part(folder / file_name, entry["units"], name=Path(file_name).stem)
+    raise PartError(f"no reference part {name!r} in {folder}; available: "
+                    f"{', '.join(sorted(manifest))}")
+
+
+def _canonical_unit(units) -> str:
+    key = str(units).strip().lower() if isinstance(units, str) else None
+    key = _UNIT_ALIASES.get(key, key)
+    if key not in UNITS_MM:
+        raise PartError(f"unknown unit {units!r}; allowed: {', '.join(UNITS_MM)}")
+    return key
+
+
+def _make_part(mesh, *, name: str, unit: str, source: str, grasp) -> Part:
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise PartError(f"part {name!r} ({source}) is not a triangle mesh "
+                        f"(got {type(mesh).__name__})")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if faces.ndim != 2 or len(faces) == 0:
+        raise PartError(f"part {name!r} ({source}) has no triangles")
+    if faces.shape[1] != 3:
+        raise PartError(f"part {name!r} ({source}) faces must be triangles, got {faces.shape}")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise PartError(f"part {name!r} ({source}) has face indices outside its "
+                        f"{len(vertices)} vertices")
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise PartError(f"part {name!r} ({source}) has {int(bad.sum())} vertices with NaN or "
+                        "infinite coordinates")
+    clean = trimesh.Trimesh(vertices * UNITS_MM[unit], faces, process=False)
+    clean.merge_vertices()
+    clean.update_faces(clean.nondegenerate_faces())
+    clean.remove_unreferenced_vertices()
+    if len(clean.faces) == 0:
+        raise PartError(f"part {name!r} ({source}) has no non-degenerate triangles")
+    _warn_if_implausible(clean, name, unit)
+    grasp = centred_grasp(clean) if grasp is None else _check_grasp(grasp)
+    grasp.setflags(write=False)
+    return Part(name=name, mesh=clean, source=source, units=unit, grasp=grasp)
+
+
+def _warn_if_implausible(mesh: trimesh.Trimesh, name: str, unit: str) -> None:
+    size = float(np.max(mesh.extents))
+    lo, hi = _PLAUSIBLE_SIZE_MM
+    if lo <= size <= hi:
+        return
+    raw = size / UNITS_MM[unit]
+    fits = [u for u, f in UNITS_MM.items() if u != unit and lo <= raw * f <= hi]
+    # Prefer the unit that makes the part closest to a typical 100 mm part (log scale).
+    fits.sort(key=lambda u: abs(np.log10(raw * UNITS_MM[u] / 100.0)))
+    hint = f"; did you mean units={fits[0]!r}?" if fits else ""
+    warnings.warn(f"part {name!r} is {size:.6g} mm across with units={unit!r}, which is "
+                  f"implausible{hint}", PartUnitWarning, stacklevel=4)
+
+
+# --------------------------------------------------------------------------------------------
+# Grasp and fit
+# --------------------------------------------------------------------------------------------
+
+def centred_grasp(mesh: trimesh.Trimesh) -> np.ndarray:
+    """The nominal grasp that centres the part under the TCP and hangs it along +z_T.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        Part mesh in {P}, mm.
+
+    Returns
+    -------
+    (4, 4) float64
+        ^T X_P, a pure translation: the centre of the bounding box in x, y goes to the TCP and
+        the minimum z to z_T = 0, so the part occupies z_T in [0, height].
+    """
+    lo, hi = np.asarray(mesh.bounds, dtype=np.float64)
+    x = np.eye(4)
+    x[:2, 3] = -(lo[:2] + hi[:2]) / 2.0
+    x[2, 3] = -lo[2]
+    return x
+
+
+def check_fits(part: Part, volume_mm=INSPECTION_VOLUME_MM) -> None:
+    """Raise when the part, under its nominal grasp, is larger than the inspection volume.
+
+    Parameters
+    ----------
+    part : Part
+    volume_mm : (3,) sequence of float
+        Size of the inspection volume along x_T, y_T, z_T, mm.
+
+    Raises
+    ------
+    PartError
+        Naming the part's size and the volume's.
+    """
+    vol = np.asarray(volume_mm, dtype=np.float64)
+    if vol.shape != (3,) or not np.all(vol > 0):
+        raise ValueError(f"`volume_mm` must be 3 positive sizes, got {volume_mm!r}")
+    ext = part.extents_t
+    if np.any(ext > vol + _FIT_TOL_MM):
+        raise PartError(f"part {part.name!r} is {ext[0]:.1f} x {ext[1]:.1f} x {ext[2]:.1f} mm; "
+                        f"the inspection volume is {vol[0]:g} x {vol[1]:g} x {vol[2]:g} mm")
+
+
+def _check_grasp(grasp) -> np.ndarray:
+    g = np.array(grasp, dtype=np.float64)
+    if g.shape != (4, 4) or not np.all(np.isfinite(g)):
+        raise PartError(f"`grasp` must be a finite (4, 4) matrix, got {g.shape}")
+    r = g[:3, :3]
+    # 1e-6: well above float64 round-off of a composed rotation, far below any real error.
+    if (not np.allclose(g[3], [0, 0, 0, 1]) or not np.allclose(r @ r.T, np.eye(3), atol=1e-6)
+            or np.linalg.det(r) < 0):
+        raise PartError("`grasp` must be a rigid transform (rotation and translation)")
+    return g
+
+
+def _transform(x: np.ndarray, points) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float64)
+    return pts @ x[:3, :3].T + x[:3, 3]
+
+
+def _bounds_t(mesh: trimesh.Trimesh, grasp: np.ndarray) -> np.ndarray:
+    if np.allclose(grasp[:3, :3], np.eye(3)):
+        return np.asarray(mesh.bounds) + grasp[:3, 3]
+    v = _transform(grasp, mesh.vertices)
+    return np.stack([v.min(axis=0), v.max(axis=0)])
+
+
+# --------------------------------------------------------------------------------------------
+# Procedural test part
+# --------------------------------------------------------------------------------------------
+
+# Facets of the hole cylinders: round enough for the stripe and edge tests, few triangles.
+_HOLE_SECTIONS = 48
+# Cutting tools overshoot the faces they cut by this much (mm), so no coplanar faces remain
+# for the boolean engine to resolve.
+_CUT_OVERSHOOT = 1.0
+
+
+def block_with_holes_and_steps(size=(60.0, 40.0, 20.0), *, hole_radius: float = 4.0,
+                               blind_depth: float | None = None,
+                               step_length: float | None = None,
+                               step_depth: float | None = None) -> trimesh.Trimesh:
+    """A watertight test block (mm) with a through hole, a blind hole and a step.
+
+    The block is ``size = (L, W, H)`` in {P} with x in [-L/2, L/2], y in [-W/2, W/2] and z in
+    [0, H], so `centred_grasp` of it is the identity. The features are on the max-z face, the
+    underside that the scanner sees when the part hangs along +z_T:
+
+    - a through hole along z at (-L/4, 0), radius `hole_radius`;
+    - a blind hole from the max-z face at (0, 0), radius `hole_radius`, depth `blind_depth`
+      (default H/2);
+    - a step: the region x > L/2 - `step_length` (default L/4) is lowered from z = H to
+      z = H - `step_depth` (default H/4).
+
+    Hole cylinders have ``_HOLE_SECTIONS`` facets (a regular polygon inscribed in the circle).
+    The features are described in ``mesh.metadata["features"]``.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        Watertight mesh, mm.
+
+    Raises
+    ------
+    ValueError
+        When the features do not fit in the block.
+    ImportError
+        When no boolean engine (manifold3d) is installed.
+    """
+    length, width, height = (float(s) for s in size)
+    if min(length, width, height) <= 0:
+        raise ValueError(f"`size` must be 3 positive lengths, got {size!r}")
+    blind_depth = height / 2.0 if blind_depth is None else float(blind_depth)
+    step_length = length / 4.0 if step_length is None else float(step_length)
+    step_depth = height / 4.0 if step_depth is None else float(step_depth)
+    r = float(hole_radius)
+    through_xy = (-length / 4.0, 0.0)
+    blind_xy = (0.0, 0.0)
+    step_x = length / 2.0 - step_length
+    if not (0 < r and r < width / 2 and through_xy[0] - r > -length / 2
+            and blind_xy[0] + r < step_x and through_xy[0] + r < blind_xy[0] - r):
+        raise ValueError(f"`hole_radius` {r} does not fit the block {size!r}")
+    if not 0 < blind_depth < height:
+        raise ValueError(f"`blind_depth` must be in (0, {height}), got {blind_depth}")
+    if not (0 < step_length < length / 2 and 0 < step_depth < height):
+        raise ValueError(f"step {step_length} x {step_depth} mm does not fit the block {size!r}")
+    _require_boolean_engine()
+
+    block = trimesh.creation.box(extents=(length, width, height))
+    block.apply_translation((0.0, 0.0, height / 2.0))
+    o = _CUT_OVERSHOOT
+    through = trimesh.creation.cylinder(radius=r, height=height + 2 * o, sections=_HOLE_SECTIONS)
+    through.apply_translation((*through_xy, height / 2.0))
+    blind = trimesh.creation.cylinder(radius=r, height=blind_depth + o, sections=_HOLE_SECTIONS)
+    blind.apply_translation((*blind_xy, height - blind_depth + (blind_depth + o) / 2.0))
+    step = trimesh.creation.box(extents=(step_length + o, width + 2 * o, step_depth + o))
+    step.apply_translation((step_x + (step_length + o) / 2.0, 0.0,
+                            height - step_depth + (step_depth + o) / 2.0))
+    mesh = trimesh.boolean.difference([block, through, blind, step], engine="manifold")
+    if not mesh.is_watertight:
+        raise RuntimeError("boolean difference gave a mesh that is not watertight")
+    mesh.metadata["features"] = {
+        "size": (length, width, height),
+        "through_holes": [{"xy": through_xy, "radius": r}],
+        "blind_holes": [{"xy": blind_xy, "radius": r, "depth": blind_depth}],
+        "steps": [{"x_min": step_x, "depth": step_depth}],
+        "hole_sections": _HOLE_SECTIONS,
+    }
+    return mesh
+
+
+def _require_boolean_engine() -> None:
+    try:
+        import manifold3d  # noqa: F401  (trimesh's boolean engine)
+    except ImportError as exc:
+        raise ImportError("block_with_holes_and_steps needs the boolean engine manifold3d: "
+                          "pip install manifold3d") from exc

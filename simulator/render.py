@@ -1,0 +1,246 @@
+"""Frame rendering: what the camera sees of the part in the sheet, and of the LED marker.
+
+For one gripper pose the part is cut by the light plane (exact mesh section), each image
+column of the direct view is intersected with the section, and every intersection that the
+laser reaches and the camera sees (Embree ray casts) becomes a stripe sample at its exact
+sub-pixel row. The LED marker is projected into the direct view and, through each mirror,
+into the mirror views, unless the part hides it. ``simulator.imaging`` turns the samples into
+pixels. The ground truth of every frame comes back with it.
+
+The mesh stays put in {P}; the sheet, camera and laser are moved into {P} instead (the
+paper's section III: moving the virtual setup is cheaper than moving the CAD model).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from scanner_core.geometry import apply_transform
+from simulator.cell import Cell
+from simulator.imaging import render_image
+from simulator.parts import Part
+from simulator.raycast import Intersector
+
+
+@dataclass(frozen=True)
+class FrameTruth:
+    """Exact ground truth of one rendered frame.
+
+    Attributes
+    ----------
+    tcp_b : (3,) float64
+        True TCP position, {B}, mm.
+    part_pose_b : (4, 4) float64
+        ^B X_P at this frame.
+    stripe_columns : (N,) int32
+    stripe_rows : (N,) float64
+        Exact sub-pixel row of each stripe sample (before noise).
+    stripe_points_b : (N, 3) float64
+        The 3-D point of each sample, {B}, mm.
+    stripe_gain : (N,) float64
+        Relative brightness (cosine of the laser's incidence).
+    marker_b : (3,) float64
+        LED centre, {B}, mm.
+    marker_pixels : (3, 2) float64
+        LED centre in the direct, left and right views; NaN where hidden or outside its strip.
+    """
+
+    tcp_b: np.ndarray
+    part_pose_b: np.ndarray
+    stripe_columns: np.ndarray
+    stripe_rows: np.ndarray
+    stripe_points_b: np.ndarray
+    stripe_gain: np.ndarray
+    marker_b: np.ndarray
+    marker_pixels: np.ndarray
+
+
+class PartScene:
+    """A part in the cell, ready to render: the mesh, its intersector and cached normals."""
+
+    def __init__(self, part: Part, cell: Cell):
+        self.part = part
+        self.cell = cell
+
+    @cached_property
+    def intersector(self) -> Intersector:
+        return Intersector(self.part.mesh)
+
+    @cached_property
+    def _vertices(self) -> np.ndarray:
+        return np.asarray(self.part.mesh.vertices, dtype=np.float64)
+
+    @cached_property
+    def _faces(self) -> np.ndarray:
+        return np.asarray(self.part.mesh.faces, dtype=np.int64)
+
+    @cached_property
+    def _face_normals(self) -> np.ndarray:
+        return np.asarray(self.part.mesh.face_normals, dtype=np.float64)
+
+    def part_pose(self, tcp_b: np.ndarray, grasp: np.ndarray) -> np.ndarray:
+        """^B X_P for a TCP position and a true grasp ^T X_P."""
+        pose_t = np.eye(4)
+        pose_t[:3, :3] = self.cell.gripper_rotation_b
+        pose_t[:3, 3] = tcp_b
+        return pose_t @ grasp
+
+    def section(self, pose_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The part cut by the light plane: segments (K, 2, 3) in {P} and their faces (K,)."""
+        r, t = pose_b[:3, :3], pose_b[:3, 3]
+        plane = self.cell.light_plane_b
+        normal_p = r.T @ plane.normal
+        offset_p = plane.offset - plane.normal @ t
+        return slice_mesh(self._vertices, self._faces, normal_p, offset_p)
+
+    def render(self, tcp_b, grasp: np.ndarray, rng: np.random.Generator, *, with_marker=True):
+        """Render one frame.
+
+        Returns
+        -------
+        image : (H, W) uint8
+        truth : FrameTruth
+        """
+        cal = self.cell.calibration
+        cam = cal.camera
+        tcp_b = np.asarray(tcp_b, dtype=np.float64)
+        pose = self.part_pose(tcp_b, grasp)
+        segments, faces = self.section(pose)
+        cols, rows, points_p, seg_index = column_hits(segments, pose, cam, cal.direct_columns)
+        points_b = apply_transform(pose, points_p)
+        keep = (rows >= 0) & (rows <= cam.height - 1) & self._in_fan(points_b)
+        cols, rows, points_p, points_b = cols[keep], rows[keep], points_p[keep], points_b[keep]
+        faces = faces[seg_index[keep]]
+        inv = np.linalg.inv(pose)
+        laser_p = apply_transform(inv, self.cell.laser_origin_b)
+        camera_p = apply_transform(inv, cam.origin)
+        lit = self.intersector.visible(laser_p, points_p)
+        seen = self.intersector.visible(camera_p, points_p)
+        keep = lit & seen
+        cols, rows, points_p, points_b = cols[keep], rows[keep], points_p[keep], points_b[keep]
+        incidence = points_p - laser_p
+        incidence /= np.linalg.norm(incidence, axis=1, keepdims=True)
+        gain = np.abs(np.einsum("ij,ij->i", incidence, self._face_normals[faces[keep]]))
+        marker_b = tcp_b + self.cell.gripper_rotation_b @ cal.marker_offset_t
+        marker_px = self.marker_pixels(marker_b, inv) if with_marker else np.full((3, 2), np.nan)
+        image = render_image(cam.height, cam.width, self.cell.image_model, rng,
+                             stripe_cols=cols, stripe_rows=rows, stripe_gain=gain,
+                             marker_xy=marker_px)
+        truth = FrameTruth(tcp_b, pose, cols.astype(np.int32), rows, points_b, gain, marker_b, marker_px)
+        return image, truth
+
+    def _in_fan(self, points_b: np.ndarray) -> np.ndarray:
+        """Inside the laser's fan (its axis points from the source at the sheet's centre)."""
+        laser = self.cell.laser_origin_b
+        axis = -laser / np.linalg.norm(laser)
+        rays = points_b - laser
+        cos = rays @ axis / np.linalg.norm(rays, axis=1)
+        return cos >= np.cos(np.radians(self.cell.laser_fan_half_angle_deg))
+
+    def marker_pixels(self, marker_b: np.ndarray, inv_pose: np.ndarray) -> np.ndarray:
+        """LED pixels in the three views, NaN where the part hides it or it leaves its strip."""
+        cal = self.cell.calibration
+        cam = cal.camera
+        out = np.full((3, 2), np.nan)
+        # Each view's light path (camera -> LED, or camera -> mirror -> LED) as legs that
+        # the part must not block.
+        views = [(marker_b, [(cam.origin, marker_b)], cal.direct_columns)]
+        for mirror in cal.mirrors:
+            image = apply_transform(mirror.reflection, marker_b)
+            hit = mirror.plane.intersect(cam.origin, image - cam.origin)[0]
+            views.append((image, [(cam.origin, hit), (hit, marker_b)], mirror.columns))
+        for k, (apparent, legs, (c0, c1)) in enumerate(views):
+            px = cam.project(apparent)[0]
+            if not (np.all(np.isfinite(px)) and c0 <= px[0] <= c1 - 1
+                    and 0 <= px[1] <= cam.height - 1):
+                continue
+            starts = apply_transform(inv_pose, np.array([leg[0] for leg in legs]))
+            ends = apply_transform(inv_pose, np.array([leg[1] for leg in legs]))
+            if np.all(self.intersector.visible(starts, ends)):
+                out[k] = px
+        return out
+
+
+def slice_mesh(vertices, faces, normal, offset) -> tuple[np.ndarray, np.ndarray]:
+    """Cut a triangle mesh with the plane ``normal . x = offset``.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64
+    faces : (F, 3) int
+    normal : (3,) float64
+    offset : float
+
+    Returns
+    -------
+    segments : (K, 2, 3) float64
+        One segment per face that crosses the plane.
+    face_index : (K,) int64
+    """
+    s = vertices @ normal - offset
+    sf = s[faces]
+    above = sf >= 0.0  # a vertex on the plane counts as above: no face yields a point-segment twice
+    crossing = above.any(axis=1) & ~above.all(axis=1)
+    index = np.nonzero(crossing)[0]
+    if len(index) == 0:
+        return np.zeros((0, 2, 3)), index
+    v = vertices[faces[index]]
+    sv = sf[index]
+    av = above[index]
+    points = np.empty((len(index), 3, 3))
+    cuts = np.empty((len(index), 3), dtype=bool)
+    for e, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
+        cuts[:, e] = av[:, a] != av[:, b]
+        with np.errstate(divide="ignore", invalid="ignore"):  # uncut edges are discarded below
+            t = sv[:, a] / (sv[:, a] - sv[:, b])
+            points[:, e] = v[:, a] + t[:, None] * (v[:, b] - v[:, a])
+    # Exactly two edges of a crossing face are cut; take them in edge order.
+    order = np.argsort(~cuts, axis=1, kind="stable")[:, :2]
+    segments = np.take_along_axis(points, order[:, :, None], axis=1)
+    return segments, index
+
+
+def column_hits(segments_p, pose_b, camera, columns):
+    """Where each image column's line of sight meets the section segments.
+
+    Each column's pixel rays form a plane through the camera centre; it cuts a segment at
+    most once. Columns are taken half-open along each segment so that a shared endpoint is
+    counted once.
+
+    Returns
+    -------
+    cols : (N,) int64
+    rows : (N,) float64
+        Exact sub-pixel row.
+    points_p : (N, 3) float64
+        The 3-D point, in {P}.
+    segment : (N,) int64
+        Which segment it came from.
+    """
+    if len(segments_p) == 0:
+        return (np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64))
+    seg_b = apply_transform(pose_b, segments_p.reshape(-1, 3))
+    q = camera.to_camera(seg_b).reshape(-1, 2, 3)
+    qa, qb = q[:, 0], q[:, 1]
+    front = (qa[:, 2] > 0) & (qb[:, 2] > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ua = camera.fx * qa[:, 0] / qa[:, 2] + camera.cx
+        ub = camera.fx * qb[:, 0] / qb[:, 2] + camera.cx
+    lo = np.clip(np.ceil(np.minimum(ua, ub)), columns[0], columns[1])
+    hi = np.clip(np.ceil(np.maximum(ua, ub)), columns[0], columns[1])
+    counts = np.where(front, hi - lo, 0).astype(np.int64)
+    segment = np.repeat(np.arange(len(q)), counts)
+    starts = np.repeat(lo.astype(np.int64), counts)
+    offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    cols = starts + offsets
+    k = (cols - camera.cx) / camera.fx
+    a, b = qa[segment], qb[segment]
+    d = b - a
+    t = (k * a[:, 2] - a[:, 0]) / (d[:, 0] - k * d[:, 2])
+    t = np.clip(t, 0.0, 1.0)
+    x = a + t[:, None] * d
+    rows = camera.fy * x[:, 1] / x[:, 2] + camera.cy
+    points_p = segments_p[segment, 0] + t[:, None] * (segments_p[segment, 1] - segments_p[segment, 0])
+    return cols, rows, points_p, segment
