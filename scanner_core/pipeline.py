@@ -34,6 +34,9 @@ class PipelineParams:
     stripe_method : str
         One of ``scanner_core.stripe.METHODS``.
     stripe_threshold_dn : float
+    min_peak_dn : float
+        Columns whose stripe peaks lower are dropped: on grazing surfaces the stripe fades
+        into the noise and its centre errs by tenths of a pixel.
     marker : scanner_core.marker.MarkerParams
     marker_mask_px : float
         Stripe columns closer than this to the marker in the direct view are dropped: the LED
@@ -44,6 +47,7 @@ class PipelineParams:
 
     stripe_method: str = "cog"
     stripe_threshold_dn: float = 20.0
+    min_peak_dn: float = 40.0
     marker: marker_mod.MarkerParams = field(default_factory=marker_mod.MarkerParams)
     marker_mask_px: float = 12.0
     max_marker_residual_px: float = 1.0
@@ -77,7 +81,7 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
     result = stripe_mod.extract(image, method=params.stripe_method,
                                 threshold=params.stripe_threshold_dn,
                                 columns=calibration.direct_columns)
-    valid = result.valid.copy()
+    valid = result.valid & (result.peak >= params.min_peak_dn)
     direct_px = marker.pixels[0]
     if np.all(np.isfinite(direct_px)):
         near = np.abs(np.arange(image.shape[1]) - direct_px[0]) <= params.marker_mask_px

@@ -96,7 +96,7 @@ def _cmd_scan(args) -> int:
           f"{report['camera_time_s']:.2f} s of camera time")
     if acc.get("points_evaluated"):
         print(f"accuracy: RMS {acc['rms_um']:.1f} um, p99 {acc['p99_um']:.1f} um, "
-              f"unseen points {acc.get('unseen_points')}")
+              f"points without a visible source {acc.get('unmatched_points')}")
     for key, path in paths.items():
         print(f"{key}: {path}")
     return 0

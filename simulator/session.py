@@ -141,10 +141,8 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
     }
     if evaluate:
         t0 = time.perf_counter()
-        truths = sim.camera.truths
-        poses = {fid: truths[fid].part_pose_b for fid in np.unique(scan.frame_ids)}
         report["ground_truth"]["accuracy"] = cloud_accuracy(
-            scan.cloud, scan.frame_ids, part.mesh, sim.true_grasp, poses,
-            cell.calibration.camera.origin, sim.scene.intersector, seed=seed)
+            scan.cloud, scan.frame_ids, part.mesh, sim.true_grasp, sim.camera.truths,
+            cell.gripper_rotation_b, seed=seed)
         report["ground_truth"]["accuracy"]["eval_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
     return scan, report

@@ -1,0 +1,166 @@
+"""Stripe extraction against analytic ground truth rendered by the reference image model."""
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from scanner_core.stripe import METHODS, Reason, StripeResult, extract
+from simulator.imaging import ImageModel, cramer_rao_bound_px, render_image
+
+HEIGHT = 64
+N_COLUMNS = 4000
+# RMS error bounds (px) per method at the reference model (noise 3 DN, speckle 0.1); measured
+# 0.026 / 0.038 / 0.042 / 0.023 / 0.020 on the reference frames, with ~10 % margin.
+RMS_TOL_PX = {"cog": 0.035, "gaussian3": 0.045, "parabola": 0.05, "blais_rioux": 0.03}
+# The least-squares Gaussian fit must approach the Cramer-Rao bound.
+LSQ_CRB_FACTOR = 1.3
+# No estimator may be biased by more than this (px); the standard error of the mean here is
+# about 0.0007 px.
+BIAS_TOL_PX = 0.01
+# Every column of a clean single stripe must be found, except the ~0.7 % that the reference
+# speckle (+20 % amplitude, 2 sigma) pushes into saturation.
+MIN_VALID_FRACTION = 0.98
+MIN_VALID_FRACTION_NO_SPECKLE = 0.999
+
+
+@pytest.fixture(scope="module")
+def reference_frame():
+    rng = np.random.default_rng(20240601)
+    cols = np.arange(N_COLUMNS)
+    rows = rng.uniform(16.0, HEIGHT - 16.0, N_COLUMNS)  # uniform sub-pixel phase
+    img = render_image(HEIGHT, N_COLUMNS, ImageModel(), rng, stripe_cols=cols, stripe_rows=rows)
+    return img, rows
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_accuracy_against_ground_truth(reference_frame, method):
+    img, truth = reference_frame
+    res = extract(img, method=method)
+    assert res.valid.mean() >= MIN_VALID_FRACTION
+    assert np.all(res.reason[~res.valid] == Reason.SATURATED)
+    err = (res.row - truth)[res.valid]
+    rms = float(np.sqrt(np.mean(err**2)))
+    tol = LSQ_CRB_FACTOR * cramer_rao_bound_px(ImageModel()) if method == "lsq_gauss" else RMS_TOL_PX[method]
+    assert rms < tol, f"{method}: RMS {rms:.4f} px >= {tol:.4f} px"
+    assert abs(float(np.mean(err))) < BIAS_TOL_PX
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_result_contract(reference_frame, method):
+    img, _ = reference_frame
+    res = extract(img, method=method)
+    assert isinstance(res, StripeResult)
+    for name, dtype in (("row", np.float32), ("peak", np.float32), ("width", np.float32),
+                        ("valid", np.bool_), ("reason", np.uint8)):
+        arr = getattr(res, name)
+        assert arr.shape == (N_COLUMNS,) and arr.dtype == dtype, name
+    assert np.array_equal(res.valid, res.reason == Reason.OK)
+    assert np.all(np.isnan(res.row) == ~res.valid)
+    assert_allclose(res.peak, img.max(axis=0))
+    # sigma-like width of the 1.5 px stripe
+    assert 1.2 < float(np.median(res.width[res.valid])) < 1.8
+
+
+def _render_columns(rows_per_col, gains_per_col, seed=0, height=HEIGHT, model=ImageModel()):
+    cols, rows, gains = [], [], []
+    for c, (rr, gg) in enumerate(zip(rows_per_col, gains_per_col)):
+        cols += [c] * len(rr)
+        rows += list(rr)
+        gains += list(gg)
+    return render_image(height, len(rows_per_col), model, np.random.default_rng(seed),
+                        stripe_cols=np.array(cols, int), stripe_rows=np.array(rows, float),
+                        stripe_gain=np.array(gains, float))
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_saturated_columns_invalid(method):
+    n = 200
+    img = _render_columns([[30.3]] * n, [[2.0]] * n)
+    assert (img == 255).any(axis=0).all()
+    res = extract(img, method=method)
+    assert not res.valid.any()
+    assert np.all(res.reason == Reason.SATURATED)
+    assert np.all(np.isnan(res.row))
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_empty_columns_invalid(method):
+    # background and read noise only: noise pixels above the threshold must not pass as stripes
+    img = render_image(HEIGHT, 5000, ImageModel(), np.random.default_rng(1))
+    res = extract(img, method=method)
+    assert not res.valid.any()
+    assert np.all(np.isnan(res.row))
+    assert set(np.unique(res.reason)) <= {Reason.NO_PEAK, Reason.TOO_NARROW}
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("main_first", [True, False])
+def test_double_peaked_columns_invalid(method, main_first):
+    n = 300
+    main, second = (15.2, 45.7) if main_first else (45.7, 15.2)
+    img = _render_columns([[main, second]] * n, [[1.0, 0.5]] * n, model=ImageModel(speckle_contrast=0.0))
+    res = extract(img, method=method)
+    assert not res.valid.any()
+    assert np.all(res.reason == Reason.DOUBLE)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_weak_second_peak_tolerated(method):
+    # a reflection at 10 % of the stripe stays below DOUBLE_PEAK_RATIO: the column is kept
+    n = 300
+    img = _render_columns([[15.2, 45.7]] * n, [[1.0, 0.1]] * n, model=ImageModel(speckle_contrast=0.0))
+    res = extract(img, method=method)
+    assert res.valid.mean() >= MIN_VALID_FRACTION_NO_SPECKLE
+    assert np.all(np.abs(res.row[res.valid] - 15.2) < 0.2)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_too_wide_invalid(method):
+    n = 100
+    model = ImageModel(stripe_sigma_px=6.0, speckle_contrast=0.0)
+    img = _render_columns([[32.0]] * n, [[1.0]] * n, model=model)
+    res = extract(img, method=method, max_width=4.0)
+    assert not res.valid.any()
+    assert np.all(res.reason == Reason.TOO_WIDE)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_columns_slice(reference_frame, method):
+    img, truth = reference_frame
+    c0, c1 = 100, 350
+    res = extract(img, method=method, columns=(c0, c1))
+    full = extract(img, method=method)
+    inside = np.zeros(img.shape[1], bool)
+    inside[c0:c1] = True
+    assert not res.valid[~inside].any()
+    assert np.all(res.reason[~inside] == Reason.NOT_PROCESSED)
+    assert np.all(np.isnan(res.row[~inside]))
+    assert_allclose(res.row[inside], full.row[inside], equal_nan=True)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [np.zeros((8, 8, 3), np.uint8), np.zeros((8, 8), np.float32), np.zeros(8, np.uint8),
+     np.zeros((8, 8), np.uint16), [[0, 1], [2, 3]]],
+)
+def test_bad_image_raises(bad):
+    with pytest.raises(ValueError, match="`image` must be 2-D uint8"):
+        extract(bad)
+
+
+def test_bad_options_raise():
+    img = np.zeros((16, 16), np.uint8)
+    with pytest.raises(ValueError, match="`method`"):
+        extract(img, method="nope")
+    with pytest.raises(ValueError, match="`columns`"):
+        extract(img, columns=(5, 40))
+    with pytest.raises(ValueError, match="`window`"):
+        extract(img, window=1)
+    with pytest.raises(ValueError, match="unknown parameter"):
+        extract(img, thresh=3)
+
+
+def test_non_contiguous_image(reference_frame):
+    img, _ = reference_frame
+    view = img[:, ::2]
+    assert_allclose(extract(view).row, extract(np.ascontiguousarray(view)).row, equal_nan=True)
