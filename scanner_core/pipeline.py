@@ -147,7 +147,14 @@ def stitch(profiles: list[Profile], calibration: Calibration, gripper_rotation_b
         tcp_times=np.array(times),
         frames=len(placed),
         frames_dropped=dropped,
+        frames_unplaced=len(profiles) - len(placed),
+        marker_residual_px=_median_residual(profiles),
     )
+
+
+def _median_residual(profiles: list[Profile]) -> float:
+    residuals = [p.marker.residual_px for p in profiles if np.isfinite(p.marker.residual_px)]
+    return float(np.median(residuals)) if residuals else float("nan")
 
 
 def scan_frames(frames: Iterable[Frame], calibration: Calibration, gripper_rotation_b: np.ndarray,

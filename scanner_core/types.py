@@ -103,6 +103,11 @@ class Scan:
         Frames that contributed a profile.
     frames_dropped : int
         Gaps in the camera's frame ids during the pass.
+    frames_unplaced : int
+        Triggered frames left out because the marker could not be triangulated (fewer than
+        two views, or views that disagree: a calibration that does not fit the cell).
+    marker_residual_px : float
+        Median RMS reprojection residual of the marker over the triggered frames.
     timings_ms : dict
         Wall time per stage.
     """
@@ -115,4 +120,6 @@ class Scan:
     tcp_times: np.ndarray
     frames: int
     frames_dropped: int
+    frames_unplaced: int = 0
+    marker_residual_px: float = float("nan")
     timings_ms: dict = field(default_factory=dict)

@@ -86,6 +86,10 @@ def _cmd_scan(args) -> int:
                                       drop_rate=args.drop_rate,
                                       params=PipelineParams(stripe_method=args.method),
                                       evaluate=not args.no_eval)
+    if scan.frames == 0 and scan.frames_unplaced > 0:
+        raise RuntimeError(
+            f"the marker was seen in {scan.frames_unplaced} frames but could not be placed "
+            f"(median residual {scan.marker_residual_px:.2f} px): does the calibration fit the cell?")
     if scan.frames == 0:
         raise RuntimeError("the marker never triggered: no profile was acquired")
     report["wall_s"] = round(time.perf_counter() - t0, 3)
