@@ -93,6 +93,17 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
                    result.peak[columns].astype(np.float32), marker)
 
 
+def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams()) -> float:
+    """Compile the numba kernels before the first pass (on a blank frame), so that no
+    frame of a pass waits for the JIT. Returns the time it took, ms."""
+    t0 = time.perf_counter()
+    cam = calibration.camera
+    blank = Frame(np.zeros((cam.height, cam.width), np.uint8), -1, 0.0)
+    marker_mod.marker_present(blank.image, strips=calibration.strips, params=params.marker)
+    process_frame(blank, calibration, params)
+    return (time.perf_counter() - t0) * 1e3
+
+
 def pass_frames(frames: Iterable[Frame], calibration: Calibration,
                 params: PipelineParams = PipelineParams()) -> Iterator[Frame]:
     """The trigger: yield the frames of one pass, from the first frame that shows the marker

@@ -62,6 +62,8 @@ def _cmd_scan(args) -> int:
     # Everything is checked before the pass is simulated: a bad input writes nothing.
     if args.method not in METHODS:
         raise UsageError(f"--method must be one of {', '.join(METHODS)}, got {args.method!r}")
+    if args.demo and args.units is not None:
+        raise UsageError("--units applies only to --part: the demo part is built in mm")
     if args.part is not None and args.units is None:
         raise UsageError("--units is required with --part: a mesh file carries no reliable unit")
     for name in ("speed", "fps"):

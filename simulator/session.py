@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from scanner_core.calibration import Calibration
 from scanner_core.devices import CameraClosed, Robot
-from scanner_core.pipeline import PipelineParams, scan_frames
+from scanner_core.pipeline import PipelineParams, scan_frames, warm_up
 from scanner_core.types import Scan
 from simulator.cell import Cell
 from simulator.devices import SimCamera, SimClock, SimRobot
@@ -110,6 +110,7 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
     """
     sim = simulated_cell(part, cell, misplacement=misplacement, seed=seed, drop_rate=drop_rate)
     calibration = cell.calibration if calibration is None else calibration
+    warmup_ms = warm_up(calibration, params)
     sim.camera.open()
     sim.robot.connect()
     try:
@@ -127,7 +128,8 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
         "marker_residual_px": None if np.isnan(scan.marker_residual_px) else scan.marker_residual_px,
         "points": int(len(scan.cloud)),
         "edge_points": int(len(scan.edges)),
-        "timings_ms": {**scan.timings_ms, "processing": round(processing_ms, 3)},
+        "timings_ms": {**scan.timings_ms, "processing": round(processing_ms, 3),
+                       "warmup": round(warmup_ms, 3)},
         "camera_time_s": camera_time_s,
         "realtime_factor": (camera_time_s * 1e3 / processing_ms) if processing_ms > 0 else None,
         "pose": None,

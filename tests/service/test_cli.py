@@ -1,0 +1,93 @@
+"""The ``flyscan`` command: a real scan to real files, and every bad input refused cleanly."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from scanner_core.ply import read_ply
+from service.cli import main
+from simulator.parts import block_with_holes_and_steps
+
+REPORT_KEYS = {"frames", "frames_dropped", "points", "edge_points", "timings_ms", "pose", "ground_truth"}
+
+
+@pytest.fixture(scope="module")
+def block_stl(tmp_path_factory):
+    path = tmp_path_factory.mktemp("parts") / "block_inch.stl"
+    mesh = block_with_holes_and_steps()
+    mesh.apply_scale(1 / 25.4)  # written in inches, as CAD exports often are
+    mesh.export(path)
+    return path
+
+
+def test_scan_writes_the_contract_files(block_stl, tmp_path):
+    out = tmp_path / "scan"
+    code = main(["scan", "--part", str(block_stl), "--units", "inch", "--fps", "60",
+                 "--misplace", "0.5,0,0,0,0,1", "--seed", "3", "--out", str(out)])
+    assert code == 0
+    report = json.loads((out / "report.json").read_text())
+    assert REPORT_KEYS <= report.keys()
+    assert report["pose"] is None
+    assert report["points"] > 1000 and report["edge_points"] == 0
+    assert report["ground_truth"]["accuracy"]["rms_um"] <= 20.0
+    points, fields = read_ply(out / "cloud.ply")
+    assert points.dtype == np.float32 and points.shape == (report["points"], 3)
+    assert set(fields) == {"frame_id", "quality"}
+    # Another tool opens the same file and finds the same points, in mm.
+    other = trimesh.load(out / "cloud.ply")
+    np.testing.assert_allclose(np.asarray(other.vertices), points, atol=1e-6)
+    assert np.ptp(points[:, 0]) > 55.0  # the 60 mm block, not 60 inches or 2.4 mm
+    edges, _ = read_ply(out / "edges.ply")
+    assert edges.shape == (0, 3)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--units", "furlong"], "unknown unit"),
+    ([], "--units is required"),
+    (["--units", "inch", "--speed", "-5"], "--speed must be positive"),
+    (["--units", "inch", "--misplace", "1,2,3"], "--misplace must be six"),
+    (["--units", "inch", "--method", "magic"], "--method must be one of"),
+])
+def test_bad_input_is_refused_and_nothing_written(block_stl, tmp_path, capsys, argv, message):
+    out = tmp_path / "scan"
+    code = main(["scan", "--part", str(block_stl), *argv, "--out", str(out)])
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("content, suffix, message", [
+    (b"", ".stl", "empty"),
+    (bytes(range(256)) * 20, ".stl", "cannot read"),
+    (None, ".stl", "not found"),
+])
+def test_broken_files(tmp_path, capsys, content, suffix, message):
+    path = tmp_path / f"part{suffix}"
+    if content is not None:
+        path.write_bytes(content)
+    out = tmp_path / "scan"
+    code = main(["scan", "--part", str(path), "--units", "mm", "--out", str(out)])
+    assert code == 2
+    assert message in capsys.readouterr().err.lower()
+    assert not out.exists()
+
+
+def test_too_large_part(tmp_path, capsys):
+    path = tmp_path / "slab.stl"
+    trimesh.creation.box(extents=(200.0, 50.0, 10.0)).export(path)
+    code = main(["scan", "--part", str(path), "--units", "mm", "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert "inspection volume" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_console_script_exit_code(tmp_path):
+    """The installed command, as a user runs it, fails non-zero on a bad unit."""
+    exe = [sys.executable, "-m", "service.cli"]
+    proc = subprocess.run([*exe, "scan", "--demo", "--units", "parsec", "--out", str(tmp_path / "o")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "--units applies only to --part" in proc.stderr
