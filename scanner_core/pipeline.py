@@ -21,7 +21,8 @@ import numpy as np
 from scanner_core import marker as marker_mod
 from scanner_core import stripe as stripe_mod
 from scanner_core.calibration import Calibration
-from scanner_core.geometry import triangulate_marker, triangulate_stripe
+from scanner_core.devices import CameraTimeout
+from scanner_core.geometry import reproject_marker, triangulate_marker, triangulate_stripe
 from scanner_core.types import Frame, MarkerObservation, Profile, Scan
 
 
@@ -43,6 +44,8 @@ class PipelineParams:
         is bright enough to pass for the stripe there.
     max_marker_residual_px : float
         A marker whose views disagree by more than this (RMS reprojection) is rejected.
+    trigger_gap_frames : int
+        The pass ends after this many consecutive frames without the marker.
     """
 
     stripe_method: str = "cog"
@@ -51,6 +54,7 @@ class PipelineParams:
     marker: marker_mod.MarkerParams = field(default_factory=marker_mod.MarkerParams)
     marker_mask_px: float = 12.0
     max_marker_residual_px: float = 1.0
+    trigger_gap_frames: int = 3
 
 
 def observe_marker(image: np.ndarray, calibration: Calibration, params: PipelineParams) -> MarkerObservation:
@@ -83,6 +87,10 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
                                 columns=calibration.direct_columns)
     valid = result.valid & (result.peak >= params.min_peak_dn)
     direct_px = marker.pixels[0]
+    if not np.all(np.isfinite(direct_px)) and marker.valid:
+        # Seen only in the mirrors (cut off at the image edge, or hidden): mask where the
+        # direct view must show it, since a partial blob still passes for the stripe.
+        direct_px = reproject_marker(marker.position_b, calibration.camera, calibration.mirrors)[0]
     if np.all(np.isfinite(direct_px)):
         near = np.abs(np.arange(image.shape[1]) - direct_px[0]) <= params.marker_mask_px
         valid &= ~(near & (np.abs(result.row - direct_px[1]) <= params.marker_mask_px * 4))
@@ -106,17 +114,26 @@ def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams())
 
 def pass_frames(frames: Iterable[Frame], calibration: Calibration,
                 params: PipelineParams = PipelineParams()) -> Iterator[Frame]:
-    """The trigger: yield the frames of one pass, from the first frame that shows the marker
-    to the last before it disappears again (paper section V: the LED triggers the scan)."""
+    """The trigger: yield the frames of one pass (paper section V: the LED triggers the scan).
+
+    The pass starts at the first frame that shows the marker and ends once
+    ``params.trigger_gap_frames`` frames in a row have not shown it; frames missing the marker
+    inside the pass (a view hidden for a moment) are kept, those after its end are not.
+    """
     started = False
+    pending: list[Frame] = []
     for frame in frames:
         present = marker_mod.marker_present(frame.image, strips=calibration.strips,
                                             params=params.marker)
         if present:
             started = True
+            yield from pending
+            pending.clear()
             yield frame
         elif started:
-            return
+            pending.append(frame)
+            if len(pending) >= params.trigger_gap_frames:
+                return
 
 
 def stitch(profiles: list[Profile], calibration: Calibration, gripper_rotation_b: np.ndarray) -> Scan:
@@ -173,10 +190,13 @@ def scan_frames(frames: Iterable[Frame], calibration: Calibration, gripper_rotat
     """A stream of frames -> the scan of the pass it contains (trigger, profiles, stitching).
 
     Wall time per stage lands in ``Scan.timings_ms``: ``acquire`` (waiting for / producing
-    frames), ``trigger``, ``profiles`` and ``stitch``.
+    frames), ``trigger``, ``profiles`` and ``stitch``. A camera that stops mid-pass (it raises
+    ``CameraTimeout``) ends the pass: what was acquired is stitched and ``Scan.interrupted``
+    says why.
     """
     timings = {"acquire": 0.0, "trigger": 0.0, "profiles": 0.0, "stitch": 0.0}
     source = iter(frames)
+    interrupted = []
 
     def timed_source():
         while True:
@@ -184,6 +204,9 @@ def scan_frames(frames: Iterable[Frame], calibration: Calibration, gripper_rotat
             try:
                 frame = next(source)
             except StopIteration:
+                return
+            except CameraTimeout as exc:
+                interrupted.append(f"camera timeout: {exc}")
                 return
             timings["acquire"] += time.perf_counter() - t0
             yield frame
@@ -205,4 +228,5 @@ def scan_frames(frames: Iterable[Frame], calibration: Calibration, gripper_rotat
     scan = stitch(profiles, calibration, gripper_rotation_b)
     timings["stitch"] = time.perf_counter() - t0
     scan.timings_ms = {k: round(v * 1e3, 3) for k, v in timings.items()}
+    scan.interrupted = interrupted[0] if interrupted else None
     return scan

@@ -99,6 +99,8 @@ class Scan:
         Edge points in {T}, mm (empty until edge extraction exists).
     tcp_positions_b : (F, 3) float64
         Marker-derived TCP position per used frame, {B}, mm.
+    tcp_times : (F,) float64
+        Camera time of those frames, s.
     frames : int
         Frames that contributed a profile.
     frames_dropped : int
@@ -110,6 +112,8 @@ class Scan:
         Median RMS reprojection residual of the marker over the triggered frames.
     timings_ms : dict
         Wall time per stage.
+    interrupted : str or None
+        Why the pass ended early (the camera stopped), or None for a complete pass.
     """
 
     cloud: np.ndarray
@@ -123,3 +127,4 @@ class Scan:
     frames_unplaced: int = 0
     marker_residual_px: float = float("nan")
     timings_ms: dict = field(default_factory=dict)
+    interrupted: str | None = None

@@ -49,7 +49,8 @@ class PassProfile:
     accel_fraction: float = 0.25
     bow_mm: float = 3.0
     rise_mm: float = 1.5
-    lead_in_s: float = 0.05
+    lead_in_s: float = 0.3
+    lead_out_s: float = 0.3
 
 
 #: The paper's two configurations (section II and V).

@@ -44,8 +44,6 @@ class SimCamera:
     drop_rate : float
         Probability that a frame is lost between camera and host (its id is skipped).
     clock : SimClock
-    lead_out_s : float
-        Frames keep coming for this long after the pass (the marker then leaves the view).
     """
 
     scene: PartScene
@@ -54,7 +52,6 @@ class SimCamera:
     seed: int = 0
     drop_rate: float = 0.0
     clock: SimClock = field(default_factory=SimClock)
-    lead_out_s: float = 0.05
     truths: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self):
@@ -76,7 +73,7 @@ class SimCamera:
     def frame_count(self) -> int:
         """Frames the pass spans from lead-in to lead-out."""
         p = self.scene.cell.pass_profile
-        return int(np.floor((p.lead_in_s + self.motion.duration_s + self.lead_out_s) * self.fps)) + 1
+        return int(np.floor((p.lead_in_s + self.motion.duration_s + p.lead_out_s) * self.fps)) + 1
 
     def time_of(self, frame_id: int) -> float:
         """Exposure time of a frame on the pass clock (lead-in before t = 0)."""

@@ -32,24 +32,31 @@ class PassMotion:
         return self.length_mm / self.profile.speed_mm_s
 
     def distance(self, t) -> np.ndarray:
-        """Distance travelled along y at time ``t`` (s), clamped to the pass. mm."""
-        p = self.profile
-        tau = np.clip(np.asarray(t, dtype=np.float64), 0.0, self.duration_s)
-        v, a, dur = p.speed_mm_s, p.accel_fraction, self.duration_s
-        return v * ((1.0 - a) * tau + a * tau**2 / dur)
+        """Distance travelled along y since the start of the pass at time ``t`` (s), mm.
 
-    def speed(self, t) -> np.ndarray:
-        """Speed along y, mm/s (zero outside the pass)."""
+        Before the pass the robot arrives at its initial speed and after it leaves at its
+        final speed: the marker enters and leaves the view while moving, as in a real cell.
+        """
         p = self.profile
         t = np.asarray(t, dtype=np.float64)
-        v = p.speed_mm_s * (1.0 - p.accel_fraction + 2.0 * p.accel_fraction * t / self.duration_s)
-        return np.where((t >= 0) & (t <= self.duration_s), v, 0.0)
+        v, a, dur = p.speed_mm_s, p.accel_fraction, self.duration_s
+        tau = np.clip(t, 0.0, dur)
+        inside = v * ((1.0 - a) * tau + a * tau**2 / dur)
+        before = v * (1.0 - a) * np.minimum(t, 0.0)
+        after = v * (1.0 + a) * np.maximum(t - dur, 0.0)
+        return inside + before + after
+
+    def speed(self, t) -> np.ndarray:
+        """Speed along y, mm/s."""
+        p = self.profile
+        tau = np.clip(np.asarray(t, dtype=np.float64), 0.0, self.duration_s)
+        return p.speed_mm_s * (1.0 - p.accel_fraction + 2.0 * p.accel_fraction * tau / self.duration_s)
 
     def tcp_position(self, t) -> np.ndarray:
         """TCP position in {B} at time(s) ``t``: (..., 3) mm."""
         p = self.profile
         s = self.distance(t)
-        frac = s / self.length_mm
+        frac = np.clip(s / self.length_mm, 0.0, 1.0)  # the bow and rise belong to the pass
         return np.stack([p.bow_mm * np.sin(np.pi * frac),
                          p.start_y_mm + s,
                          p.height_mm + p.rise_mm * frac**2], axis=-1)

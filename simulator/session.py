@@ -125,6 +125,7 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
         "frames": scan.frames,
         "frames_dropped": scan.frames_dropped,
         "frames_unplaced": scan.frames_unplaced,
+        "interrupted": scan.interrupted,
         "marker_residual_px": None if np.isnan(scan.marker_residual_px) else scan.marker_residual_px,
         "points": int(len(scan.cloud)),
         "edge_points": int(len(scan.edges)),

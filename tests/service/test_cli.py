@@ -91,3 +91,27 @@ def test_console_script_exit_code(tmp_path):
                           capture_output=True, text=True)
     assert proc.returncode == 2
     assert "--units applies only to --part" in proc.stderr
+
+
+def test_wrong_calibration_is_refused(tmp_path, capsys):
+    """A calibration that does not fit the (perturbed) cell: a clear error, no files."""
+    from scanner_core.calibration import save_calibration
+    from simulator.cell import load_cell
+    cal_path = tmp_path / "nominal.json"
+    save_calibration(cal_path, load_cell().calibration)
+    out = tmp_path / "o"
+    code = main(["scan", "--demo", "--fps", "40", "--perturb-seed", "4",
+                 "--calibration", str(cal_path), "--out", str(out)])
+    assert code == 2
+    assert "does the calibration fit the cell?" in capsys.readouterr().err
+    assert not out.exists()
+    # The same cell with its own truth scans fine.
+    assert main(["scan", "--demo", "--fps", "40", "--perturb-seed", "4", "--out", str(out)]) == 0
+
+
+def test_malformed_calibration_file(tmp_path, capsys):
+    bad = tmp_path / "cal.json"
+    bad.write_text('{"camera": {"fx": 1}}')
+    code = main(["scan", "--demo", "--calibration", str(bad), "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert "calibration" in capsys.readouterr().err

@@ -20,7 +20,10 @@ def test_pass_accelerates_and_curves():
     assert_allclose(ds[1:-1], v[1:-1], rtol=1e-6)
 
 
-def test_position_clamped_outside_the_pass():
+def test_robot_arrives_and_leaves_moving():
     motion = PassMotion(PassProfile())
-    assert_allclose(motion.tcp_position(-1.0), motion.tcp_position(0.0))
-    assert_allclose(motion.tcp_position(99.0), motion.tcp_position(motion.duration_s))
+    p = PassProfile()
+    before, start = motion.tcp_position(-0.1), motion.tcp_position(0.0)
+    assert_allclose(start[1] - before[1], 0.1 * p.speed_mm_s * (1 - p.accel_fraction))
+    end, after = motion.tcp_position(motion.duration_s), motion.tcp_position(motion.duration_s + 0.1)
+    assert_allclose(after[1] - end[1], 0.1 * p.speed_mm_s * (1 + p.accel_fraction))
