@@ -49,6 +49,8 @@ import numba
 import numpy as np
 from scipy import ndimage
 
+from scanner_core._linsolve import solve_in_place
+
 __all__ = ["MarkerParams", "find_marker", "find_markers", "marker_present"]
 
 # The sensor's saturation value: clipped pixels carry no amplitude information.
@@ -488,36 +490,6 @@ def _refine(image, c0, c1, x, y, params: MarkerParams, merged: bool):
 
 
 @numba.njit(cache=True, nogil=True)
-def _solve5(a, v):
-    """Solve the 5x5 system a x = v by Gaussian elimination with partial pivoting (no BLAS)."""
-    n = 5
-    m = a.copy()
-    x = v.copy()
-    for k in range(n):
-        piv = k
-        for i in range(k + 1, n):
-            if abs(m[i, k]) > abs(m[piv, k]):
-                piv = i
-        if m[piv, k] == 0.0:
-            return x, False
-        if piv != k:
-            for j in range(n):
-                m[k, j], m[piv, j] = m[piv, j], m[k, j]
-            x[k], x[piv] = x[piv], x[k]
-        for i in range(k + 1, n):
-            f = m[i, k] / m[k, k]
-            for j in range(k, n):
-                m[i, j] -= f * m[k, j]
-            x[i] -= f * x[k]
-    for k in range(n - 1, -1, -1):
-        s = x[k]
-        for j in range(k + 1, n):
-            s -= m[k, j] * x[j]
-        x[k] = s / m[k, k]
-    return x, True
-
-
-@numba.njit(cache=True, nogil=True)
 def _gauss_cost(img, use, p):
     ss = 0.0
     inv2s2 = 0.5 / (p[4] * p[4])
@@ -599,8 +571,8 @@ def _fit_kernel(win, mask0, x0, y0, sigma, outlier_dn, tol, max_iter, max_rounds
                 a = jtj.copy()
                 for i in range(5):
                     a[i, i] *= 1.0 + lam
-                step, ok = _solve5(a, jtr)
-                if not ok:
+                step = jtr.copy()
+                if not solve_in_place(a, step):
                     return p[0], p[1], p[2], p[3], p[4], np.inf, 1.0, 1
                 trial = p + step
                 if trial[4] > 0.0:

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from scanner_core._linsolve import solve_in_place
+
 __all__ = ["METHODS", "StripeResult", "extract", "Reason"]
 
 METHODS = ("cog", "gaussian3", "parabola", "blais_rioux", "lsq_gauss")
@@ -347,40 +349,6 @@ def _blais_rioux(img, c, a, h):
     return math.nan
 
 
-@njit(nogil=True, cache=True)
-def _solve4(m, v):
-    """Solve the 4x4 system m x = v in place (Gaussian elimination, partial pivoting).
-
-    Returns False when singular.
-    """
-    n = 4
-    for k in range(n):
-        p = k
-        for i in range(k + 1, n):
-            if abs(m[i, k]) > abs(m[p, k]):
-                p = i
-        if abs(m[p, k]) < 1e-12:
-            return False
-        if p != k:
-            for j in range(n):
-                t = m[k, j]
-                m[k, j] = m[p, j]
-                m[p, j] = t
-            t = v[k]
-            v[k] = v[p]
-            v[p] = t
-        for i in range(k + 1, n):
-            f = m[i, k] / m[k, k]
-            for j in range(k, n):
-                m[i, j] -= f * m[k, j]
-            v[i] -= f * v[k]
-    for k in range(n - 1, -1, -1):
-        s = v[k]
-        for j in range(k + 1, n):
-            s -= m[k, j] * v[j]
-        v[k] = s / m[k, k]
-    return True
-
 
 @njit(nogil=True, cache=True)
 def _lsq_gauss(img, c, a, h, threshold, window, mu0, s0):
@@ -433,7 +401,7 @@ def _lsq_gauss(img, c, a, h, threshold, window, mu0, s0):
                     acc += jt[p, i] * jt[q, i]
                 m[p, q] = acc
                 m[q, p] = acc
-        if not _solve4(m, v):
+        if not solve_in_place(m, v):
             return math.nan
         b += v[0]
         amp += v[1]

@@ -14,7 +14,7 @@ import numpy as np
 from scanner_core.devices import CameraClosed, TcpPose
 from scanner_core.types import Frame
 from simulator.motion import PassMotion
-from simulator.render import FrameTruth, PartScene
+from simulator.render import PartScene
 
 #: Robot reporting rate (UR controllers with major version > 3 stream RTDE at 500 Hz).
 ROBOT_RATE_HZ = 500.0
@@ -149,6 +149,3 @@ class SimRobot:
         pos = (1 - w) * self.motion.tcp_position(t0) + w * self.motion.tcp_position(t1)
         return TcpPose(float(t), pos, self.rotation.copy())
 
-
-def frame_truth(camera: SimCamera, frame_id: int) -> FrameTruth:
-    return camera.truths[frame_id]
