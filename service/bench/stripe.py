@@ -14,15 +14,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import pathlib
-import platform
 import sys
 import time
 
 import numpy as np
 
 from scanner_core import stripe
+from service.bench.machine import machine_info
 from simulator.imaging import ImageModel, cramer_rao_bound_px, render_image
 
 __all__ = ["run"]
@@ -87,29 +86,6 @@ def _median_ms(fn, frames) -> float:
             fn(img)
             times.append(time.perf_counter_ns() - t0)
     return float(np.median(times)) * 1e-6
-
-
-def _machine() -> dict:
-    import numba
-
-    info = {
-        "platform": platform.platform(),
-        "machine": platform.machine(),
-        "processor": platform.processor(),
-        "cpu_count": os.cpu_count(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "numba": numba.__version__,
-    }
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    info["cpu_model"] = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return info
 
 
 def run(out_dir: pathlib.Path, *, frames: int = 20, seed: int = 0, quick: bool = False) -> dict:
@@ -201,7 +177,7 @@ def run(out_dir: pathlib.Path, *, frames: int = 20, seed: int = 0, quick: bool =
             "max_abs_bias_px": {"value": max_bias, "target_max": TARGET_MAX_ABS_BIAS_PX,
                                 "met": max_bias <= TARGET_MAX_ABS_BIAS_PX},
         },
-        "machine": _machine(),
+        "machine": machine_info(),
     }
     result["summary"] = result["targets"]
     (out_dir / "stripe.json").write_text(json.dumps(result, indent=2))

@@ -4,7 +4,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from scanner_core.devices import CameraTimeout
-from scanner_core.pipeline import PipelineParams, pass_frames, scan_frames, stitch
+from scanner_core.pipeline import pass_frames, scan_frames, stitch
 from scanner_core.types import Frame, MarkerObservation, Profile
 from simulator.session import camera_frames, simulated_cell
 

@@ -1,5 +1,4 @@
 import numpy as np
-import pytest
 import trimesh
 from numpy.testing import assert_allclose
 

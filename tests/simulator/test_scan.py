@@ -3,7 +3,6 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from scanner_core.geometry import apply_transform
 from scanner_core.pipeline import PipelineParams
 from simulator.cell import PASS_PRESETS, load_cell
 from simulator.parts import block_with_holes_and_steps
