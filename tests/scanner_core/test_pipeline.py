@@ -83,3 +83,21 @@ def test_stitch_counts_gaps_and_unplaced(cell):
                 for fid, obs in ((10, ok_obs), (11, nan_obs), (14, ok_obs))]
     scan = stitch(profiles, cell.calibration, r)
     assert scan.frames == 2 and scan.frames_unplaced == 1 and scan.frames_dropped == 2
+
+
+def test_warm_up_frame_finds_the_marker_everywhere(cell, monkeypatch):
+    """The warm-up frame must reach every kernel: a marker in all three views and a stripe."""
+    from scanner_core import pipeline
+    seen = {}
+    real = pipeline.process_frame
+
+    def spy(frame, calibration, params=pipeline.PipelineParams()):
+        profile = real(frame, calibration, params)
+        seen["profile"] = profile
+        return profile
+
+    monkeypatch.setattr(pipeline, "process_frame", spy)
+    pipeline.warm_up(cell.calibration)
+    profile = seen["profile"]
+    assert profile.marker.views == 3
+    assert len(profile.columns) > 500
