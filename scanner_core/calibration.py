@@ -100,6 +100,16 @@ class Calibration:
 
 
 def _check(camera, plane, mirrors, direct, marker) -> None:
+    numbers = {"camera.fx": camera.fx, "camera.fy": camera.fy, "camera.cx": camera.cx,
+               "camera.cy": camera.cy, "camera.rotation": camera.rotation,
+               "camera.origin_mm": camera.origin, "light_plane_c.normal": plane.normal,
+               "light_plane_c.offset_mm": plane.offset, "marker_offset_t_mm": marker}
+    for i, m in enumerate(mirrors):
+        numbers[f"mirrors[{i}].normal"] = m.plane.normal
+        numbers[f"mirrors[{i}].offset_mm"] = m.plane.offset
+    for name, value in numbers.items():
+        if not np.all(np.isfinite(value)):
+            raise CalibrationError(f"`{name}` must be finite, got {np.asarray(value).tolist()}")
     r = camera.rotation
     if r.shape != (3, 3) or not np.allclose(r @ r.T, np.eye(3), atol=ROTATION_TOL) \
             or np.linalg.det(r) < 0:
@@ -125,8 +135,12 @@ def load_calibration(path) -> Calibration:
         data = json.loads(path.read_text())
     except FileNotFoundError:
         raise CalibrationError(f"calibration file not found: {path}") from None
-    except json.JSONDecodeError as exc:
+    except OSError as exc:
+        raise CalibrationError(f"cannot read calibration file {path}: {exc.strerror}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise CalibrationError(f"calibration file {path} is not valid JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise CalibrationError(f"calibration file {path} must hold a JSON object")
     if "calibration" in data:
         data = data["calibration"]
     return Calibration.from_dict(data)
@@ -138,7 +152,7 @@ def save_json_atomic(path, data: dict) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     try:
         with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=2)
+            json.dump(data, fh, indent=2, allow_nan=False)  # NaN is not JSON
             fh.write("\n")
         os.replace(tmp, path)
     except BaseException:

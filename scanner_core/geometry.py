@@ -20,6 +20,9 @@ import numpy as np
 
 #: Rays nearly parallel to a plane (|cos| below this) have no usable intersection.
 PARALLEL_COS = 1e-9
+#: Rays this ill-conditioned (about 0.01 degrees apart at unit weight) leave the marker's
+#: depth unobservable.
+MAX_RAY_CONDITION = 1e8
 
 
 def _as_points(points, name: str) -> np.ndarray:
@@ -180,12 +183,13 @@ def triangulate_stripe(pixels, camera: PinholeCamera, light_plane_c: Plane) -> n
     Returns
     -------
     points_b : (N, 3) float64
-        mm in {B}; NaN where the ray is parallel to the plane.
+        mm in {B}; NaN where the ray is parallel to the plane or meets it behind the camera.
     """
     d = camera.rays_camera(pixels)
     denom = d @ light_plane_c.normal
     with np.errstate(divide="ignore", invalid="ignore"):
         s = np.where(np.abs(denom) > PARALLEL_COS, light_plane_c.offset / denom, np.nan)
+    s[~(s > 0)] = np.nan
     return camera.to_base(d * s[:, None])  # Eq. (2) then Eq. (3)
 
 
@@ -242,7 +246,7 @@ def triangulate_rays(origins, directions, weights=None) -> np.ndarray:
     proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
     a = np.einsum("v,vij->ij", w, proj)
     b = np.einsum("v,vij,vj->i", w, proj, o - centre)
-    if np.linalg.cond(a) > 1e8:
+    if np.linalg.cond(a) > MAX_RAY_CONDITION:
         raise ValueError("rays are (nearly) parallel: the marker depth is unobservable")
     return np.linalg.solve(a, b) + centre
 
@@ -277,10 +281,35 @@ def triangulate_marker(pixels, camera: PinholeCamera, mirrors) -> tuple[np.ndarr
     return point, residual
 
 
-def reproject_marker(point_b, camera: PinholeCamera, mirrors) -> np.ndarray:
-    """Pixels (u, v) of a {B} point in the direct view and each mirror view, (1 + M, 2)."""
-    p = _as_points(point_b, "point_b")[0]
-    rows = [camera.project(p)[0]]
-    for mirror in mirrors:
-        rows.append(camera.project(apply_transform(mirror.reflection, p))[0])
-    return np.array(rows)
+def reproject_marker(points_b, camera: PinholeCamera, mirrors) -> np.ndarray:
+    """Pixels (u, v) of {B} points in the direct view and each mirror view.
+
+    Parameters
+    ----------
+    points_b : (3,) or (N, 3) float
+        mm in {B}.
+
+    Returns
+    -------
+    (1 + M, 2) float64 for one point, (N, 1 + M, 2) for N points; NaN behind the camera.
+    """
+    p = _as_points(points_b, "points_b")
+    views = [camera.project(p)] + [camera.project(apply_transform(m.reflection, p)) for m in mirrors]
+    out = np.stack(views, axis=1)
+    return out[0] if np.ndim(points_b) == 1 else out
+
+
+def base_to_tcp(points_b, tcp_b, rotation_b) -> np.ndarray:
+    """{B} -> {T}: ``X_T = R^T (X_B - p)`` for a TCP at ``p`` with rotation ``R`` in {B}.
+
+    Parameters
+    ----------
+    points_b : (N, 3) float, mm
+    tcp_b : (3,) float, mm
+    rotation_b : (3, 3) float
+
+    Returns
+    -------
+    (N, 3) float64, mm in {T}.
+    """
+    return (_as_points(points_b, "points_b") - tcp_b) @ np.asarray(rotation_b, dtype=np.float64)

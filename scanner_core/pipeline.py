@@ -22,8 +22,14 @@ from scanner_core import marker as marker_mod
 from scanner_core import stripe as stripe_mod
 from scanner_core.calibration import Calibration
 from scanner_core.devices import CameraTimeout
-from scanner_core.geometry import reproject_marker, triangulate_marker, triangulate_stripe
+from scanner_core.geometry import (base_to_tcp, reproject_marker, triangulate_marker,
+                                   triangulate_stripe)
 from scanner_core.types import Frame, MarkerObservation, Profile, Scan
+
+
+#: The marker's mask spans this many times ``marker_mask_px`` along the columns: the blob's
+#: halo reaches farther along a column than the stripe's rows vary across a few columns.
+MASK_ROW_FACTOR = 4
 
 
 @dataclass(frozen=True)
@@ -60,7 +66,10 @@ class PipelineParams:
 def observe_marker(image: np.ndarray, calibration: Calibration, params: PipelineParams) -> MarkerObservation:
     """Find and triangulate the LED marker in one image."""
     pixels = marker_mod.find_markers(image, strips=calibration.strips, params=params.marker)
-    position, residual = triangulate_marker(pixels, calibration.camera, calibration.mirrors)
+    try:
+        position, residual = triangulate_marker(pixels, calibration.camera, calibration.mirrors)
+    except ValueError:  # views (nearly) parallel: this frame cannot be placed
+        position, residual = np.full(3, np.nan), float("nan")
     if np.isfinite(residual) and residual > params.max_marker_residual_px:
         position = np.full(3, np.nan)
     return MarkerObservation(pixels, position, residual)
@@ -93,10 +102,12 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
         direct_px = reproject_marker(marker.position_b, calibration.camera, calibration.mirrors)[0]
     if np.all(np.isfinite(direct_px)):
         near = np.abs(np.arange(image.shape[1]) - direct_px[0]) <= params.marker_mask_px
-        valid &= ~(near & (np.abs(result.row - direct_px[1]) <= params.marker_mask_px * 4))
+        valid &= ~(near & (np.abs(result.row - direct_px[1]) <= params.marker_mask_px * MASK_ROW_FACTOR))
     columns = np.nonzero(valid)[0].astype(np.int32)
     pixels = np.stack([columns.astype(np.float64), result.row[columns].astype(np.float64)], axis=1)
     points_b = triangulate_stripe(pixels, calibration.camera, calibration.light_plane_c)
+    finite = np.isfinite(points_b).all(axis=1)  # rays parallel to the sheet, or behind the camera
+    columns, points_b = columns[finite], points_b[finite]
     return Profile(frame.frame_id, frame.t, points_b, columns,
                    result.peak[columns].astype(np.float32), marker)
 
@@ -169,7 +180,7 @@ def stitch(profiles: list[Profile], calibration: Calibration, gripper_rotation_b
     clouds, ids, quality, tcps, times = [], [], [], [], []
     for p in placed:
         tcp = p.marker.position_b - r @ calibration.marker_offset_t
-        clouds.append((p.points_b - tcp) @ r)
+        clouds.append(base_to_tcp(p.points_b, tcp, r))
         ids.append(np.full(len(p.points_b), p.frame_id, dtype=np.int32))
         quality.append(p.quality)
         tcps.append(tcp)
@@ -222,18 +233,13 @@ def scan_frames(frames: Iterable[Frame], calibration: Calibration, gripper_rotat
             yield frame
 
     profiles = []
-    triggered = pass_frames(timed_source(), calibration, params)
-    while True:
+    t_loop = time.perf_counter()
+    for frame in pass_frames(timed_source(), calibration, params):
         t0 = time.perf_counter()
-        try:
-            frame = next(triggered)
-        except StopIteration:
-            break
-        t1 = time.perf_counter()
         profiles.append(process_frame(frame, calibration, params))
-        timings["profiles"] += time.perf_counter() - t1
-        timings["trigger"] += t1 - t0
-    timings["trigger"] -= timings["acquire"]
+        timings["profiles"] += time.perf_counter() - t0
+    # The trigger's share is what the loop spent neither waiting for frames nor processing them.
+    timings["trigger"] = time.perf_counter() - t_loop - timings["acquire"] - timings["profiles"]
     t0 = time.perf_counter()
     scan = stitch(profiles, calibration, gripper_rotation_b)
     timings["stitch"] = time.perf_counter() - t0

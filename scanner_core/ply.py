@@ -110,6 +110,8 @@ def _check_points(points) -> np.ndarray:
     if arr.ndim != 2 or arr.shape[1] != 3 or not (
             np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
         raise ValueError(f"`points` must be (N, 3) float, got {arr.shape} {arr.dtype}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("`points` must be finite: a cloud with NaN or inf is never written")
     return arr
 
 

@@ -111,7 +111,7 @@ def _check_columns(columns, width: int) -> tuple[int, int]:
     return c0, c1
 
 
-def extract(image, *, method="cog", threshold=20.0, window=4, max_width=4.0, columns=None,
+def extract(image, method="cog", *, threshold=20.0, window=4, max_width=4.0, columns=None,
             **params) -> StripeResult:
     """Sub-pixel row of the laser stripe in every column of a frame.
 

@@ -11,11 +11,32 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from threadpoolctl import threadpool_limits
 
 
 class UsageError(ValueError):
     """Bad command-line input."""
+
+
+class ScanError(RuntimeError):
+    """The pass gave no usable scan (the marker never triggered, or its views disagree)."""
+
+
+#: Sanity limits on the pass: beyond them a typo (mm/s for m/s, a frame rate for a period)
+#: would simulate for hours.
+MAX_SPEED_MM_S = 5000.0
+MAX_FPS = 2000.0
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
 
 
 def _parse_args(argv):
@@ -33,11 +54,14 @@ def _parse_args(argv):
     scan.add_argument("--speed", type=float, help="nominal pass speed, mm/s")
     scan.add_argument("--fps", type=float, help="camera frame rate, Hz")
     scan.add_argument("--misplace", default=None, help="'tx,ty,tz,rx,ry,rz': mm and degrees, in {T}")
-    scan.add_argument("--seed", type=int, default=0, help="image noise seed")
-    scan.add_argument("--perturb-seed", type=int, default=None,
+    scan.add_argument("--seed", type=_non_negative_int, default=0, help="image noise seed")
+    scan.add_argument("--perturb-seed", type=_non_negative_int, default=None,
                       help="perturb the simulated cell's true geometry (repeatably)")
     scan.add_argument("--calibration", type=Path, default=None,
                       help="calibration JSON the scanner uses (default: the cell's truth)")
+    scan.add_argument("--grasp", choices=["centred", "identity"], default="centred",
+                      help="nominal grasp: the part centred under the TCP (default), or the CAD "
+                           "origin at the TCP")
     scan.add_argument("--method", default="cog", help="stripe estimator")
     scan.add_argument("--drop-rate", type=float, default=0.0, help="fraction of frames lost")
     scan.add_argument("--no-eval", action="store_true", help="skip the ground-truth accuracy")
@@ -66,17 +90,23 @@ def _cmd_scan(args) -> int:
         raise UsageError("--units applies only to --part: the demo part is built in mm")
     if args.part is not None and args.units is None:
         raise UsageError("--units is required with --part: a mesh file carries no reliable unit")
-    for name in ("speed", "fps"):
+    for name, limit in (("speed", MAX_SPEED_MM_S), ("fps", MAX_FPS)):
         value = getattr(args, name)
-        if value is not None and not value > 0:
-            raise UsageError(f"--{name} must be positive, got {value}")
+        if value is not None and not 0 < value <= limit:
+            raise UsageError(f"--{name} must be positive and at most {limit:g}, got {value}")
+    if args.out.exists() and not args.out.is_dir():
+        raise UsageError(f"--out {args.out} exists and is not a directory")
     if not 0.0 <= args.drop_rate < 1.0:
         raise UsageError(f"--drop-rate must be in [0, 1), got {args.drop_rate}")
-    misplacement = parse_misplacement(args.misplace)
+    try:
+        misplacement = parse_misplacement(args.misplace)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    grasp = np.eye(4) if args.grasp == "identity" else None  # None: the centred grasp
     if args.demo:
-        part = part_from_mesh(block_with_holes_and_steps(), name="demo-block")
+        part = part_from_mesh(block_with_holes_and_steps(), name="demo-block", grasp=grasp)
     else:
-        part = load_part(args.part, args.units)
+        part = load_part(args.part, args.units, grasp=grasp)
     check_fits(part)
     cell = load_cell(perturb_seed=args.perturb_seed)
     preset = PASS_PRESETS[args.preset]
@@ -90,11 +120,11 @@ def _cmd_scan(args) -> int:
                                       params=params,
                                       evaluate=not args.no_eval)
     if scan.marker_residual_px > params.max_marker_residual_px:
-        raise RuntimeError(
+        raise ScanError(
             f"the marker's three views disagree (median residual {scan.marker_residual_px:.2f} px "
             f"over {scan.frames + scan.frames_unplaced} frames): does the calibration fit the cell?")
     if scan.frames == 0:
-        raise RuntimeError("the marker never triggered: no profile was acquired")
+        raise ScanError("the marker never triggered: no profile was acquired")
     report["wall_s"] = round(time.perf_counter() - t0, 3)
     paths = save_scan(args.out, scan, report)
     acc = report["ground_truth"].get("accuracy", {})
@@ -124,10 +154,13 @@ def main(argv=None) -> int:
     args = _parse_args(argv)
     # A real-time process keeps BLAS to one thread: OpenBLAS workers spin for ~100 ms after
     # each call and steal the other core (NOTES.md).
+    from scanner_core.calibration import CalibrationError
+    from simulator.parts import PartError
+
     with threadpool_limits(limits=1, user_api="blas"):
         try:
             return {"scan": _cmd_scan, "bench": _cmd_bench}[args.command](args)
-        except (UsageError, ValueError, FileNotFoundError, RuntimeError) as exc:
+        except (UsageError, PartError, CalibrationError, ScanError) as exc:
             print(f"flyscan {args.command}: error: {exc}", file=sys.stderr)
             return 2
 

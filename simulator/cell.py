@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from scanner_core.calibration import Calibration, save_json_atomic
 from scanner_core.geometry import (Mirror, PinholeCamera, Plane, apply_transform,
-                                   reflection_matrix, unit)
+                                   reflection_matrix, reproject_marker, unit)
 from simulator.imaging import ImageModel
 
 REFERENCE_CELL = Path(__file__).resolve().parent / "data" / "reference_cell.json"
@@ -243,10 +243,7 @@ def marker_pixels(cell: Cell, tcp_b) -> np.ndarray:
     cal = cell.calibration
     tcp_b = np.atleast_2d(np.asarray(tcp_b, dtype=np.float64))
     led = tcp_b + cell.gripper_rotation_b @ cal.marker_offset_t
-    views = [cal.camera.project(led)]
-    for m in cal.mirrors:
-        views.append(cal.camera.project(apply_transform(m.reflection, led)))
-    return np.stack(views, axis=1)
+    return reproject_marker(led, cal.camera, cal.mirrors)
 
 
 if __name__ == "__main__":  # python -m simulator.cell: rewrite the reference cell file

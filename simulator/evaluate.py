@@ -12,7 +12,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from scanner_core.geometry import apply_transform
+from scanner_core.geometry import apply_transform, base_to_tcp
 
 #: Closest-point queries cost about 0.1 ms each; larger clouds are subsampled (seeded).
 MAX_EVAL_POINTS = 30000
@@ -74,7 +74,7 @@ def unmatched(cloud_t, frame_ids, truths: dict, gripper_rotation_b) -> np.ndarra
     ref, ref_ids = [], []
     for fid in np.unique(frame_ids):
         truth = truths[int(fid)]
-        ref.append((truth.stripe_points_b - truth.tcp_b) @ r)  # {B} -> {T}
+        ref.append(base_to_tcp(truth.stripe_points_b, truth.tcp_b, r))
         ref_ids.append(np.full(len(truth.stripe_points_b), fid))
     ref = np.concatenate(ref) if ref else np.zeros((0, 3))
     if len(ref) == 0:

@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from scanner_core.geometry import apply_transform
+
 __all__ = [
     "UNITS_MM", "PartError", "PartUnitWarning", "Part", "load_part", "part_from_mesh",
     "load_reference_part", "reference_meshes_dir", "centred_grasp", "check_fits",
@@ -92,7 +94,7 @@ class Part:
 
     def vertices_t(self) -> np.ndarray:
         """(V, 3) float64, mm: the mesh vertices in {T} under the nominal grasp."""
-        return _transform(self.grasp, self.mesh.vertices)
+        return apply_transform(self.grasp, self.mesh.vertices)
 
 
 # --------------------------------------------------------------------------------------------
@@ -338,7 +340,11 @@ def centred_grasp(mesh: trimesh.Trimesh) -> np.ndarray:
 
 
 def check_fits(part: Part, volume_mm=INSPECTION_VOLUME_MM) -> None:
-    """Raise when the part, under its nominal grasp, is larger than the inspection volume.
+    """Raise when the part, under its nominal grasp, does not fit the inspection volume.
+
+    The volume hangs below the TCP: x_T and y_T within half its size either side, z_T from 0
+    (the gripper) to its height. A part may be small enough and still sit outside it, when
+    its grasp (the identity, say, for a CAD origin far from the part) puts it elsewhere.
 
     Parameters
     ----------
@@ -358,6 +364,14 @@ def check_fits(part: Part, volume_mm=INSPECTION_VOLUME_MM) -> None:
     if np.any(ext > vol + _FIT_TOL_MM):
         raise PartError(f"part {part.name!r} is {ext[0]:.1f} x {ext[1]:.1f} x {ext[2]:.1f} mm; "
                         f"the inspection volume is {vol[0]:g} x {vol[1]:g} x {vol[2]:g} mm")
+    lo, hi = _bounds_t(part.mesh, part.grasp)
+    box_lo = np.array([-vol[0] / 2, -vol[1] / 2, 0.0]) - _FIT_TOL_MM
+    box_hi = np.array([vol[0] / 2, vol[1] / 2, vol[2]]) + _FIT_TOL_MM
+    if np.any(lo < box_lo) or np.any(hi > box_hi):
+        raise PartError(
+            f"part {part.name!r} under its grasp spans {np.round(lo, 1).tolist()} to "
+            f"{np.round(hi, 1).tolist()} mm in {{T}}, outside the inspection volume below the "
+            f"TCP ({vol[0]:g} x {vol[1]:g} x {vol[2]:g} mm, z_T from 0): use the centred grasp")
 
 
 def _check_grasp(grasp) -> np.ndarray:
@@ -372,15 +386,10 @@ def _check_grasp(grasp) -> np.ndarray:
     return g
 
 
-def _transform(x: np.ndarray, points) -> np.ndarray:
-    pts = np.asarray(points, dtype=np.float64)
-    return pts @ x[:3, :3].T + x[:3, 3]
-
-
 def _bounds_t(mesh: trimesh.Trimesh, grasp: np.ndarray) -> np.ndarray:
     if np.allclose(grasp[:3, :3], np.eye(3)):
         return np.asarray(mesh.bounds) + grasp[:3, 3]
-    v = _transform(grasp, mesh.vertices)
+    v = apply_transform(grasp, mesh.vertices)
     return np.stack([v.min(axis=0), v.max(axis=0)])
 
 

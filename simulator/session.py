@@ -120,7 +120,8 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
         sim.camera.close()
         sim.robot.disconnect()
     processing_ms = sum(v for k, v in scan.timings_ms.items() if k != "acquire")
-    camera_time_s = scan.frames / cell.pass_profile.fps
+    # The pass's span on the camera clock, frames lost or unplaced included.
+    camera_time_s = (scan.frames + scan.frames_unplaced + scan.frames_dropped) / cell.pass_profile.fps
     report = {
         "frames": scan.frames,
         "frames_dropped": scan.frames_dropped,

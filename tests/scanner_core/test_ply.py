@@ -155,3 +155,9 @@ def test_failed_write_keeps_old_file(tmp_path, monkeypatch):
 def test_comment_with_newline_rejected(tmp_path):
     with pytest.raises(ValueError, match="`comments`"):
         write_ply(tmp_path / "c.ply", np.zeros((1, 3)), comments=["a\nend_header"])
+
+
+def test_non_finite_points_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="must be finite"):
+        write_ply(tmp_path / "nan.ply", np.array([[0.0, np.nan, 1.0]], np.float32))
+    assert not (tmp_path / "nan.ply").exists()

@@ -115,3 +115,68 @@ def test_malformed_calibration_file(tmp_path, capsys):
     code = main(["scan", "--demo", "--calibration", str(bad), "--out", str(tmp_path / "o")])
     assert code == 2
     assert "calibration" in capsys.readouterr().err
+
+
+def _calibration_with(tmp_path, mutate):
+    from simulator.cell import load_cell
+    data = load_cell().calibration.to_dict()
+    mutate(data)
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(data))  # json.dumps writes NaN as the non-standard NaN token
+    return path
+
+
+@pytest.mark.parametrize("setup, message", [
+    (lambda t: _calibration_with(t, lambda d: d["light_plane_c"].__setitem__("offset_mm", float("nan"))),
+     "`light_plane_c.offset_mm` must be finite"),
+    (lambda t: _calibration_with(t, lambda d: d.__setitem__("marker_offset_t_mm", [0, "x", 0])),
+     "malformed"),
+    (lambda t: (t / "one.json").write_text("1") and t / "one.json", "must hold a JSON object"),
+    (lambda t: t, "cannot read calibration file"),  # a directory
+])
+def test_bad_calibration_files(tmp_path, capsys, setup, message):
+    path = setup(tmp_path)
+    out = tmp_path / "o"
+    code = main(["scan", "--demo", "--calibration", str(path), "--out", str(out)])
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--speed", "1e9"], "--speed must be positive and at most"),
+    (["--fps", "inf"], "--fps must be positive and at most"),
+    (["--speed", "nan"], "--speed must be positive and at most"),
+])
+def test_pass_limits(tmp_path, capsys, argv, message):
+    code = main(["scan", "--demo", *argv, "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_negative_seed_is_a_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["scan", "--demo", "--seed", "-1", "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    assert "--seed: must be >= 0" in capsys.readouterr().err
+
+
+def test_out_is_a_file(tmp_path, capsys):
+    target = tmp_path / "taken"
+    target.write_text("keep me")
+    code = main(["scan", "--demo", "--out", str(target)])
+    assert code == 2
+    assert "exists and is not a directory" in capsys.readouterr().err
+    assert target.read_text() == "keep me"
+
+
+def test_identity_grasp_of_an_offset_part(tmp_path, capsys):
+    """A CAD origin far from the part: with the identity grasp it lies outside the volume."""
+    mesh = trimesh.creation.box(extents=(20.0, 20.0, 10.0))
+    mesh.apply_translation((200.0, 0.0, 5.0))
+    path = tmp_path / "offset.stl"
+    mesh.export(path)
+    code = main(["scan", "--part", str(path), "--units", "mm", "--grasp", "identity",
+                 "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert "outside the inspection volume" in capsys.readouterr().err
