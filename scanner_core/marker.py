@@ -50,6 +50,7 @@ import numpy as np
 from scipy import ndimage
 
 from scanner_core._linsolve import solve_in_place
+from scanner_core.validate import check_columns, check_image
 
 __all__ = ["MarkerParams", "find_marker", "find_markers", "marker_present"]
 
@@ -184,8 +185,8 @@ def find_marker(
     ----------
     .. [1] Paper, section II (LED marker seen in three views).
     """
-    _check_image(image)
-    c0, c1 = _check_strip(columns, image.shape[1], "columns")
+    check_image(image)
+    c0, c1 = check_columns(columns, image.shape[1], "columns")
     return _find_in_strip(image, c0, c1, params)
 
 
@@ -209,7 +210,7 @@ def find_markers(
         Marker centre (column, row) per strip in full-image pixel coordinates; a NaN row where
         the marker was not found (see `find_marker`).
     """
-    _check_image(image)
+    check_image(image)
     ranges = _check_strips(strips, image.shape[1])
     out = np.full((len(ranges), 2), np.nan)
     for k, (c0, c1) in enumerate(ranges):
@@ -251,7 +252,7 @@ def marker_present(
     view (the mirror views still count), and a very short stripe piece could pass in one view,
     which `min_views` >= 2 guards against.
     """
-    _check_image(image)
+    check_image(image)
     ranges = _check_strips(strips, image.shape[1])
     if not 1 <= int(min_views):
         raise ValueError(f"`min_views` must be >= 1, got {min_views}")
@@ -278,26 +279,6 @@ def marker_present(
 # Input checks
 
 
-def _check_image(image: np.ndarray) -> None:
-    if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:
-        desc = (f"{image.shape} {image.dtype}" if isinstance(image, np.ndarray)
-                else type(image).__name__)
-        raise ValueError(f"`image` must be 2-D uint8, got {desc}")
-
-
-def _check_strip(cols, width: int, name: str) -> tuple[int, int]:
-    try:
-        c0, c1 = (int(c) for c in cols)
-        ok = all(float(c) == int(c) for c in cols)
-    except (TypeError, ValueError):
-        raise ValueError(f"`{name}` must be a pair of ints (start, stop), got {cols!r}") from None
-    if not ok or not 0 <= c0 < c1 <= width:
-        raise ValueError(
-            f"`{name}` must satisfy 0 <= start < stop <= image width {width}, got {cols!r}"
-        )
-    return c0, c1
-
-
 def _check_strips(strips, width: int) -> list[tuple[int, int]]:
     try:
         items = list(strips)
@@ -306,7 +287,7 @@ def _check_strips(strips, width: int) -> list[tuple[int, int]]:
             from None
     if not items:
         raise ValueError("`strips` must hold at least one (start, stop) pair, got none")
-    return [_check_strip(s, width, f"strips[{k}]") for k, s in enumerate(items)]
+    return [check_columns(s, width, f"strips[{k}]") for k, s in enumerate(items)]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from scanner_core._linsolve import solve_in_place
+from scanner_core.validate import check_columns, check_image
 
 __all__ = ["METHODS", "StripeResult", "extract", "Reason"]
 
@@ -90,25 +91,14 @@ class StripeResult:
 
 
 def _check_image(image) -> np.ndarray:
-    if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:
-        shape = getattr(image, "shape", None)
-        dtype = getattr(image, "dtype", type(image).__name__)
-        raise ValueError(f"`image` must be 2-D uint8, got {shape} {dtype}")
-    if image.shape[0] > 65535:
-        raise ValueError(f"`image` must have at most 65535 rows, got {image.shape[0]}")
-    return np.ascontiguousarray(image)
+    img = check_image(image)
+    if img.shape[0] > 65535:  # row indices are kept as uint16 for speed (NOTES.md)
+        raise ValueError(f"`image` must have at most 65535 rows, got {img.shape[0]}")
+    return img
 
 
 def _check_columns(columns, width: int) -> tuple[int, int]:
-    if columns is None:
-        return 0, width
-    try:
-        c0, c1 = (int(v) for v in columns)
-    except (TypeError, ValueError):
-        raise ValueError(f"`columns` must be a (c0, c1) pair of ints, got {columns!r}") from None
-    if not 0 <= c0 <= c1 <= width:
-        raise ValueError(f"`columns` must satisfy 0 <= c0 <= c1 <= {width}, got ({c0}, {c1})")
-    return c0, c1
+    return (0, width) if columns is None else check_columns(columns, width, allow_empty=True)
 
 
 def extract(image, method="cog", *, threshold=20.0, window=4, max_width=4.0, columns=None,
