@@ -7,13 +7,12 @@ Saved as JSON (mm, unit vectors, row-major matrices).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from scanner_core.fileio import save_json_atomic
 from scanner_core.geometry import Mirror, PinholeCamera, Plane
 
 #: Rotation matrices read from files must be orthonormal to this tolerance.
@@ -144,20 +143,6 @@ def load_calibration(path) -> Calibration:
     if "calibration" in data:
         data = data["calibration"]
     return Calibration.from_dict(data)
-
-
-def save_json_atomic(path, data: dict) -> None:
-    """Write JSON through a temporary file so a failure never leaves a partial file."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=2, allow_nan=False)  # NaN is not JSON
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
 
 
 def save_calibration(path, calibration: Calibration) -> None:

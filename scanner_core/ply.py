@@ -7,13 +7,13 @@ properties (binary little- or big-endian, or ASCII), so a cloud from another too
 """
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
+
+from scanner_core.fileio import write_bytes_atomic
 
 __all__ = ["write_ply", "read_ply", "PLY_TYPES"]
 
@@ -101,7 +101,7 @@ def write_ply(path, points, *, fields: Mapping[str, np.ndarray] | None = None,
                for name, a in extra.items()]
     header.append("end_header")
     blob = ("\n".join(header) + "\n").encode("ascii") + data.tobytes()
-    _atomic_write(path, blob)
+    write_bytes_atomic(path, blob)
     return path
 
 
@@ -152,24 +152,6 @@ def _check_comments(comments) -> list[str]:
             raise ValueError(f"`comments` entries must be ASCII, got {c!r}")
         out.append(c)
     return out
-
-
-def _atomic_write(path: Path, blob: bytes) -> None:
-    directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(blob)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; a cloud is meant to be read by others
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
 
 
 # --------------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scanner_core.calibration import save_json_atomic
+from scanner_core.fileio import save_json_atomic
 from scanner_core.ply import write_ply
 from scanner_core.types import Scan
 

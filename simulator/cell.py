@@ -19,7 +19,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from scanner_core.calibration import Calibration, save_json_atomic
+from scanner_core.calibration import Calibration
+from scanner_core.fileio import save_json_atomic
 from scanner_core.geometry import (Mirror, PinholeCamera, Plane, apply_transform,
                                    reflection_matrix, reproject_marker, unit)
 from simulator.imaging import ImageModel

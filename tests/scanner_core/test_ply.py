@@ -145,7 +145,7 @@ def test_failed_write_keeps_old_file(tmp_path, monkeypatch):
     def boom(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr("scanner_core.ply.os.replace", boom)
+    monkeypatch.setattr("scanner_core.fileio.os.replace", boom)
     with pytest.raises(OSError, match="disk full"):
         write_ply(path, np.zeros((5, 3)))
     assert path.read_bytes() == before
