@@ -300,12 +300,19 @@ def _lut_ambient(u, tables, background, ambient, sat, steps, out):
 @njit(nogil=True, cache=True)
 def _foreground(out, acc, mask, cols, rows, amps, s_sigma, s_half, markers, m_peak, m_sigma, m_half,
                 background, ambient, sat, normals):
-    """Exact rendering of the pixels within the support of any stripe sample or marker."""
+    """Exact rendering of the pixels within the support of any stripe sample or marker.
+
+    One sweep sums every contribution into ``acc`` and lists each pixel the first time it is
+    touched; then each listed pixel is rendered once, with its own noise draw.
+    """
     h, w = out.shape
     n = cols.shape[0]
     nm = markers.shape[0]
     inv_s = 1.0 / (2.0 * s_sigma * s_sigma)
     inv_m = 1.0 / (2.0 * m_sigma * m_sigma)
+    touched_r = np.empty(normals.shape[0], np.int64)
+    touched_c = np.empty(normals.shape[0], np.int64)
+    k = 0
     for i in range(n):
         c = cols[i]
         y = rows[i]
@@ -316,7 +323,11 @@ def _foreground(out, acc, mask, cols, rows, amps, s_sigma, s_half, markers, m_pe
         for r in range(r0, r1 + 1):
             d = r - y
             acc[r, c] += amps[i] * math.exp(-d * d * inv_s)
-            mask[r, c] = 1
+            if mask[r, c] == 0:
+                mask[r, c] = 1
+                touched_r[k] = r
+                touched_c[k] = c
+                k += 1
     for j in range(nm):
         x = markers[j, 0]
         y = markers[j, 1]
@@ -330,35 +341,13 @@ def _foreground(out, acc, mask, cols, rows, amps, s_sigma, s_half, markers, m_pe
             for c in range(c0, c1 + 1):
                 d2 = (r - y) ** 2 + (c - x) ** 2
                 acc[r, c] += m_peak * math.exp(-d2 * inv_m)
-                mask[r, c] = 1
-    # second sweep over the same supports: render each touched pixel once
-    k = 0
-    for i in range(n):
-        c = cols[i]
-        y = rows[i]
-        if c < 0 or c >= w or not math.isfinite(y) or not math.isfinite(amps[i]):
-            continue
-        r0 = max(int(math.floor(y)) - s_half, 0)
-        r1 = min(int(math.floor(y)) + s_half + 1, h - 1)
-        for r in range(r0, r1 + 1):
-            if mask[r, c]:
-                v = background + _ambient(r, c, h, w, ambient) + acc[r, c] + normals[k]
-                k += 1
-                out[r, c] = min(max(round(v), 0.0), sat)
-                mask[r, c] = 0
-    for j in range(nm):
-        x = markers[j, 0]
-        y = markers[j, 1]
-        if not (math.isfinite(x) and math.isfinite(y)):
-            continue
-        r0 = max(int(math.floor(y)) - m_half, 0)
-        r1 = min(int(math.floor(y)) + m_half + 1, h - 1)
-        c0 = max(int(math.floor(x)) - m_half, 0)
-        c1 = min(int(math.floor(x)) + m_half + 1, w - 1)
-        for r in range(r0, r1 + 1):
-            for c in range(c0, c1 + 1):
-                if mask[r, c]:
-                    v = background + _ambient(r, c, h, w, ambient) + acc[r, c] + normals[k]
+                if mask[r, c] == 0:
+                    mask[r, c] = 1
+                    touched_r[k] = r
+                    touched_c[k] = c
                     k += 1
-                    out[r, c] = min(max(round(v), 0.0), sat)
-                    mask[r, c] = 0
+    for i in range(k):
+        r = touched_r[i]
+        c = touched_c[i]
+        v = background + _ambient(r, c, h, w, ambient) + acc[r, c] + normals[i]
+        out[r, c] = min(max(round(v), 0.0), sat)
