@@ -16,12 +16,14 @@ import json
 import os
 import warnings
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
 from scanner_core.geometry import apply_transform
+from simulator.raycast import Intersector
 
 __all__ = [
     "UNITS_MM", "PartError", "PartUnitWarning", "Part", "load_part", "part_from_mesh",
@@ -91,6 +93,12 @@ class Part:
         """(3,) float64, mm: bounding-box size in {T} after the nominal grasp."""
         lo, hi = _bounds_t(self.mesh, self.grasp)
         return hi - lo
+
+    @cached_property
+    def intersector(self) -> Intersector:
+        """The part's Embree scene in {P}, built on first use and kept: most of its cost is
+        copying the mesh (NOTES.md), and every simulated pass or frame reuses it."""
+        return Intersector(self.mesh)
 
     def vertices_t(self) -> np.ndarray:
         """(V, 3) float64, mm: the mesh vertices in {T} under the nominal grasp."""

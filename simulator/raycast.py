@@ -1,18 +1,17 @@
-"""Ray casting against one part with Embree (embreex), built once per part.
+"""Ray casting against one part with Embree, built once per part.
 
-Most of the first call's cost is embreex copying the mesh (NOTES.md), so an ``Intersector``
-is built once per part and kept; queries are batched (one call per fan of rays).
+An ``Intersector`` holds the part's Embree scene (`simulator.embree.PacketScene`, queried
+in packets of 16 rays) relative to the mesh's centre, so float32 keeps its precision where
+the part is. Build one per part and keep it (`Part.intersector` does); batch the queries.
 """
 from __future__ import annotations
+
+from functools import cached_property
 
 import numpy as np
 import trimesh
 
-try:  # optional at import, required at use: a clear error where it is needed
-    from embreex import rtcore_scene
-    from embreex.mesh_construction import TriangleMesh
-except ImportError:  # pragma: no cover - embreex is a declared dependency
-    rtcore_scene = None
+from simulator.embree import PacketScene
 
 #: Embree works in float32: about 3e-5 mm at 500 mm. A point counts as unoccluded when
 #: nothing lies more than this in front of it (a blocker closer is the same surface).
@@ -25,17 +24,60 @@ class Intersector:
     Parameters
     ----------
     mesh : trimesh.Trimesh
-        Vertices in mm. Open meshes are fine.
+        Vertices in mm. Open meshes are fine; degenerate faces are never hit.
     """
 
     def __init__(self, mesh: trimesh.Trimesh):
-        if rtcore_scene is None:
-            raise ImportError("ray casting needs embreex: pip install embreex")
-        # Work relative to the mesh's centre to keep float32 precision where the part is.
         self.centre = np.asarray(mesh.bounds.mean(axis=0), dtype=np.float64)
-        self._scene = rtcore_scene.EmbreeScene()
-        TriangleMesh(self._scene, (mesh.vertices - self.centre).astype(np.float32),
-                     np.ascontiguousarray(mesh.faces, dtype=np.int32))
+        self._vertices = np.asarray(mesh.vertices, dtype=np.float64) - self.centre
+        self._faces = np.asarray(mesh.faces, dtype=np.int64)
+        self._scene = PacketScene(self._vertices, self._faces)
+
+    @cached_property
+    def face_planes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each face's unit normal (F, 3) and offset (F,), float64, relative to `centre`.
+
+        A point x on face f satisfies ``normal[f] @ x == offset[f]``. Degenerate faces get a
+        zero normal and offset.
+        """
+        v, f = self._vertices, self._faces
+        n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        length = np.linalg.norm(n, axis=1)
+        n = np.divide(n, length[:, None], out=np.zeros_like(n), where=length[:, None] > 0)
+        return n, np.einsum("ij,ij->i", n, v[f[:, 0]])
+
+    def cast_faces(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """The face each prepared ray hits first: the fast path, without copies.
+
+        Parameters
+        ----------
+        origins, directions : (N, 3) float32, C-contiguous
+            Relative to `centre`; directions of unit length.
+
+        Returns
+        -------
+        (N,) int32
+            Face hit, -1 where the ray misses. (Recompute the hit point in float64 from the
+            face's plane, `face_planes`.)
+        """
+        return self._scene.intersect(origins, directions)[1]
+
+    def occluded(self, origins: np.ndarray, directions: np.ndarray,
+                 reach: np.ndarray) -> np.ndarray:
+        """True where something lies within `reach` along a prepared ray (the fast path).
+
+        Parameters
+        ----------
+        origins, directions : (N, 3) float32, C-contiguous
+            Relative to `centre`; directions of unit length.
+        reach : (N,) float32
+            mm.
+
+        Returns
+        -------
+        (N,) bool
+        """
+        return self._scene.occluded(origins, directions, reach)
 
     def _prepare(self, origins, directions):
         o = np.ascontiguousarray(np.asarray(origins, np.float64) - self.centre, dtype=np.float32)
@@ -46,6 +88,11 @@ class Intersector:
     def first_hit(self, origins, directions) -> tuple[np.ndarray, np.ndarray]:
         """Distance along each (normalised) ray to its first hit, and the face hit.
 
+        Parameters
+        ----------
+        origins, directions : (N, 3) array_like
+            mm, in the mesh's frame.
+
         Returns
         -------
         distance : (N,) float64
@@ -54,12 +101,10 @@ class Intersector:
             Face index; -1 where the ray misses.
         """
         o, d = self._prepare(origins, directions)
-        if len(o) == 0:
-            return np.zeros(0), np.zeros(0, dtype=np.int64)
-        out = self._scene.run(o, d, output=1)
-        face = out["primID"].astype(np.int64)
-        dist = np.where(face >= 0, out["tfar"].astype(np.float64), np.inf)
-        return dist, face
+        o, d = np.broadcast_arrays(o, d)
+        o, d = np.ascontiguousarray(o), np.ascontiguousarray(d)
+        distance, face = self._scene.intersect(o, d)
+        return distance.astype(np.float64), face.astype(np.int64)
 
     def visible(self, origins, targets) -> np.ndarray:
         """True where nothing on the mesh blocks the segment from origin to target
@@ -72,5 +117,4 @@ class Intersector:
         length = np.linalg.norm(delta, axis=1)
         o, d = self._prepare(np.broadcast_to(origins, targets.shape), delta)
         reach = np.maximum(length - SURFACE_TOL_MM, 0.0).astype(np.float32)
-        hit = self._scene.run(o, d, dists=reach, query="OCCLUDED")
-        return np.asarray(hit) < 0
+        return ~self._scene.occluded(o, d, reach)

@@ -66,7 +66,7 @@ class PartScene:
 
     @cached_property
     def intersector(self) -> Intersector:
-        return Intersector(self.part.mesh)
+        return self.part.intersector
 
     @cached_property
     def _vertices(self) -> np.ndarray:

@@ -1,0 +1,427 @@
+"""The paper's scan simulator (section III): a virtual light source and camera swept over a part.
+
+The light source fires a fan of rays in its light plane; each ray's first hit on the CAD
+model is a candidate point, kept when the camera sees it (the visibility check). The setup,
+not the mesh, moves: at step ``n`` the light source and the camera stand at their step-0
+positions plus ``n * step_mm`` along the motion axis (the paper's Eq. 4, with the depth-buffer
+line's rays), and the steps run over the whole part. The only inputs are the two positions
+and the two densities (step size and rays per line).
+
+Frames: everything is given and returned in one *setup frame* in which the part is fixed,
+{T} in the CLI (the gripper frame: the part hangs along +z_T, the setup moves along +y_T
+relative to it). The part's pose ^T X_P places the mesh in it; the rays are cast in the
+part's own frame, so one Embree scene per part serves every grasp and misplacement.
+
+A point is kept when the light source lights it (first hit), the camera stands on the lit
+side of its surface (no point from the back side) and nothing on the mesh lies between the
+camera and the point (Embree's occlusion query). The camera's field of view and the stripe's
+image are not modelled here: `simulator.render` does that for whole frames.
+"""
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from scanner_core.geometry import apply_transform, base_to_tcp, reflection_matrix, unit
+from simulator import _sweep
+from simulator.parts import Part
+from simulator.raycast import SURFACE_TOL_MM, Intersector
+
+__all__ = ["SetupError", "VirtualSetup", "PredictedCloud", "predict_cloud", "reference_setup",
+           "DEFAULT_STEP_MM", "DEFAULT_RAYS_PER_LINE", "MAX_RAYS"]
+
+DEFAULT_STEP_MM = 0.5
+DEFAULT_RAYS_PER_LINE = 1000
+#: A sweep casting more rays than this is refused: its cloud would not fit in memory, and a
+#: step size typed in metres instead of millimetres should fail at once, not after an hour.
+MAX_RAYS = 200_000_000
+# Rays per Embree call: large enough to hide the per-call cost (12-26 us, NOTES.md), small
+# enough that two threads share the work evenly.
+_CHUNK_RAYS = 1 << 16
+MAIN_VIEW = "camera"
+
+
+class SetupError(ValueError):
+    """The virtual setup cannot sweep this part: a bad density, or a source or camera that
+    stands in, behind or level with the part."""
+
+
+@dataclass(frozen=True)
+class VirtualSetup:
+    """The paper's inputs: where the light source and the camera stand, and the densities.
+
+    Attributes
+    ----------
+    laser : (3,) float64
+        Light source position at step 0, mm, in the setup frame.
+    camera : (3,) float64
+        Camera position (projection centre) at step 0, mm.
+    step_mm : float
+        Step size (the paper's StRs): how far the setup moves between two lines, mm.
+    rays_per_line : int
+        Rays in each line's fan (the depth-buffer resolution).
+    views : tuple of (str, (3,) float64)
+        Further viewpoints at step 0 (the camera reflected in each mirror, say): each point
+        records whether it sees them; they do not filter the cloud.
+    motion : (3,) float64
+        Unit direction the setup moves along, relative to the part (+y of the setup frame).
+    """
+
+    laser: np.ndarray
+    camera: np.ndarray
+    step_mm: float = DEFAULT_STEP_MM
+    rays_per_line: int = DEFAULT_RAYS_PER_LINE
+    views: tuple = ()
+    motion: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+
+    def __post_init__(self):
+        for name in ("laser", "camera", "motion"):
+            value = np.array(getattr(self, name), dtype=np.float64)
+            if value.shape != (3,) or not np.all(np.isfinite(value)):
+                raise SetupError(f"`{name}` must be 3 finite coordinates (mm), got "
+                                 f"{getattr(self, name)!r}")
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+        if not np.isclose(np.linalg.norm(self.motion), 1.0):
+            raise SetupError(f"`motion` must be a unit vector, got {self.motion.tolist()}")
+        step = float(self.step_mm)
+        if not (np.isfinite(step) and step > 0):
+            raise SetupError(f"`step_mm` must be a positive length in mm, got {self.step_mm!r}")
+        object.__setattr__(self, "step_mm", step)
+        rays = self.rays_per_line
+        if isinstance(rays, bool) or int(rays) != rays or rays < 2:
+            raise SetupError(f"`rays_per_line` must be a whole number >= 2, got {rays!r}")
+        object.__setattr__(self, "rays_per_line", int(rays))
+        views = []
+        for name, position in self.views:
+            p = np.array(position, dtype=np.float64)
+            if p.shape != (3,) or not np.all(np.isfinite(p)) or name == MAIN_VIEW:
+                raise SetupError(f"view {name!r} needs a name other than {MAIN_VIEW!r} and 3 "
+                                 f"finite coordinates, got {position!r}")
+            p.setflags(write=False)
+            views.append((str(name), p))
+        object.__setattr__(self, "views", tuple(views))
+
+    def laser_at(self, step) -> np.ndarray:
+        """Light source position at step number(s) `step`: (3,) or (N, 3) float64, mm."""
+        return self.laser + np.multiply.outer(np.asarray(step, np.float64),
+                                              self.step_mm * self.motion)
+
+    def camera_at(self, step) -> np.ndarray:
+        """Camera position at step number(s) `step`: (3,) or (N, 3) float64, mm."""
+        return self.camera + np.multiply.outer(np.asarray(step, np.float64),
+                                               self.step_mm * self.motion)
+
+
+@dataclass(frozen=True)
+class PredictedCloud:
+    """What the scanner should see of the part: the simulator's output.
+
+    Attributes
+    ----------
+    points : (N, 3) float64
+        mm, in the setup frame, on the mesh surface.
+    normals : (N, 3) float64
+        Unit surface normals at the points, pointing to the side the light comes from.
+    step : (N,) int32
+        Step number of each point: the light source stood at ``setup.laser_at(step)``.
+    ray : (N,) int32
+        Index of the point's ray in its line's fan (`fan`).
+    face : (N,) int64
+        Mesh face of each point.
+    seen : dict of str to (N,) bool
+        For each of ``setup.views``, whether that viewpoint sees the point too.
+    fan : (R, 3) float64
+        Unit directions of one line's rays, in the setup frame (the same at every step).
+    steps : (int, int)
+        First and last step number swept (inclusive); ``(0, -1)`` when none.
+    rays_cast, first_hits, facing : int
+        Rays fired; rays that hit the part; hits with the camera on the lit side.
+    elapsed_s : float
+        Wall time of the sweep (not of building the part's intersector).
+    setup : VirtualSetup
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    step: np.ndarray
+    ray: np.ndarray
+    face: np.ndarray
+    seen: dict
+    fan: np.ndarray
+    steps: tuple[int, int]
+    rays_cast: int
+    first_hits: int
+    facing: int
+    elapsed_s: float
+    setup: VirtualSetup
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @property
+    def rays_per_second(self) -> float:
+        return self.rays_cast / self.elapsed_s if self.elapsed_s > 0 else float("nan")
+
+    def summary(self) -> dict:
+        """Counts and rates, JSON-ready."""
+        return {"points": len(self), "rays_cast": self.rays_cast, "first_hits": self.first_hits,
+                "facing_camera": self.facing, "steps": list(self.steps),
+                "elapsed_s": round(self.elapsed_s, 6),
+                "mrays_per_s": round(self.rays_per_second / 1e6, 3)}
+
+
+@dataclass(frozen=True)
+class _Sweep:
+    """One sweep's geometry in the intersector's (centred) part frame."""
+
+    laser0: np.ndarray
+    shift: np.ndarray
+    viewpoints: tuple  # ((name, (3,) float64), ...), the camera first
+    fan64: np.ndarray
+    fan32: np.ndarray
+    normals: np.ndarray
+    offsets: np.ndarray
+
+
+def predict_cloud(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = None,
+                  threads: int = 2, max_rays: int = MAX_RAYS) -> PredictedCloud:
+    """Sweep the virtual setup over a part and return the cloud the scanner should see.
+
+    Parameters
+    ----------
+    part : Part
+        The CAD part; its cached `Part.intersector` is built on first use.
+    setup : VirtualSetup
+        Positions at step 0 and densities, in the setup frame.
+    pose : (4, 4) array_like, optional
+        The part's pose in the setup frame (^T X_P, mm); default the part's nominal grasp.
+    threads : int
+        Worker threads (Embree and the kernels release the GIL). The result does not depend
+        on it.
+    max_rays : int
+        Refuse sweeps casting more rays than this.
+
+    Returns
+    -------
+    PredictedCloud
+        Possibly empty (no ray hit the part, or the camera saw none of the hits): check
+        `first_hits` and ``len()``.
+
+    Raises
+    ------
+    SetupError
+        The light source or the camera stands inside the part or passes through it during
+        the sweep; the part is not wholly in front of the light source; the sweep would cast
+        more than `max_rays` rays.
+    """
+    t0 = time.perf_counter()
+    pose = part.grasp if pose is None else np.asarray(pose, dtype=np.float64)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise SetupError(f"`pose` must be a finite (4, 4) matrix, got shape {pose.shape}")
+    if int(threads) < 1:
+        raise SetupError(f"`threads` must be >= 1, got {threads!r}")
+    vertices = apply_transform(pose, part.mesh.vertices)
+    fan = _fan(setup, vertices)
+    first, last = _step_range(setup, vertices)
+    rays_cast = max(last - first + 1, 0) * setup.rays_per_line
+    if rays_cast > max_rays:
+        raise SetupError(f"the sweep would cast {rays_cast:.3g} rays ({last - first + 1} lines of "
+                         f"{setup.rays_per_line}), more than {max_rays:.3g}: use a larger step "
+                         f"({setup.step_mm:g} mm now) or fewer rays per line")
+    ix = part.intersector
+    sweep = _sweep_in_part_frame(ix, setup, pose, fan)
+    if last >= first:
+        _check_path(part, ix, sweep.laser0, sweep.shift, first, last, "light source")
+        for name, view0 in sweep.viewpoints:
+            _check_path(part, ix, view0, sweep.shift, first, last, name)
+    steps = np.arange(first, last + 1, dtype=np.int64)
+    per_chunk = max(1, _CHUNK_RAYS // setup.rays_per_line)
+    chunks = [steps[i:i + per_chunk] for i in range(0, len(steps), per_chunk)]
+    if int(threads) == 1 or len(chunks) <= 1:
+        parts = [_sweep_chunk(ix, sweep, c) for c in chunks]
+    else:
+        with ThreadPoolExecutor(int(threads), thread_name_prefix="sweep") as pool:
+            parts = list(pool.map(lambda c: _sweep_chunk(ix, sweep, c), chunks))
+    return _assemble(parts, setup, pose, ix, fan, (first, last) if len(steps) else (0, -1),
+                     rays_cast, time.perf_counter() - t0)
+
+
+def _fan(setup: VirtualSetup, vertices: np.ndarray) -> np.ndarray:
+    """The line's rays: the depth-buffer line perpendicular to the central ray, in the light
+    plane (the plane through the source across the motion), just covering the part."""
+    m = setup.motion
+    size = float(np.ptp(vertices, axis=0).max())
+    aim = (vertices.min(axis=0) + vertices.max(axis=0)) / 2.0 - setup.laser
+    aim -= (aim @ m) * m
+    if np.linalg.norm(aim) <= 1e-9 * max(size, 1.0):
+        raise SetupError("the light source lies on the part's axis along the motion: its light "
+                         "plane has no direction towards the part")
+    central = unit(aim)
+    across = unit(np.cross(central, m))
+    rel = vertices - setup.laser
+    depth = rel @ central
+    if depth.min() <= 0:
+        raise SetupError(
+            "the part is not wholly in front of the light source (it would need a fan of 180 "
+            f"degrees or more): the source at {np.round(setup.laser, 3).tolist()} mm is level "
+            "with or inside the part's extent; move it away from the part")
+    w = (rel @ across) / depth
+    return unit(central + np.linspace(w.min(), w.max(), setup.rays_per_line)[:, None] * across)
+
+
+def _step_range(setup: VirtualSetup, vertices: np.ndarray) -> tuple[int, int]:
+    """First and last step whose light plane meets the part (Eq. 4: y + NmSt * StRs)."""
+    along = vertices @ setup.motion - setup.laser @ setup.motion
+    return (int(np.ceil(along.min() / setup.step_mm)),
+            int(np.floor(along.max() / setup.step_mm)))
+
+
+def _sweep_in_part_frame(ix: Intersector, setup: VirtualSetup, pose: np.ndarray,
+                         fan: np.ndarray) -> _Sweep:
+    """The setup moved into the part's frame (relative to the intersector's centre)."""
+    inv = np.linalg.inv(pose)
+    rot = inv[:3, :3]
+    viewpoints = ((MAIN_VIEW, setup.camera),) + setup.views
+    fan_p = unit(fan @ rot.T)
+    normals, offsets = ix.face_planes
+    return _Sweep(
+        laser0=apply_transform(inv, setup.laser) - ix.centre,
+        shift=rot @ (setup.step_mm * setup.motion),
+        viewpoints=tuple((name, apply_transform(inv, p) - ix.centre) for name, p in viewpoints),
+        fan64=fan_p, fan32=fan_p.astype(np.float32), normals=normals, offsets=offsets)
+
+
+def _sweep_chunk(ix: Intersector, sweep: _Sweep, steps: np.ndarray) -> dict:
+    """Cast the lines of `steps`: lit points, then the visibility check from each viewpoint."""
+    n = len(steps) * len(sweep.fan64)
+    origins = np.empty((n, 3), np.float32)
+    directions = np.empty((n, 3), np.float32)
+    _sweep.fan_rays(sweep.laser0, sweep.shift, steps, sweep.fan32, origins, directions)
+    face = ix.cast_faces(origins, directions)
+    del origins, directions
+    arrays = (np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3)), np.empty(n, np.int64),
+              np.empty(n, np.int64))
+    k = _sweep.lit_points(sweep.laser0, sweep.shift, steps, sweep.fan64, face, sweep.normals,
+                          sweep.offsets, *arrays)
+    index, points, normals, faces, point_steps = (a[:k] for a in arrays)
+    out = {"hits": int(np.count_nonzero(face >= 0)), "facing": 0, "seen": {}}
+    for name, view0 in sweep.viewpoints:
+        seen, facing = _visible_from(ix, sweep, view0, point_steps, points, normals)
+        if name == MAIN_VIEW:
+            out["facing"] = facing
+            k = _sweep.keep_rows(seen, index, points, normals, faces, point_steps)
+            index, points, normals, faces, point_steps = (
+                a[:k] for a in (index, points, normals, faces, point_steps))
+        else:
+            out["seen"][name] = seen
+    out.update(index=index, points=points, normals=normals, face=faces, step=point_steps)
+    return out
+
+
+def _visible_from(ix, sweep: _Sweep, view0, point_steps, points, normals):
+    """(K,) bool: the viewpoint sees each point; and how many points face it."""
+    k = len(points)
+    origins = np.empty((k, 3), np.float32)
+    directions = np.empty((k, 3), np.float32)
+    reach = np.empty(k, np.float32)
+    chosen = np.empty(k, np.int64)
+    m = _sweep.sight_rays(view0, sweep.shift, point_steps, points, normals, SURFACE_TOL_MM,
+                          origins, directions, reach, chosen)
+    seen = np.zeros(k, dtype=bool)
+    if m:
+        seen[chosen[:m]] = ~ix.occluded(origins[:m], directions[:m], reach[:m])
+    return seen, m
+
+
+def _assemble(parts, setup, pose, ix, fan, steps, rays_cast, elapsed) -> PredictedCloud:
+    rot = pose[:3, :3]
+    n_rays = setup.rays_per_line
+
+    def cat(key, shape, dtype):
+        arrays = [p[key] for p in parts]
+        return np.concatenate(arrays) if arrays else np.zeros(shape, dtype)
+
+    points_p = cat("points", (0, 3), np.float64) + ix.centre
+    # Each chunk numbers its rays from zero at a line's start: the ray in the fan is intact.
+    index = cat("index", (0,), np.int64)
+    seen = {name: (np.concatenate([p["seen"][name] for p in parts]) if parts
+                   else np.zeros(0, bool)) for name, _ in setup.views}
+    return PredictedCloud(
+        points=apply_transform(pose, points_p),
+        normals=cat("normals", (0, 3), np.float64) @ rot.T,
+        step=cat("step", (0,), np.int64).astype(np.int32),
+        ray=(index % n_rays).astype(np.int32),
+        face=cat("face", (0,), np.int64),
+        seen=seen, fan=fan, steps=steps, rays_cast=rays_cast,
+        first_hits=sum(p["hits"] for p in parts), facing=sum(p["facing"] for p in parts),
+        elapsed_s=elapsed, setup=setup)
+
+
+def reference_setup(cell, *, step_mm: float = DEFAULT_STEP_MM,
+                    rays_per_line: int = DEFAULT_RAYS_PER_LINE, laser=None, camera=None,
+                    mirrors: bool = False) -> VirtualSetup:
+    """The reference cell's light source and camera in {T}, at the start of its pass.
+
+    Parameters
+    ----------
+    cell : simulator.cell.Cell
+    step_mm, rays_per_line : float, int
+        The densities.
+    laser, camera : (3,) array_like, optional
+        Positions in {T} at step 0 that replace the cell's.
+    mirrors : bool
+        Add the camera reflected in each of the cell's mirrors as the views ``left`` and
+        ``right`` (the mirrors move with the setup).
+
+    Returns
+    -------
+    VirtualSetup
+        In {T}; it moves along +y_T, as the cell does relative to the part when the robot
+        passes along +y_B.
+    """
+    pp = cell.pass_profile
+    tcp_b = np.array([0.0, pp.start_y_mm, pp.height_mm])
+    rot_b = cell.gripper_rotation_b
+    cal = cell.calibration
+
+    def to_t(point_b):
+        return base_to_tcp(np.asarray(point_b, np.float64)[None], tcp_b, rot_b)[0]
+
+    laser_t = to_t(cell.laser_origin_b) if laser is None else laser
+    camera_t = to_t(cal.camera.origin) if camera is None else np.asarray(camera, np.float64)
+    views = []
+    if mirrors:
+        # A mirror plane n . x = d in {B} is (R^T n) . x = d - n . tcp in {T}.
+        for name, mirror in zip(("left", "right"), cal.mirrors):
+            n_b, d_b = mirror.plane.normal, mirror.plane.offset
+            flip = reflection_matrix(rot_b.T @ n_b, d_b - n_b @ tcp_b)
+            views.append((name, apply_transform(flip, camera_t)))
+    motion = unit(rot_b.T @ np.array([0.0, -1.0, 0.0]))  # the cell moves back along the pass
+    return VirtualSetup(laser=laser_t, camera=camera_t, step_mm=step_mm,
+                        rays_per_line=rays_per_line, views=tuple(views), motion=motion)
+
+
+def _check_path(part: Part, ix: Intersector, start, shift, first: int, last: int,
+                what: str) -> None:
+    """Refuse a light source or camera that is inside the part, or passes through it."""
+    p0 = start + first * shift
+    path = (last - first) * shift
+    length = float(np.linalg.norm(path))
+    if length > 0:
+        dist, _ = ix.first_hit(p0[None], path[None])
+        if dist[0] <= length:
+            raise SetupError(f"the {what} passes through the part during the sweep (steps "
+                             f"{first} to {last}): move it away from the part")
+    if not part.mesh.is_watertight:
+        return  # an open mesh has no inside
+    probes = unit(np.array([[0.57, 0.61, 0.55], [-0.7, 0.1, -0.71], [0.05, -0.9, 0.43]]))
+    dist, face = ix.first_hit(np.repeat(p0[None], 3, axis=0), probes)
+    normals, _ = ix.face_planes
+    # From inside a closed, outward-facing surface every ray leaves through a back face.
+    inside = sum(f >= 0 and normals[f] @ d > 0 for f, d in zip(face, probes))
+    if inside >= 2:
+        raise SetupError(f"the {what} is inside the part at step {first}")
