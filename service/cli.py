@@ -67,8 +67,30 @@ def _parse_args(argv):
     scan.add_argument("--no-eval", action="store_true", help="skip the ground-truth accuracy")
     scan.add_argument("--out", type=Path, required=True)
 
+    sim = sub.add_parser("simulate", help="predict the cloud of a CAD part by ray casting "
+                                          "(the paper's scan simulator)")
+    src = sim.add_mutually_exclusive_group(required=True)
+    src.add_argument("--part", type=Path, help="mesh file (STL, OBJ, PLY)")
+    src.add_argument("--demo", action="store_true", help="the built-in procedural block")
+    sim.add_argument("--units", default=None, help="unit of the mesh file: mm, cm, m or inch")
+    sim.add_argument("--laser", default=None,
+                     help="'x,y,z': light source at step 0, mm in {T} (default: the reference "
+                          "cell's at the start of the pass)")
+    sim.add_argument("--camera", default=None, help="'x,y,z': camera at step 0, mm in {T}")
+    sim.add_argument("--step", type=float, default=None,
+                     help="step size, mm: how far the setup moves along +y_T between lines "
+                          "(default 0.5)")
+    sim.add_argument("--rays", type=int, default=None, help="rays per line (default 1000)")
+    sim.add_argument("--misplace", default=None, help="'tx,ty,tz,rx,ry,rz': mm and degrees, in {T}")
+    sim.add_argument("--grasp", choices=["centred", "identity"], default="centred",
+                     help="nominal grasp (as for scan)")
+    sim.add_argument("--mirrors", action="store_true",
+                     help="also record whether the camera sees each point through each mirror")
+    sim.add_argument("--threads", type=int, default=2, help="worker threads (default 2)")
+    sim.add_argument("--out", type=Path, required=True, help="output PLY file")
+
     bench = sub.add_parser("bench", help="benchmarks: JSON figures and PNG charts")
-    bench.add_argument("what", choices=["stripe", "scan"])
+    bench.add_argument("what", choices=["stripe", "scan", "simulate"])
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
     return parser.parse_args(argv)
@@ -80,16 +102,13 @@ def _cmd_scan(args) -> int:
     from scanner_core.scanio import save_scan
     from scanner_core.stripe import METHODS
     from simulator.cell import PASS_PRESETS, load_cell
-    from simulator.parts import block_with_holes_and_steps, check_fits, load_part, part_from_mesh
+    from simulator.parts import check_fits
     from simulator.session import parse_misplacement, run_simulated_scan
 
     # Everything is checked before the pass is simulated: a bad input writes nothing.
     if args.method not in METHODS:
         raise UsageError(f"--method must be one of {', '.join(METHODS)}, got {args.method!r}")
-    if args.demo and args.units is not None:
-        raise UsageError("--units applies only to --part: the demo part is built in mm")
-    if args.part is not None and args.units is None:
-        raise UsageError("--units is required with --part: a mesh file carries no reliable unit")
+    _check_part_args(args)
     for name, limit in (("speed", MAX_SPEED_MM_S), ("fps", MAX_FPS)):
         value = getattr(args, name)
         if value is not None and not 0 < value <= limit:
@@ -102,11 +121,7 @@ def _cmd_scan(args) -> int:
         misplacement = parse_misplacement(args.misplace)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    grasp = np.eye(4) if args.grasp == "identity" else None  # None: the centred grasp
-    if args.demo:
-        part = part_from_mesh(block_with_holes_and_steps(), name="demo-block", grasp=grasp)
-    else:
-        part = load_part(args.part, args.units, grasp=grasp)
+    part = _load_part(args)
     check_fits(part)
     cell = load_cell(perturb_seed=args.perturb_seed)
     preset = PASS_PRESETS[args.preset]
@@ -139,9 +154,85 @@ def _cmd_scan(args) -> int:
     return 0
 
 
+def _check_part_args(args) -> None:
+    if args.demo and args.units is not None:
+        raise UsageError("--units applies only to --part: the demo part is built in mm")
+    if args.part is not None and args.units is None:
+        raise UsageError("--units is required with --part: a mesh file carries no reliable unit")
+
+
+def _load_part(args):
+    """The part of ``--part``/``--units`` or ``--demo``, with the ``--grasp`` asked for."""
+    from simulator.parts import block_with_holes_and_steps, load_part, part_from_mesh
+
+    grasp = np.eye(4) if args.grasp == "identity" else None  # None: the centred grasp
+    if args.demo:
+        return part_from_mesh(block_with_holes_and_steps(), name="demo-block", grasp=grasp)
+    return load_part(args.part, args.units, grasp=grasp)
+
+
+def _parse_point(text: str | None, option: str):
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not np.all(np.isfinite(values)):
+        raise UsageError(f"{option} must be three finite numbers 'x,y,z' in mm, got {text!r}")
+    return np.array(values)
+
+
+def _cmd_simulate(args) -> int:
+    from simulator.cell import load_cell
+    from simulator.session import parse_misplacement
+    from simulator.virtual_setup import (DEFAULT_RAYS_PER_LINE, DEFAULT_STEP_MM, predict_cloud,
+                                         reference_setup, save_predicted_cloud, warm_up)
+
+    _check_part_args(args)
+    if args.out.suffix.lower() != ".ply":
+        raise UsageError(f"--out must name a .ply file, got {args.out}")
+    if args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a directory; give a file name ending in .ply")
+    if args.threads < 1:
+        raise UsageError(f"--threads must be >= 1, got {args.threads}")
+    laser, camera = _parse_point(args.laser, "--laser"), _parse_point(args.camera, "--camera")
+    try:
+        misplacement = parse_misplacement(args.misplace)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    # The setup is validated (a zero or negative step, too few rays) before the mesh loads.
+    setup = reference_setup(load_cell(), laser=laser, camera=camera, mirrors=args.mirrors,
+                            step_mm=DEFAULT_STEP_MM if args.step is None else args.step,
+                            rays_per_line=(DEFAULT_RAYS_PER_LINE if args.rays is None
+                                           else args.rays))
+    part = _load_part(args)
+    warm_up()
+    t0 = time.perf_counter()
+    part.intersector  # noqa: B018 - built once; its cost is reported apart from the sweep's
+    build_s = time.perf_counter() - t0
+    cloud = predict_cloud(part, setup, pose=misplacement @ part.grasp, threads=args.threads)
+    summary = {"part": part.name, "faces": len(part.mesh.faces),
+               "intersector_build_s": round(build_s, 4), **cloud.summary()}
+    summary.update({f"seen_{name}": int(seen.sum()) for name, seen in cloud.seen.items()})
+    if cloud.first_hits == 0:
+        raise ScanError(f"no ray hit the part in {cloud.rays_cast} rays over steps "
+                        f"{cloud.steps[0]}..{cloud.steps[1]}: is the part thinner than a step?")
+    if len(cloud) == 0:
+        raise ScanError(f"the camera sees none of the {cloud.first_hits} lit points: is it "
+                        "behind the part, or on the other side of the light plane's lit surface?")
+    path = save_predicted_cloud(args.out, cloud)
+    print(json.dumps(summary))
+    print(f"predicted {len(cloud)} points of {part.name} in {cloud.elapsed_s:.3f} s "
+          f"({cloud.rays_per_second / 1e6:.1f} Mrays/s): {path}")
+    return 0
+
+
 def _cmd_bench(args) -> int:
     if args.what == "stripe":
         from service.bench import stripe as bench
+    elif args.what == "simulate":
+        from service.bench import simulate as bench
     else:
         from service.bench import scan as bench
     result = bench.run(args.out, quick=args.quick)
@@ -156,11 +247,13 @@ def main(argv=None) -> int:
     # each call and steal the other core (NOTES.md).
     from scanner_core.calibration import CalibrationError
     from simulator.parts import PartError
+    from simulator.virtual_setup import SetupError
 
     with threadpool_limits(limits=1, user_api="blas"):
         try:
-            return {"scan": _cmd_scan, "bench": _cmd_bench}[args.command](args)
-        except (UsageError, PartError, CalibrationError, ScanError) as exc:
+            return {"scan": _cmd_scan, "simulate": _cmd_simulate,
+                    "bench": _cmd_bench}[args.command](args)
+        except (UsageError, PartError, CalibrationError, ScanError, SetupError) as exc:
             print(f"flyscan {args.command}: error: {exc}", file=sys.stderr)
             return 2
 

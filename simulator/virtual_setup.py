@@ -22,16 +22,18 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from scanner_core.geometry import apply_transform, base_to_tcp, reflection_matrix, unit
+from scanner_core.ply import write_ply
 from simulator import _sweep
 from simulator.parts import Part
 from simulator.raycast import SURFACE_TOL_MM, Intersector
 
 __all__ = ["SetupError", "VirtualSetup", "PredictedCloud", "predict_cloud", "reference_setup",
-           "DEFAULT_STEP_MM", "DEFAULT_RAYS_PER_LINE", "MAX_RAYS"]
+           "save_predicted_cloud", "warm_up", "DEFAULT_STEP_MM", "DEFAULT_RAYS_PER_LINE", "MAX_RAYS"]
 
 DEFAULT_STEP_MM = 0.5
 DEFAULT_RAYS_PER_LINE = 1000
@@ -250,6 +252,18 @@ def predict_cloud(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = 
                      rays_cast, time.perf_counter() - t0)
 
 
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every kernel of the sweep, on a small cube, so
+    that the first real sweep's time is the sweep's own."""
+    import trimesh
+
+    cube = Part(name="warm-up", mesh=trimesh.creation.box(extents=(10.0, 10.0, 10.0)),
+                source="procedural:cube", units="mm", grasp=np.eye(4))
+    setup = VirtualSetup(laser=[0.0, -10.0, 100.0], camera=[0.0, 40.0, 100.0], step_mm=1.0,
+                         rays_per_line=64, views=(("other", [0.0, 40.0, 90.0]),))
+    predict_cloud(cube, setup, threads=1)
+
+
 def _fan(setup: VirtualSetup, vertices: np.ndarray) -> np.ndarray:
     """The line's rays: the depth-buffer line perpendicular to the central ray, in the light
     plane (the plane through the source across the motion), just covering the part."""
@@ -407,8 +421,10 @@ def reference_setup(cell, *, step_mm: float = DEFAULT_STEP_MM,
 
 def _check_path(part: Part, ix: Intersector, start, shift, first: int, last: int,
                 what: str) -> None:
-    """Refuse a light source or camera that is inside the part, or passes through it."""
-    p0 = start + first * shift
+    """Refuse a light source or camera that is inside the part, or passes through it.
+
+    `start` and `shift` are relative to the intersector's centre, as in `_Sweep`."""
+    p0 = start + first * shift + ix.centre
     path = (last - first) * shift
     length = float(np.linalg.norm(path))
     if length > 0:
@@ -421,7 +437,37 @@ def _check_path(part: Part, ix: Intersector, start, shift, first: int, last: int
     probes = unit(np.array([[0.57, 0.61, 0.55], [-0.7, 0.1, -0.71], [0.05, -0.9, 0.43]]))
     dist, face = ix.first_hit(np.repeat(p0[None], 3, axis=0), probes)
     normals, _ = ix.face_planes
-    # From inside a closed, outward-facing surface every ray leaves through a back face.
-    inside = sum(f >= 0 and normals[f] @ d > 0 for f, d in zip(face, probes))
+    # From inside a closed surface every ray leaves through a face that points the way the
+    # ray goes (outward normals; trimesh's volume is negative for an inward-wound mesh).
+    outward = 1.0 if part.mesh.volume >= 0 else -1.0
+    inside = sum(f >= 0 and outward * (normals[f] @ d) > 0 for f, d in zip(face, probes))
     if inside >= 2:
         raise SetupError(f"the {what} is inside the part at step {first}")
+
+
+def save_predicted_cloud(path, cloud: PredictedCloud, *, frame: str = "T") -> Path:
+    """Write a predicted cloud as binary little-endian PLY (float32 x, y, z in mm).
+
+    Per-vertex properties: ``step`` and ``ray`` (int32: the light source stood at
+    ``laser + step * step_mm * motion``, the header's comments), ``nx, ny, nz`` (float32
+    normals towards the light) and, for each extra view, ``seen_<name>`` (uint8).
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    s = cloud.setup
+    fields = {"step": cloud.step, "ray": cloud.ray}
+    fields.update({f"n{c}": cloud.normals[:, i].astype(np.float32) for i, c in enumerate("xyz")})
+    fields.update({f"seen_{name}": seen.astype(np.uint8) for name, seen in cloud.seen.items()})
+
+    def xyz(v):
+        return " ".join(f"{x:.9g}" for x in v)
+
+    comments = ["flyscan simulate", f"frame {frame}", "units mm",
+                f"laser_step0 {xyz(s.laser)}", f"camera_step0 {xyz(s.camera)}",
+                f"motion {xyz(s.motion)}", f"step_mm {s.step_mm:.9g}",
+                f"rays_per_line {s.rays_per_line}", f"steps {cloud.steps[0]} {cloud.steps[1]}"]
+    comments += [f"view_{name}_step0 {xyz(p)}" for name, p in s.views]
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    return write_ply(path, cloud.points.astype(np.float32), fields=fields, comments=comments)
