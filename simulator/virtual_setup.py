@@ -32,7 +32,8 @@ from simulator import _sweep
 from simulator.parts import Part
 from simulator.raycast import SURFACE_TOL_MM, Intersector
 
-__all__ = ["SetupError", "VirtualSetup", "PredictedCloud", "predict_cloud", "reference_setup",
+__all__ = ["SetupError", "VirtualSetup", "PredictedCloud", "SweepPlan", "predict_cloud",
+           "plan_sweep", "reference_setup",
            "save_predicted_cloud", "warm_up", "DEFAULT_STEP_MM", "DEFAULT_RAYS_PER_LINE", "MAX_RAYS"]
 
 DEFAULT_STEP_MM = 0.5
@@ -177,16 +178,46 @@ class PredictedCloud:
 
 
 @dataclass(frozen=True)
-class _Sweep:
-    """One sweep's geometry in the intersector's (centred) part frame."""
+class SweepPlan:
+    """One sweep's geometry, checked, in the frame the rays are cast in: the part's frame
+    relative to its intersector's centre (`Intersector.centre`).
 
+    Attributes
+    ----------
+    fan : (R, 3) float64
+        The line's unit ray directions in the setup frame.
+    first, last : int
+        Step numbers swept, inclusive (``last < first`` when the sheet never meets the part).
+    laser0, shift : (3,) float64
+        Light source at step 0 and its move per step, mm.
+    viewpoints : tuple of (str, (3,) float64)
+        The camera (`MAIN_VIEW`) first, then the setup's extra views, at step 0.
+    fan64, fan32 : (R, 3)
+        The ray directions in the part frame.
+    normals, offsets : (F, 3), (F,) float64
+        The part's face planes (`Intersector.face_planes`).
+    """
+
+    fan: np.ndarray
+    first: int
+    last: int
     laser0: np.ndarray
     shift: np.ndarray
-    viewpoints: tuple  # ((name, (3,) float64), ...), the camera first
+    viewpoints: tuple
     fan64: np.ndarray
     fan32: np.ndarray
     normals: np.ndarray
     offsets: np.ndarray
+
+    @property
+    def steps(self) -> np.ndarray:
+        """(S,) int64: the step numbers swept."""
+        return np.arange(self.first, self.last + 1, dtype=np.int64)
+
+    @property
+    def rays(self) -> int:
+        """Rays the sweep casts."""
+        return max(self.last - self.first + 1, 0) * len(self.fan)
 
 
 def predict_cloud(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = None,
@@ -221,35 +252,61 @@ def predict_cloud(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = 
         more than `max_rays` rays.
     """
     t0 = time.perf_counter()
+    if int(threads) < 1:
+        raise SetupError(f"`threads` must be >= 1, got {threads!r}")
+    pose = part.grasp if pose is None else np.asarray(pose, dtype=np.float64)
+    plan = plan_sweep(part, setup, pose=pose, max_rays=max_rays)
+    ix = part.intersector
+    steps = plan.steps
+    # Several chunks per thread even for small sweeps, so both threads finish together.
+    per_chunk = max(1, min(_CHUNK_RAYS // setup.rays_per_line,
+                           -(-len(steps) // (4 * int(threads)))))
+    chunks = [steps[i:i + per_chunk] for i in range(0, len(steps), per_chunk)]
+    if int(threads) == 1 or len(chunks) <= 1:
+        parts = [_sweep_chunk(ix, plan, c) for c in chunks]
+    else:
+        with ThreadPoolExecutor(int(threads), thread_name_prefix="sweep") as pool:
+            parts = list(pool.map(lambda c: _sweep_chunk(ix, plan, c), chunks))
+    return _assemble(parts, setup, pose, ix, plan, time.perf_counter() - t0)
+
+
+def plan_sweep(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = None,
+               max_rays: int = MAX_RAYS) -> SweepPlan:
+    """Check a sweep and lay it out in the part's frame (see `predict_cloud`).
+
+    Raises
+    ------
+    SetupError
+        As `predict_cloud`.
+    """
     pose = part.grasp if pose is None else np.asarray(pose, dtype=np.float64)
     if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
         raise SetupError(f"`pose` must be a finite (4, 4) matrix, got shape {pose.shape}")
-    if int(threads) < 1:
-        raise SetupError(f"`threads` must be >= 1, got {threads!r}")
     vertices = apply_transform(pose, part.mesh.vertices)
     fan = _fan(setup, vertices)
     first, last = _step_range(setup, vertices)
-    rays_cast = max(last - first + 1, 0) * setup.rays_per_line
-    if rays_cast > max_rays:
-        raise SetupError(f"the sweep would cast {rays_cast:.3g} rays ({last - first + 1} lines of "
+    rays = max(last - first + 1, 0) * setup.rays_per_line
+    if rays > max_rays:
+        raise SetupError(f"the sweep would cast {rays:.3g} rays ({last - first + 1} lines of "
                          f"{setup.rays_per_line}), more than {max_rays:.3g}: use a larger step "
                          f"({setup.step_mm:g} mm now) or fewer rays per line")
     ix = part.intersector
-    sweep = _sweep_in_part_frame(ix, setup, pose, fan)
+    inv = np.linalg.inv(pose)
+    rot = inv[:3, :3]
+    fan_p = unit(fan @ rot.T)
+    normals, offsets = ix.face_planes
+    viewpoints = ((MAIN_VIEW, setup.camera),) + setup.views
+    plan = SweepPlan(
+        fan=fan, first=first, last=last if last >= first else first - 1,
+        laser0=apply_transform(inv, setup.laser) - ix.centre,
+        shift=rot @ (setup.step_mm * setup.motion),
+        viewpoints=tuple((name, apply_transform(inv, p) - ix.centre) for name, p in viewpoints),
+        fan64=fan_p, fan32=fan_p.astype(np.float32), normals=normals, offsets=offsets)
     if last >= first:
-        _check_path(part, ix, sweep.laser0, sweep.shift, first, last, "light source")
-        for name, view0 in sweep.viewpoints:
-            _check_path(part, ix, view0, sweep.shift, first, last, name)
-    steps = np.arange(first, last + 1, dtype=np.int64)
-    per_chunk = max(1, _CHUNK_RAYS // setup.rays_per_line)
-    chunks = [steps[i:i + per_chunk] for i in range(0, len(steps), per_chunk)]
-    if int(threads) == 1 or len(chunks) <= 1:
-        parts = [_sweep_chunk(ix, sweep, c) for c in chunks]
-    else:
-        with ThreadPoolExecutor(int(threads), thread_name_prefix="sweep") as pool:
-            parts = list(pool.map(lambda c: _sweep_chunk(ix, sweep, c), chunks))
-    return _assemble(parts, setup, pose, ix, fan, (first, last) if len(steps) else (0, -1),
-                     rays_cast, time.perf_counter() - t0)
+        _check_path(part, ix, plan.laser0, plan.shift, first, last, "light source")
+        for name, view0 in plan.viewpoints:
+            _check_path(part, ix, view0, plan.shift, first, last, name)
+    return plan
 
 
 def warm_up() -> None:
@@ -294,22 +351,7 @@ def _step_range(setup: VirtualSetup, vertices: np.ndarray) -> tuple[int, int]:
             int(np.floor(along.max() / setup.step_mm)))
 
 
-def _sweep_in_part_frame(ix: Intersector, setup: VirtualSetup, pose: np.ndarray,
-                         fan: np.ndarray) -> _Sweep:
-    """The setup moved into the part's frame (relative to the intersector's centre)."""
-    inv = np.linalg.inv(pose)
-    rot = inv[:3, :3]
-    viewpoints = ((MAIN_VIEW, setup.camera),) + setup.views
-    fan_p = unit(fan @ rot.T)
-    normals, offsets = ix.face_planes
-    return _Sweep(
-        laser0=apply_transform(inv, setup.laser) - ix.centre,
-        shift=rot @ (setup.step_mm * setup.motion),
-        viewpoints=tuple((name, apply_transform(inv, p) - ix.centre) for name, p in viewpoints),
-        fan64=fan_p, fan32=fan_p.astype(np.float32), normals=normals, offsets=offsets)
-
-
-def _sweep_chunk(ix: Intersector, sweep: _Sweep, steps: np.ndarray) -> dict:
+def _sweep_chunk(ix: Intersector, sweep: SweepPlan, steps: np.ndarray) -> dict:
     """Cast the lines of `steps`: lit points, then the visibility check from each viewpoint."""
     n = len(steps) * len(sweep.fan64)
     origins = np.empty((n, 3), np.float32)
@@ -336,7 +378,7 @@ def _sweep_chunk(ix: Intersector, sweep: _Sweep, steps: np.ndarray) -> dict:
     return out
 
 
-def _visible_from(ix, sweep: _Sweep, view0, point_steps, points, normals):
+def _visible_from(ix, sweep: SweepPlan, view0, point_steps, points, normals):
     """(K,) bool: the viewpoint sees each point; and how many points face it."""
     k = len(points)
     origins = np.empty((k, 3), np.float32)
@@ -351,7 +393,7 @@ def _visible_from(ix, sweep: _Sweep, view0, point_steps, points, normals):
     return seen, m
 
 
-def _assemble(parts, setup, pose, ix, fan, steps, rays_cast, elapsed) -> PredictedCloud:
+def _assemble(parts, setup, pose, ix, plan: SweepPlan, elapsed) -> PredictedCloud:
     rot = pose[:3, :3]
     n_rays = setup.rays_per_line
 
@@ -370,7 +412,8 @@ def _assemble(parts, setup, pose, ix, fan, steps, rays_cast, elapsed) -> Predict
         step=cat("step", (0,), np.int64).astype(np.int32),
         ray=(index % n_rays).astype(np.int32),
         face=cat("face", (0,), np.int64),
-        seen=seen, fan=fan, steps=steps, rays_cast=rays_cast,
+        seen=seen, fan=plan.fan, steps=(plan.first, plan.last) if plan.rays else (0, -1),
+        rays_cast=plan.rays,
         first_hits=sum(p["hits"] for p in parts), facing=sum(p["facing"] for p in parts),
         elapsed_s=elapsed, setup=setup)
 
@@ -423,7 +466,7 @@ def _check_path(part: Part, ix: Intersector, start, shift, first: int, last: int
                 what: str) -> None:
     """Refuse a light source or camera that is inside the part, or passes through it.
 
-    `start` and `shift` are relative to the intersector's centre, as in `_Sweep`."""
+    `start` and `shift` are relative to the intersector's centre, as in `SweepPlan`."""
     p0 = start + first * shift + ix.centre
     path = (last - first) * shift
     length = float(np.linalg.norm(path))
