@@ -100,6 +100,15 @@ class Part:
         copying the mesh (NOTES.md), and every simulated pass or frame reuses it."""
         return Intersector(self.mesh)
 
+    @cached_property
+    def hull_vertices(self) -> np.ndarray:
+        """(H, 3) float64, mm in {P}: the vertices of the convex hull, all that decides the
+        part's extent in any direction; all vertices when the mesh is flat (no hull)."""
+        try:
+            return np.asarray(self.mesh.convex_hull.vertices, dtype=np.float64)
+        except Exception:  # qhull refuses flat or degenerate point sets, in many ways
+            return np.asarray(self.mesh.vertices, dtype=np.float64)
+
     def vertices_t(self) -> np.ndarray:
         """(V, 3) float64, mm: the mesh vertices in {T} under the nominal grasp."""
         return apply_transform(self.grasp, self.mesh.vertices)

@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 
 from simulator.parts import Part, part_from_mesh
-from simulator.virtual_setup import PredictedCloud, VirtualSetup, predict_cloud
+from simulator.virtual_setup import PredictedCloud, VirtualSetup, predict_cloud, prepare
 
 __all__ = ["cloud_deviation", "simplify_part", "SimplificationLevel", "coarsest_simplification"]
 
@@ -146,7 +146,7 @@ def coarsest_simplification(part: Part, setup: VirtualSetup, *, pose=None,
     Returns
     -------
     dict
-        ``full`` (faces, build_s, sweep_s, points), ``levels`` (`SimplificationLevel.to_dict`
+        ``full`` (faces, build_s: `prepare`, sweep_s, points), ``levels`` (`SimplificationLevel.to_dict`
         each, finest first), ``chosen`` (the coarsest passing level, or None) and
         ``sweep_time_saved`` (1 - chosen sweep time / full sweep time).
     """
@@ -165,6 +165,8 @@ def coarsest_simplification(part: Part, setup: VirtualSetup, *, pose=None,
         if progress is not None:
             progress(f"  {part.name}: {level.faces} faces, RMS {level.deviation['rms_um']:.2f} um, "
                      f"coverage change {100 * level.deviation['coverage_change']:.2f} %")
+        if level.faces > faces * 1.5:
+            break  # the decimation cannot keep the topology below this: no coarser level
         faces //= 2
     passing = [lv for lv in levels if lv.passes(tolerance_um, max_coverage_change)]
     chosen = min(passing, key=lambda lv: lv.faces) if passing else None
@@ -182,8 +184,6 @@ def coarsest_simplification(part: Part, setup: VirtualSetup, *, pose=None,
 
 
 def _timed_sweep(part: Part, setup: VirtualSetup, pose, repeats: int):
-    t0 = time.perf_counter()
-    part.intersector  # noqa: B018 - the one-off build, timed apart from the sweeps
-    build_s = time.perf_counter() - t0
+    build_s = prepare(part)
     clouds = [predict_cloud(part, setup, pose=pose) for _ in range(max(1, repeats))]
     return build_s, min(clouds, key=lambda c: c.elapsed_s)

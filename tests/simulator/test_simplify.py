@@ -1,0 +1,81 @@
+"""The simplification study: the ray-by-ray deviation, and the coarsest mesh within tolerance."""
+import numpy as np
+import pytest
+import trimesh
+
+from simulator.parts import part_from_mesh
+from simulator.simplify import cloud_deviation, coarsest_simplification, simplify_part
+from simulator.virtual_setup import VirtualSetup, predict_cloud
+
+pytest.importorskip("pymeshlab")
+
+SETUP = VirtualSetup(laser=[0.0, -130.3, 400.0], camera=[0.0, 94.7, 439.7], step_mm=0.5,
+                     rays_per_line=200)
+
+
+def _part(mesh, name):
+    return part_from_mesh(mesh, name=name, grasp=np.eye(4))
+
+
+@pytest.fixture(scope="module")
+def cube():
+    box = trimesh.creation.box(extents=(40.0, 40.0, 40.0))
+    box.apply_translation((0.0, 0.0, 20.0))
+    return _part(box, "cube")
+
+
+def test_identical_clouds_deviate_by_nothing(cube):
+    cloud = predict_cloud(cube, SETUP)
+    d = cloud_deviation(cloud, cloud)
+    assert d["rms_um"] == 0.0 and d["missing"] == d["extra"] == 0
+    assert d["matched"] == len(cloud)
+
+
+def test_a_surface_moved_along_its_normal_deviates_by_the_move(cube):
+    ref = predict_cloud(cube, SETUP)
+    moved = np.eye(4)
+    moved[2, 3] = 0.003  # the lit face 3 um nearer the light
+    d = cloud_deviation(ref, predict_cloud(cube, SETUP, pose=moved))
+    assert d["rms_um"] == pytest.approx(3.0, abs=1e-3)
+    assert d["max_um"] == pytest.approx(3.0, abs=1e-3)
+
+
+def test_clouds_of_different_sweeps_are_not_compared(cube):
+    other = VirtualSetup(laser=SETUP.laser, camera=SETUP.camera, step_mm=0.25, rays_per_line=200)
+    with pytest.raises(ValueError, match="different sweeps"):
+        cloud_deviation(predict_cloud(cube, SETUP), predict_cloud(cube, other))
+
+
+def test_a_subdivided_cube_simplifies_back_to_the_same_cloud(cube):
+    v, f = cube.mesh.vertices, cube.mesh.faces
+    for _ in range(3):
+        v, f = trimesh.remesh.subdivide(v, f)
+    fine = _part(trimesh.Trimesh(v, f, process=False), "fine-cube")
+    assert len(fine.mesh.faces) == 768
+    coarse = simplify_part(fine, 12)
+    assert len(coarse.mesh.faces) == 12 and coarse.mesh.is_watertight
+    d = cloud_deviation(predict_cloud(fine, SETUP), predict_cloud(coarse, SETUP))
+    assert d["rms_um"] < 0.01 and d["coverage_change"] < 0.01
+
+
+def test_the_study_picks_the_coarsest_level_within_tolerance():
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=25.0)
+    ball.apply_translation((0.0, 0.0, 30.0))
+    sphere = _part(ball, "sphere")
+    # A sphere cannot lose facets without moving its surface: no level keeps 5 um...
+    strict = coarsest_simplification(sphere, SETUP, min_faces=300, repeats=1)
+    assert strict["chosen"] is None and strict["sweep_time_saved"] == 0.0
+    assert all(lv["rms_um"] > 5.0 for lv in strict["levels"])
+    # ... while a looser tolerance admits the first halvings, and the coarsest is chosen.
+    study = coarsest_simplification(sphere, SETUP, tolerance_um=50.0, max_coverage_change=0.02,
+                                    min_faces=300, repeats=1)
+    faces = [lv["faces"] for lv in study["levels"]]
+    assert faces == sorted(faces, reverse=True) and faces[0] <= 2560
+    passing = [lv for lv in study["levels"]
+               if lv["rms_um"] <= 50.0 and lv["coverage_change"] <= 0.02]
+    assert 0 < len(passing) < len(study["levels"])
+    assert study["chosen"]["faces"] == min(lv["faces"] for lv in passing)
+    assert study["full"]["faces"] == 5120
+    # The error grows as the mesh shrinks.
+    rms = [lv["rms_um"] for lv in study["levels"]]
+    assert rms == sorted(rms)
