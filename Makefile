@@ -21,6 +21,7 @@ test: $(BIN)/flyscan
 bench: $(BIN)/flyscan
 	$(BIN)/flyscan bench stripe --out $(OUT)/bench/stripe
 	$(BIN)/flyscan bench scan --out $(OUT)/bench/scan
+	$(BIN)/flyscan bench simulate --out $(OUT)/bench/simulate
 
 clean:
 	rm -rf $(VENV) $(OUT) *.egg-info

@@ -121,9 +121,15 @@ class SimplificationLevel:
 def coarsest_simplification(part: Part, setup: VirtualSetup, *, pose=None,
                             tolerance_um: float = TOLERANCE_UM,
                             max_coverage_change: float = MAX_COVERAGE_CHANGE,
-                            min_faces: int = 100, repeats: int = 3, progress=None) -> dict:
-    """Halve the mesh until its predicted cloud leaves the tolerance; report the coarsest
-    level that stayed within it and the time it saves.
+                            min_faces: int = 100, refine: int = 4, repeats: int = 3,
+                            progress=None) -> dict:
+    """The coarsest decimation whose predicted cloud stays within tolerance of the full
+    mesh's, and the time it saves.
+
+    The mesh is halved down to `min_faces` (the error curve), then the face count is
+    bisected `refine` times (geometrically) between the coarsest level within tolerance and
+    the next, coarser one: the answer is within a factor ``2 ** (2 ** -refine)`` of the
+    coarsest possible.
 
     Parameters
     ----------
@@ -138,6 +144,8 @@ def coarsest_simplification(part: Part, setup: VirtualSetup, *, pose=None,
         Limit on the fraction of rays gained or lost.
     min_faces : int
         Stop halving below this many faces.
+    refine : int
+        Bisections after the halving.
     repeats : int
         Sweeps timed per level (the fastest counts).
     progress : callable, optional
@@ -146,37 +154,59 @@ def coarsest_simplification(part: Part, setup: VirtualSetup, *, pose=None,
     Returns
     -------
     dict
-        ``full`` (faces, build_s: `prepare`, sweep_s, points), ``levels`` (`SimplificationLevel.to_dict`
-        each, finest first), ``chosen`` (the coarsest passing level, or None) and
-        ``sweep_time_saved`` (1 - chosen sweep time / full sweep time).
+        ``full`` (faces, build_s: `prepare`, sweep_s, points), ``levels``
+        (`SimplificationLevel.to_dict` each, finest first), ``chosen`` (the coarsest passing
+        level, or None) and ``sweep_time_saved`` (1 - chosen sweep time / full sweep time).
     """
     pose = part.grasp if pose is None else np.asarray(pose, dtype=np.float64)
     full_build, full = _timed_sweep(part, setup, pose, repeats)
-    levels = []
-    faces = len(part.mesh.faces) // 2
-    while faces >= min_faces:
+    full_faces = len(part.mesh.faces)
+    levels: dict[int, SimplificationLevel] = {}
+
+    def level(faces: int) -> SimplificationLevel:
         t0 = time.perf_counter()
         coarse = simplify_part(part, faces)
         simplify_s = time.perf_counter() - t0
         build_s, cloud = _timed_sweep(coarse, setup, pose, repeats)
-        level = SimplificationLevel(len(coarse.mesh.faces), simplify_s, build_s,
-                                    cloud.elapsed_s, len(cloud), cloud_deviation(full, cloud))
-        levels.append(level)
+        lv = SimplificationLevel(len(coarse.mesh.faces), simplify_s, build_s,
+                                 cloud.elapsed_s, len(cloud), cloud_deviation(full, cloud))
+        levels[lv.faces] = lv
         if progress is not None:
-            progress(f"  {part.name}: {level.faces} faces, RMS {level.deviation['rms_um']:.2f} um, "
-                     f"coverage change {100 * level.deviation['coverage_change']:.2f} %")
-        if level.faces > faces * 1.5:
+            progress(f"  {part.name}: {lv.faces} faces, RMS {lv.deviation['rms_um']:.2f} um, "
+                     f"coverage change {100 * lv.deviation['coverage_change']:.2f} %")
+        return lv
+
+    def ok(lv: SimplificationLevel) -> bool:
+        return lv.passes(tolerance_um, max_coverage_change)
+
+    faces = full_faces // 2
+    while faces >= min_faces:
+        if level(faces).faces > faces * 1.5:
             break  # the decimation cannot keep the topology below this: no coarser level
         faces //= 2
-    passing = [lv for lv in levels if lv.passes(tolerance_um, max_coverage_change)]
-    chosen = min(passing, key=lambda lv: lv.faces) if passing else None
+    passing = [f for f, lv in levels.items() if ok(lv)]
+    lo = min(passing, default=full_faces)  # coarsest within tolerance so far
+    coarser = [f for f in levels if f < lo]
+    if coarser:
+        hi = max(coarser)  # the next coarser level, outside tolerance
+        for _ in range(refine):
+            mid = int(round(np.sqrt(lo * hi)))
+            if not hi < mid < lo:
+                break
+            lv = level(mid)
+            if ok(lv) and lv.faces < lo:
+                lo = lv.faces
+            else:
+                hi = mid
+    ordered = sorted(levels.values(), key=lambda lv: -lv.faces)
+    chosen = levels.get(lo)
     return {
         "part": part.name, "tolerance_um": tolerance_um,
         "max_coverage_change": max_coverage_change,
         "setup": {"step_mm": setup.step_mm, "rays_per_line": setup.rays_per_line},
-        "full": {"faces": len(part.mesh.faces), "build_s": round(full_build, 4),
+        "full": {"faces": full_faces, "build_s": round(full_build, 4),
                  "sweep_s": round(full.elapsed_s, 4), "points": len(full)},
-        "levels": [lv.to_dict() for lv in levels],
+        "levels": [lv.to_dict() for lv in ordered],
         "chosen": chosen.to_dict() if chosen else None,
         "sweep_time_saved": (round(1.0 - chosen.sweep_s / full.elapsed_s, 4)
                              if chosen else 0.0),
