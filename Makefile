@@ -7,6 +7,7 @@ OUT ?= out
 .PHONY: run test bench clean
 
 $(BIN)/flyscan: pyproject.toml
+	bash scripts/system-deps.sh
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[test]'

@@ -112,7 +112,7 @@ class SimplificationLevel:
 
     def to_dict(self) -> dict:
         return {"faces": self.faces, "simplify_s": round(self.simplify_s, 4),
-                "build_s": round(self.build_s, 4), "sweep_s": round(self.sweep_s, 4),
+                "build_s": round(self.build_s, 6), "sweep_s": round(self.sweep_s, 6),
                 "points": self.points,
                 **{k: (round(v, 4) if isinstance(v, float) else v)
                    for k, v in self.deviation.items()}}
@@ -204,8 +204,8 @@ def coarsest_simplification(part: Part, setup: VirtualSetup, *, pose=None,
         "part": part.name, "tolerance_um": tolerance_um,
         "max_coverage_change": max_coverage_change,
         "setup": {"step_mm": setup.step_mm, "rays_per_line": setup.rays_per_line},
-        "full": {"faces": full_faces, "build_s": round(full_build, 4),
-                 "sweep_s": round(full.elapsed_s, 4), "points": len(full)},
+        "full": {"faces": full_faces, "build_s": round(full_build, 6),
+                 "sweep_s": round(full.elapsed_s, 6), "points": len(full)},
         "levels": [lv.to_dict() for lv in ordered],
         "chosen": chosen.to_dict() if chosen else None,
         "sweep_time_saved": (round(1.0 - chosen.sweep_s / full.elapsed_s, 4)

@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# Debian packages flyscan needs beside its Python packages; installs the missing ones.
+#   libgl1: pymeshlab (the simulator's mesh simplification) links against libGL.
+set -euo pipefail
+packages=(libgl1)
+missing=()
+for pkg in "${packages[@]}"; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+done
+[ ${#missing[@]} -eq 0 ] && exit 0
+if ! command -v apt-get >/dev/null; then
+    echo "system-deps: not a Debian system; install the equivalent of: ${missing[*]}" >&2
+    exit 0
+fi
+run=()
+[ "$(id -u)" -ne 0 ] && run=(sudo)
+echo "system-deps: installing ${missing[*]}" >&2
+"${run[@]}" apt-get update -qq
+DEBIAN_FRONTEND=noninteractive "${run[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}"
