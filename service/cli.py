@@ -183,6 +183,24 @@ def _parse_point(text: str | None, option: str):
     return np.array(values)
 
 
+#: Sweeps with more rays than this report their progress (about 2 s at 10 Mrays/s).
+PROGRESS_RAYS = 20_000_000
+
+
+class _SweepProgress:
+    """Prints a line on stderr at every tenth of a long sweep."""
+
+    def __init__(self):
+        self.shown = -1
+
+    def __call__(self, done: int, total: int) -> None:
+        tenth = 10 * done // max(total, 1)
+        if total >= PROGRESS_RAYS and tenth > self.shown:
+            self.shown = tenth
+            print(f"swept {done / 1e6:.0f} of {total / 1e6:.0f} M rays ({10 * tenth} %)",
+                  file=sys.stderr, flush=True)
+
+
 def _cmd_simulate(args) -> int:
     from simulator.cell import load_cell
     from simulator.session import parse_misplacement
@@ -210,7 +228,8 @@ def _cmd_simulate(args) -> int:
     part = _load_part(args)
     warm_up()
     build_s = prepare(part)  # once per part: reported apart from the sweep
-    cloud = predict_cloud(part, setup, pose=misplacement @ part.grasp, threads=args.threads)
+    cloud = predict_cloud(part, setup, pose=misplacement @ part.grasp, threads=args.threads,
+                          progress=_SweepProgress())
     summary = {"part": part.name, "faces": len(part.mesh.faces),
                "intersector_build_s": round(build_s, 4), **cloud.summary()}
     summary.update({f"seen_{name}": int(seen.sum()) for name, seen in cloud.seen.items()})

@@ -40,7 +40,7 @@ DEFAULT_STEP_MM = 0.5
 DEFAULT_RAYS_PER_LINE = 1000
 #: A sweep casting more rays than this is refused: its cloud would not fit in memory, and a
 #: step size typed in metres instead of millimetres should fail at once, not after an hour.
-MAX_RAYS = 200_000_000
+MAX_RAYS = 100_000_000
 # Rays per Embree call: large enough to hide the per-call cost (12-26 us, NOTES.md), small
 # enough that two threads share the work evenly.
 _CHUNK_RAYS = 1 << 16
@@ -221,7 +221,8 @@ class SweepPlan:
 
 
 def predict_cloud(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = None,
-                  threads: int = 2, max_rays: int = MAX_RAYS) -> PredictedCloud:
+                  threads: int = 2, max_rays: int = MAX_RAYS,
+                  progress=None) -> PredictedCloud:
     """Sweep the virtual setup over a part and return the cloud the scanner should see.
 
     Parameters
@@ -237,6 +238,8 @@ def predict_cloud(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = 
         on it.
     max_rays : int
         Refuse sweeps casting more rays than this.
+    progress : callable, optional
+        Called as ``progress(rays_done, rays_total)`` as the sweep goes.
 
     Returns
     -------
@@ -262,11 +265,13 @@ def predict_cloud(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = 
     per_chunk = max(1, min(_CHUNK_RAYS // setup.rays_per_line,
                            -(-len(steps) // (4 * int(threads)))))
     chunks = [steps[i:i + per_chunk] for i in range(0, len(steps), per_chunk)]
-    if int(threads) == 1 or len(chunks) <= 1:
-        parts = [_sweep_chunk(ix, plan, c) for c in chunks]
-    else:
-        with ThreadPoolExecutor(int(threads), thread_name_prefix="sweep") as pool:
-            parts = list(pool.map(lambda c: _sweep_chunk(ix, plan, c), chunks))
+    parts, done = [], 0
+    with ThreadPoolExecutor(int(threads), thread_name_prefix="sweep") as pool:
+        for chunk, result in zip(chunks, pool.map(lambda c: _sweep_chunk(ix, plan, c), chunks)):
+            parts.append(result)
+            done += len(chunk) * len(plan.fan)
+            if progress is not None:
+                progress(done, plan.rays)
     return _assemble(parts, setup, pose, ix, plan, time.perf_counter() - t0)
 
 

@@ -323,3 +323,12 @@ def test_open_mesh_shows_its_inside(cube):
     np.testing.assert_allclose(cloud.normals[floor], [[0.0, 0.0, 1.0]] * floor.sum(), atol=1e-12)
     _, distance, _ = trimesh.proximity.closest_point(tray.mesh, cloud.points[::50])
     assert distance.max() < 1e-3
+
+
+def test_progress_reports_every_ray_once(block_part):
+    calls = []
+    cloud = predict_cloud(block_part, _setup(step=0.05, rays=500),
+                          progress=lambda done, total: calls.append((done, total)))
+    done = [d for d, _ in calls]
+    assert len(calls) > 2 and done == sorted(done)
+    assert calls[-1] == (cloud.rays_cast, cloud.rays_cast)
