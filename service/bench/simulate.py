@@ -1,15 +1,18 @@
-"""Benchmark of the scan simulator: the paper's Fig. 10, its reference loop, and mesh simplification.
+"""Benchmark of the scan simulator: the paper's Fig. 10, its reference loop, and simplification.
 
-For the four reference parts and a subdivided copy of one of them with about 120 k triangles
-(ADIS16480 split twice: 118 976; the paper's Model 2 has 128 590): 18 density configurations (6 step sizes x 3 rays per
-line) swept with `simulator.virtual_setup.predict_cloud` (packet ray casting, two threads),
-runtime against the number of points, one line per part. The same scenes also go through a
-plain single-threaded reference loop (embreex first hit and occlusion, one call per fan), for
-the ratio. Then the simplification study (`simulator.simplify`): the coarsest decimation of a
-mesh whose predicted cloud stays within 5 um RMS of the full mesh's, and the time it saves.
+For the four reference parts and a subdivided copy of one of them with about 120 k
+triangles (ADIS16480 split twice: 118 976; the paper's Model 2 has 128 590): 18 density
+configurations (6 step sizes x 3 rays per line) swept with
+`simulator.virtual_setup.predict_cloud` (packet ray casting, two threads), runtime against
+the number of points, one line per part. The same scenes also go through a plain
+single-threaded reference loop (embreex first hit and occlusion, one call per fan), for the
+ratio. The big part's sustained rate is timed apart on longer sweeps (5 M rays). Then the
+simplification study (`simulator.simplify`): the coarsest decimation of a mesh whose
+predicted cloud stays within 5 um RMS of the full mesh's, and the time it saves.
 
 Times exclude what a part's sweeps share, its intersector and hull (`prepare`, reported
-apart), and the numba compile (an untimed warm-up). The fast path's time is the fastest of ``repeats`` sweeps.
+apart), and the numba compile (an untimed warm-up). A configuration's time is the fastest of
+at least ``repeats`` sweeps (more for short ones, about 0.3 s of sweeping in all).
 
 ``run(out_dir)`` writes ``simulate.json`` and ``simulate.png`` into ``out_dir``.
 """
@@ -47,6 +50,9 @@ QUICK_STEPS_MM = (0.4, 0.2, 0.1)
 QUICK_RAYS_PER_LINE = (250, 500)
 QUICK_BIG_LEVELS = 3
 QUICK_SIMPLIFY_DENSITY = (0.2, 500)
+MIN_TIMED_S, MAX_REPEATS = 0.3, 20
+# The sustained rate on the big part: sweeps of about this many rays, timed this often.
+THROUGHPUT_RAYS, THROUGHPUT_RUNS = 5_000_000, 5
 # The issue's targets.
 TARGET_MRAYS_PER_S = 8.0
 TARGET_R2 = 0.98
@@ -167,9 +173,13 @@ def run(out_dir: pathlib.Path, *, quick: bool = False, repeats: int = 3, progres
                     rows.append(_row(part, reference_setup(cell, step_mm=step,
                                                            rays_per_line=rays), scene, repeats))
                     say(_progress_line(rows[-1]))
+        throughput = _throughput(parts[-1], cell, THROUGHPUT_RAYS // (10 if quick else 1))
+        say(f"{parts[-1].name}: {throughput['rays_cast']} rays, median "
+            f"{throughput['median_mrays_per_s']:.2f} Mrays/s over {THROUGHPUT_RUNS} sweeps")
         studies = _simplification_studies(parts, cell, quick, say)
     result = {"machine": machine_info(), "quick": quick, "repeats": repeats,
-              "builds": builds, "rows": rows, "simplification": studies}
+              "builds": builds, "rows": rows, "throughput": throughput,
+              "simplification": studies}
     result["fits"] = {name: {"fast": _fit(*_xy(rows, name, "")),
                              "reference": _fit(*_xy(rows, name, "reference_"))}
                       for name in builds}
@@ -180,8 +190,12 @@ def run(out_dir: pathlib.Path, *, quick: bool = False, repeats: int = 3, progres
 
 
 def _row(part: Part, setup, scene, repeats: int) -> dict:
-    clouds = [predict_cloud(part, setup) for _ in range(repeats)]
-    best = min(clouds, key=lambda c: c.elapsed_s)
+    # Short sweeps are timed more often: at least `repeats` times and about 0.3 s in all.
+    best, spent, runs = None, 0.0, 0
+    while runs < repeats or (spent < MIN_TIMED_S and runs < MAX_REPEATS):
+        cloud = predict_cloud(part, setup)
+        spent, runs = spent + cloud.elapsed_s, runs + 1
+        best = cloud if best is None or cloud.elapsed_s < best.elapsed_s else best
     ref_points, ref_s = reference_loop(part, setup, scene)
     return {
         "part": part.name, "faces": len(part.mesh.faces), "step_mm": setup.step_mm,
@@ -192,6 +206,20 @@ def _row(part: Part, setup, scene, repeats: int) -> dict:
         "reference_mrays_per_s": round(best.rays_cast / ref_s / 1e6, 3),
         "speedup": round(ref_s / best.elapsed_s, 3),
     }
+
+
+def _throughput(part: Part, cell, rays: int) -> dict:
+    """The sustained rate on one part: a long sweep of about `rays` rays, timed several times."""
+    probe = reference_setup(cell, step_mm=1.0, rays_per_line=1000)
+    extent = np.ptp(part.vertices_t() @ probe.motion)
+    setup = reference_setup(cell, step_mm=extent * 1000 / rays, rays_per_line=1000)
+    clouds = [predict_cloud(part, setup) for _ in range(THROUGHPUT_RUNS)]
+    rates = [c.rays_per_second / 1e6 for c in clouds]
+    return {"part": part.name, "step_mm": setup.step_mm, "rays_per_line": 1000,
+            "rays_cast": clouds[0].rays_cast, "points": len(clouds[0]),
+            "seconds": [round(c.elapsed_s, 6) for c in clouds],
+            "median_mrays_per_s": round(float(np.median(rates)), 3),
+            "min_mrays_per_s": round(min(rates), 3), "max_mrays_per_s": round(max(rates), 3)}
 
 
 def _progress_line(row: dict) -> str:
@@ -221,8 +249,6 @@ def _simplification_studies(parts, cell, quick, say) -> list[dict]:
 def _summary(result: dict, parts: list[Part]) -> dict:
     rows, fits = result["rows"], result["fits"]
     big, small = parts[-1].name, min(parts, key=lambda p: len(p.mesh.faces)).name
-    big_rows = [r for r in rows if r["part"] == big]
-    densest = max(big_rows, key=lambda r: r["rays_cast"])
     # Compare the two parts at the largest number of points both reach, on their fitted lines.
     n_equal = min(max(r["points"] for r in rows if r["part"] == name) for name in (big, small))
 
@@ -233,7 +259,8 @@ def _summary(result: dict, parts: list[Part]) -> dict:
     speedups = [r["speedup"] for r in rows]
     summary = {
         "big_part": big, "small_part": small,
-        "mrays_per_s_big_part_densest": _target(densest["mrays_per_s"], TARGET_MRAYS_PER_S, ">="),
+        "mrays_per_s_big_part": _target(result["throughput"]["median_mrays_per_s"],
+                                        TARGET_MRAYS_PER_S, ">="),
         "min_r2": _target(min(f["fast"]["r2"] for f in fits.values()), TARGET_R2, ">="),
         "r2_per_part": {name: round(f["fast"]["r2"], 5) for name, f in fits.items()},
         "cost_ratio_at_equal_points": _target(fitted_s(big) / fitted_s(small),

@@ -63,9 +63,13 @@ def test_fits_and_summary_follow_from_the_rows(quick_bench):
         r2 = 1 - ((y - slope * x - intercept) ** 2).sum() / ((y - y.mean()) ** 2).sum()
         assert fit["fast"]["r2"] == pytest.approx(r2, abs=1e-9)
     summary = result["summary"]
-    for key in ("mrays_per_s_big_part_densest", "min_r2", "cost_ratio_at_equal_points"):
+    for key in ("mrays_per_s_big_part", "min_r2", "cost_ratio_at_equal_points"):
         t = summary[key]
         assert t["met"] == (t["value"] >= t["limit"] if t["op"] == ">=" else t["value"] <= t["limit"])
+    tp = result["throughput"]
+    assert tp["part"] == "block-26k" and len(tp["seconds"]) == bench.THROUGHPUT_RUNS
+    assert tp["min_mrays_per_s"] <= tp["median_mrays_per_s"] <= tp["max_mrays_per_s"]
+    assert summary["mrays_per_s_big_part"]["value"] == tp["median_mrays_per_s"]
     assert summary["min_r2"]["value"] == pytest.approx(
         min(f["fast"]["r2"] for f in result["fits"].values()), abs=1e-4)
 
