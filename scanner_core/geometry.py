@@ -53,6 +53,22 @@ def reflection_matrix(normal: np.ndarray, offset: float) -> np.ndarray:
     return h
 
 
+def check_rigid(matrix, tol: float = 1e-6) -> np.ndarray:
+    """The matrix as a (4, 4) float64 rigid transform (rotation and translation).
+
+    `tol` (1e-6) lies well above the round-off of composed rotations and far below any real
+    error. Raises ValueError naming what is wrong.
+    """
+    m = np.array(matrix, dtype=np.float64)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise ValueError(f"must be a finite (4, 4) matrix, got shape {m.shape}")
+    r = m[:3, :3]
+    if (not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]) or not np.allclose(r @ r.T, np.eye(3), atol=tol)
+            or np.linalg.det(r) < 0):
+        raise ValueError("must be a rigid transform (a rotation and a translation)")
+    return m
+
+
 def apply_transform(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 homogeneous transform to (N, 3) points."""
     points = np.asarray(points, dtype=np.float64)

@@ -13,7 +13,13 @@ if ! command -v apt-get >/dev/null; then
     exit 0
 fi
 run=()
-[ "$(id -u)" -ne 0 ] && run=(sudo)
+if [ "$(id -u)" -ne 0 ]; then
+    if ! command -v sudo >/dev/null; then
+        echo "system-deps: missing ${missing[*]}; install them as root (apt-get install ${missing[*]})" >&2
+        exit 0
+    fi
+    run=(sudo)
+fi
 echo "system-deps: installing ${missing[*]}" >&2
 "${run[@]}" apt-get update -qq
 DEBIAN_FRONTEND=noninteractive "${run[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}"

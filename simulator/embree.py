@@ -1,11 +1,15 @@
 """Embree 4 scenes queried in packets of 16 rays, from numba kernels that release the GIL.
 
 embreex, the maintained Python binding, traces one ray per Embree call (``rtcIntersect1``).
-The simulator's rays come in coherent fans, for which Embree's packet traversal
-(``rtcIntersect16``, ``rtcOccluded16``) is about 1.8 times faster on this machine
-(``flyscan bench simulate`` measures it against the embreex loop). This module calls the
-Embree library that the embreex wheel ships, through ctypes; the scene shares the mesh's
-arrays instead of copying them element by element.
+This module calls the Embree library that the embreex wheel ships, through ctypes, for
+what embreex does not offer: a *robust* scene (no ray slips between two triangles that
+share an edge: with a non-robust scene, embreex's default, about 0.2 % of the rays of a fine
+sweep of ADIS16480 slipped through, whole lines where the light plane held mesh edges), queries in
+packets of 16 from numba kernels that release the GIL (no Python call per batch of rays),
+and a scene that shares the mesh's arrays instead of copying them element by element (3
+times faster to build). Measured here on a 130 k-triangle part, one thread: robust packets
+trace about as fast as embreex's non-robust single rays (about 6 Mrays/s), non-robust
+packets 1.7 times faster; robustness is worth its cost.
 
 Embree's C API (rtcore_ray.h): a packet is ``RTCRayHit16``, structure-of-arrays, 64-byte
 aligned: ray ``org_x, org_y, org_z, tnear, dir_x, dir_y, dir_z, time, tfar, mask, id, flags``
@@ -115,6 +119,8 @@ class PacketScene:
         f = np.asarray(faces)
         if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
             raise ValueError(f"need (V, 3) vertices and (F, 3) faces, got {v.shape}, {f.shape}")
+        if len(f) and (f.min() < 0 or f.max() >= len(v)):
+            raise ValueError(f"face indices must lie in [0, {len(v)}), got [{f.min()}, {f.max()}]")
         # Embree reads vertices with 16-byte loads: one spare vertex after the last.
         self._vertices = np.zeros((len(v) + 1, 3), np.float32)
         self._vertices[:-1] = v
@@ -156,7 +162,7 @@ class PacketScene:
         face : (N,) int32
             Face hit, -1 where the ray misses.
         """
-        n = len(origins)
+        n = _check_rays(origins, directions, reach)
         reach = np.full(n, np.inf, np.float32) if reach is None else reach
         distance = np.empty(n, np.float32)
         face = np.empty(n, np.int32)
@@ -177,9 +183,22 @@ class PacketScene:
         -------
         (N,) bool
         """
-        out = np.empty(len(origins), np.bool_)
+        out = np.empty(_check_rays(origins, directions, reach), np.bool_)
         _occluded16(_library().rtcOccluded16, self._scene, origins, directions, reach, out)
         return out
+
+
+def _check_rays(origins, directions, reach) -> int:
+    """The number of rays, after checking what the kernels read without bounds checks."""
+    n = len(origins)
+    arrays = [origins, directions] + ([] if reach is None else [reach])
+    if (any(not isinstance(a, np.ndarray) or a.dtype != np.float32
+            or not a.flags.c_contiguous for a in arrays)
+            or origins.shape != (n, 3) or directions.shape != (n, 3)
+            or (reach is not None and reach.shape != (n,))):
+        raise ValueError("rays must be C-contiguous float32 arrays: origins and directions "
+                         "(N, 3), reach (N,)")
+    return n
 
 
 @numba.njit(nogil=True, cache=True)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from scanner_core.geometry import apply_transform
+from scanner_core.geometry import apply_transform, check_rigid
 from simulator.raycast import Intersector
 
 __all__ = [
@@ -392,15 +392,10 @@ def check_fits(part: Part, volume_mm=INSPECTION_VOLUME_MM) -> None:
 
 
 def _check_grasp(grasp) -> np.ndarray:
-    g = np.array(grasp, dtype=np.float64)
-    if g.shape != (4, 4) or not np.all(np.isfinite(g)):
-        raise PartError(f"`grasp` must be a finite (4, 4) matrix, got {g.shape}")
-    r = g[:3, :3]
-    # 1e-6: well above float64 round-off of a composed rotation, far below any real error.
-    if (not np.allclose(g[3], [0, 0, 0, 1]) or not np.allclose(r @ r.T, np.eye(3), atol=1e-6)
-            or np.linalg.det(r) < 0):
-        raise PartError("`grasp` must be a rigid transform (rotation and translation)")
-    return g
+    try:
+        return check_rigid(grasp)
+    except ValueError as exc:
+        raise PartError(f"`grasp` {exc}") from None
 
 
 def _bounds_t(mesh: trimesh.Trimesh, grasp: np.ndarray) -> np.ndarray:

@@ -4,9 +4,9 @@ A CAD export often carries more triangles than the scanner can tell apart. The p
 clouds of a mesh and of its quadric-decimated copies (MeshLab's quadric edge collapse,
 Garland and Heckbert 1997, through pymeshlab: it keeps closed meshes closed and reaches the
 face count asked for, which fast-simplification did not on these parts) are compared ray
-by ray: the same step and ray of the same sweep, the
-distance of the simplified mesh's point from the full mesh's tangent plane (point-to-plane,
-as a registration would see it), and the rays that hit in one cloud and not the other.
+by ray, every mesh swept with the very same rays: the distance of the simplified mesh's
+point from the full mesh's tangent plane (point-to-plane, as a registration would see it),
+and the rays that hit in one cloud and not the other, or another surface.
 """
 from __future__ import annotations
 
@@ -25,23 +25,35 @@ __all__ = ["cloud_deviation", "simplify_part", "SimplificationLevel", "coarsest_
 #: or lost at silhouettes.
 TOLERANCE_UM = 5.0
 MAX_COVERAGE_CHANGE = 0.01
+#: A ray's point this far off the reference surface, or its normal turned this much, hit
+#: another surface (see `cloud_deviation`).
+SWITCH_UM, SWITCH_DEG = 100.0, 30.0
 
 
-def cloud_deviation(reference: PredictedCloud, other: PredictedCloud) -> dict:
+def cloud_deviation(reference: PredictedCloud, other: PredictedCloud, *,
+                    switch_um: float = SWITCH_UM, switch_deg: float = SWITCH_DEG) -> dict:
     """Compare two predicted clouds of the same sweep, ray by ray.
+
+    A ray whose point moved by more than `switch_um` off the reference's tangent plane, or
+    whose normal turned by more than `switch_deg`, landed on another surface (it grazed an
+    edge that moved): it counts as a change of coverage, like a ray kept by one cloud only,
+    not in the RMS, where a single one would outweigh a million good rays.
 
     Parameters
     ----------
     reference, other : PredictedCloud
-        Same setup (positions, step, rays per line) and the same part pose.
+        Same sweep: the same setup, fan and part pose (`VirtualSetup.with_fan`).
+    switch_um, switch_deg : float
+        Thresholds of a switched surface.
 
     Returns
     -------
     dict
         ``rms_um``, ``p99_um``, ``max_um``: point-to-plane distances of `other`'s points from
-        `reference`'s tangent planes, over the rays both kept (micrometres); ``matched``;
-        ``missing`` and ``extra``: rays only `reference`, or only `other`, kept; and
-        ``coverage_change``: (missing + extra) / len(reference).
+        `reference`'s tangent planes over the rays that both kept on the same surface
+        (micrometres); ``matched``; ``switched``; ``missing`` and ``extra``: rays only
+        `reference`, or only `other`, kept; ``coverage_change``: (switched + missing +
+        extra) / len(reference).
 
     Raises
     ------
@@ -49,21 +61,30 @@ def cloud_deviation(reference: PredictedCloud, other: PredictedCloud) -> dict:
         When the clouds come from different sweeps.
     """
     a, b = reference.setup, other.setup
-    if (a.rays_per_line != b.rays_per_line or a.step_mm != b.step_mm
-            or not np.array_equal(a.laser, b.laser) or not np.array_equal(a.motion, b.motion)):
-        raise ValueError("the clouds come from different sweeps: compare like with like")
-    key_a = reference.step.astype(np.int64) * a.rays_per_line + reference.ray
-    key_b = other.step.astype(np.int64) * b.rays_per_line + other.ray
+    if (a.step_mm != b.step_mm or not np.array_equal(a.laser, b.laser)
+            or not np.array_equal(a.camera, b.camera) or not np.array_equal(a.motion, b.motion)
+            or not np.array_equal(reference.fan, other.fan)
+            or not np.array_equal(reference.pose, other.pose)):
+        raise ValueError("the clouds come from different sweeps (setup, fan or pose): fix the "
+                         "fan with VirtualSetup.with_fan and compare like with like")
+    n_rays = len(reference.fan)
+    key_a = reference.step.astype(np.int64) * n_rays + reference.ray
+    key_b = other.step.astype(np.int64) * n_rays + other.ray
     _, ia, ib = np.intersect1d(key_a, key_b, assume_unique=True, return_indices=True)
     d = np.abs(np.einsum("ij,ij->i", other.points[ib] - reference.points[ia],
                          reference.normals[ia])) * 1e3
+    cos = np.einsum("ij,ij->i", other.normals[ib], reference.normals[ia])
+    same = (d <= switch_um) & (cos >= np.cos(np.radians(switch_deg)))
+    d = d[same]
+    switched = int(np.count_nonzero(~same))
     missing, extra = len(key_a) - len(ia), len(key_b) - len(ib)
     return {
         "rms_um": float(np.sqrt(np.mean(d ** 2))) if len(d) else float("nan"),
         "p99_um": float(np.percentile(d, 99)) if len(d) else float("nan"),
         "max_um": float(d.max()) if len(d) else float("nan"),
-        "matched": int(len(ia)), "missing": int(missing), "extra": int(extra),
-        "coverage_change": (missing + extra) / max(len(key_a), 1),
+        "matched": int(len(d)), "switched": switched, "missing": int(missing),
+        "extra": int(extra),
+        "coverage_change": (switched + missing + extra) / max(len(key_a), 1),
     }
 
 
@@ -160,6 +181,7 @@ def coarsest_simplification(part: Part, setup: VirtualSetup, *, pose=None,
     """
     pose = part.grasp if pose is None else np.asarray(pose, dtype=np.float64)
     full_build, full = _timed_sweep(part, setup, pose, repeats)
+    setup = setup.with_fan(full.fan)  # every level swept with the full mesh's very rays
     full_faces = len(part.mesh.faces)
     levels: dict[int, SimplificationLevel] = {}
 

@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from scanner_core.geometry import apply_transform, base_to_tcp, reflection_matrix, unit
+from scanner_core.geometry import (apply_transform, base_to_tcp, check_rigid,
+                                   reflection_matrix, unit)
 from scanner_core.ply import write_ply
 from simulator import _sweep
 from simulator.parts import Part
@@ -71,6 +72,10 @@ class VirtualSetup:
         records whether it sees them; they do not filter the cloud.
     motion : (3,) float64
         Unit direction the setup moves along, relative to the part (+y of the setup frame).
+    fan : (R, 3) float64, optional
+        The line's ray directions, unit vectors across the motion (R = `rays_per_line`).
+        By default the fan is fitted to the part: aimed at its centre, just covering it. Fix
+        it (`with_fan`) to sweep several meshes of one part with the very same rays.
     """
 
     laser: np.ndarray
@@ -79,6 +84,7 @@ class VirtualSetup:
     rays_per_line: int = DEFAULT_RAYS_PER_LINE
     views: tuple = ()
     motion: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+    fan: np.ndarray | None = None
 
     def __post_init__(self):
         for name in ("laser", "camera", "motion"):
@@ -107,16 +113,31 @@ class VirtualSetup:
             p.setflags(write=False)
             views.append((str(name), p))
         object.__setattr__(self, "views", tuple(views))
+        if self.fan is not None:
+            fan = np.array(self.fan, dtype=np.float64)
+            if (fan.shape != (self.rays_per_line, 3) or not np.all(np.isfinite(fan))
+                    or not np.allclose(np.linalg.norm(fan, axis=1), 1.0)
+                    or np.abs(fan @ self.motion).max() > 1e-9):
+                raise SetupError(f"`fan` must be {self.rays_per_line} unit directions across "
+                                 f"the motion, got an array of shape {fan.shape}")
+            fan.setflags(write=False)
+            object.__setattr__(self, "fan", fan)
+
+    def with_fan(self, fan) -> "VirtualSetup":
+        """The same setup with the line's rays fixed to `fan` ((R, 3) unit directions)."""
+        return replace(self, fan=fan, rays_per_line=len(fan))
 
     def laser_at(self, step) -> np.ndarray:
         """Light source position at step number(s) `step`: (3,) or (N, 3) float64, mm."""
-        return self.laser + np.multiply.outer(np.asarray(step, np.float64),
-                                              self.step_mm * self.motion)
+        return self._moved(self.laser, step)
 
     def camera_at(self, step) -> np.ndarray:
         """Camera position at step number(s) `step`: (3,) or (N, 3) float64, mm."""
-        return self.camera + np.multiply.outer(np.asarray(step, np.float64),
-                                               self.step_mm * self.motion)
+        return self._moved(self.camera, step)
+
+    def _moved(self, position, step) -> np.ndarray:
+        return position + np.multiply.outer(np.asarray(step, np.float64),
+                                            self.step_mm * self.motion)
 
 
 @dataclass(frozen=True)
@@ -146,6 +167,8 @@ class PredictedCloud:
     elapsed_s : float
         Wall time of the sweep (not of building the part's intersector).
     setup : VirtualSetup
+    pose : (4, 4) float64
+        The part's pose in the setup frame the sweep used.
     """
 
     points: np.ndarray
@@ -161,6 +184,7 @@ class PredictedCloud:
     facing: int
     elapsed_s: float
     setup: VirtualSetup
+    pose: np.ndarray
 
     def __len__(self) -> int:
         return len(self.points)
@@ -284,18 +308,19 @@ def plan_sweep(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = Non
     SetupError
         As `predict_cloud`.
     """
-    pose = part.grasp if pose is None else np.asarray(pose, dtype=np.float64)
-    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-        raise SetupError(f"`pose` must be a finite (4, 4) matrix, got shape {pose.shape}")
+    try:
+        pose = part.grasp if pose is None else check_rigid(pose)
+    except ValueError as exc:
+        raise SetupError(f"`pose`: {exc}") from None
     # The fan and the steps depend only on the part's extremes: its hull will do.
     vertices = apply_transform(pose, part.hull_vertices)
-    fan = _fan(setup, vertices)
     first, last = _step_range(setup, vertices)
-    rays = max(last - first + 1, 0) * setup.rays_per_line
-    if rays > max_rays:
-        raise SetupError(f"the sweep would cast {rays:.3g} rays ({last - first + 1} lines of "
-                         f"{setup.rays_per_line}), more than {max_rays:.3g}: use a larger step "
-                         f"({setup.step_mm:g} mm now) or fewer rays per line")
+    lines = max(last - first + 1, 0)
+    if lines * setup.rays_per_line > max_rays:
+        raise SetupError(f"the sweep would cast {lines * setup.rays_per_line:.3g} rays ({lines} "
+                         f"lines of {setup.rays_per_line}), more than {max_rays:.3g}: use a "
+                         f"larger step ({setup.step_mm:g} mm now) or fewer rays per line")
+    fan = _fan(setup, vertices) if setup.fan is None else setup.fan
     ix = part.intersector
     inv = np.linalg.inv(pose)
     rot = inv[:3, :3]
@@ -303,7 +328,7 @@ def plan_sweep(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = Non
     normals, offsets = ix.face_planes
     viewpoints = ((MAIN_VIEW, setup.camera),) + setup.views
     plan = SweepPlan(
-        fan=fan, first=first, last=last if last >= first else first - 1,
+        fan=fan, first=first, last=max(last, first - 1),
         laser0=apply_transform(inv, setup.laser) - ix.centre,
         shift=rot @ (setup.step_mm * setup.motion),
         viewpoints=tuple((name, apply_transform(inv, p) - ix.centre) for name, p in viewpoints),
@@ -360,10 +385,23 @@ def _fan(setup: VirtualSetup, vertices: np.ndarray) -> np.ndarray:
 
 
 def _step_range(setup: VirtualSetup, vertices: np.ndarray) -> tuple[int, int]:
-    """First and last step whose light plane meets the part (Eq. 4: y + NmSt * StRs)."""
+    """First and last step whose light plane meets the part (Eq. 4: y + NmSt * StRs).
+
+    The setup moves forwards from step 0: a light plane already past the part's near end at
+    step 0 would miss part of it, and is refused.
+    """
     along = vertices @ setup.motion - setup.laser @ setup.motion
-    return (int(np.ceil(along.min() / setup.step_mm)),
-            int(np.floor(along.max() / setup.step_mm)))
+    # Python floats: a step in the denormals overflows to inf instead of warning.
+    lo, hi = float(along.min()) / setup.step_mm, float(along.max()) / setup.step_mm
+    if not (np.isfinite(lo) and np.isfinite(hi)) or max(abs(lo), abs(hi)) > 2 ** 62:
+        raise SetupError(f"`step_mm` {setup.step_mm:g} is too small for a part "
+                         f"{np.ptp(along):.3g} mm long")
+    if lo < 0:
+        raise SetupError(
+            f"at step 0 the light plane is already {-along.min():.3f} mm past the part's near "
+            "end (the setup moves forwards along the motion from step 0): start the light "
+            "source and camera before the part")
+    return int(np.ceil(lo)), int(np.floor(hi))
 
 
 def _sweep_chunk(ix: Intersector, sweep: SweepPlan, steps: np.ndarray) -> dict:
@@ -389,7 +427,10 @@ def _sweep_chunk(ix: Intersector, sweep: SweepPlan, steps: np.ndarray) -> dict:
                 a[:k] for a in (index, points, normals, faces, point_steps))
         else:
             out["seen"][name] = seen
-    out.update(index=index, points=points, normals=normals, face=faces, step=point_steps)
+    # Copies: views would keep the chunk's full-size buffers alive until the end.
+    out.update(index=index.copy(), points=points.copy(), normals=normals.copy(),
+               face=faces.copy(), step=point_steps.copy())
+    out["seen"] = {name: seen.copy() for name, seen in out["seen"].items()}
     return out
 
 
@@ -430,7 +471,7 @@ def _assemble(parts, setup, pose, ix, plan: SweepPlan, elapsed) -> PredictedClou
         seen=seen, fan=plan.fan, steps=(plan.first, plan.last) if plan.rays else (0, -1),
         rays_cast=plan.rays,
         first_hits=sum(p["hits"] for p in parts), facing=sum(p["facing"] for p in parts),
-        elapsed_s=elapsed, setup=setup)
+        elapsed_s=elapsed, setup=setup, pose=pose)
 
 
 def reference_setup(cell, *, step_mm: float = DEFAULT_STEP_MM,

@@ -85,5 +85,4 @@ def test_simplification_recovers_the_subdivided_block(quick_bench):
     assert chosen is not None and chosen["rms_um"] <= 5.0 and chosen["coverage_change"] <= 0.01
     coarser = [lv for lv in levels if lv["faces"] < chosen["faces"]]
     assert all(lv["rms_um"] > 5.0 or lv["coverage_change"] > 0.01 for lv in coarser)
-    assert study["sweep_time_saved"] == pytest.approx(
-        1 - chosen["sweep_s"] / study["full"]["sweep_s"], abs=1e-3)
+    assert chosen["faces"] < 1000 and chosen["switched"] <= 0.01 * study["full"]["points"]

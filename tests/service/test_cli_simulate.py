@@ -54,7 +54,8 @@ def test_misplacement_moves_the_prediction(tmp_path, capsys):
     (["--laser", "0,0"], "--laser must be three"),
     (["--camera", "0,0,abc"], "--camera must be three"),
     (["--camera", "0,-130,10"], "camera passes through the part"),
-    (["--laser", "0,-130,10"], "light source"),
+    (["--laser", "0,-130,10"], "light source lies on the part's axis"),
+    (["--laser", "0,0,400"], "past the part's near end"),
     (["--threads", "0"], "--threads"),
     (["--misplace", "1,2"], "--misplace"),
 ])

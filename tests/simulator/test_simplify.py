@@ -33,17 +33,39 @@ def test_identical_clouds_deviate_by_nothing(cube):
 
 def test_a_surface_moved_along_its_normal_deviates_by_the_move(cube):
     ref = predict_cloud(cube, SETUP)
-    moved = np.eye(4)
-    moved[2, 3] = 0.003  # the lit face 3 um nearer the light
-    d = cloud_deviation(ref, predict_cloud(cube, SETUP, pose=moved))
+    nearer = cube.mesh.copy()
+    nearer.apply_translation((0.0, 0.0, 0.003))  # the lit face 3 um nearer the light
+    moved = predict_cloud(_part(nearer, "nearer"), SETUP.with_fan(ref.fan))
+    d = cloud_deviation(ref, moved)
     assert d["rms_um"] == pytest.approx(3.0, abs=1e-3)
     assert d["max_um"] == pytest.approx(3.0, abs=1e-3)
+    assert d["switched"] == d["missing"] == d["extra"] == 0
+
+
+def test_a_ray_on_another_surface_counts_as_coverage_not_error(cube):
+    """A step 2 mm high across part of the face: its rays switch surface."""
+    ref = predict_cloud(cube, SETUP)
+    stepped = trimesh.boolean.union(
+        [cube.mesh, trimesh.creation.box(extents=(10.0, 40.0, 2.0),
+                                         transform=trimesh.transformations.translation_matrix(
+                                             (15.0, 0.0, 40.0)))], engine="manifold")
+    other = predict_cloud(_part(stepped, "stepped"), SETUP.with_fan(ref.fan))
+    d = cloud_deviation(ref, other)
+    assert d["rms_um"] < 1e-6  # the rest of the face did not move
+    # The top of the step (x in [10, 20]) is a quarter of the face.
+    assert d["switched"] / len(ref) == pytest.approx(0.25, abs=0.03)
+    assert d["coverage_change"] >= d["switched"] / len(ref)
 
 
 def test_clouds_of_different_sweeps_are_not_compared(cube):
     other = VirtualSetup(laser=SETUP.laser, camera=SETUP.camera, step_mm=0.25, rays_per_line=200)
+    ref = predict_cloud(cube, SETUP)
     with pytest.raises(ValueError, match="different sweeps"):
-        cloud_deviation(predict_cloud(cube, SETUP), predict_cloud(cube, other))
+        cloud_deviation(ref, predict_cloud(cube, other))
+    moved = np.eye(4)
+    moved[0, 3] = 1.0
+    with pytest.raises(ValueError, match="different sweeps"):
+        cloud_deviation(ref, predict_cloud(cube, SETUP, pose=moved))
 
 
 def test_a_subdivided_cube_simplifies_back_to_the_same_cloud(cube):
@@ -54,7 +76,8 @@ def test_a_subdivided_cube_simplifies_back_to_the_same_cloud(cube):
     assert len(fine.mesh.faces) == 768
     coarse = simplify_part(fine, 12)
     assert len(coarse.mesh.faces) == 12 and coarse.mesh.is_watertight
-    d = cloud_deviation(predict_cloud(fine, SETUP), predict_cloud(coarse, SETUP))
+    ref = predict_cloud(fine, SETUP)
+    d = cloud_deviation(ref, predict_cloud(coarse, SETUP.with_fan(ref.fan)))
     assert d["rms_um"] < 0.01 and d["coverage_change"] < 0.01
 
 

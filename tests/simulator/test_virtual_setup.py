@@ -173,8 +173,6 @@ def test_same_inputs_give_the_same_cloud_whatever_the_threads(block_part):
 
 def test_pose_moves_the_cloud_with_the_part(block_part):
     setup = _setup(step=0.5, rays=200)
-    shift = np.eye(4)
-    shift[:3, 3] = [0.0, 0.25, 0.0]  # a quarter step: the lines cross the part elsewhere
     rot = np.eye(4)
     rot[:3, :3] = Rotation.from_euler("z", 180, degrees=True).as_matrix()
     a = predict_cloud(block_part, setup)
@@ -183,9 +181,19 @@ def test_pose_moves_the_cloud_with_the_part(block_part):
     step_a = np.abs(a.points[:, 2] - 15.0) < 1e-6
     step_b = np.abs(b.points[:, 2] - 15.0) < 1e-6
     assert a.points[step_a, 0].min() > 14.9 and b.points[step_b, 0].max() < -14.9
+    # A quarter-step shift: the lines cross the part elsewhere, and the points, shifted
+    # back, lie on the part where it stood before, between the unshifted lines.
+    shift = np.eye(4)
+    shift[:3, 3] = [0.0, 0.125, 0.0]
     moved = predict_cloud(block_part, setup, pose=shift)
-    assert np.all(np.abs((moved.points[:, 1] + 130.3) / 0.5 - moved.step) < 1e-9)
+    back = moved.points - [0.0, 0.125, 0.0]
+    _, distance, _ = trimesh.proximity.closest_point(block_part.mesh, back[::40])
+    assert distance.max() < 1e-3
+    phase = ((back[:, 1] + 130.3) / 0.5) % 1.0
+    np.testing.assert_allclose(phase, 0.75, atol=1e-9)
     assert abs(len(moved) - len(a)) < 0.05 * len(a)
+    with pytest.raises(SetupError, match="rigid"):
+        predict_cloud(block_part, setup, pose=np.diag([2.0, 2.0, 2.0, 1.0]))
 
 
 def test_ply_carries_the_step_and_where_the_setup_stood(tmp_path, block_part, cell):
@@ -268,7 +276,7 @@ def test_camera_inside_the_part_is_refused(cube):
 def test_camera_passing_through_the_part_is_refused():
     bar = trimesh.creation.box(extents=(20.0, 400.0, 20.0))
     bar.apply_translation((0.0, 0.0, 10.0))
-    setup = VirtualSetup(laser=[0.0, 0.0, 400.0], camera=[0.0, -150.0, 10.0], step_mm=50.0,
+    setup = VirtualSetup(laser=[0.0, -250.0, 400.0], camera=[0.0, -400.0, 10.0], step_mm=50.0,
                          rays_per_line=8)
     with pytest.raises(SetupError, match="camera passes through the part"):
         predict_cloud(_part(bar, "bar"), setup)
@@ -332,3 +340,23 @@ def test_progress_reports_every_ray_once(block_part):
     done = [d for d, _ in calls]
     assert len(calls) > 2 and done == sorted(done)
     assert calls[-1] == (cloud.rays_cast, cloud.rays_cast)
+
+
+def test_a_light_plane_already_past_the_part_at_step_0_is_refused(cube):
+    with pytest.raises(SetupError, match="past the part's near end"):
+        predict_cloud(cube, _setup(laser=[0.0, 0.0, 400.0], camera=[0.0, 225.0, 439.7]))
+
+
+def test_absurd_densities_are_refused_before_anything_is_allocated(cube):
+    with pytest.raises(SetupError, match="too small"):
+        predict_cloud(cube, _setup(step=1e-320))
+    with pytest.raises(SetupError, match="more than"):
+        predict_cloud(cube, _setup(rays=10_000_000_000))
+
+
+def test_a_fixed_fan_sweeps_another_mesh_with_the_same_rays(cube, sphere):
+    ref = predict_cloud(cube, _setup())
+    again = predict_cloud(sphere, _setup().with_fan(ref.fan))
+    np.testing.assert_array_equal(again.fan, ref.fan)
+    with pytest.raises(SetupError, match="fan"):
+        _setup(rays=3).with_fan(np.array([[0.0, 1.0, 0.0]] * 3))  # along the motion
