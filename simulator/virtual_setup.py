@@ -220,6 +220,8 @@ class SweepPlan:
         The ray directions in the part frame.
     normals, offsets : (F, 3), (F,) float64
         The part's face planes (`Intersector.face_planes`).
+    pose : (4, 4) float64
+        The part's pose in the setup frame (^T X_P), checked rigid.
     """
 
     fan: np.ndarray
@@ -232,6 +234,7 @@ class SweepPlan:
     fan32: np.ndarray
     normals: np.ndarray
     offsets: np.ndarray
+    pose: np.ndarray
 
     @property
     def steps(self) -> np.ndarray:
@@ -281,7 +284,6 @@ def predict_cloud(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = 
     t0 = time.perf_counter()
     if int(threads) < 1:
         raise SetupError(f"`threads` must be >= 1, got {threads!r}")
-    pose = part.grasp if pose is None else np.asarray(pose, dtype=np.float64)
     plan = plan_sweep(part, setup, pose=pose, max_rays=max_rays)
     ix = part.intersector
     steps = plan.steps
@@ -296,7 +298,7 @@ def predict_cloud(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = 
             done += len(chunk) * len(plan.fan)
             if progress is not None:
                 progress(done, plan.rays)
-    return _assemble(parts, setup, pose, ix, plan, time.perf_counter() - t0)
+    return _assemble(parts, setup, ix, plan, time.perf_counter() - t0)
 
 
 def plan_sweep(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = None,
@@ -332,7 +334,8 @@ def plan_sweep(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = Non
         laser0=apply_transform(inv, setup.laser) - ix.centre,
         shift=rot @ (setup.step_mm * setup.motion),
         viewpoints=tuple((name, apply_transform(inv, p) - ix.centre) for name, p in viewpoints),
-        fan64=fan_p, fan32=fan_p.astype(np.float32), normals=normals, offsets=offsets)
+        fan64=fan_p, fan32=fan_p.astype(np.float32), normals=normals, offsets=offsets,
+        pose=pose)
     if last >= first:
         _check_path(part, ix, plan.laser0, plan.shift, first, last, "light source")
         for name, view0 in plan.viewpoints:
@@ -449,7 +452,8 @@ def _visible_from(ix, sweep: SweepPlan, view0, point_steps, points, normals):
     return seen, m
 
 
-def _assemble(parts, setup, pose, ix, plan: SweepPlan, elapsed) -> PredictedCloud:
+def _assemble(parts, setup, ix, plan: SweepPlan, elapsed) -> PredictedCloud:
+    pose = plan.pose
     rot = pose[:3, :3]
     n_rays = setup.rays_per_line
 
