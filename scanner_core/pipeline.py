@@ -1,10 +1,18 @@
-"""One pass, from frames to a scan: the one pipeline the CLI, the service and the benchmarks run.
+"""One pass, from frames to a scan: the one streaming core the CLI, the service and the
+benchmarks drive.
 
-Per frame (:func:`process_frame`): the LED marker in the three views, its multi-view
-triangulation, the stripe per column of the direct view, and the stripe's triangulation
-(pixel ray x light plane). Per pass (:func:`stitch`): each profile is placed in {T} by the
-gripper position derived from the marker, with the gripper's orientation fixed for the pass
-(paper section II) — no assumption of constant speed or straight motion.
+Per frame: the LED marker in the three views, found once (:class:`MarkerTracker` searches near
+where the previous frames put it) and shared by the trigger's presence test and the frame's
+processing; then (:func:`process_frame`) the stripe per column of the direct view and its
+triangulation (pixel ray x light plane). Per pass: :class:`PassAccumulator` places each
+profile in {T} as it arrives, in any order, by the marker-derived gripper position and the
+gripper's orientation from the robot (``Robot.pose_at`` at the frame's time plus the
+camera-to-robot clock offset; paper section II: no assumption of constant speed or straight
+motion), and yields a scan sorted by frame id.
+
+:func:`run_pass` is the single-threaded driver (``flyscan scan``, the benchmarks); the service
+runs the same pieces with the marker and trigger on its acquisition thread and
+:func:`process_frame` + :meth:`PassAccumulator.add` on worker threads.
 
 References
 ----------
@@ -12,6 +20,7 @@ References
 """
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -21,11 +30,17 @@ import numpy as np
 from scanner_core import marker as marker_mod
 from scanner_core import stripe as stripe_mod
 from scanner_core.calibration import Calibration
-from scanner_core.devices import CameraTimeout
+from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
 from scanner_core.geometry import (base_to_tcp, reproject_marker, triangulate_marker,
                                    triangulate_stripe)
+from scanner_core.trigger import EndReason, Trigger, TriggerParams
 from scanner_core.types import Frame, MarkerObservation, Profile, Scan
 
+
+#: A frame newer than the robot's newest pose by at most this, s, takes that pose's rotation:
+#: the robot reports at 125-500 Hz, the frame may arrive before the next report, and the
+#: gripper turns by far less than a millidegree in that time.
+MAX_POSE_AGE_S = 0.02
 
 #: The marker's mask spans this many times ``marker_mask_px`` along the columns: the blob's
 #: halo reaches farther along a column than the stripe's rows vary across a few columns.
@@ -50,8 +65,7 @@ class PipelineParams:
         is bright enough to pass for the stripe there.
     max_marker_residual_px : float
         A marker whose views disagree by more than this (RMS reprojection) is rejected.
-    trigger_gap_frames : int
-        The pass ends after this many consecutive frames without the marker.
+    trigger : TriggerParams
     """
 
     stripe_method: str = "cog"
@@ -60,12 +74,28 @@ class PipelineParams:
     marker: marker_mod.MarkerParams = field(default_factory=marker_mod.MarkerParams)
     marker_mask_px: float = 12.0
     max_marker_residual_px: float = 1.0
-    trigger_gap_frames: int = 3
+    trigger: TriggerParams = field(default_factory=TriggerParams)
 
 
-def observe_marker(image: np.ndarray, calibration: Calibration, params: PipelineParams) -> MarkerObservation:
-    """Find and triangulate the LED marker in one image."""
-    pixels = marker_mod.find_markers(image, strips=calibration.strips, params=params.marker)
+# ---------------------------------------------------------------------------------------------
+# Per frame
+
+
+def observe_marker(image: np.ndarray, calibration: Calibration, params: PipelineParams,
+                   near: np.ndarray | None = None) -> MarkerObservation:
+    """Find and triangulate the LED marker in one image.
+
+    Parameters
+    ----------
+    image : (H, W) uint8
+    calibration : Calibration
+    params : PipelineParams
+    near : (3, 2) float64, optional
+        Predicted (column, row) per view (NaN: no prediction); each view is searched there
+        first, then over its whole strip.
+    """
+    pixels = marker_mod.find_markers(image, strips=calibration.strips, params=params.marker,
+                                     near=near)
     try:
         position, residual = triangulate_marker(pixels, calibration.camera, calibration.mirrors)
     except ValueError:  # views (nearly) parallel: this frame cannot be placed
@@ -75,7 +105,53 @@ def observe_marker(image: np.ndarray, calibration: Calibration, params: Pipeline
     return MarkerObservation(pixels, position, residual)
 
 
-def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams = PipelineParams()) -> Profile:
+class MarkerTracker:
+    """Finds the marker frame after frame, searching each view near where it will be.
+
+    The prediction extrapolates the last two observations of each view linearly in the frame
+    id (the marker moves smoothly between frames, a few to tens of pixels). Not thread-safe:
+    the thread that owns the camera runs it, in frame order.
+    """
+
+    def __init__(self, calibration: Calibration, params: PipelineParams):
+        self.calibration = calibration
+        self.params = params
+        self.reset()
+
+    def reset(self) -> None:
+        self._last: tuple[int, np.ndarray] | None = None
+        self._previous: tuple[int, np.ndarray] | None = None
+
+    def predict(self, frame_id: int) -> np.ndarray | None:
+        """(3, 2) predicted pixels for ``frame_id`` (NaN where unknown), or None."""
+        if self._last is None:
+            return None
+        last_id, last = self._last
+        if self._previous is None:
+            return last
+        prev_id, prev = self._previous
+        velocity = (last - prev) / max(last_id - prev_id, 1)
+        predicted = last + velocity * (frame_id - last_id)
+        # A view seen last frame but not the one before: stay where it was.
+        return np.where(np.isnan(predicted), last, predicted)
+
+    def observe(self, frame: Frame) -> MarkerObservation:
+        obs = observe_marker(frame.image, self.calibration, self.params,
+                             near=self.predict(frame.frame_id))
+        if obs.views:
+            self._previous, self._last = self._last, (frame.frame_id, obs.pixels)
+        else:
+            self.reset()
+        return obs
+
+
+def marker_present(marker: MarkerObservation) -> bool:
+    """The trigger's presence test: the marker found in at least two views."""
+    return marker.views >= 2
+
+
+def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams = PipelineParams(),
+                  marker: MarkerObservation | None = None) -> Profile:
     """One frame -> one profile (stripe points in {B}) and the marker position.
 
     Parameters
@@ -84,13 +160,16 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
         ``frame.image`` (H, W) uint8.
     calibration : Calibration
     params : PipelineParams
+    marker : MarkerObservation, optional
+        The frame's marker, when the trigger has already found it; searched otherwise.
 
     Returns
     -------
     Profile
     """
     image = frame.image
-    marker = observe_marker(image, calibration, params)
+    if marker is None:
+        marker = observe_marker(image, calibration, params)
     result = stripe_mod.extract(image, method=params.stripe_method,
                                 threshold=params.stripe_threshold_dn,
                                 columns=calibration.direct_columns)
@@ -115,7 +194,8 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
 def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams()) -> float:
     """Compile the numba kernels before the first pass, so that no frame of a pass waits for
     the JIT: a synthetic frame with a stripe and a marker blob in every view goes through the
-    trigger and the frame processing once. Returns the time it took, ms."""
+    marker search (whole strips and near a prediction) and the frame processing once.
+    Returns the time it took, ms."""
     t0 = time.perf_counter()
     cam = calibration.camera
     rows, cols = np.mgrid[0:cam.height, 0:cam.width].astype(np.float32)
@@ -128,121 +208,194 @@ def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams())
         image += 220.0 * np.exp(-0.5 * ((cols - centre_col) ** 2 + (rows - cam.height / 4.0) ** 2)
                                 / sigma**2)
     frame = Frame(np.clip(image, 0, 255).astype(np.uint8), -1, 0.0)
-    marker_mod.marker_present(frame.image, strips=calibration.strips, params=params.marker)
-    process_frame(frame, calibration, params)
+    tracker = MarkerTracker(calibration, params)
+    marker = tracker.observe(frame)
+    tracker.observe(frame)
+    process_frame(frame, calibration, params, marker)
     return (time.perf_counter() - t0) * 1e3
 
 
-def pass_frames(frames: Iterable[Frame], calibration: Calibration,
-                params: PipelineParams = PipelineParams()) -> Iterator[Frame]:
-    """The trigger: yield the frames of one pass (paper section V: the LED triggers the scan).
-
-    The pass starts at the first frame that shows the marker and ends once
-    ``params.trigger_gap_frames`` frames in a row have not shown it; frames missing the marker
-    inside the pass (a view hidden for a moment) are kept, those after its end are not.
-    """
-    started = False
-    pending: list[Frame] = []
-    for frame in frames:
-        present = marker_mod.marker_present(frame.image, strips=calibration.strips,
-                                            params=params.marker)
-        if present:
-            started = True
-            yield from pending
-            pending.clear()
-            yield frame
-        elif started:
-            pending.append(frame)
-            if len(pending) >= params.trigger_gap_frames:
-                return
+# ---------------------------------------------------------------------------------------------
+# Per pass
 
 
-def stitch(profiles: list[Profile], calibration: Calibration, gripper_rotation_b: np.ndarray) -> Scan:
-    """Place each profile in {T} by the marker-derived gripper position.
+@dataclass(frozen=True)
+class PlacedProfile:
+    """A profile in {T}: what the accumulator keeps of a frame."""
 
-    With the marker at ``m_T`` in {T} and {T}'s rotation ``R`` in {B} fixed for the pass,
-    the TCP is at ``p = M_B - R m_T`` and a stripe point goes to ``X_T = R^T (X_B - p)``.
+    frame_id: int
+    t: float
+    cloud_t: np.ndarray
+    quality: np.ndarray
+    tcp_b: np.ndarray
+    residual_px: float
+
+
+class PassAccumulator:
+    """Profiles placed one at a time, in any order; a scan sorted by frame id at the end.
+
+    With the marker at ``m_T`` in {T} and {T}'s rotation ``R`` in {B}, the TCP is at
+    ``p = M_B - R m_T`` and a stripe point goes to ``X_T = R^T (X_B - p)``. ``R`` is the robot's
+    at the frame's time on the robot clock (camera time + ``clock_offset_s``), or its newest
+    if the frame is newer by at most ``MAX_POSE_AGE_S``; when the robot
+    has no pose for that time (disconnected, history too short), the last rotation it gave
+    this pass is used and the frame counted in ``frames_held_rotation``; before any, the frame
+    cannot be placed. Thread-safe: worker threads call :meth:`add` concurrently.
 
     Parameters
     ----------
-    profiles : list of Profile
     calibration : Calibration
-    gripper_rotation_b : (3, 3) float64
-        {T} in {B}, as the robot reports it.
-
-    Returns
-    -------
-    Scan
-        Profiles without a triangulated marker are left out (their frames do not count).
+    robot : Robot
+    clock_offset_s : float
+        Robot clock minus camera clock, s.
     """
-    r = np.asarray(gripper_rotation_b, dtype=np.float64)
-    placed = [p for p in profiles if p.marker.valid]
-    clouds, ids, quality, tcps, times = [], [], [], [], []
-    for p in placed:
-        tcp = p.marker.position_b - r @ calibration.marker_offset_t
-        clouds.append(base_to_tcp(p.points_b, tcp, r))
-        ids.append(np.full(len(p.points_b), p.frame_id, dtype=np.int32))
-        quality.append(p.quality)
-        tcps.append(tcp)
-        times.append(p.t)
-    frame_ids = [p.frame_id for p in profiles]
-    dropped = int(max(frame_ids) - min(frame_ids) + 1 - len(frame_ids)) if frame_ids else 0
-    return Scan(
-        cloud=np.concatenate(clouds).astype(np.float32) if clouds else np.zeros((0, 3), np.float32),
-        frame_ids=np.concatenate(ids) if ids else np.zeros(0, np.int32),
-        quality=np.concatenate(quality) if quality else np.zeros(0, np.float32),
-        edges=np.zeros((0, 3), np.float32),
-        tcp_positions_b=np.array(tcps).reshape(-1, 3),
-        tcp_times=np.array(times),
-        frames=len(placed),
-        frames_dropped=dropped,
-        frames_unplaced=len(profiles) - len(placed),
-        marker_residual_px=_median_residual(profiles),
-    )
 
+    def __init__(self, calibration: Calibration, robot: Robot, clock_offset_s: float = 0.0):
+        self.calibration = calibration
+        self.robot = robot
+        self.clock_offset_s = float(clock_offset_s)
+        self._lock = threading.Lock()
+        self._placed: list[PlacedProfile] = []
+        self._frame_ids: list[int] = []
+        self._residuals: list[float] = []
+        self._unplaced = 0
+        self._held_rotation = 0
+        self._rotation: np.ndarray | None = None
+        self._rotation_t = -np.inf
 
-def _median_residual(profiles: list[Profile]) -> float:
-    residuals = [p.marker.residual_px for p in profiles if np.isfinite(p.marker.residual_px)]
-    return float(np.median(residuals)) if residuals else float("nan")
-
-
-def scan_frames(frames: Iterable[Frame], calibration: Calibration, gripper_rotation_b: np.ndarray,
-                params: PipelineParams = PipelineParams()) -> Scan:
-    """A stream of frames -> the scan of the pass it contains (trigger, profiles, stitching).
-
-    Wall time per stage lands in ``Scan.timings_ms``: ``acquire`` (waiting for / producing
-    frames), ``trigger``, ``profiles`` and ``stitch``. A camera that stops mid-pass (it raises
-    ``CameraTimeout``) ends the pass: what was acquired is stitched and ``Scan.interrupted``
-    says why.
-    """
-    timings = {"acquire": 0.0, "trigger": 0.0, "profiles": 0.0, "stitch": 0.0}
-    source = iter(frames)
-    interrupted = []
-
-    def timed_source():
-        while True:
-            t0 = time.perf_counter()
+    def rotation_at(self, t_camera: float) -> tuple[np.ndarray | None, bool]:
+        """{T}'s rotation in {B} at a camera time, and whether the robot gave it."""
+        t_robot = t_camera + self.clock_offset_s
+        try:
+            rotation = np.asarray(self.robot.pose_at(t_robot).rotation)
+        except (LookupError, RuntimeError):
             try:
-                frame = next(source)
-            except StopIteration:
-                return
-            except CameraTimeout as exc:
-                interrupted.append(f"camera timeout: {exc}")
-                return
-            timings["acquire"] += time.perf_counter() - t0
-            yield frame
+                newest = self.robot.latest()
+            except RuntimeError:
+                newest = None
+            if newest is None or not 0.0 <= t_robot - newest.t <= MAX_POSE_AGE_S:
+                with self._lock:
+                    return self._rotation, False
+            rotation = np.asarray(newest.rotation)
+        with self._lock:
+            if t_camera >= self._rotation_t:
+                self._rotation, self._rotation_t = rotation, t_camera
+        return rotation, True
 
-    profiles = []
-    t_loop = time.perf_counter()
-    for frame in pass_frames(timed_source(), calibration, params):
+    def add(self, profile: Profile) -> bool:
+        """Place one profile; returns whether it was placed."""
+        placed = None
+        from_robot = True
+        if profile.marker.valid:
+            rotation, from_robot = self.rotation_at(profile.t)
+            if rotation is not None:
+                tcp = profile.marker.position_b - rotation @ self.calibration.marker_offset_t
+                placed = PlacedProfile(profile.frame_id, profile.t,
+                                       base_to_tcp(profile.points_b, tcp, rotation).astype(np.float32),
+                                       profile.quality, tcp, profile.marker.residual_px)
+        with self._lock:
+            self._frame_ids.append(profile.frame_id)
+            if np.isfinite(profile.marker.residual_px):
+                self._residuals.append(profile.marker.residual_px)
+            if placed is None:
+                self._unplaced += 1
+            else:
+                self._placed.append(placed)
+                self._held_rotation += not from_robot
+        return placed is not None
+
+    @property
+    def frames_seen(self) -> int:
+        with self._lock:
+            return len(self._frame_ids)
+
+    def scan(self, *, frames_dropped: int | None = None) -> Scan:
+        """The scan so far, sorted by frame id.
+
+        ``frames_dropped`` defaults to the gaps between the frame ids received; a caller that
+        knows better (frames lost by the camera, not by its own queue) passes its count.
+        """
+        with self._lock:
+            placed = sorted(self._placed, key=lambda p: p.frame_id)
+            ids = sorted(self._frame_ids)
+            residuals = list(self._residuals)
+            unplaced, held = self._unplaced, self._held_rotation
+        if frames_dropped is None:
+            frames_dropped = int(ids[-1] - ids[0] + 1 - len(ids)) if ids else 0
+        counts = [len(p.cloud_t) for p in placed]
+        scan = Scan(
+            cloud=(np.concatenate([p.cloud_t for p in placed]) if placed
+                   else np.zeros((0, 3), np.float32)),
+            frame_ids=np.repeat(np.array([p.frame_id for p in placed], np.int32), counts),
+            quality=(np.concatenate([p.quality for p in placed]).astype(np.float32) if placed
+                     else np.zeros(0, np.float32)),
+            edges=np.zeros((0, 3), np.float32),
+            tcp_positions_b=np.array([p.tcp_b for p in placed]).reshape(-1, 3),
+            tcp_times=np.array([p.t for p in placed], dtype=np.float64),
+            frames=len(placed),
+            frames_dropped=frames_dropped,
+            frames_unplaced=unplaced,
+            marker_residual_px=float(np.median(residuals)) if residuals else float("nan"),
+        )
+        scan.frames_held_rotation = held
+        scan.tcp_frame_ids = np.array([p.frame_id for p in placed], dtype=np.int64)
+        return scan
+
+
+def camera_frames(camera: Camera, timeout: float = 1.0) -> Iterator[Frame]:
+    """The camera's frames until its stream ends (``CameraClosed``); ``CameraTimeout``
+    propagates (the camera stopped)."""
+    while True:
+        try:
+            yield camera.grab(timeout)
+        except CameraClosed:
+            return
+
+
+def run_pass(frames: Iterable[Frame], calibration: Calibration, robot: Robot,
+             params: PipelineParams = PipelineParams(), *, clock_offset_s: float = 0.0) -> Scan:
+    """A stream of frames -> the scan of the first pass it contains, on one thread.
+
+    The trigger is armed at the first frame. Wall time per stage lands in
+    ``Scan.timings_ms``: ``acquire`` (waiting for / producing frames), ``marker`` (the tracked
+    search, which is also the trigger's presence test), ``profiles`` (stripe, triangulation,
+    placement) and ``scan`` (assembling the sorted cloud). A camera that stops mid-pass (it
+    raises ``CameraTimeout``, or its stream ends) ends the pass: what was acquired is kept and
+    ``Scan.end_reason`` says why.
+    """
+    timings = dict.fromkeys(("acquire", "marker", "profiles", "scan"), 0.0)
+    trigger = Trigger(params.trigger)
+    trigger.arm()
+    tracker = MarkerTracker(calibration, params)
+    accumulator = PassAccumulator(calibration, robot, clock_offset_s)
+    source = iter(frames)
+    camera_error = None
+    while trigger.state.value in ("armed", "scanning"):
         t0 = time.perf_counter()
-        profiles.append(process_frame(frame, calibration, params))
-        timings["profiles"] += time.perf_counter() - t0
-    # The trigger's share is what the loop spent neither waiting for frames nor processing them.
-    timings["trigger"] = time.perf_counter() - t_loop - timings["acquire"] - timings["profiles"]
+        try:
+            frame = next(source)
+        except StopIteration:
+            trigger.camera_stopped()
+            break
+        except CameraTimeout as exc:
+            camera_error = f"camera timeout: {exc}"
+            trigger.camera_stopped()
+            break
+        t1 = time.perf_counter()
+        marker = tracker.observe(frame)
+        t2 = time.perf_counter()
+        step = trigger.feed((frame, marker), frame.t, marker_present(marker), frame.frame_id)
+        for held_frame, held_marker in step.emit:
+            accumulator.add(process_frame(held_frame, calibration, params, held_marker))
+        t3 = time.perf_counter()
+        timings["acquire"] += t1 - t0
+        timings["marker"] += t2 - t1
+        timings["profiles"] += t3 - t2
     t0 = time.perf_counter()
-    scan = stitch(profiles, calibration, gripper_rotation_b)
-    timings["stitch"] = time.perf_counter() - t0
+    scan = accumulator.scan()
+    timings["scan"] = time.perf_counter() - t0
     scan.timings_ms = {k: round(v * 1e3, 3) for k, v in timings.items()}
-    scan.interrupted = interrupted[0] if interrupted else None
+    scan.end_reason = trigger.end_reason.value if trigger.end_reason else None
+    if trigger.end_reason is EndReason.CAMERA_STOPPED and scan.frames:
+        scan.interrupted = camera_error or "camera stream ended"
     return scan

@@ -101,6 +101,8 @@ class Scan:
         Marker-derived TCP position per used frame, {B}, mm.
     tcp_times : (F,) float64
         Camera time of those frames, s.
+    tcp_frame_ids : (F,) int64
+        Their frame ids (every placed frame, with or without stripe points).
     frames : int
         Frames that contributed a profile.
     frames_dropped : int
@@ -114,6 +116,13 @@ class Scan:
         Wall time per stage.
     interrupted : str or None
         Why the pass ended early (the camera stopped), or None for a complete pass.
+    end_reason : str or None
+        Why the pass ended (``scanner_core.trigger.EndReason`` value): "marker gone",
+        "timeout", "camera stopped", "too long" or "reset".
+    frames_held_rotation : int
+        Frames placed with the robot's last rotation because it had none for their time.
+    queue_overflows : int
+        Frames of the pass lost because the processing queue was full (the service).
     """
 
     cloud: np.ndarray
@@ -128,3 +137,7 @@ class Scan:
     marker_residual_px: float = float("nan")
     timings_ms: dict = field(default_factory=dict)
     interrupted: str | None = None
+    end_reason: str | None = None
+    frames_held_rotation: int = 0
+    tcp_frame_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    queue_overflows: int = 0

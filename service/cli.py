@@ -89,6 +89,19 @@ def _parse_args(argv):
     sim.add_argument("--threads", type=int, default=2, help="worker threads (default 2)")
     sim.add_argument("--out", type=Path, required=True, help="output PLY file")
 
+    serve = sub.add_parser("serve", help="run the real-time scanning service (REST, ZeroMQ, "
+                                         "status page)")
+    serve.add_argument("--config", type=Path, default=None, help="settings file (TOML)")
+    serve.add_argument("--sim", action="store_true", default=None,
+                       help="simulated devices: the reference cell with its camera and robot")
+    serve.add_argument("--host", default=None, help="REST bind address (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, default=None, help="REST port (default 8000)")
+    serve.add_argument("--zmq", default=None, help="ZeroMQ PUB endpoint (default tcp://127.0.0.1:5556)")
+    serve.add_argument("--robot", default=None, help="ur://HOST: the UR robot (ur-rtde)")
+    serve.add_argument("--data", type=Path, default=None, help="folder for scans and parts "
+                                                               "(default ./flyscan-data)")
+    serve.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+
     bench = sub.add_parser("bench", help="benchmarks: JSON figures and PNG charts")
     bench.add_argument("what", choices=["stripe", "scan", "simulate"])
     bench.add_argument("--out", type=Path, required=True)
@@ -139,7 +152,8 @@ def _cmd_scan(args) -> int:
             f"the marker's three views disagree (median residual {scan.marker_residual_px:.2f} px "
             f"over {scan.frames + scan.frames_unplaced} frames): does the calibration fit the cell?")
     if scan.frames == 0:
-        raise ScanError("the marker never triggered: no profile was acquired")
+        raise ScanError("the marker never triggered: no profile was acquired "
+                        f"(the pass ended: {scan.end_reason})")
     report["wall_s"] = round(time.perf_counter() - t0, 3)
     paths = save_scan(args.out, scan, report)
     acc = report["ground_truth"].get("accuracy", {})
@@ -246,6 +260,39 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _cmd_serve(args) -> int:
+    import logging
+
+    import uvicorn
+    from pydantic import ValidationError
+
+    from service.api import create_app
+    from service.daemon import Service
+    from service.settings import load_settings
+
+    try:
+        settings = load_settings(args.config, sim=args.sim, host=args.host, port=args.port,
+                                 zmq=args.zmq, robot=args.robot, data=args.data)
+        service = Service(settings)
+    except FileNotFoundError as exc:
+        raise UsageError(str(exc)) from None
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        raise UsageError(f"setting {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
+    url = f"http://{settings.host}:{settings.port}/"
+    print(f"flyscan serve: status page {url}, REST {url}docs, ZeroMQ {settings.zmq}, "
+          f"data {settings.data.resolve()}{' (simulated cell)' if settings.sim else ''}",
+          flush=True)
+    config = uvicorn.Config(create_app(service=service), host=settings.host, port=settings.port,
+                            log_level=args.log_level, access_log=False)
+    server = uvicorn.Server(config)
+    server.run()
+    return 0 if server.started else 2
+
+
 def _cmd_bench(args) -> int:
     if args.what == "stripe":
         from service.bench import stripe as bench
@@ -269,7 +316,7 @@ def main(argv=None) -> int:
 
     with threadpool_limits(limits=1, user_api="blas"):
         try:
-            return {"scan": _cmd_scan, "simulate": _cmd_simulate,
+            return {"scan": _cmd_scan, "simulate": _cmd_simulate, "serve": _cmd_serve,
                     "bench": _cmd_bench}[args.command](args)
         except (UsageError, PartError, CalibrationError, ScanError, SetupError) as exc:
             print(f"flyscan {args.command}: error: {exc}", file=sys.stderr)

@@ -1,8 +1,9 @@
 """A simulated pass, end to end: the simulated cell drives the same pipeline as the real one.
 
 ``flyscan scan``, the benchmarks and the tests call :func:`run_simulated_scan`; it builds the
-devices, feeds the camera's frames to ``scanner_core.pipeline.scan_frames``, cross-checks the
-marker-derived gripper track against the robot, and scores the cloud against the truth.
+devices, feeds the camera's frames and the robot to ``scanner_core.pipeline.run_pass``,
+cross-checks the marker-derived gripper track against the robot
+(``scanner_core.crosscheck``), and scores the cloud against the truth.
 """
 from __future__ import annotations
 
@@ -13,8 +14,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from scanner_core.calibration import Calibration
-from scanner_core.devices import CameraClosed, Robot
-from scanner_core.pipeline import PipelineParams, scan_frames, warm_up
+from scanner_core.crosscheck import cross_check
+from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
+from scanner_core.report import scan_report
 from scanner_core.types import Scan
 from simulator.cell import Cell
 from simulator.devices import SimCamera, SimClock, SimRobot
@@ -67,29 +69,6 @@ def simulated_cell(part: Part, cell: Cell, *, misplacement=None, seed: int = 0,
     return SimulatedCell(cell, part, scene, motion, camera, robot, true_grasp)
 
 
-def camera_frames(camera, timeout: float = 1.0):
-    """The camera's frames until its stream ends."""
-    while True:
-        try:
-            yield camera.grab(timeout)
-        except CameraClosed:
-            return
-
-
-def cross_check(scan: Scan, robot: Robot) -> dict:
-    """Marker-derived TCP positions against the robot's reported ones at the same times."""
-    diffs = []
-    for t, p in zip(scan.tcp_times, scan.tcp_positions_b):
-        try:
-            diffs.append(p - robot.pose_at(float(t)).position)
-        except LookupError:
-            continue
-    if not diffs:
-        return {"samples": 0}
-    d = np.linalg.norm(np.array(diffs), axis=1)
-    return {"samples": len(d), "rms_mm": float(np.sqrt(np.mean(d**2))), "max_mm": float(d.max())}
-
-
 def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | None = None,
                        misplacement=None, seed: int = 0, drop_rate: float = 0.0,
                        params: PipelineParams = PipelineParams(), evaluate: bool = True,
@@ -114,36 +93,25 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
     sim.camera.open()
     sim.robot.connect()
     try:
-        scan = scan_frames(camera_frames(sim.camera), calibration, sim.cell.gripper_rotation_b, params)
-        check = cross_check(scan, sim.robot)
+        scan = run_pass(camera_frames(sim.camera), calibration, sim.robot, params)
+        check = cross_check(scan.tcp_times, scan.tcp_positions_b, sim.robot)
     finally:
         sim.camera.close()
         sim.robot.disconnect()
-    processing_ms = sum(v for k, v in scan.timings_ms.items() if k != "acquire")
+    report = scan_report(scan, check)
+    processing_ms = report["timings_ms"]["processing"]
+    report["timings_ms"]["warmup"] = round(warmup_ms, 3)
     # The pass's span on the camera clock, frames lost or unplaced included.
     camera_time_s = (scan.frames + scan.frames_unplaced + scan.frames_dropped) / cell.pass_profile.fps
-    report = {
-        "frames": scan.frames,
-        "frames_dropped": scan.frames_dropped,
-        "frames_unplaced": scan.frames_unplaced,
-        "interrupted": scan.interrupted,
-        "marker_residual_px": None if np.isnan(scan.marker_residual_px) else scan.marker_residual_px,
-        "points": int(len(scan.cloud)),
-        "edge_points": int(len(scan.edges)),
-        "timings_ms": {**scan.timings_ms, "processing": round(processing_ms, 3),
-                       "warmup": round(warmup_ms, 3)},
-        "camera_time_s": camera_time_s,
-        "realtime_factor": (camera_time_s * 1e3 / processing_ms) if processing_ms > 0 else None,
-        "pose": None,
-        "cross_check": check,
-        "ground_truth": {
-            "grasp": sim.true_grasp.tolist(),
-            "nominal_grasp": part.grasp.tolist(),
-            "misplacement": (np.eye(4) if misplacement is None else np.asarray(misplacement)).tolist(),
-            "part": {"name": part.name, "source": part.source, "units": part.units,
-                     "faces": int(len(part.mesh.faces))},
-            "cell": cell.to_dict(),
-        },
+    report["camera_time_s"] = camera_time_s
+    report["realtime_factor"] = (camera_time_s * 1e3 / processing_ms) if processing_ms > 0 else None
+    report["ground_truth"] = {
+        "grasp": sim.true_grasp.tolist(),
+        "nominal_grasp": part.grasp.tolist(),
+        "misplacement": (np.eye(4) if misplacement is None else np.asarray(misplacement)).tolist(),
+        "part": {"name": part.name, "source": part.source, "units": part.units,
+                 "faces": int(len(part.mesh.faces))},
+        "cell": cell.to_dict(),
     }
     if evaluate:
         t0 = time.perf_counter()

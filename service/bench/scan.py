@@ -2,7 +2,7 @@
 
 For every reference part and every stripe method of ``scanner_core.stripe``: one simulated pass
 at the cell's default pass (``simulator.session.run_simulated_scan``), with the frames'
-processing time (trigger + profiles + stitch; rendering the frames, ``acquire``, excluded) set
+processing time (marker + profiles + scan; rendering the frames, ``acquire``, excluded) set
 against the camera time of the pass, and the cloud scored against the true surface. Then the
 paper's two pass presets (1 m/s at 162 fps, 50 mm/s at 16 fps) for one part with ``"cog"``.
 
@@ -47,7 +47,7 @@ TARGET_P99_UM = 60.0
 TARGET_UNMATCHED_POINTS = 0
 TARGET_REALTIME_FACTOR = 1.0
 ACCURACY_FIELDS = ("rms_um", "p99_um", "max_um", "mean_signed_um", "unmatched_points")
-STAGES = ("trigger", "profiles", "stitch")
+STAGES = ("marker", "profiles", "scan")
 
 
 def _part(name: str) -> Part:
@@ -243,7 +243,7 @@ def run(out_dir: pathlib.Path, *, quick: bool = False, seed: int = 0) -> dict:
         "seed": seed,
         "threads": 1,
         "threadpools": pools,
-        "timing": ("processing = trigger + profiles + stitch wall time of one pass (frame "
+        "timing": ("processing = marker (the trigger's presence test) + profiles + scan wall time of one pass (frame "
                    "rendering excluded); ms_per_frame = processing / frames that gave a profile "
                    "(the trigger's work on frames outside the pass is included); one run each, "
                    "after an untimed warm-up pass"),

@@ -1,47 +1,91 @@
-"""The pass logic: trigger gaps, a camera that stops, stitching by the marker."""
+"""The streaming core: trigger over real frames, tracking, placement in any order, a camera
+that stops, a robot that gives no pose."""
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from scanner_core.devices import CameraTimeout
-from scanner_core.pipeline import pass_frames, scan_frames, stitch
+from scanner_core.devices import CameraTimeout, TcpPose
+from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, camera_frames,
+                                   observe_marker, process_frame, run_pass)
+from scanner_core.trigger import TriggerParams
 from scanner_core.types import Frame, MarkerObservation, Profile
-from simulator.session import camera_frames, simulated_cell
+from simulator.session import simulated_cell
+
+
+class FixedRobot:
+    """A robot that always reports one pose (or none, when disconnected)."""
+
+    def __init__(self, rotation, connected=True):
+        self.rotation = np.asarray(rotation)
+        self.connected = connected
+
+    def connect(self):
+        self.connected = True
+
+    def disconnect(self):
+        self.connected = False
+
+    def latest(self):
+        if not self.connected:
+            raise RuntimeError("not connected")
+        return TcpPose(0.0, np.zeros(3), self.rotation)
+
+    def pose_at(self, t):
+        if not self.connected:
+            raise RuntimeError("not connected")
+        return TcpPose(t, np.zeros(3), self.rotation)
 
 
 @pytest.fixture(scope="module")
-def pass_frames_list(block_part, cell):
+def recorded(block_part, cell):
+    """One pass's frames (40 fps, so that it is short) and its robot, whose history covers it."""
     sim = simulated_cell(block_part, cell.with_pass(fps=40.0), seed=9)
     sim.camera.open()
-    return list(camera_frames(sim.camera)), sim
+    sim.robot.connect()
+    return list(camera_frames(sim.camera)), sim.robot
+
+
+@pytest.fixture(scope="module")
+def full_scan(recorded, cell):
+    frames, robot = recorded
+    return run_pass(iter(frames), cell.calibration, robot)
 
 
 def _blank(frame):
     return Frame(np.full_like(frame.image, 10), frame.frame_id, frame.t)
 
 
-def test_trigger_spans_the_marker(pass_frames_list, cell):
-    frames, _ = pass_frames_list
-    got = [f.frame_id for f in pass_frames(iter(frames), cell.calibration)]
-    assert got == list(range(got[0], got[-1] + 1))
-    assert 0 < got[0] and got[-1] < frames[-1].frame_id  # lead-in and lead-out left out
+def _frame_span(scan):
+    return int(scan.tcp_frame_ids[0]), int(scan.tcp_frame_ids[-1])
+
+
+def test_pass_spans_the_marker(recorded, full_scan):
+    frames, _ = recorded
+    first, last = _frame_span(full_scan)
+    assert 0 < first and last < frames[-1].frame_id  # lead-in and lead-out left out
+    assert full_scan.end_reason == "marker gone" and full_scan.interrupted is None
+    assert full_scan.frames_unplaced == 0 and full_scan.frames_held_rotation == 0
+    assert np.all(np.diff(full_scan.frame_ids) >= 0)  # sorted by frame
 
 
 @pytest.mark.parametrize("gap, continues", [(2, True), (3, False)])
-def test_trigger_rides_over_short_gaps(pass_frames_list, cell, gap, continues):
-    frames, _ = pass_frames_list
-    full = [f.frame_id for f in pass_frames(iter(frames), cell.calibration)]
-    mid = full[len(full) // 2]
+def test_trigger_rides_over_short_gaps(recorded, full_scan, cell, gap, continues):
+    frames, robot = recorded
+    ids = full_scan.tcp_frame_ids
+    mid = int(ids[len(ids) // 2])
     holed = [_blank(f) if mid <= f.frame_id < mid + gap else f for f in frames]
-    got = [f.frame_id for f in pass_frames(iter(holed), cell.calibration)]
-    assert got == (full if continues else full[: full.index(mid)])
+    scan = run_pass(iter(holed), cell.calibration, robot)
+    if continues:
+        assert scan.frames_unplaced == gap  # the blank frames are in the pass, unplaceable
+        assert _frame_span(scan) == _frame_span(full_scan)
+    else:
+        assert _frame_span(scan)[1] < mid and scan.end_reason == "marker gone"
 
 
-def test_camera_that_stops_keeps_what_was_acquired(pass_frames_list, cell):
-    frames, sim = pass_frames_list
-    full = scan_frames(iter(frames), cell.calibration, cell.gripper_rotation_b)
-    cut = [f.frame_id for f in pass_frames(iter(frames), cell.calibration)]
-    stop_at = cut[len(cut) // 2]
+def test_camera_that_stops_keeps_what_was_acquired(recorded, full_scan, cell):
+    frames, robot = recorded
+    ids = full_scan.tcp_frame_ids
+    stop_at = int(ids[len(ids) // 2])
 
     def stopping():
         for f in frames:
@@ -49,40 +93,91 @@ def test_camera_that_stops_keeps_what_was_acquired(pass_frames_list, cell):
                 raise CameraTimeout("no frame for 1.0 s")
             yield f
 
-    partial = scan_frames(stopping(), cell.calibration, cell.gripper_rotation_b)
-    assert full.interrupted is None
+    partial = run_pass(stopping(), cell.calibration, robot)
+    assert partial.end_reason == "camera stopped"
     assert partial.interrupted.startswith("camera timeout")
-    assert 0 < partial.frames < full.frames
-    kept = full.frame_ids < stop_at
-    assert_allclose(partial.cloud, full.cloud[kept])  # nothing acquired is lost
+    assert 0 < partial.frames < full_scan.frames
+    kept = full_scan.frame_ids < stop_at
+    assert_allclose(partial.cloud, full_scan.cloud[kept])  # nothing acquired is lost
 
 
-def test_stitch_places_profiles_by_the_marker(cell):
+def test_a_marker_that_never_leaves_ends_at_the_maximum_length(recorded, full_scan, cell):
+    frames, robot = recorded
+    first, _ = _frame_span(full_scan)
+    marker_frame = next(f for f in frames if f.frame_id == first + 3)
+
+    def forever():
+        for k in range(100000):
+            yield Frame(marker_frame.image, k, marker_frame.t + k / 40.0)
+
+    params = PipelineParams(trigger=TriggerParams(max_pass_s=0.5))
+    scan = run_pass(forever(), cell.calibration, FixedRobot(cell.gripper_rotation_b), params)
+    assert scan.end_reason == "too long"
+    assert scan.frames == int(0.5 * 40) + 1
+
+
+def test_profiles_placed_in_any_order_give_the_same_scan(recorded, full_scan, cell):
+    frames, robot = recorded
+    cal = cell.calibration
+    first, last = _frame_span(full_scan)
+    profiles = [process_frame(f, cal) for f in frames if first <= f.frame_id <= last]
+    acc = PassAccumulator(cal, robot)
+    for k in np.random.default_rng(3).permutation(len(profiles)):
+        acc.add(profiles[k])
+    shuffled = acc.scan()
+    assert_allclose(shuffled.cloud, full_scan.cloud)
+    assert_allclose(shuffled.frame_ids, full_scan.frame_ids)
+    assert_allclose(shuffled.tcp_times, full_scan.tcp_times)
+
+
+def test_tracked_marker_equals_the_whole_strip_search(recorded, full_scan, cell):
+    frames, _ = recorded
+    cal = cell.calibration
+    params = PipelineParams()
+    tracker = MarkerTracker(cal, params)
+    first, last = _frame_span(full_scan)
+    for f in frames[first - 2: last + 3]:
+        tracked = tracker.observe(f)
+        assert_allclose(tracked.pixels, observe_marker(f.image, cal, params).pixels, atol=1e-9)
+
+
+def test_placement_by_the_marker_and_the_robots_rotation(cell):
     """Two frames of the same {T} point at different gripper positions land on one point."""
     cal = cell.calibration
     r = cell.gripper_rotation_b
     point_t = np.array([5.0, -3.0, 12.0])
-    profiles = []
+    acc = PassAccumulator(cal, FixedRobot(r))
     for i, tcp in enumerate(([1.0, -20.0, 50.0], [1.7, 14.0, 50.4])):
         tcp = np.array(tcp)
-        marker_b = tcp + r @ cal.marker_offset_t
-        obs = MarkerObservation(np.zeros((3, 2)), marker_b, 0.0)
-        profiles.append(Profile(i, 0.01 * i, (tcp + r @ point_t)[None], np.array([0], np.int32),
-                                np.array([200.0], np.float32), obs))
-    scan = stitch(profiles, cal, r)
+        obs = MarkerObservation(np.zeros((3, 2)), tcp + r @ cal.marker_offset_t, 0.0)
+        acc.add(Profile(i, 0.01 * i, (tcp + r @ point_t)[None], np.array([0], np.int32),
+                        np.array([200.0], np.float32), obs))
+    scan = acc.scan()
     assert_allclose(scan.cloud, [point_t, point_t], atol=1e-5)
     assert scan.frames == 2 and scan.frames_dropped == 0
 
 
-def test_stitch_counts_gaps_and_unplaced(cell):
+def test_a_robot_that_drops_out_holds_its_last_rotation(cell):
+    cal = cell.calibration
     r = cell.gripper_rotation_b
+    robot = FixedRobot(r, connected=False)
+    acc = PassAccumulator(cal, robot)
+    obs = MarkerObservation(np.zeros((3, 2)), np.array([0.0, 0.0, 50.0]), 0.1)
     nan_obs = MarkerObservation(np.full((3, 2), np.nan), np.full(3, np.nan), float("nan"))
-    ok_obs = MarkerObservation(np.zeros((3, 2)), np.zeros(3), 0.1)
-    empty = np.zeros((0, 3))
-    profiles = [Profile(fid, 0.0, empty, np.zeros(0, np.int32), np.zeros(0, np.float32), obs)
-                for fid, obs in ((10, ok_obs), (11, nan_obs), (14, ok_obs))]
-    scan = stitch(profiles, cell.calibration, r)
-    assert scan.frames == 2 and scan.frames_unplaced == 1 and scan.frames_dropped == 2
+    empty = (np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros(0, np.float32))
+
+    def profile(fid, marker):
+        return Profile(fid, fid / 100.0, *empty, marker)
+
+    assert not acc.add(profile(10, obs))  # no rotation known yet: cannot be placed
+    robot.connect()
+    assert acc.add(profile(11, obs))
+    robot.disconnect()
+    assert acc.add(profile(12, obs))  # the rotation of frame 11 is held
+    assert not acc.add(profile(15, nan_obs))
+    scan = acc.scan()
+    assert (scan.frames, scan.frames_unplaced, scan.frames_held_rotation) == (2, 2, 1)
+    assert scan.frames_dropped == 2  # ids 13 and 14
 
 
 def test_warm_up_frame_finds_the_marker_everywhere(cell, monkeypatch):
@@ -91,10 +186,9 @@ def test_warm_up_frame_finds_the_marker_everywhere(cell, monkeypatch):
     seen = {}
     real = pipeline.process_frame
 
-    def spy(frame, calibration, params=pipeline.PipelineParams()):
-        profile = real(frame, calibration, params)
-        seen["profile"] = profile
-        return profile
+    def spy(frame, calibration, params=pipeline.PipelineParams(), marker=None):
+        seen["profile"] = real(frame, calibration, params, marker)
+        return seen["profile"]
 
     monkeypatch.setattr(pipeline, "process_frame", spy)
     pipeline.warm_up(cell.calibration)

@@ -3,7 +3,8 @@ import pytest
 from numpy.testing import assert_allclose
 
 from scanner_core.devices import Camera, CameraClosed, Robot
-from simulator.session import camera_frames, simulated_cell
+from scanner_core.pipeline import camera_frames
+from simulator.session import simulated_cell
 
 #: Linear interpolation between 500 Hz samples of a smooth 200 mm/s path.
 INTERP_TOL_MM = 1e-3

@@ -1,0 +1,41 @@
+"""``report.json``: what a scan says about itself, as the CLI and the service both write it."""
+from __future__ import annotations
+
+import math
+
+from scanner_core.types import Scan
+
+
+def _finite(x):
+    """JSON has no NaN: non-finite numbers become None."""
+    return x if x is None or math.isfinite(x) else None
+
+
+def scan_report(scan: Scan, cross_check: dict | None = None, **extra) -> dict:
+    """The report of one scan (the contract's fields, then what the pass adds).
+
+    Parameters
+    ----------
+    scan : Scan
+    cross_check : dict, optional
+        ``scanner_core.crosscheck.cross_check`` of the pass.
+    **extra
+        Further entries (``ground_truth`` of a simulated scan, the service's latency).
+    """
+    processing_ms = sum(v for k, v in scan.timings_ms.items() if k != "acquire")
+    return {
+        "frames": scan.frames,
+        "frames_dropped": scan.frames_dropped,
+        "frames_unplaced": scan.frames_unplaced,
+        "frames_held_rotation": scan.frames_held_rotation,
+        "queue_overflows": scan.queue_overflows,
+        "end_reason": scan.end_reason,
+        "interrupted": scan.interrupted,
+        "marker_residual_px": _finite(scan.marker_residual_px),
+        "points": int(len(scan.cloud)),
+        "edge_points": int(len(scan.edges)),
+        "timings_ms": {**scan.timings_ms, "processing": round(processing_ms, 3)},
+        "pose": None,
+        "cross_check": cross_check if cross_check is not None else {"samples": 0},
+        **extra,
+    }

@@ -1,0 +1,278 @@
+"""The REST API: one router per resource, the service injected, every response declared.
+
+``create_app(settings)`` builds the FastAPI application; its lifespan starts and stops the
+service. Tests build the app with a service of their own (``create_app(service=...)``).
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import secrets
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, Response, status
+from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from scanner_core.calibration import Calibration, CalibrationError
+from service.daemon import Service
+from service.engine import EngineBusy, EngineFault
+from service.models import (Health, PartInfo, PartList, Problem, ScanAccepted, ScanInfo, ScanList,
+                            ScanRequest, Status)
+from service.parts import part_info
+from service.pictures import cloud_preview_png, frame_png
+from service.settings import Settings
+from simulator.parts import PartError
+
+STATIC = Path(__file__).resolve().parent / "static"
+#: Server-sent events: how often the status page is told the service's status, s.
+EVENTS_PERIOD_S = 0.5
+
+
+def get_service(request: Request) -> Service:
+    return request.app.state.service
+
+
+ServiceDep = Annotated[Service, Depends(get_service)]
+_bearer = HTTPBearer(auto_error=False)
+
+
+def require_token(service: ServiceDep,
+                  credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
+    """Mutating endpoints need the bearer token when one is configured."""
+    token = service.settings.token
+    if token is None:
+        return
+    given = credentials.credentials if credentials is not None else ""
+    if not secrets.compare_digest(given.encode(), token.get_secret_value().encode()):
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "a valid bearer token is required",
+                            headers={"WWW-Authenticate": "Bearer"})
+
+
+Auth = [Depends(require_token)]
+UNAUTHORIZED = {401: {"model": Problem, "description": "token missing or wrong"}}
+NOT_FOUND = {404: {"model": Problem, "description": "no such scan or part"}}
+
+
+# ---------------------------------------------------------------------------------------------
+system = APIRouter(tags=["system"])
+
+
+@system.get("/health", response_model=Health)
+def health() -> Health:
+    return Health()
+
+
+@system.get("/status", response_model=Status)
+def get_status(service: ServiceDep) -> dict:
+    return service.status()
+
+
+@system.get("/metrics", response_class=Response,
+            responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text format"}})
+def metrics(service: ServiceDep) -> Response:
+    return Response(service.metrics.render(service.status()),
+                    media_type="text/plain; version=0.0.4; charset=utf-8")
+
+
+@system.get("/calibration", response_model=dict)
+def get_calibration(service: ServiceDep) -> dict:
+    return service.engine.calibration.to_dict()
+
+
+@system.put("/calibration", response_model=dict, dependencies=Auth,
+            responses={**UNAUTHORIZED,
+                       409: {"model": Problem, "description": "a scan is in progress"},
+                       422: {"model": Problem, "description": "not a valid calibration"}})
+def put_calibration(body: dict, service: ServiceDep) -> dict:
+    try:
+        calibration = Calibration.from_dict(body.get("calibration", body))
+    except CalibrationError as exc:
+        raise HTTPException(422, str(exc)) from None
+    try:
+        service.set_calibration(calibration)
+    except EngineBusy as exc:
+        raise HTTPException(409, str(exc)) from None
+    return calibration.to_dict()
+
+
+# ---------------------------------------------------------------------------------------------
+scans = APIRouter(prefix="/scans", tags=["scans"])
+
+
+@scans.post("", status_code=202, response_model=ScanAccepted, dependencies=Auth,
+            responses={**UNAUTHORIZED, **NOT_FOUND,
+                       409: {"model": Problem, "description": "a scan is already in progress"},
+                       422: {"model": Problem, "description": "malformed request"},
+                       503: {"model": Problem, "description": "the camera is not streaming"}})
+def arm_scan(service: ServiceDep, request: ScanRequest | None = None) -> ScanAccepted:
+    request = request or ScanRequest()
+    if request.misplace is not None and service.driver is None:
+        raise HTTPException(422, "misplace is for simulated mode only")
+    try:
+        job = service.arm(request.part, request.timeout_s, request.misplace)
+    except KeyError:
+        raise HTTPException(404, f"unknown part {request.part!r}: see GET /parts") from None
+    except EngineBusy as exc:
+        raise HTTPException(409, str(exc)) from None
+    except EngineFault as exc:
+        raise HTTPException(503, str(exc)) from None
+    return ScanAccepted(scan_id=job.scan_id, state=job.state)
+
+
+@scans.get("", response_model=ScanList)
+def list_scans(service: ServiceDep) -> dict:
+    return {"scans": service.list_scans()}
+
+
+def _scan_or_404(service: Service, scan_id: str) -> dict:
+    try:
+        return service.scan_info(scan_id)
+    except KeyError:
+        raise HTTPException(404, f"no scan {scan_id!r}") from None
+
+
+@scans.get("/{scan_id}", response_model=ScanInfo, responses=NOT_FOUND)
+def get_scan(scan_id: str, service: ServiceDep) -> dict:
+    return _scan_or_404(service, scan_id)
+
+
+def _scan_file(service: Service, scan_id: str, name: str) -> Path:
+    info = _scan_or_404(service, scan_id)
+    try:
+        return service.store.file(scan_id, name)
+    except KeyError:
+        raise HTTPException(409, f"scan {scan_id} has no {name} ({info['state']}"
+                                 f"{': ' + info['reason'] if info.get('reason') else ''})") from None
+
+
+PLY_RESPONSES = {200: {"content": {"application/octet-stream": {}}, "description": "binary PLY"},
+                 **NOT_FOUND, 409: {"model": Problem, "description": "the scan has no cloud"}}
+
+
+@scans.get("/{scan_id}/cloud.ply", response_class=FileResponse, responses=PLY_RESPONSES)
+def get_cloud(scan_id: str, service: ServiceDep) -> FileResponse:
+    return FileResponse(_scan_file(service, scan_id, "cloud.ply"), media_type="application/octet-stream")
+
+
+@scans.get("/{scan_id}/edges.ply", response_class=FileResponse, responses=PLY_RESPONSES)
+def get_edges(scan_id: str, service: ServiceDep) -> FileResponse:
+    return FileResponse(_scan_file(service, scan_id, "edges.ply"), media_type="application/octet-stream")
+
+
+@scans.get("/{scan_id}/preview.png", response_class=Response,
+           responses={200: {"content": {"image/png": {}}, "description": "the cloud seen from below"},
+                      **NOT_FOUND, 409: {"model": Problem, "description": "the scan has no cloud"}})
+def get_preview(scan_id: str, service: ServiceDep) -> Response:
+    return Response(cloud_preview_png(_scan_file(service, scan_id, "cloud.ply")), media_type="image/png")
+
+
+@scans.delete("/{scan_id}", status_code=204, response_class=Response, dependencies=Auth,
+              responses={**UNAUTHORIZED, **NOT_FOUND,
+                         409: {"model": Problem, "description": "the scan is in progress"}})
+def delete_scan(scan_id: str, service: ServiceDep) -> Response:
+    info = _scan_or_404(service, scan_id)
+    if info["state"] not in ("done", "failed"):
+        raise HTTPException(409, f"scan {scan_id} is {info['state']}")
+    try:
+        service.store.delete(scan_id)
+    except KeyError:
+        raise HTTPException(404, f"no scan {scan_id!r}") from None
+    return Response(status_code=204)
+
+
+# ---------------------------------------------------------------------------------------------
+parts = APIRouter(prefix="/parts", tags=["parts"])
+
+
+@parts.get("", response_model=PartList)
+def list_parts(service: ServiceDep) -> dict:
+    return {"parts": [part_info(service.parts.get(n)) for n in service.parts.names()],
+            "default": service.default_part}
+
+
+@parts.put("/{name}", status_code=201, response_model=PartInfo, dependencies=Auth,
+           responses={**UNAUTHORIZED,
+                      422: {"model": Problem, "description": "bad unit, name or mesh"}},
+           openapi_extra={"requestBody": {"required": True, "content": {
+               "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
+async def put_part(name: str, request: Request, service: ServiceDep,
+                   units: Annotated[str, Query(description="unit of the mesh: mm, cm, m or inch")],
+                   format: Annotated[str, Query(pattern="^(stl|obj|ply)$")] = "stl",
+                   grasp: Annotated[str, Query(pattern="^(centred|identity)$")] = "centred") -> dict:
+    data = await request.body()
+    try:
+        part = await asyncio.to_thread(service.parts.add, name, data, units,
+                                       suffix=f".{format}", grasp=grasp)
+    except (PartError, ValueError) as exc:
+        raise HTTPException(422, str(exc)) from None
+    return part_info(part)
+
+
+# ---------------------------------------------------------------------------------------------
+page = APIRouter(tags=["status page"])
+
+
+@page.get("/", response_class=HTMLResponse, include_in_schema=False)
+def index() -> HTMLResponse:
+    return HTMLResponse((STATIC / "index.html").read_text())
+
+
+@page.get("/static/{name}", include_in_schema=False)
+def static_file(name: str) -> FileResponse:
+    path = (STATIC / name).resolve()
+    if path.parent != STATIC or not path.is_file():
+        raise HTTPException(404, f"no file {name!r}")
+    return FileResponse(path)
+
+
+@page.get("/frame.png", response_class=Response,
+          responses={200: {"content": {"image/png": {}},
+                           "description": "the latest frame with the stripe and marker drawn"},
+                     404: {"model": Problem, "description": "no frame yet"}})
+def latest_frame(service: ServiceDep) -> Response:
+    latest = service.engine.latest
+    if latest is None:
+        raise HTTPException(404, "no frame has arrived yet")
+    frame, marker = latest
+    return Response(frame_png(frame, marker, service.engine.calibration, service.engine.params),
+                    media_type="image/png", headers={"Cache-Control": "no-store"})
+
+
+@page.get("/events", response_class=StreamingResponse,
+          responses={200: {"content": {"text/event-stream": {}},
+                           "description": "the status, as server-sent events"}})
+async def events(request: Request, service: ServiceDep) -> StreamingResponse:
+    async def stream():
+        while not await request.is_disconnected():
+            yield f"event: status\ndata: {json.dumps(service.status())}\n\n"
+            await asyncio.sleep(EVENTS_PERIOD_S)
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-store"})
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def create_app(settings: Settings | None = None, *, service: Service | None = None) -> FastAPI:
+    """The application; its lifespan starts the service and stops it."""
+    if service is None:
+        service = Service(settings if settings is not None else Settings())
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        await asyncio.to_thread(service.start)
+        try:
+            yield
+        finally:
+            await asyncio.to_thread(service.stop)
+
+    app = FastAPI(title="flyscan", version="0.2.0", lifespan=lifespan,
+                  description="In-flight laser-line 3D scanner: arm a scan, fetch its cloud.")
+    app.state.service = service
+    for router in (system, scans, parts, page):
+        app.include_router(router)
+    return app

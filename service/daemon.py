@@ -1,0 +1,231 @@
+"""The service as one object: devices, engine, store, parts, publisher and metrics, wired.
+
+``Service.start``/``stop`` are what the FastAPI lifespan calls. The devices are chosen here,
+once: the simulated cell in simulated mode (``simulator.live``), the real backends otherwise;
+nothing downstream knows which. In simulated mode arming also sends the simulated robot
+through the sheet (``SimPassDriver``), as a cell controller's robot program would.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from scanner_core.calibration import Calibration, load_calibration, save_calibration
+from scanner_core.pipeline import PipelineParams
+from scanner_core.trigger import TriggerParams
+from scanner_core.types import Scan
+from service.engine import Engine, ScanJob
+from service.metrics import Metrics
+from service.parts import DEMO_PART, PartLibrary
+from service.publisher import Publisher
+from service.settings import Settings
+from service.store import ScanStore
+
+log = logging.getLogger("flyscan.service")
+
+#: How long the finisher waits for the cloud to leave on ZeroMQ before storing, s (only to
+#: record the latency: the store never depends on the subscriber).
+PUBLISH_WAIT_S = 1.0
+
+
+class SimPassDriver:
+    """Sends the simulated robot through the sheet when a scan is armed."""
+
+    def __init__(self, sim):
+        self.sim = sim
+
+    def prepare(self, part) -> None:
+        self.sim.prepare_pass(part)
+
+    def start_pass(self, part, misplacement: np.ndarray | None) -> None:
+        self.sim.start_pass(part, misplacement)
+
+
+def misplacement_matrix(values) -> np.ndarray | None:
+    """[tx, ty, tz (mm), rx, ry, rz (deg)] -> 4x4, None for None."""
+    if values is None:
+        return None
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_rotvec(np.radians(values[3:])).as_matrix()
+    m[:3, 3] = values[:3]
+    return m
+
+
+def build_devices(settings: Settings):
+    """(camera, robot, driver, calibration) for the settings."""
+    if settings.robot is not None:
+        raise ValueError(f"--robot {settings.robot}: UR robots through ur-rtde are not supported "
+                         "yet; run without --robot (simulated mode has its own robot)")
+    if not settings.sim:
+        raise ValueError("no camera backend is configured: run with --sim (the simulated cell); "
+                         "real cameras are not supported yet")
+    from simulator.cell import load_cell
+    from simulator.live import LiveSimCell
+
+    cell = load_cell()
+    changes = {k: v for k, v in (("speed_mm_s", settings.sim_speed_mm_s), ("fps", settings.sim_fps))
+               if v is not None}
+    if changes:
+        cell = cell.with_pass(**changes)
+    sim = LiveSimCell(cell, seed=settings.sim_seed)
+    return sim.camera, sim.robot, SimPassDriver(sim), cell.calibration
+
+
+class Service:
+    """The daemon. Constructing does no I/O; ``start`` opens everything, ``stop`` closes it."""
+
+    def __init__(self, settings: Settings, *, devices=None):
+        self.settings = settings
+        camera, robot, self.driver, default_calibration = devices or build_devices(settings)
+        self.calibration_path = settings.data / "calibration.json"
+        self._default_calibration = default_calibration
+        self.store = ScanStore(settings.data, retention=settings.retention)
+        self.parts = PartLibrary(settings.data)
+        self.publisher = Publisher(settings.zmq, hwm=settings.zmq_hwm)
+        self.metrics = Metrics()
+        params = PipelineParams(stripe_method=settings.stripe_method,
+                                trigger=TriggerParams(gap_frames=settings.gap_frames,
+                                                      max_pass_s=settings.max_pass_s,
+                                                      arm_timeout_s=settings.arm_timeout_s))
+        self.engine = Engine(camera, robot, self._initial_calibration(), params,
+                             on_scan=self._on_scan, on_pass_armed=self._on_pass_armed,
+                             workers=settings.workers, queue_frames=settings.queue_frames,
+                             camera_timeout_s=settings.camera_timeout_s,
+                             clock_offset_s=settings.clock_offset_s,
+                             cross_check_tolerance_mm=settings.cross_check_tolerance_mm)
+        self._jobs: dict[str, ScanJob] = {}
+        self._jobs_lock = threading.Lock()
+        self._misplacements: dict[str, np.ndarray | None] = {}
+        self.started = time.time()
+
+    def _initial_calibration(self) -> Calibration:
+        if self.settings.calibration is not None:
+            return load_calibration(self.settings.calibration)
+        if self.calibration_path.is_file():
+            return load_calibration(self.calibration_path)
+        if self._default_calibration is None:
+            raise ValueError("no calibration: give --calibration FILE or PUT /calibration")
+        return self._default_calibration
+
+    # -- life cycle -------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self.settings.data.mkdir(parents=True, exist_ok=True)
+        self.store.open()
+        self.parts.open()
+        self.publisher.start()
+        self.engine.start()
+        if self.driver is not None:
+            # The default part's pass is rendered once, before the first scan asks for it.
+            threading.Thread(target=self.driver.prepare, args=(self.parts.get(self.default_part),),
+                             name="flyscan-prepare", daemon=True).start()
+
+    def stop(self) -> None:
+        self.engine.stop()
+        self.publisher.stop()
+
+    @property
+    def default_part(self) -> str:
+        return self.settings.default_part or DEMO_PART
+
+    # -- scans ------------------------------------------------------------------------------
+
+    def arm(self, part: str | None, timeout_s: float | None, misplace=None) -> ScanJob:
+        """Arm a scan of ``part``; KeyError for an unknown part, EngineBusy, EngineFault."""
+        name = part or self.default_part
+        self.parts.get(name)  # KeyError before anything is armed
+        job = self.engine.arm(name, timeout_s)
+        with self._jobs_lock:
+            self._jobs[job.scan_id] = job
+            self._misplacements[job.scan_id] = misplacement_matrix(misplace)
+        return job
+
+    def _on_pass_armed(self, job: ScanJob) -> None:
+        if self.driver is None:
+            return
+        with self._jobs_lock:
+            misplacement = self._misplacements.pop(job.scan_id, None)
+
+        def go():
+            try:
+                self.driver.start_pass(self.parts.get(job.part), misplacement)
+            except Exception as exc:  # the pass never comes: the armed scan will time out
+                log.error("simulated pass for %s not started: %s", job.scan_id, exc)
+                job.reason = f"simulated pass not started: {exc}"
+
+        threading.Thread(target=go, name="flyscan-sim-pass", daemon=True).start()
+
+    def _on_scan(self, job: ScanJob, scan: Scan | None, cross_check) -> None:
+        """Finisher thread: publish, cross-check, store. The scan is kept even if publishing
+        fails; a failure to store fails the scan and is reported."""
+        sent = threading.Event()
+
+        def on_sent(topic, when):
+            if job.last_frame_monotonic is not None:
+                job.latency_ms["last_frame_to_zmq"] = round((when - job.last_frame_monotonic) * 1e3, 3)
+            job.latency_ms["pass_end_to_zmq"] = round((when - job.end_monotonic) * 1e3, 3)
+            sent.set()
+
+        header = {"scan_id": job.scan_id, "part": job.part}
+        if scan is not None:
+            self.publisher.publish("cloud", header, scan.cloud, on_sent=on_sent)
+            self.publisher.publish("edges", header, scan.edges)
+            sent.wait(PUBLISH_WAIT_S)
+        check = cross_check(scan) if scan is not None else None
+        report = self.engine.report(job, scan, check)
+        report["latency_ms"] = dict(job.latency_ms)
+        info = self._info(job, report)
+        try:
+            self.store.save(job.scan_id, info, scan, report)
+        except OSError as exc:
+            job.state, job.reason = "failed", f"could not store the scan: {exc}"
+            info = self._info(job, report)
+        job.info = info
+        self.publisher.publish("pose", {**header, "pose": info["pose"], "state": job.state})
+        self.publisher.publish("status", {**header, "state": job.state, "reason": job.reason,
+                                          "points": info["points"]})
+        self.metrics.scan_finished(info)
+        with self._jobs_lock:
+            self._jobs.pop(job.scan_id, None)
+
+    def _info(self, job: ScanJob, report: dict) -> dict:
+        keys = ("frames", "frames_dropped", "frames_unplaced", "queue_overflows", "points",
+                "edge_points", "end_reason", "timings_ms", "cross_check", "pose", "latency_ms",
+                "frames_held_rotation", "marker_residual_px")
+        return {"scan_id": job.scan_id, "state": job.state, "reason": job.reason, "part": job.part,
+                "created": job.created, "finished": time.time(),
+                **{k: report.get(k) for k in keys}}
+
+    def scan_info(self, scan_id: str) -> dict:
+        """A scan in progress or stored; KeyError when unknown."""
+        with self._jobs_lock:
+            job = self._jobs.get(scan_id)
+        if job is not None and not job.info:
+            return {"scan_id": job.scan_id, "state": job.state, "reason": job.reason,
+                    "part": job.part, "created": job.created, "frames": job.accumulator.frames_seen,
+                    "frames_dropped": job.frames_dropped, "queue_overflows": job.queue_overflows}
+        return self.store.info(scan_id)
+
+    def list_scans(self) -> list[dict]:
+        with self._jobs_lock:
+            live = [j for j in self._jobs.values() if not j.info]
+        stored = self.store.list()
+        return [self.scan_info(j.scan_id) for j in live] + stored
+
+    # -- calibration ------------------------------------------------------------------------
+
+    def set_calibration(self, calibration: Calibration) -> None:
+        self.engine.set_calibration(calibration)
+        save_calibration(self.calibration_path, calibration)
+
+    def status(self) -> dict:
+        status = self.engine.status()
+        status["zmq"] = {"endpoint": self.publisher.bound_endpoint, "sent": self.publisher.sent,
+                         "dropped": self.publisher.dropped}
+        status["simulated"] = self.driver is not None
+        return status
+

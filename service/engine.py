@@ -1,0 +1,394 @@
+"""The daemon's acquisition engine: one thread owns the camera, workers process the pass.
+
+The acquisition thread grabs every frame, counts gaps in the frame ids (dropped frames), and,
+while a scan is armed or in progress, finds the marker (tracked from frame to frame) and feeds
+the trigger. The frames of a pass go through a bounded queue to worker threads, which extract
+and triangulate the stripe and place the profile (``scanner_core.pipeline``: the numba kernels
+release the GIL) while the pass is still running; a full queue drops the frame and counts it,
+so acquisition never waits. When the trigger ends the pass, the finisher thread waits for the
+pass's last profiles, assembles the scan, publishes it over ZeroMQ, cross-checks it against the
+robot, and stores it. The same ``scanner_core`` functions run ``flyscan scan`` offline.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from scanner_core.calibration import Calibration
+from scanner_core.crosscheck import cross_check
+from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
+from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_present,
+                                   process_frame, warm_up)
+from scanner_core.report import scan_report
+from scanner_core.trigger import EndReason, Trigger, TriggerError, TriggerState
+from scanner_core.types import Frame, MarkerObservation, Scan
+
+log = logging.getLogger("flyscan.engine")
+
+#: A camera that raised CameraClosed is reopened after this long, s.
+CAMERA_REOPEN_S = 1.0
+
+
+class EngineBusy(RuntimeError):
+    """A scan is already armed or in progress."""
+
+
+class EngineFault(RuntimeError):
+    """The engine cannot scan now (the camera is not streaming)."""
+
+
+@dataclass
+class ScanJob:
+    """One armed scan, from arming to its stored result."""
+
+    scan_id: str
+    part: str | None
+    created: float
+    accumulator: PassAccumulator
+    state: str = "armed"
+    reason: str | None = None
+    frames_dropped: int = 0
+    queue_overflows: int = 0
+    worker_errors: list[str] = field(default_factory=list)
+    finished: float | None = None
+    last_frame_monotonic: float | None = None
+    end_monotonic: float | None = None
+    latency_ms: dict = field(default_factory=dict)
+    marker_ms: float = 0.0
+    profiles_ms: float = 0.0
+    info: dict = field(default_factory=dict)
+    _in_flight: int = 0
+    _idle: threading.Condition = field(default_factory=threading.Condition)
+
+    def queued(self) -> None:
+        with self._idle:
+            self._in_flight += 1
+
+    def processed(self, elapsed_ms: float = 0.0) -> None:
+        with self._idle:
+            self.profiles_ms += elapsed_ms
+            self._in_flight -= 1
+            if self._in_flight == 0:
+                self._idle.notify_all()
+
+    def wait_processed(self, timeout: float) -> bool:
+        with self._idle:
+            return self._idle.wait_for(lambda: self._in_flight == 0, timeout)
+
+
+class Engine:
+    """Camera, trigger, workers and finisher of the live service.
+
+    Parameters
+    ----------
+    camera, robot : Camera, Robot
+        The devices (simulated or real: the engine cannot tell).
+    calibration : Calibration
+    params : PipelineParams
+    on_scan : callable(job, scan or None, report)
+        Called on the finisher thread when a scan is over (publish, store); its errors fail
+        the scan, never the engine.
+    on_pass_armed : callable(job), optional
+        Called after arming (the simulated cell sends its robot through the sheet).
+    workers, queue_frames, camera_timeout_s, clock_offset_s, cross_check_tolerance_mm
+        See ``service.settings.Settings``.
+    """
+
+    def __init__(self, camera: Camera, robot: Robot, calibration: Calibration,
+                 params: PipelineParams, *, on_scan, on_pass_armed=None, workers: int = 2,
+                 queue_frames: int = 64, camera_timeout_s: float = 1.0,
+                 clock_offset_s: float = 0.0, cross_check_tolerance_mm: float = 0.1):
+        self.camera, self.robot = camera, robot
+        self.calibration, self.params = calibration, params
+        self.on_scan, self.on_pass_armed = on_scan, on_pass_armed
+        self.n_workers = int(workers)
+        self.camera_timeout_s = camera_timeout_s
+        self.clock_offset_s = clock_offset_s
+        self.cross_check_tolerance_mm = cross_check_tolerance_mm
+        self.trigger = Trigger(params.trigger)
+        self._lock = threading.RLock()
+        self._frames: queue.Queue = queue.Queue(maxsize=int(queue_frames))
+        self._ended: queue.Queue = queue.Queue()
+        self._threads: list[threading.Thread] = []
+        self._running = threading.Event()
+        self.job: ScanJob | None = None
+        self.last_scan_id: str | None = None
+        self.camera_state = "closed"
+        self.camera_error: str | None = None
+        self.frames_total = 0
+        self.frames_dropped = 0
+        self.queue_overflows = 0
+        self.fps = 0.0
+        self.latest: tuple[Frame, MarkerObservation | None] | None = None
+        self.scans_done = 0
+        self.scans_failed = 0
+        self.warmup_ms: float | None = None
+
+    # -- life cycle -------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self.warmup_ms = warm_up(self.calibration, self.params)
+        self._running.set()
+        self._open_camera()
+        try:
+            self.robot.connect()
+        except (OSError, RuntimeError) as exc:  # the cross-check degrades, scans go on
+            log.warning("robot not connected: %s", exc)
+        targets = [("acquisition", self._acquire), ("finisher", self._finish_loop)]
+        targets += [(f"worker-{k}", self._work) for k in range(self.n_workers)]
+        for name, target in targets:
+            thread = threading.Thread(target=target, name=f"flyscan-{name}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def stop(self) -> None:
+        self._running.clear()
+        with self._lock:
+            self.trigger.reset()
+        for _ in range(self.n_workers):
+            self._frames.put(None)
+        self._ended.put(None)
+        for thread in self._threads:
+            thread.join(5.0)
+        self._threads.clear()
+        self.camera.close()
+        self.robot.disconnect()
+
+    # -- commands ---------------------------------------------------------------------------
+
+    def arm(self, part: str | None = None, timeout_s: float | None = None) -> ScanJob:
+        """Arm the trigger for the next pass; raises EngineBusy or EngineFault."""
+        with self._lock:
+            if self.camera_state != "streaming":
+                raise EngineFault(f"the camera is {self.camera_state}"
+                                  + (f": {self.camera_error}" if self.camera_error else ""))
+            if self.trigger.state is TriggerState.FAULT:
+                self.trigger.reset()
+            try:
+                self.trigger.arm(timeout_s)
+            except TriggerError as exc:
+                raise EngineBusy(f"a scan is in progress ({self.job.scan_id if self.job else '?'}: "
+                                 f"{self.trigger.state.value})") from exc
+            job = ScanJob(scan_id=new_scan_id(), part=part, created=time.time(),
+                          accumulator=PassAccumulator(self.calibration, self.robot, self.clock_offset_s))
+            self.job = job
+        if self.on_pass_armed is not None:
+            self.on_pass_armed(job)
+        return job
+
+    def set_calibration(self, calibration: Calibration) -> None:
+        with self._lock:
+            if self.trigger.state in (TriggerState.ARMED, TriggerState.SCANNING, TriggerState.PROCESSING):
+                raise EngineBusy("cannot change the calibration while a scan is in progress")
+            self.calibration = calibration
+
+    def status(self) -> dict:
+        with self._lock:
+            job = self.job
+            return {
+                "state": self.trigger.state.value,
+                "fault_reason": self.trigger.fault_reason,
+                "camera": {"state": self.camera_state, "error": self.camera_error,
+                           "fps": round(self.fps, 2), "frames": self.frames_total,
+                           "frames_dropped": self.frames_dropped},
+                "robot": {"connected": bool(self.robot.connected)},
+                "fps": round(self.fps, 2),
+                "frames_dropped": self.frames_dropped,
+                "queue": {"depth": self._frames.qsize(), "capacity": self._frames.maxsize,
+                          "overflows": self.queue_overflows},
+                "current_scan_id": job.scan_id if job and job.state in ("armed", "scanning", "processing") else None,
+                "last_scan_id": self.last_scan_id,
+                "scans_done": self.scans_done,
+                "scans_failed": self.scans_failed,
+                "clock_offset_s": self.clock_offset_s,
+            }
+
+    # -- threads ----------------------------------------------------------------------------
+
+    def _open_camera(self) -> None:
+        try:
+            self.camera.open()
+            self.camera_state, self.camera_error = "streaming", None
+        except (OSError, RuntimeError) as exc:
+            self.camera_state, self.camera_error = "error", str(exc)
+
+    def _acquire(self) -> None:
+        tracker = MarkerTracker(self.calibration, self.params)
+        last_id, last_t = None, None
+        while self._running.is_set():
+            if self.camera_state in ("closed", "error"):
+                time.sleep(CAMERA_REOPEN_S)
+                self._open_camera()
+                last_id = None
+                continue
+            try:
+                frame = self.camera.grab(self.camera_timeout_s)
+            except CameraTimeout as exc:
+                self._camera_stopped("stalled", f"no frame for {self.camera_timeout_s:g} s ({exc})")
+                continue
+            except CameraClosed as exc:
+                if self._running.is_set():
+                    self._camera_stopped("closed", str(exc))
+                continue
+            if self.camera_state != "streaming":  # a stalled camera came back
+                self.camera_state, self.camera_error = "streaming", None
+            received = time.monotonic()
+            self.frames_total += 1
+            gap = 0 if last_id is None else max(frame.frame_id - last_id - 1, 0)
+            self.frames_dropped += gap
+            if last_t is not None and frame.t > last_t:
+                period = (frame.t - last_t) / (gap + 1)
+                self.fps = 1.0 / period if self.fps == 0 else 0.95 * self.fps + 0.05 / period
+            last_id, last_t = frame.frame_id, frame.t
+            self._on_frame(frame, gap, received, tracker)
+
+    def _on_frame(self, frame: Frame, gap: int, received: float, tracker: MarkerTracker) -> None:
+        with self._lock:
+            state = self.trigger.state
+            if tracker.calibration is not self.calibration:
+                tracker.calibration = self.calibration
+            if state in (TriggerState.ARMED, TriggerState.SCANNING):
+                t0 = time.perf_counter()
+                marker = tracker.observe(frame)
+                present = marker_present(marker)
+                if self.job is not None:
+                    self.job.marker_ms += (time.perf_counter() - t0) * 1e3
+            else:
+                marker, present = None, False
+                tracker.reset()
+            self.latest = (frame, marker)
+            step = self.trigger.feed((frame, marker), frame.t, present, frame.frame_id)
+            job = self.job
+            if job is None:
+                return
+            if state is TriggerState.SCANNING:
+                job.frames_dropped += gap
+            if self.trigger.state is TriggerState.SCANNING and job.state == "armed":
+                job.state = "scanning"
+            for item in step.emit:
+                self._enqueue(job, item)
+                job.last_frame_monotonic = received
+            if step.ended is not None:
+                self._end_pass(job, step.ended)
+
+    def _enqueue(self, job: ScanJob, item) -> None:
+        job.queued()
+        try:
+            self._frames.put_nowait((job, *item))
+        except queue.Full:
+            job.processed()
+            job.queue_overflows += 1
+            self.queue_overflows += 1
+
+    def _camera_stopped(self, state: str, reason: str) -> None:
+        """A stalled camera is grabbed again (it may come back); a closed one is reopened."""
+        with self._lock:
+            self.camera_state, self.camera_error = state, reason
+            step = self.trigger.camera_stopped()
+            if step.ended is not None and self.job is not None:
+                self._end_pass(self.job, step.ended, detail=reason)
+        if state == "closed":
+            self.camera.close()
+
+    def _end_pass(self, job: ScanJob, reason: EndReason, detail: str | None = None) -> None:
+        job.end_monotonic = time.monotonic()
+        job.state = "processing" if self.trigger.state is TriggerState.PROCESSING else job.state
+        job.reason = reason.value + (f": {detail}" if detail else "")
+        self._ended.put((job, reason))
+
+    def _work(self) -> None:
+        while True:
+            item = self._frames.get()
+            if item is None:
+                return
+            job, frame, marker = item
+            t0 = time.perf_counter()
+            try:
+                job.accumulator.add(process_frame(frame, self.calibration, self.params, marker))
+            except (ValueError, ArithmeticError) as exc:  # a frame the kernels refuse
+                job.worker_errors.append(f"frame {frame.frame_id}: {exc}")
+            finally:
+                job.processed((time.perf_counter() - t0) * 1e3)
+
+    def _finish_loop(self) -> None:
+        while True:
+            item = self._ended.get()
+            if item is None:
+                return
+            job, reason = item
+            try:
+                self._finish(job, reason)
+            finally:
+                with self._lock:
+                    self.trigger.finish()
+
+    def _finish(self, job: ScanJob, reason: EndReason) -> None:
+        t0 = time.perf_counter()
+        job.wait_processed(timeout=30.0)
+        t1 = time.perf_counter()
+        scan: Scan | None = job.accumulator.scan(frames_dropped=job.frames_dropped)
+        scan.queue_overflows = job.queue_overflows
+        scan.end_reason = reason.value
+        if reason is EndReason.CAMERA_STOPPED and scan.frames:
+            scan.interrupted = job.reason
+        scan.timings_ms = {"marker": round(job.marker_ms, 3), "profiles": round(job.profiles_ms, 3),
+                           "wait_workers": round((t1 - t0) * 1e3, 3),
+                           "assemble": round((time.perf_counter() - t1) * 1e3, 3)}
+        failure = _failure(job, reason, scan)
+        job.state = "failed" if failure else "done"
+        job.reason = failure if failure else job.reason
+        if scan.frames == 0:
+            scan = None
+        try:
+            self.on_scan(job, scan, self._cross_check)
+        finally:
+            job.finished = time.time()
+            with self._lock:
+                self.last_scan_id = job.scan_id
+                self.scans_done += job.state == "done"
+                self.scans_failed += job.state == "failed"
+
+    def _cross_check(self, scan: Scan) -> dict:
+        check = cross_check(scan.tcp_times, scan.tcp_positions_b, self.robot,
+                            clock_offset_s=self.clock_offset_s,
+                            tolerance_mm=self.cross_check_tolerance_mm)
+        if check.get("offset_estimated"):
+            self.clock_offset_s = check["clock_offset_s"]  # the next pass starts from it
+        return check
+
+    def report(self, job: ScanJob, scan: Scan | None, check: dict | None) -> dict:
+        """``report.json`` of a finished job."""
+        empty = Scan(np.zeros((0, 3), np.float32), np.zeros(0, np.int32), np.zeros(0, np.float32),
+                     np.zeros((0, 3), np.float32), np.zeros((0, 3)), np.zeros(0), 0, job.frames_dropped,
+                     queue_overflows=job.queue_overflows, end_reason=None)
+        return scan_report(scan if scan is not None else empty, check,
+                           scan_id=job.scan_id, part=job.part, state=job.state, reason=job.reason,
+                           created=job.created, worker_errors=job.worker_errors[:10])
+
+
+def _failure(job: ScanJob, reason: EndReason, scan: Scan) -> str | None:
+    """Why a finished pass is a failed scan, or None."""
+    if reason is EndReason.TIMEOUT:
+        return "timeout: the marker never appeared"
+    if reason is EndReason.CAMERA_STOPPED:
+        return job.reason
+    if reason is EndReason.TOO_LONG:
+        return "too long: the marker did not leave the view within the maximum pass length"
+    if reason is EndReason.RESET:
+        return "reset: the service stopped or was reset during the pass"
+    if scan.frames == 0:
+        return "no profile could be placed (the marker was never triangulated)"
+    if job.worker_errors:
+        return f"{len(job.worker_errors)} frames failed to process: {job.worker_errors[0]}"
+    return None
+
+
+def new_scan_id() -> str:
+    """Time-ordered, unique, safe as a folder name."""
+    return time.strftime("%Y%m%dT%H%M%S", time.gmtime()) + "-" + uuid.uuid4().hex[:8]

@@ -1,0 +1,117 @@
+"""Typed request and response bodies of the REST API (they make the OpenAPI schema)."""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+RunState = Literal["idle", "armed", "scanning", "processing", "fault"]
+ScanState = Literal["armed", "scanning", "processing", "done", "failed"]
+
+
+class Problem(BaseModel):
+    """An error: the reason, for a person and for the client's exception."""
+
+    detail: str
+
+
+class Health(BaseModel):
+    status: Literal["ok"] = "ok"
+
+
+class CameraStatus(BaseModel):
+    state: str = Field(description="streaming, stalled, closed or error")
+    error: str | None = None
+    fps: float
+    frames: int
+    frames_dropped: int
+
+
+class QueueStatus(BaseModel):
+    depth: int
+    capacity: int
+    overflows: int
+
+
+class RobotStatus(BaseModel):
+    connected: bool
+
+
+class ZmqStatus(BaseModel):
+    endpoint: str | None
+    sent: int
+    dropped: int
+
+
+class Status(BaseModel):
+    state: RunState
+    fault_reason: str | None
+    camera: CameraStatus
+    robot: RobotStatus
+    fps: float
+    frames_dropped: int
+    queue: QueueStatus
+    zmq: ZmqStatus
+    current_scan_id: str | None
+    last_scan_id: str | None
+    scans_done: int
+    scans_failed: int
+    clock_offset_s: float
+    simulated: bool
+
+
+class ScanRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    part: str | None = Field(None, description="a part of GET /parts; default the service's")
+    timeout_s: float | None = Field(None, gt=0, le=600,
+                                    description="fail when the marker has not appeared by then")
+    misplace: list[float] | None = Field(
+        None, min_length=6, max_length=6,
+        description="simulated mode only: the part's misplacement in the gripper, "
+                    "[tx, ty, tz (mm), rx, ry, rz (rotation vector, degrees)]")
+
+
+class ScanAccepted(BaseModel):
+    scan_id: str
+    state: ScanState
+
+
+class ScanInfo(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    scan_id: str
+    state: ScanState
+    reason: str | None = None
+    part: str | None = None
+    created: float
+    finished: float | None = None
+    frames: int = 0
+    frames_dropped: int = 0
+    frames_unplaced: int = 0
+    queue_overflows: int = 0
+    points: int = 0
+    edge_points: int = 0
+    end_reason: str | None = None
+    timings_ms: dict = Field(default_factory=dict)
+    latency_ms: dict = Field(default_factory=dict)
+    cross_check: dict | None = None
+    pose: dict | None = None
+
+
+class ScanList(BaseModel):
+    scans: list[ScanInfo]
+
+
+class PartInfo(BaseModel):
+    name: str
+    units: str
+    faces: int
+    source: str
+    extents_mm: list[float]
+    nominal_grasp: list[list[float]]
+
+
+class PartList(BaseModel):
+    parts: list[PartInfo]
+    default: str | None

@@ -1,0 +1,113 @@
+"""The parts the service knows: the built-in demo block and meshes uploaded with their unit.
+
+An uploaded part is kept as ``parts/<name>/mesh.<ext>`` with ``part.json`` (its unit and
+grasp), written into a temporary folder and renamed into place, and loaded again at start.
+Every part is checked as ``flyscan scan`` checks it (readable, plausible size for its unit,
+fits the inspection volume at its nominal grasp) before it is accepted.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import threading
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from simulator.parts import (Part, PartError, PartUnitWarning, block_with_holes_and_steps,
+                             check_fits, load_part, part_from_mesh)
+
+DEMO_PART = "demo"
+PART_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+MESH_SUFFIXES = (".stl", ".obj", ".ply")
+#: Uploaded meshes larger than this are refused (a CAD part of a bin-picking cell is far smaller).
+MAX_MESH_BYTES = 64 * 1024 * 1024
+
+
+def part_info(part: Part) -> dict:
+    return {"name": part.name, "units": part.units, "faces": int(len(part.mesh.faces)),
+            "source": "built-in" if part.source.startswith("procedural") else "uploaded",
+            "extents_mm": np.round(part.extents, 4).tolist(),
+            "nominal_grasp": np.asarray(part.grasp).tolist()}
+
+
+def _checked(load) -> Part:
+    """Load a part, turning an implausible size for its unit into an error."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PartUnitWarning)
+        part = load()
+    for w in caught:
+        if issubclass(w.category, PartUnitWarning):
+            raise PartError(str(w.message))
+    check_fits(part)
+    return part
+
+
+class PartLibrary:
+    """Parts by name. Thread-safe."""
+
+    def __init__(self, root):
+        self.root = Path(root) / "parts"
+        self._parts: dict[str, Part] = {}
+        self._lock = threading.Lock()
+
+    def open(self) -> None:
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._parts[DEMO_PART] = part_from_mesh(block_with_holes_and_steps(), name=DEMO_PART,
+                                                source="procedural:block_with_holes_and_steps")
+        for folder in sorted(self.root.iterdir()):
+            if folder.name.startswith(".") or not (folder / "part.json").is_file():
+                shutil.rmtree(folder, ignore_errors=True) if folder.name.startswith(".tmp-") else None
+                continue
+            meta = json.loads((folder / "part.json").read_text())
+            self._parts[folder.name] = load_part(folder / meta["file"], meta["units"],
+                                                 name=folder.name, grasp=_grasp(meta["grasp"]))
+
+    def names(self) -> list[str]:
+        with self._lock:
+            return sorted(self._parts)
+
+    def get(self, name: str) -> Part:
+        with self._lock:
+            return self._parts[name]
+
+    def add(self, name: str, data: bytes, units: str, *, suffix: str = ".stl",
+            grasp: str = "centred") -> Part:
+        """Check and keep an uploaded mesh; raises PartError (or ValueError) with the reason."""
+        if not PART_NAME.match(name) or name == DEMO_PART:
+            raise ValueError(f"part name must be 1-64 letters, digits, '.', '_' or '-' and not "
+                             f"{DEMO_PART!r}, got {name!r}")
+        if suffix not in MESH_SUFFIXES:
+            raise ValueError(f"mesh format must be one of {', '.join(MESH_SUFFIXES)}, got {suffix!r}")
+        if not data:
+            raise PartError("the mesh file is empty")
+        if len(data) > MAX_MESH_BYTES:
+            raise PartError(f"the mesh file is larger than {MAX_MESH_BYTES >> 20} MiB")
+        tmp = self.root / f".tmp-{name}"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        try:
+            mesh_path = tmp / f"mesh{suffix}"
+            mesh_path.write_bytes(data)
+            part = _checked(lambda: load_part(mesh_path, units, name=name, grasp=_grasp(grasp)))
+            (tmp / "part.json").write_text(json.dumps({"file": mesh_path.name, "units": part.units,
+                                                       "grasp": grasp}))
+            final = self.root / name
+            with self._lock:
+                shutil.rmtree(final, ignore_errors=True)
+                os.replace(tmp, final)
+                self._parts[name] = part
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        return part
+
+
+def _grasp(kind: str):
+    if kind == "identity":
+        return np.eye(4)
+    if kind == "centred":
+        return None
+    raise ValueError(f"grasp must be 'centred' or 'identity', got {kind!r}")

@@ -1,0 +1,87 @@
+"""The service's settings: one class, from a TOML file, the environment (``FLYSCAN_*``) and the
+command line, in rising priority. Secrets (the bearer token) are never defaulted."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import (BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict,
+                               TomlConfigSettingsSource)
+
+
+class Settings(BaseSettings):
+    """Everything ``flyscan serve`` can be told.
+
+    Attributes
+    ----------
+    sim : bool
+        Simulated devices (the reference cell): arming a scan also sends the simulated robot
+        through the sheet.
+    host, port : str, int
+        REST bind address; 127.0.0.1 unless told otherwise.
+    zmq : str
+        ZeroMQ PUB endpoint for clouds, edges, poses and status.
+    data : Path
+        Where scans and uploaded parts are stored.
+    token : SecretStr or None
+        When set, mutating endpoints require ``Authorization: Bearer <token>``.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="FLYSCAN_", extra="forbid")
+
+    sim: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    zmq: str = "tcp://127.0.0.1:5556"
+    zmq_hwm: int = Field(100, ge=1, description="ZeroMQ send high-water mark, messages")
+    robot: str | None = Field(None, description="ur://HOST for a UR robot (ur-rtde)")
+    data: Path = Path("flyscan-data")
+    token: SecretStr | None = None
+    calibration: Path | None = Field(None, description="calibration JSON; default the reference cell's")
+    workers: int = Field(2, ge=1, le=16, description="frame-processing threads")
+    queue_frames: int = Field(64, ge=1, description="frames waiting for a worker, at most")
+    max_pass_s: float = Field(10.0, gt=0, description="a longer pass ends as 'too long'")
+    arm_timeout_s: float = Field(10.0, gt=0, description="an armed scan with no marker fails")
+    gap_frames: int = Field(3, ge=1, description="frames without the marker that end a pass")
+    camera_timeout_s: float = Field(1.0, gt=0, description="no frame this long: the camera stopped")
+    retention: int = Field(200, ge=1, description="scans kept on disk; the oldest go first")
+    stripe_method: Literal["cog", "gaussian3", "parabola", "blais_rioux", "lsq_gauss"] = "cog"
+    default_part: str | None = Field(None, description="part used when a scan names none")
+    clock_offset_s: float = Field(0.0, description="robot minus camera clock, s, until estimated")
+    cross_check_tolerance_mm: float = Field(0.1, gt=0)
+    sim_seed: int = Field(0, ge=0)
+    sim_speed_mm_s: float | None = Field(None, gt=0, le=5000)
+    sim_fps: float | None = Field(None, gt=0, le=2000)
+
+    @field_validator("zmq")
+    @classmethod
+    def _zmq_endpoint(cls, value: str) -> str:
+        if "://" not in value:
+            raise ValueError(f"must be a ZeroMQ endpoint such as tcp://127.0.0.1:5556, got {value!r}")
+        return value
+
+    @classmethod
+    def settings_customise_sources(cls, settings_cls: type[BaseSettings],
+                                   init_settings: PydanticBaseSettingsSource,
+                                   env_settings: PydanticBaseSettingsSource,
+                                   dotenv_settings: PydanticBaseSettingsSource,
+                                   file_secret_settings: PydanticBaseSettingsSource):
+        return (init_settings, env_settings, TomlConfigSettingsSource(settings_cls),
+                file_secret_settings)
+
+
+def load_settings(config: Path | None = None, **overrides) -> Settings:
+    """Settings from ``config`` (TOML), the environment and ``overrides`` (None values are
+    left out, so that an option not given on the command line does not hide the file's)."""
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if config is None:
+        return Settings(**overrides)
+    config = Path(config)
+    if not config.is_file():
+        raise FileNotFoundError(f"settings file not found: {config}")
+
+    class FileSettings(Settings):
+        model_config = SettingsConfigDict(**Settings.model_config, toml_file=config)
+
+    return FileSettings(**overrides)
