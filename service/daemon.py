@@ -186,8 +186,8 @@ class Service:
             info = self._info(job, report)
         job.info = info
         self.publisher.publish("pose", {**header, "pose": info["pose"], "state": job.state})
-        self.publisher.publish("status", {**header, "state": job.state, "reason": job.reason,
-                                          "points": info["points"]})
+        self.publisher.publish("status", {**header, **self.status(), "scan_state": job.state,
+                                          "reason": job.reason, "points": info["points"]})
         self.metrics.scan_finished(info)
         with self._jobs_lock:
             self._jobs.pop(job.scan_id, None)
@@ -205,7 +205,9 @@ class Service:
         with self._jobs_lock:
             job = self._jobs.get(scan_id)
         if job is not None and not job.info:
-            return {"scan_id": job.scan_id, "state": job.state, "reason": job.reason,
+            # Finished but not yet stored: still processing for the outside world.
+            state = "processing" if job.state in ("done", "failed") else job.state
+            return {"scan_id": job.scan_id, "state": state, "reason": job.reason,
                     "part": job.part, "created": job.created, "frames": job.accumulator.frames_seen,
                     "frames_dropped": job.frames_dropped, "queue_overflows": job.queue_overflows}
         return self.store.info(scan_id)

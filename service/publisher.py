@@ -4,8 +4,8 @@ One thread owns the PUB socket (ZeroMQ sockets are not thread-safe); other threa
 messages through a bounded queue and never wait. A message is ``[topic, header]`` or
 ``[topic, header, payload]``: the header UTF-8 JSON (``scan_id``, ``seq``, ``frame`` "T",
 ``units`` "mm", ``t`` unix seconds and, with a payload, ``dtype``, ``shape``, ``fields``), the
-payload the raw C-order array. ``seq`` rises by one per message sent, so a subscriber counts
-what it lost. A message the queue cannot take, or that a subscriber's high-water mark refuses
+payload the raw C-order array. ``seq`` rises by one per message sent on a topic, so a subscriber
+counts what it lost of the topics it follows. A message the queue cannot take, or that a subscriber's high-water mark refuses
 (ZeroMQ drops it for that subscriber), is counted, never waited for.
 """
 from __future__ import annotations
@@ -92,7 +92,7 @@ class Publisher:
             self._ready.set()
             return
         self._ready.set()
-        seq = 0
+        seq = dict.fromkeys(TOPICS, 0)
         try:
             while True:
                 item = self._queue.get()
@@ -100,12 +100,12 @@ class Publisher:
                     return
                 topic, header, array, on_sent = item
                 try:
-                    frames = encode_message(topic, {**header, "seq": seq + 1, "t": time.time()}, array)
+                    frames = encode_message(topic, {**header, "seq": seq.get(topic, 0) + 1, "t": time.time()}, array)
                 except (TypeError, ValueError) as exc:  # a caller's bug: counted, logged, survived
                     log.error("message on %r not sent: %s", topic, exc)
                     self.dropped += 1
                     continue
-                seq += 1
+                seq[topic] += 1
                 try:
                     socket.send_multipart(frames, flags=zmq.NOBLOCK, copy=False)
                     self.sent += 1

@@ -54,6 +54,11 @@ class Settings(BaseSettings):
     sim_speed_mm_s: float | None = Field(None, gt=0, le=5000)
     sim_fps: float | None = Field(None, gt=0, le=2000)
 
+    @field_validator("token", mode="before")
+    @classmethod
+    def _empty_token_is_none(cls, value):
+        return None if value == "" else value
+
     @field_validator("zmq")
     @classmethod
     def _zmq_endpoint(cls, value: str) -> str:
