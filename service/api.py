@@ -19,7 +19,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from scanner_core.calibration import Calibration, CalibrationError
 from service.daemon import Service
 from service.engine import EngineBusy, EngineFault
-from service.models import (Health, PartInfo, PartList, Problem, ScanAccepted, ScanInfo, ScanList,
+from service.models import (CalibrationModel, Health, PartInfo, PartList, Problem, ScanAccepted, ScanInfo, ScanList,
                             ScanRequest, Status)
 from service.parts import part_info
 from service.pictures import cloud_preview_png, frame_png
@@ -77,18 +77,18 @@ def metrics(service: ServiceDep) -> Response:
                     media_type="text/plain; version=0.0.4; charset=utf-8")
 
 
-@system.get("/calibration", response_model=dict)
+@system.get("/calibration", response_model=CalibrationModel)
 def get_calibration(service: ServiceDep) -> dict:
     return service.engine.calibration.to_dict()
 
 
-@system.put("/calibration", response_model=dict, dependencies=Auth,
+@system.put("/calibration", response_model=CalibrationModel, dependencies=Auth,
             responses={**UNAUTHORIZED,
                        409: {"model": Problem, "description": "a scan is in progress"},
                        422: {"model": Problem, "description": "not a valid calibration"}})
-def put_calibration(body: dict, service: ServiceDep) -> dict:
+def put_calibration(body: CalibrationModel, service: ServiceDep) -> dict:
     try:
-        calibration = Calibration.from_dict(body.get("calibration", body))
+        calibration = Calibration.from_dict(body.model_dump())
     except CalibrationError as exc:
         raise HTTPException(422, str(exc)) from None
     try:

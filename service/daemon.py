@@ -155,7 +155,7 @@ class Service:
                 self.driver.start_pass(self.parts.get(job.part), misplacement)
             except Exception as exc:  # the pass never comes: the armed scan will time out
                 log.error("simulated pass for %s not started: %s", job.scan_id, exc)
-                job.reason = f"simulated pass not started: {exc}"
+                job.note = f"simulated pass not started: {exc}"
 
         threading.Thread(target=go, name="flyscan-sim-pass", daemon=True).start()
 

@@ -53,6 +53,7 @@ class ScanJob:
     accumulator: PassAccumulator
     state: str = "armed"
     reason: str | None = None
+    note: str | None = None
     frames_dropped: int = 0
     queue_overflows: int = 0
     worker_errors: list[str] = field(default_factory=list)
@@ -375,7 +376,7 @@ class Engine:
 def _failure(job: ScanJob, reason: EndReason, scan: Scan) -> str | None:
     """Why a finished pass is a failed scan, or None."""
     if reason is EndReason.TIMEOUT:
-        return "timeout: the marker never appeared"
+        return "timeout: the marker never appeared" + (f" ({job.note})" if job.note else "")
     if reason is EndReason.CAMERA_STOPPED:
         return job.reason
     if reason is EndReason.TOO_LONG:

@@ -115,3 +115,36 @@ class PartInfo(BaseModel):
 class PartList(BaseModel):
     parts: list[PartInfo]
     default: str | None
+
+
+Vector3 = list[float]
+
+
+class CameraModel(BaseModel):
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    rotation: list[Vector3] = Field(min_length=3, max_length=3, description="{C} axes in {B}, row-major")
+    origin_mm: Vector3 = Field(min_length=3, max_length=3)
+
+
+class PlaneModel(BaseModel):
+    normal: Vector3 = Field(min_length=3, max_length=3, description="unit normal")
+    offset_mm: float
+
+
+class MirrorModel(PlaneModel):
+    columns: list[int] = Field(min_length=2, max_length=2, description="[c0, c1) of its view")
+
+
+class CalibrationModel(BaseModel):
+    """What the scanner knows of its cell (``scanner_core.calibration.Calibration``)."""
+
+    camera: CameraModel
+    light_plane_c: PlaneModel
+    mirrors: list[MirrorModel]
+    direct_columns: list[int] = Field(min_length=2, max_length=2)
+    marker_offset_t_mm: Vector3 = Field(min_length=3, max_length=3)

@@ -96,13 +96,23 @@ class PartScene:
         return slice_mesh(self._vertices, self._faces, normal_p, offset_p)
 
     def render(self, tcp_b, grasp: np.ndarray, rng: np.random.Generator, *, with_marker=True):
-        """Render one frame.
+        """Render one frame: :meth:`geometry`, then the image model.
 
         Returns
         -------
         image : (H, W) uint8
         truth : FrameTruth
         """
+        truth = self.geometry(tcp_b, grasp, with_marker=with_marker)
+        cam = self.cell.calibration.camera
+        image = render_image(cam.height, cam.width, self.cell.image_model, rng,
+                             stripe_cols=truth.stripe_columns, stripe_rows=truth.stripe_rows,
+                             stripe_gain=truth.stripe_gain, marker_xy=truth.marker_pixels)
+        return image, truth
+
+    def geometry(self, tcp_b, grasp: np.ndarray, *, with_marker=True) -> FrameTruth:
+        """What one frame shows, without the image model: its stripe samples and marker
+        pixels (the inputs of ``render_image``) as the frame's FrameTruth."""
         cal = self.cell.calibration
         cam = cal.camera
         tcp_b = np.asarray(tcp_b, dtype=np.float64)
@@ -125,11 +135,7 @@ class PartScene:
         gain = np.abs(np.einsum("ij,ij->i", incidence, self._face_normals[faces[keep]]))
         marker_b = tcp_b + self.cell.gripper_rotation_b @ cal.marker_offset_t
         marker_px = self.marker_pixels(marker_b, inv) if with_marker else np.full((3, 2), np.nan)
-        image = render_image(cam.height, cam.width, self.cell.image_model, rng,
-                             stripe_cols=cols, stripe_rows=rows, stripe_gain=gain,
-                             marker_xy=marker_px)
-        truth = FrameTruth(tcp_b, pose, cols.astype(np.int32), rows, points_b, gain, marker_b, marker_px)
-        return image, truth
+        return FrameTruth(tcp_b, pose, cols.astype(np.int32), rows, points_b, gain, marker_b, marker_px)
 
     def _in_fan(self, points_b: np.ndarray) -> np.ndarray:
         """Inside the laser's fan (its axis points from the source at the sheet's centre)."""

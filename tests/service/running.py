@@ -6,7 +6,11 @@ import sys
 import time
 from pathlib import Path
 
+import threading
+from contextlib import contextmanager
+
 import httpx
+import uvicorn
 
 #: Start-up (imports, JIT warm-up, background frames) takes a few seconds on 2 cores.
 START_TIMEOUT_S = 60.0
@@ -63,3 +67,24 @@ class RunningService:
 FAST_PASS = {"FLYSCAN_SIM_SPEED_MM_S": "1000"}
 
 
+
+
+@contextmanager
+def serve_in_thread(app):
+    """Serve an ASGI app on a free loopback port from a thread of this process (real HTTP;
+    for tests that must reach into the devices). Yields an httpx.Client on its URL."""
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=free_port(),
+                                           log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            raise RuntimeError("the in-process server did not start")
+        time.sleep(0.05)
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{server.config.port}", timeout=10.0) as client:
+            yield client
+    finally:
+        server.should_exit = True
+        thread.join(30)

@@ -1,0 +1,190 @@
+"""The daemon's engine and store in process, with devices a test can break: a camera that
+stops mid-pass, a marker that never leaves the view, a process killed while storing."""
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from scanner_core.devices import CameraTimeout, TcpPose
+from scanner_core.pipeline import PipelineParams
+from scanner_core.trigger import TriggerParams
+from scanner_core.types import Frame
+from service.api import create_app
+from service.daemon import Service, SimPassDriver
+from service.engine import Engine
+from service.settings import Settings
+from service.store import ScanStore
+from running import serve_in_thread
+from simulator.live import LiveSimCell
+
+#: The engine's camera timeout in these tests, s: short, so that a stop is noticed quickly.
+CAMERA_TIMEOUT_S = 0.3
+
+
+def wait_for(predicate, timeout=30.0, poll=0.02):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(poll)
+    raise TimeoutError("condition not met in time")
+
+
+@pytest.fixture
+def sim_service(tmp_path, cell):
+    sim = LiveSimCell(cell.with_pass(speed_mm_s=1000.0), seed=4)
+    settings = Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0",
+                        camera_timeout_s=CAMERA_TIMEOUT_S)
+    service = Service(settings, devices=(sim.camera, sim.robot, SimPassDriver(sim), cell.calibration))
+    with serve_in_thread(create_app(service=service)) as client:
+        yield client, sim
+
+
+def finished(client, scan_id):
+    info = client.get(f"/scans/{scan_id}").json()
+    return info if info["state"] in ("done", "failed") else None
+
+
+def test_a_camera_that_stops_mid_pass_fails_the_scan_and_the_service_recovers(sim_service):
+    client, sim = sim_service
+    scan_id = client.post("/scans", json={}).json()["scan_id"]
+    wait_for(lambda: client.get("/status").json()["state"] == "scanning")
+    live = sim.last_pass
+    wait_for(lambda: sim.now() > (live.t_first + live.t_last) / 2)  # mid-pass, the part in the sheet
+    sim.camera.stall()
+    info = wait_for(lambda: finished(client, scan_id))
+    assert info["state"] == "failed" and info["reason"].startswith("camera stopped")
+    assert info["end_reason"] == "camera stopped"
+    assert info["points"] > 0, info  # what was acquired is kept
+    assert client.get(f"/scans/{scan_id}/cloud.ply").status_code == 200
+    assert client.post("/scans", json={}).status_code == 503  # the camera is not streaming
+    sim.camera.resume()
+    wait_for(lambda: client.get("/status").json()["camera"]["state"] == "streaming")
+    wait_for(lambda: sim.pass_done)  # the robot finishes the pass it was on
+    again = client.post("/scans", json={}).json()["scan_id"]
+    info = wait_for(lambda: finished(client, again))
+    assert info["state"] == "done" and info["points"] > 1000, info["reason"]
+
+
+def test_an_armed_scan_without_a_pass_times_out(tmp_path, cell):
+    sim = LiveSimCell(cell, seed=1)
+    settings = Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0")
+    service = Service(settings, devices=(sim.camera, sim.robot, None, cell.calibration))
+    with serve_in_thread(create_app(service=service)) as client:  # no driver: nobody moves the robot
+        scan_id = client.post("/scans", json={"timeout_s": 0.3}).json()["scan_id"]
+        info = wait_for(lambda: finished(client, scan_id))
+        assert info["state"] == "failed" and info["reason"].startswith("timeout")
+        assert client.get(f"/scans/{scan_id}/cloud.ply").status_code == 409
+        assert client.get("/status").json()["state"] == "idle"
+
+
+class StuckMarkerCamera:
+    """A camera whose every frame shows the marker (and a stripe): a gripper that stays in view."""
+
+    width, height = 1920, 1200
+
+    def __init__(self, image, fps=200.0):
+        self.image, self.fps = image, fps
+        self._next = 0
+        self._open = False
+
+    def open(self):
+        self._open, self._t0 = True, time.monotonic()
+
+    def close(self):
+        self._open = False
+
+    def grab(self, timeout):
+        if not self._open:
+            raise CameraTimeout("closed")
+        due = self._t0 + self._next / self.fps
+        time.sleep(max(0.0, due - time.monotonic()))
+        frame = Frame(self.image, self._next, self._next / self.fps)
+        self._next += 1
+        return frame
+
+
+class StillRobot:
+    def __init__(self, rotation):
+        self.rotation, self.connected = rotation, False
+
+    def connect(self):
+        self.connected = True
+
+    def disconnect(self):
+        self.connected = False
+
+    def latest(self):
+        return TcpPose(time.monotonic(), np.zeros(3), self.rotation)
+
+    def pose_at(self, t):
+        return TcpPose(t, np.zeros(3), self.rotation)
+
+
+def test_a_marker_that_never_leaves_ends_at_the_maximum_pass_length(cell, block_part):
+    sim = LiveSimCell(cell, seed=2)
+    prepared = sim.prepare_pass(block_part)
+    truth = prepared.truths[len(prepared.truths) // 2]  # mid-pass: the marker in all views
+    assert np.isfinite(truth.marker_pixels).all()
+    from simulator.live import frame_image
+    image = frame_image(cell, truth, np.random.default_rng(0))
+    results = []
+    done = threading.Event()
+
+    def on_scan(job, scan, check):
+        results.append((job, scan))
+        done.set()
+
+    params = PipelineParams(trigger=TriggerParams(max_pass_s=0.4))
+    engine = Engine(StuckMarkerCamera(image), StillRobot(cell.gripper_rotation_b),
+                    cell.calibration, params, on_scan=on_scan, workers=1)
+    engine.start()
+    try:
+        engine.arm()
+        assert done.wait(10.0)
+    finally:
+        engine.stop()
+    job, scan = results[0]
+    assert job.state == "failed" and job.reason.startswith("too long")
+    assert scan is not None and scan.end_reason == "too long"
+    assert abs(scan.frames - 0.4 * 200) <= 2
+
+
+def test_a_process_killed_while_storing_leaves_no_half_scan(tmp_path):
+    """The writer is killed after the clouds are written and before the scan is renamed into
+    place: the next start sees only the complete scan stored before."""
+    script = textwrap.dedent(f"""
+        import os, signal, numpy as np
+        import service.store as store
+        from scanner_core.types import Scan
+        s = ScanStore = store.ScanStore({str(tmp_path)!r})
+        s.open()
+        scan = Scan(np.ones((5, 3), np.float32), np.zeros(5, np.int32), np.ones(5, np.float32),
+                    np.zeros((0, 3), np.float32), np.zeros((1, 3)), np.zeros(1), 1, 0)
+        s.save("complete", {{"scan_id": "complete", "state": "done", "created": 1.0}}, scan, {{}})
+        real = store.save_json_atomic
+        def killing(path, data):
+            if path.name == "info.json":
+                os.kill(os.getpid(), signal.SIGKILL)
+            real(path, data)
+        store.save_json_atomic = killing
+        s.save("half", {{"scan_id": "half", "state": "done", "created": 2.0}}, scan, {{}})
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=60)
+    assert result.returncode == -signal.SIGKILL
+    assert (tmp_path / "scans" / ".tmp-half" / "cloud.ply").is_file()  # it died mid-write
+    store = ScanStore(tmp_path)
+    store.open()
+    assert [i["scan_id"] for i in store.list()] == ["complete"]
+    assert not list((tmp_path / "scans").glob(".tmp-*"))
+    with pytest.raises(KeyError):
+        store.info("half")
+    assert store.file("complete", "cloud.ply").stat().st_size > 0
+
