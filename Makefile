@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 OUT ?= out
 
-.PHONY: run test bench clean
+.PHONY: run scan-demo test bench clean
 
 $(BIN)/flyscan: pyproject.toml
 	bash scripts/system-deps.sh
@@ -14,6 +14,9 @@ $(BIN)/flyscan: pyproject.toml
 	touch $@
 
 run: $(BIN)/flyscan
+	$(BIN)/python scripts/demo.py --data $(OUT)/service
+
+scan-demo: $(BIN)/flyscan
 	$(BIN)/flyscan scan --demo --out $(OUT)/demo
 
 test: $(BIN)/flyscan

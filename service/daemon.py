@@ -30,6 +30,8 @@ log = logging.getLogger("flyscan.service")
 #: How long the finisher waits for the cloud to leave on ZeroMQ before storing, s (only to
 #: record the latency: the store never depends on the subscriber).
 PUBLISH_WAIT_S = 1.0
+#: The simulated robot finishes its previous pass (its lead-out) before starting the next, s.
+PREVIOUS_PASS_WAIT_S = 5.0
 
 
 class SimPassDriver:
@@ -42,7 +44,19 @@ class SimPassDriver:
         self.sim.prepare_pass(part)
 
     def start_pass(self, part, misplacement: np.ndarray | None) -> None:
-        self.sim.start_pass(part, misplacement)
+        """Start the pass once the robot has finished the previous one (its lead-out goes on
+        after the scan has ended), as a robot program would."""
+        from simulator.live import PassInProgress
+
+        deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
+        while True:
+            try:
+                self.sim.start_pass(part, misplacement)
+                return
+            except PassInProgress:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.01)
 
 
 def misplacement_matrix(values) -> np.ndarray | None:
