@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
 from scanner_core.fileio import save_json_atomic
-from scanner_core.geometry import Mirror, PinholeCamera, Plane
+from scanner_core.geometry import MarkerViews, Mirror, PinholeCamera, Plane, marker_views
 
 #: Rotation matrices read from files must be orthonormal to this tolerance.
 ROTATION_TOL = 1e-6
@@ -50,6 +51,11 @@ class Calibration:
     def strips(self) -> tuple[tuple[int, int], ...]:
         """Column strips of the direct view then each mirror view."""
         return (self.direct_columns,) + tuple(m.columns for m in self.mirrors)
+
+    @cached_property
+    def marker_views(self) -> MarkerViews:
+        """The direct and mirror views as cameras in {B}: computed once, used every frame."""
+        return marker_views(self.camera, self.mirrors)
 
     @property
     def light_plane_b(self) -> Plane:

@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 #: Rays nearly parallel to a plane (|cos| below this) have no usable intersection.
 PARALLEL_COS = 1e-9
@@ -209,30 +210,6 @@ def triangulate_stripe(pixels, camera: PinholeCamera, light_plane_c: Plane) -> n
     return camera.to_base(d * s[:, None])  # Eq. (2) then Eq. (3)
 
 
-def view_rays(pixels: np.ndarray, camera: PinholeCamera, mirrors) -> tuple[np.ndarray, np.ndarray]:
-    """Rays in {B} of the marker seen in the direct view and in each mirror view.
-
-    Parameters
-    ----------
-    pixels : (1 + len(mirrors), 2) float
-        Marker pixel in the direct view, then in each mirror view.
-
-    Returns
-    -------
-    origins, directions : (V, 3) float64
-        A mirror view's ray is the real camera's ray reflected in the mirror: it starts at
-        the virtual camera (the real one reflected) and points into the scene.
-    """
-    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    dirs = camera.rays(pixels)
-    origins = np.repeat(camera.origin[None, :], len(pixels), axis=0)
-    for k, mirror in enumerate(mirrors, start=1):
-        h = mirror.reflection
-        origins[k] = apply_transform(h, camera.origin)
-        dirs[k] = h[:3, :3] @ dirs[k]
-    return origins, dirs
-
-
 def triangulate_rays(origins, directions, weights=None) -> np.ndarray:
     """Least-squares point closest to a bundle of rays.
 
@@ -267,13 +244,56 @@ def triangulate_rays(origins, directions, weights=None) -> np.ndarray:
     return np.linalg.solve(a, b) + centre
 
 
-def triangulate_marker(pixels, camera: PinholeCamera, mirrors) -> tuple[np.ndarray, float]:
+@dataclass(frozen=True)
+class MarkerViews:
+    """The direct view and each mirror view as cameras in {B}, for marker triangulation.
+
+    Attributes
+    ----------
+    intrinsics : (4,) float64
+        fx, fy, cx, cy of the (one) real camera, pixels.
+    origins : (V, 3) float64
+        Each view's centre in {B} (a mirror view's is the real camera reflected), mm.
+    to_base : (V, 3, 3) float64
+        Maps a pixel's ray in {C} (z = 1) to its direction in {B}.
+    to_camera : (V, 3, 4) float64
+        Maps a homogeneous point in {B} to the view's {C}: the reflected scene seen by the
+        real camera.
+    """
+
+    intrinsics: np.ndarray
+    origins: np.ndarray
+    to_base: np.ndarray
+    to_camera: np.ndarray
+
+
+def marker_views(camera: PinholeCamera, mirrors) -> MarkerViews:
+    """The views' matrices, computed once per calibration (``Calibration.marker_views``)."""
+    r, o = camera.rotation, camera.origin
+    reflections = [np.eye(4)] + [m.reflection for m in mirrors]
+    origins = np.array([apply_transform(h, o) for h in reflections])
+    to_base = np.array([h[:3, :3] @ r.T for h in reflections])
+    to_camera = np.array([np.hstack([r @ h[:3, :3], (r @ (h[:3, 3] - o))[:, None]])
+                          for h in reflections])
+    return MarkerViews(np.array([camera.fx, camera.fy, camera.cx, camera.cy]), origins,
+                       to_base, to_camera)
+
+
+def triangulate_marker(pixels, camera: PinholeCamera, mirrors, *,
+                       views: MarkerViews | None = None) -> tuple[np.ndarray, float]:
     """Multi-view triangulation of the LED marker from the direct and mirror views.
+
+    Least squares over the views' rays (the point closest to them), then again with each
+    ray weighted by 1/range^2, so that every view counts in pixels, not millimetres.
 
     Parameters
     ----------
     pixels : (1 + len(mirrors), 2) float
         Marker centroid per view (u, v); NaN rows for views where it was not seen.
+    camera : PinholeCamera
+    mirrors : sequence of Mirror
+    views : MarkerViews, optional
+        ``marker_views(camera, mirrors)``, when the caller keeps it.
 
     Returns
     -------
@@ -281,20 +301,102 @@ def triangulate_marker(pixels, camera: PinholeCamera, mirrors) -> tuple[np.ndarr
         mm in {B}; NaN when fewer than two views saw the marker.
     residual_px : float
         RMS reprojection error over the views used, pixels.
+
+    Raises
+    ------
+    ValueError
+        The views' rays are (nearly) parallel: the depth is unobservable.
     """
     pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    seen = np.isfinite(pixels).all(axis=1)
-    if seen.sum() < 2:
+    views = marker_views(camera, mirrors) if views is None else views
+    if len(pixels) != len(views.origins):
+        raise ValueError(f"`pixels` must be ({len(views.origins)}, 2), got {pixels.shape}")
+    point, residual, status = _triangulate_views(pixels, views.intrinsics, views.origins,
+                                                 views.to_base, views.to_camera, MAX_RAY_CONDITION)
+    if status == 1:
         return np.full(3, np.nan), float("nan")
-    origins, dirs = view_rays(pixels, camera, mirrors)
-    origins, dirs = origins[seen], dirs[seen]
-    point = triangulate_rays(origins, dirs)
-    # Weight each ray by 1/range^2 so that every view counts in pixels, not millimetres.
-    ranges = np.linalg.norm(point - origins, axis=1)
-    point = triangulate_rays(origins, dirs, weights=1.0 / ranges**2)
-    reproj = reproject_marker(point, camera, mirrors)[seen]
-    residual = float(np.sqrt(np.mean(np.sum((reproj - pixels[seen]) ** 2, axis=1))))
+    if status == 2:
+        raise ValueError("rays are (nearly) parallel: the marker depth is unobservable")
     return point, residual
+
+
+@njit(cache=True, nogil=True)
+def _ray_solve(origins, dirs, weights, n, out):
+    """Weighted least-squares point closest to n rays (unit directions), centred first.
+    Returns the Frobenius condition number of the normal matrix (inf when singular)."""
+    centre = np.zeros(3)
+    for k in range(n):
+        centre += origins[k]
+    centre /= n
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for k in range(n):
+        w = weights[k]
+        for i in range(3):
+            for j in range(3):
+                p = (1.0 if i == j else 0.0) - dirs[k, i] * dirs[k, j]
+                a[i, j] += w * p
+                b[i] += w * p * (origins[k, j] - centre[j])
+    det = (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
+           - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+           + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
+    if det == 0.0:
+        return np.inf
+    inv = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            i1, i2, j1, j2 = (j + 1) % 3, (j + 2) % 3, (i + 1) % 3, (i + 2) % 3
+            inv[i, j] = (a[i1, j1] * a[i2, j2] - a[i1, j2] * a[i2, j1]) / det
+    for i in range(3):
+        out[i] = inv[i, 0] * b[0] + inv[i, 1] * b[1] + inv[i, 2] * b[2] + centre[i]
+    return np.sqrt(np.sum(a * a)) * np.sqrt(np.sum(inv * inv))
+
+
+@njit(cache=True, nogil=True)
+def _triangulate_views(pixels, intrinsics, view_origins, to_base, to_camera, max_cond):
+    """(point, residual_px, status): status 0 ok, 1 fewer than two views, 2 ill-conditioned."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    v = pixels.shape[0]
+    origins = np.empty((v, 3))
+    dirs = np.empty((v, 3))
+    used = np.empty(v, np.int64)
+    n = 0
+    for k in range(v):
+        u, w = pixels[k, 0], pixels[k, 1]
+        if not (np.isfinite(u) and np.isfinite(w)):
+            continue
+        ray = np.array([(u - cx) / fx, (w - cy) / fy, 1.0])
+        d = np.zeros(3)
+        for i in range(3):
+            for j in range(3):
+                d[i] += to_base[k, i, j] * ray[j]
+        dirs[n] = d / np.sqrt(np.sum(d * d))
+        origins[n] = view_origins[k]
+        used[n] = k
+        n += 1
+    point = np.full(3, np.nan)
+    if n < 2:
+        return point, np.nan, 1
+    weights = np.ones(n)
+    cond = _ray_solve(origins, dirs, weights, n, point)
+    if not cond <= max_cond:
+        return np.full(3, np.nan), np.nan, 2
+    for k in range(n):
+        diff = point - origins[k]
+        weights[k] = 1.0 / np.sum(diff * diff)
+    cond = _ray_solve(origins, dirs, weights, n, point)
+    if not cond <= max_cond:
+        return np.full(3, np.nan), np.nan, 2
+    sq = 0.0
+    for k in range(n):
+        m = to_camera[used[k]]
+        pc = np.zeros(3)
+        for i in range(3):
+            pc[i] = m[i, 0] * point[0] + m[i, 1] * point[1] + m[i, 2] * point[2] + m[i, 3]
+        du = fx * pc[0] / pc[2] + cx - pixels[used[k], 0]
+        dv = fy * pc[1] / pc[2] + cy - pixels[used[k], 1]
+        sq += du * du + dv * dv
+    return point, np.sqrt(sq / n), 0
 
 
 def reproject_marker(points_b, camera: PinholeCamera, mirrors) -> np.ndarray:

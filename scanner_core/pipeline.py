@@ -97,7 +97,8 @@ def observe_marker(image: np.ndarray, calibration: Calibration, params: Pipeline
     pixels = marker_mod.find_markers(image, strips=calibration.strips, params=params.marker,
                                      near=near)
     try:
-        position, residual = triangulate_marker(pixels, calibration.camera, calibration.mirrors)
+        position, residual = triangulate_marker(pixels, calibration.camera, calibration.mirrors,
+                                                views=calibration.marker_views)
     except ValueError:  # views (nearly) parallel: this frame cannot be placed
         position, residual = np.full(3, np.nan), float("nan")
     if np.isfinite(residual) and residual > params.max_marker_residual_px:

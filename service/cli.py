@@ -103,7 +103,7 @@ def _parse_args(argv):
     serve.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
 
     bench = sub.add_parser("bench", help="benchmarks: JSON figures and PNG charts")
-    bench.add_argument("what", choices=["stripe", "scan", "simulate"])
+    bench.add_argument("what", choices=["stripe", "scan", "simulate", "service"])
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
     return parser.parse_args(argv)
@@ -298,6 +298,8 @@ def _cmd_bench(args) -> int:
         from service.bench import stripe as bench
     elif args.what == "simulate":
         from service.bench import simulate as bench
+    elif args.what == "service":
+        from service.bench import service as bench
     else:
         from service.bench import scan as bench
     result = bench.run(args.out, quick=args.quick)

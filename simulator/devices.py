@@ -140,11 +140,14 @@ class SimRobot:
         """Linear interpolation between the 500 Hz samples around ``t``."""
         if not self._connected:
             raise RuntimeError("SimRobot is not connected")
-        times = self._sample_times()
-        if len(times) == 0 or not times[0] <= t <= times[-1]:
+        now = self.clock.now
+        first = max(now - ROBOT_HISTORY_S, -self.motion.profile.lead_in_s)
+        k_first, k_last = np.ceil(first * ROBOT_RATE_HZ), np.floor(now * ROBOT_RATE_HZ)
+        if k_last < k_first or not k_first / ROBOT_RATE_HZ <= t <= k_last / ROBOT_RATE_HZ:
             raise LookupError(f"t = {t:.4f} s is outside the robot's history")
-        i = int(np.clip(np.searchsorted(times, t), 1, len(times) - 1))
-        t0, t1 = times[i - 1], times[i]
+        # The two samples around t (one sample when the history holds only one).
+        k0 = min(max(np.floor(t * ROBOT_RATE_HZ), k_first), max(k_last - 1, k_first))
+        t0, t1 = k0 / ROBOT_RATE_HZ, min(k0 + 1, k_last) / ROBOT_RATE_HZ
         w = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
         pos = (1 - w) * self.motion.tcp_position(t0) + w * self.motion.tcp_position(t1)
         return TcpPose(float(t), pos, self.rotation.copy())

@@ -3,7 +3,8 @@ import pytest
 from numpy.testing import assert_allclose
 
 from scanner_core.geometry import (Plane, reflection_matrix, apply_transform, reproject_marker,
-                                   triangulate_marker, triangulate_rays, triangulate_stripe)
+                                   marker_views, triangulate_marker, triangulate_rays,
+                                   triangulate_stripe)
 
 #: Round trips in float64 through a 450 mm standoff.
 ROUND_TRIP_TOL_MM = 1e-9
@@ -84,3 +85,38 @@ def test_marker_triangulation_needs_two_views(cell):
     px[1:] = np.nan
     pos, residual = triangulate_marker(px, cal.camera, cal.mirrors)
     assert np.all(np.isnan(pos)) and np.isnan(residual)
+
+
+def _reference_marker(pixels, camera, mirrors):
+    """The triangulation written plainly: each view's ray in {B}, two weighted solves."""
+    rays, origins = [], []
+    for k, px in enumerate(pixels):
+        if not np.all(np.isfinite(px)):
+            continue
+        h = np.eye(4) if k == 0 else mirrors[k - 1].reflection
+        rays.append(h[:3, :3] @ camera.rays(px[None])[0])
+        origins.append(apply_transform(h, camera.origin))
+    origins, rays = np.array(origins), np.array(rays)
+    point = triangulate_rays(origins, rays)
+    point = triangulate_rays(origins, rays, weights=1.0 / np.sum((point - origins) ** 2, axis=1))
+    return point
+
+
+def test_marker_kernel_equals_the_plain_triangulation(cell, rng):
+    cal = cell.calibration
+    for _ in range(20):
+        marker = rng.uniform([-60, -60, 30], [60, 60, 120])
+        px = reproject_marker(marker, cal.camera, cal.mirrors) + rng.normal(0, 0.05, (3, 2))
+        pos, _ = triangulate_marker(px, cal.camera, cal.mirrors, views=cal.marker_views)
+        assert_allclose(pos, _reference_marker(px, cal.camera, cal.mirrors), atol=1e-9)
+
+
+def test_marker_from_parallel_views_is_refused(cell):
+    cal = cell.calibration
+    px = reproject_marker(np.array([0.0, 0.0, 60.0]), cal.camera, cal.mirrors)
+    same = np.array([px[0], px[0], [np.nan, np.nan]])
+    views = marker_views(cal.camera, (cal.mirrors[0], cal.mirrors[0]))
+    views = type(views)(views.intrinsics, np.repeat(views.origins[:1], 3, 0),
+                        np.repeat(views.to_base[:1], 3, 0), np.repeat(views.to_camera[:1], 3, 0))
+    with pytest.raises(ValueError, match="parallel"):
+        triangulate_marker(same, cal.camera, cal.mirrors[:2], views=views)
