@@ -157,6 +157,8 @@ class Trigger:
             self.state = TriggerState.IDLE
 
     def fault(self, reason: str) -> None:
+        """Nothing can be scanned until ``reset`` (end any pass with ``camera_stopped`` first:
+        a pass still held here is dropped)."""
         self.state = TriggerState.FAULT
         self.fault_reason = reason
         self._held.clear()

@@ -215,9 +215,15 @@ class Engine:
     def _open_camera(self) -> None:
         try:
             self.camera.open()
-            self.camera_state, self.camera_error = "streaming", None
         except (OSError, RuntimeError) as exc:
-            self.camera_state, self.camera_error = "error", str(exc)
+            with self._lock:
+                self.camera_state, self.camera_error = "error", str(exc)
+                self.trigger.fault(f"camera error: {exc}")
+            return
+        with self._lock:
+            self.camera_state, self.camera_error = "streaming", None
+            if self.trigger.state is TriggerState.FAULT:
+                self.trigger.reset()
 
     def _acquire(self) -> None:
         tracker = MarkerTracker(self.calibration, self.params)
@@ -238,7 +244,10 @@ class Engine:
                     self._camera_stopped("closed", str(exc))
                 continue
             if self.camera_state != "streaming":  # a stalled camera came back
-                self.camera_state, self.camera_error = "streaming", None
+                with self._lock:
+                    self.camera_state, self.camera_error = "streaming", None
+                    if self.trigger.state is TriggerState.FAULT:
+                        self.trigger.reset()
             received = time.monotonic()
             self.frames_total += 1
             gap = 0 if last_id is None else max(frame.frame_id - last_id - 1, 0)
@@ -294,6 +303,7 @@ class Engine:
             step = self.trigger.camera_stopped()
             if step.ended is not None and self.job is not None:
                 self._end_pass(self.job, step.ended, detail=reason)
+            self.trigger.fault(f"camera {state}: {reason}")
         if state == "closed":
             self.camera.close()
 

@@ -87,6 +87,6 @@ def load_settings(config: Path | None = None, **overrides) -> Settings:
         raise FileNotFoundError(f"settings file not found: {config}")
 
     class FileSettings(Settings):
-        model_config = SettingsConfigDict(**Settings.model_config, toml_file=config)
+        model_config = SettingsConfigDict(**{**Settings.model_config, "toml_file": config})
 
     return FileSettings(**overrides)

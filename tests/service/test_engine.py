@@ -65,9 +65,13 @@ def test_a_camera_that_stops_mid_pass_fails_the_scan_and_the_service_recovers(si
     assert info["end_reason"] == "camera stopped"
     assert info["points"] > 0, json.dumps(info)  # what was acquired is kept
     assert client.get(f"/scans/{scan_id}/cloud.ply").status_code == 200
-    assert client.post("/scans", json={}).status_code == 503  # the camera is not streaming
+    status = client.get("/status").json()
+    assert status["state"] == "fault" and "camera stalled" in status["fault_reason"]
+    refused = client.post("/scans", json={})
+    assert refused.status_code == 503 and "stalled" in refused.json()["detail"]
     sim.camera.resume()
-    wait_for(lambda: client.get("/status").json()["camera"]["state"] == "streaming")
+    wait_for(lambda: client.get("/status").json()["state"] == "idle")
+    assert client.get("/status").json()["camera"]["state"] == "streaming"
     wait_for(lambda: sim.pass_done)  # the robot finishes the pass it was on
     again = client.post("/scans", json={}).json()["scan_id"]
     info = wait_for(lambda: finished(client, again))
@@ -189,3 +193,29 @@ def test_a_process_killed_while_storing_leaves_no_half_scan(tmp_path):
         store.info("half")
     assert store.file("complete", "cloud.ply").stat().st_size > 0
 
+
+
+def test_a_stalled_consumer_never_stalls_acquisition(tmp_path, cell, monkeypatch):
+    """Workers far slower than the camera: the queue overflows and counts the frames it
+    loses; the acquisition thread never waits, so the camera loses none."""
+    import service.engine as engine_mod
+
+    real = engine_mod.process_frame
+
+    def slow(*args, **kwargs):
+        time.sleep(0.05)  # 8 frame periods at 162 fps
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(engine_mod, "process_frame", slow)
+    sim = LiveSimCell(cell.with_pass(speed_mm_s=1000.0), seed=5)
+    settings = Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0", workers=1,
+                        queue_frames=4)
+    service = Service(settings, devices=(sim.camera, sim.robot, SimPassDriver(sim), cell.calibration))
+    with serve_in_thread(create_app(service=service)) as client:
+        scan_id = client.post("/scans", json={}).json()["scan_id"]
+        info = wait_for(lambda: finished(client, scan_id))
+        status = client.get("/status").json()
+    assert info["queue_overflows"] > 10 and info["frames_dropped"] == 0
+    assert status["queue"]["overflows"] == info["queue_overflows"]
+    assert status["frames_dropped"] == 0 and sim.camera.frames_lost == 0
+    assert info["state"] == "done" and info["frames"] > 0

@@ -99,3 +99,51 @@ def test_a_slow_subscriber_never_stalls_acquisition(tmp_path):
         assert stalled.received == 0
     finally:
         running.stop()
+
+
+def test_parts_uploaded_with_their_unit_are_scanned(service, tmp_path):
+    import trimesh
+
+    from clients import Unprocessable
+
+    mesh_path = tmp_path / "plate.stl"
+    trimesh.creation.box(extents=(4.0, 3.0, 1.0)).export(mesh_path)  # cm
+    with FlyscanClient(service.url) as client:
+        info = client.upload_part("plate", mesh_path, "cm")
+        assert info["units"] == "cm" and info["faces"] == 12
+        assert np.allclose(sorted(info["extents_mm"]), [10.0, 30.0, 40.0])
+        assert "plate" in [p["name"] for p in client.parts()]
+        with pytest.raises(Unprocessable, match="unit"):
+            client.upload_part("plate-in-m", mesh_path, "m")  # a 4 m plate: the wrong unit
+        with pytest.raises(Unprocessable):
+            client.upload_part("bad", tmp_path / "plate.stl", "furlong")
+        scan = client.wait(client.arm(part="plate"), timeout=30)
+        cloud = client.cloud(scan["scan_id"])
+    assert scan["state"] == "done" and scan["part"] == "plate"
+    # The plate's underside (10 mm below the TCP) is flat and 40 x 30 mm.
+    assert np.abs(cloud[:, 2] - 10.0).max() < 0.05
+    assert np.ptp(cloud[:, 0]) == pytest.approx(40.0, abs=1.0)
+
+
+def test_calibration_round_trip_and_a_bad_one_refused(service):
+    from clients import Unprocessable
+
+    with FlyscanClient(service.url) as client:
+        calibration = client.calibration()
+        assert client.put_calibration(calibration)["camera"] == calibration["camera"]
+        broken = {**calibration, "light_plane_c": {"normal": [0.0, 0.0, 2.0], "offset_mm": 1.0}}
+        with pytest.raises(Unprocessable, match="unit 3-vector"):
+            client.put_calibration(broken)
+        assert client.calibration() == calibration
+
+
+def test_metrics_count_what_happened(service):
+    import httpx
+
+    with FlyscanClient(service.url) as client:
+        client.wait(client.arm(), timeout=30)
+    text = httpx.get(f"{service.url}/metrics").text
+    done = [line for line in text.splitlines() if line.startswith('flyscan_scans_total{state="done"}')]
+    assert done and float(done[0].split()[-1]) >= 1
+    assert 'flyscan_state{state="idle"} 1.0' in text
+    assert "flyscan_cloud_latency_seconds_count" in text

@@ -1,0 +1,39 @@
+"""Settings from a TOML file, the environment and the command line, in rising priority."""
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+from service.settings import load_settings
+
+
+def test_file_then_environment_then_overrides(tmp_path, monkeypatch):
+    config = tmp_path / "flyscan.toml"
+    config.write_text('port = 9001\nzmq = "tcp://127.0.0.1:6001"\nworkers = 3\n'
+                      'data = "/srv/flyscan"\n')
+    monkeypatch.setenv("FLYSCAN_WORKERS", "4")
+    monkeypatch.setenv("FLYSCAN_TOKEN", "secret")
+    settings = load_settings(config, port=9100, host=None)
+    assert settings.port == 9100  # the command line wins
+    assert settings.workers == 4  # the environment beats the file
+    assert settings.zmq == "tcp://127.0.0.1:6001" and settings.data == Path("/srv/flyscan")
+    assert settings.host == "127.0.0.1"  # loopback unless told otherwise
+    assert settings.token.get_secret_value() == "secret"
+    assert "secret" not in repr(settings)
+
+
+def test_bad_settings_name_the_field(tmp_path, monkeypatch):
+    monkeypatch.delenv("FLYSCAN_TOKEN", raising=False)
+    config = tmp_path / "flyscan.toml"
+    config.write_text("workers = 0\n")
+    with pytest.raises(ValidationError, match="workers"):
+        load_settings(config)
+    config.write_text("wrokers = 2\n")
+    with pytest.raises(ValidationError, match="wrokers"):
+        load_settings(config)
+    with pytest.raises(ValidationError, match="zmq"):
+        load_settings(None, zmq="localhost:5556")
+    with pytest.raises(FileNotFoundError):
+        load_settings(tmp_path / "missing.toml")
+    monkeypatch.setenv("FLYSCAN_TOKEN", "")
+    assert load_settings(None).token is None  # an empty token is no token
