@@ -26,6 +26,7 @@ bench: $(BIN)/flyscan
 	$(BIN)/flyscan bench stripe --out $(OUT)/bench/stripe
 	$(BIN)/flyscan bench scan --out $(OUT)/bench/scan
 	$(BIN)/flyscan bench simulate --out $(OUT)/bench/simulate
+	$(BIN)/flyscan bench service --out $(OUT)/bench/service
 
 clean:
 	rm -rf $(VENV) $(OUT) *.egg-info
