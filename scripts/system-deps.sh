@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Debian packages flyscan needs beside its Python packages; installs the missing ones.
 #   libgl1: pymeshlab (the simulator's mesh simplification) links against libGL.
+#   chromium: the status page's browser test (playwright drives Debian's chromium; it cannot
+#     download a browser of its own here).
 set -euo pipefail
-packages=(libgl1)
+packages=(libgl1 chromium)
 missing=()
 for pkg in "${packages[@]}"; do
     dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
