@@ -27,6 +27,8 @@ class ScanError(RuntimeError):
 #: would simulate for hours.
 MAX_SPEED_MM_S = 5000.0
 MAX_FPS = 2000.0
+#: Seconds a stopping service waits for open connections (server-sent events) to close.
+SHUTDOWN_GRACE_S = 3.0
 
 
 def _non_negative_int(text: str) -> int:
@@ -281,16 +283,39 @@ def _cmd_serve(args) -> int:
         raise UsageError(f"setting {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    _check_addresses(settings)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
     url = f"http://{settings.host}:{settings.port}/"
     print(f"flyscan serve: status page {url}, REST {url}docs, ZeroMQ {settings.zmq}, "
           f"data {settings.data.resolve()}{' (simulated cell)' if settings.sim else ''}",
           flush=True)
+    # Open event streams (a status page left open) must not hold up a Ctrl-C for ever.
     config = uvicorn.Config(create_app(service=service), host=settings.host, port=settings.port,
-                            log_level=args.log_level, access_log=False)
+                            log_level=args.log_level, access_log=False,
+                            timeout_graceful_shutdown=SHUTDOWN_GRACE_S)
     server = uvicorn.Server(config)
     server.run()
     return 0 if server.started else 2
+
+
+def _check_addresses(settings) -> None:
+    """Both addresses free before anything starts: a clear error, not a start-up traceback."""
+    import socket
+
+    import zmq
+
+    try:
+        with socket.create_server((settings.host, settings.port)):
+            pass
+    except OSError as exc:
+        raise UsageError(f"cannot serve HTTP on {settings.host}:{settings.port}: {exc.strerror}") from None
+    probe = zmq.Context.instance().socket(zmq.PUB)
+    try:
+        probe.bind(settings.zmq)
+    except zmq.ZMQError as exc:
+        raise UsageError(f"cannot bind the ZeroMQ publisher to {settings.zmq}: {exc}") from None
+    finally:
+        probe.close(linger=0)
 
 
 def _cmd_bench(args) -> int:

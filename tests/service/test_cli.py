@@ -180,3 +180,25 @@ def test_identity_grasp_of_an_offset_part(tmp_path, capsys):
                  "--out", str(tmp_path / "o")])
     assert code == 2
     assert "outside the inspection volume" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--port", "{busy}"], "cannot serve HTTP on 127.0.0.1:"),
+    (["--zmq", "localhost:5556"], "must be a ZeroMQ endpoint"),
+    (["--config", "{missing}"], "settings file not found"),
+])
+def test_serve_refuses_bad_settings_in_one_line(tmp_path, capsys, argv, message):
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        values = {"busy": str(busy.getsockname()[1]), "missing": str(tmp_path / "none.toml")}
+        argv = [a.format(**values) for a in argv]
+        assert main(["serve", "--sim", "--data", str(tmp_path / "d"), *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "d").exists()  # nothing started, nothing written
+
+
+def test_serve_without_devices_says_what_to_do(tmp_path, capsys):
+    assert main(["serve", "--data", str(tmp_path / "d")]) == 2
+    assert "run with --sim" in capsys.readouterr().err
