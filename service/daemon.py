@@ -134,9 +134,9 @@ class Service:
         self.publisher.start()
         self.engine.start()
         if self.driver is not None:
-            # The default part's pass is rendered once, before the first scan asks for it.
-            threading.Thread(target=self.driver.prepare, args=(self.parts.get(self.default_part),),
-                             name="flyscan-prepare", daemon=True).start()
+            # The default part's pass is rendered (and the simulator's kernels compiled) before
+            # the service says it is up, so that the first scan does not wait for it.
+            self.driver.prepare(self.parts.get(self.default_part))
 
     def stop(self) -> None:
         self.engine.stop()

@@ -145,7 +145,6 @@ def passes(count: int, *, speed_mm_s: float | None = None) -> dict:
         time.sleep(0.5)  # the subscriber's slow join; the first pass's render
         rows = []
         try:
-            service.driver.prepare(service.parts.get(service.default_part))
             for k in range(count):
                 status0 = service.status()
                 cpu0, wall0 = _cpu_s(), time.monotonic()
