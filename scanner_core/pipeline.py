@@ -195,7 +195,8 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
 def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams()) -> float:
     """Compile the numba kernels before the first pass, so that no frame of a pass waits for
     the JIT: a synthetic frame with a stripe and a marker blob in every view goes through the
-    marker search (whole strips and near a prediction) and the frame processing once.
+    marker search (whole strips and near a prediction) and the frame processing, as a writable
+    and as a read-only array, and a frame without the marker through the search.
     Returns the time it took, ms."""
     t0 = time.perf_counter()
     cam = calibration.camera
@@ -208,11 +209,18 @@ def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams())
         centre_col = c0 + 0.8 * (c1 - c0) if (c0, c1) == calibration.direct_columns else (c0 + c1) / 2
         image += 220.0 * np.exp(-0.5 * ((cols - centre_col) ** 2 + (rows - cam.height / 4.0) ** 2)
                                 / sigma**2)
-    frame = Frame(np.clip(image, 0, 255).astype(np.uint8), -1, 0.0)
-    tracker = MarkerTracker(calibration, params)
-    marker = tracker.observe(frame)
-    tracker.observe(frame)
-    process_frame(frame, calibration, params, marker)
+    writable = np.clip(image, 0, 255).astype(np.uint8)
+    read_only = writable.copy()
+    read_only.setflags(write=False)  # numba compiles read-only arrays apart; cameras give both
+    for pixels in (writable, read_only):
+        frame = Frame(pixels, -1, 0.0)
+        tracker = MarkerTracker(calibration, params)
+        marker = tracker.observe(frame)
+        tracker.observe(frame)
+        process_frame(frame, calibration, params, marker)
+        blank = np.full_like(writable, 10)  # no marker anywhere
+        blank.setflags(write=pixels.flags.writeable)
+        tracker.observe(Frame(blank, -1, 0.0))
     return (time.perf_counter() - t0) * 1e3
 
 

@@ -173,7 +173,7 @@ class Service:
 
         threading.Thread(target=go, name="flyscan-sim-pass", daemon=True).start()
 
-    def _on_scan(self, job: ScanJob, scan: Scan | None, cross_check) -> None:
+    def _on_scan(self, job: ScanJob, scan: Scan, cross_check) -> None:
         """Finisher thread: publish, cross-check, store. The scan is kept even if publishing
         fails; a failure to store fails the scan and is reported."""
         sent = threading.Event()
@@ -185,16 +185,17 @@ class Service:
             sent.set()
 
         header = {"scan_id": job.scan_id, "part": job.part}
-        if scan is not None:
+        placed = scan.frames > 0
+        if placed:
             self.publisher.publish("cloud", header, scan.cloud, on_sent=on_sent)
             self.publisher.publish("edges", header, scan.edges)
             sent.wait(PUBLISH_WAIT_S)
-        check = cross_check(scan) if scan is not None else None
+        check = cross_check(scan) if placed else None
         report = self.engine.report(job, scan, check)
         report["latency_ms"] = dict(job.latency_ms)
         info = self._info(job, report)
         try:
-            self.store.save(job.scan_id, info, scan, report)
+            self.store.save(job.scan_id, info, scan if placed else None, report)
         except OSError as exc:
             job.state, job.reason = "failed", f"could not store the scan: {exc}"
             info = self._info(job, report)

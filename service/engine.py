@@ -18,7 +18,6 @@ import time
 import uuid
 from dataclasses import dataclass, field
 
-import numpy as np
 
 from scanner_core.calibration import Calibration
 from scanner_core.crosscheck import cross_check
@@ -92,9 +91,9 @@ class Engine:
         The devices (simulated or real: the engine cannot tell).
     calibration : Calibration
     params : PipelineParams
-    on_scan : callable(job, scan or None, report)
-        Called on the finisher thread when a scan is over (publish, store); its errors fail
-        the scan, never the engine.
+    on_scan : callable(job, scan, cross_check)
+        Called on the finisher thread when a scan is over (publish, store), with the scan
+        (empty when no frame was placed) and the function that cross-checks it.
     on_pass_armed : callable(job), optional
         Called after arming (the simulated cell sends its robot through the sheet).
     workers, queue_frames, camera_timeout_s, clock_offset_s, cross_check_tolerance_mm
@@ -343,7 +342,7 @@ class Engine:
         t0 = time.perf_counter()
         job.wait_processed(timeout=30.0)
         t1 = time.perf_counter()
-        scan: Scan | None = job.accumulator.scan(frames_dropped=job.frames_dropped)
+        scan = job.accumulator.scan(frames_dropped=job.frames_dropped)
         scan.queue_overflows = job.queue_overflows
         scan.end_reason = reason.value
         if reason is EndReason.CAMERA_STOPPED and scan.frames:
@@ -354,8 +353,6 @@ class Engine:
         failure = _failure(job, reason, scan)
         job.state = "failed" if failure else "done"
         job.reason = failure if failure else job.reason
-        if scan.frames == 0:
-            scan = None
         try:
             self.on_scan(job, scan, self._cross_check)
         finally:
@@ -373,14 +370,11 @@ class Engine:
             self.clock_offset_s = check["clock_offset_s"]  # the next pass starts from it
         return check
 
-    def report(self, job: ScanJob, scan: Scan | None, check: dict | None) -> dict:
+    def report(self, job: ScanJob, scan: Scan, check: dict | None) -> dict:
         """``report.json`` of a finished job."""
-        empty = Scan(np.zeros((0, 3), np.float32), np.zeros(0, np.int32), np.zeros(0, np.float32),
-                     np.zeros((0, 3), np.float32), np.zeros((0, 3)), np.zeros(0), 0, job.frames_dropped,
-                     queue_overflows=job.queue_overflows, end_reason=None)
-        return scan_report(scan if scan is not None else empty, check,
-                           scan_id=job.scan_id, part=job.part, state=job.state, reason=job.reason,
-                           created=job.created, worker_errors=job.worker_errors[:10])
+        return scan_report(scan, check, scan_id=job.scan_id, part=job.part, state=job.state,
+                           reason=job.reason, created=job.created,
+                           worker_errors=job.worker_errors[:10])
 
 
 def _failure(job: ScanJob, reason: EndReason, scan: Scan) -> str | None:

@@ -1,7 +1,6 @@
 """The daemon's engine and store in process, with devices a test can break: a camera that
 stops mid-pass, a marker that never leaves the view, a process killed while storing."""
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -219,3 +218,4 @@ def test_a_stalled_consumer_never_stalls_acquisition(tmp_path, cell, monkeypatch
     assert status["queue"]["overflows"] == info["queue_overflows"]
     assert status["frames_dropped"] == 0 and sim.camera.frames_lost == 0
     assert info["state"] == "done" and info["frames"] > 0
+

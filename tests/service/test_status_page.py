@@ -2,7 +2,6 @@
 ``flyscan serve --sim``: it renders the live status, the latest frame, and a scan armed from the
 page appears in the table and as a cloud picture, all without a reload."""
 import re
-import time
 from pathlib import Path
 
 import httpx
