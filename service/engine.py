@@ -148,9 +148,14 @@ class Engine:
             self._threads.append(thread)
 
     def stop(self) -> None:
+        """Stop acquiring; a pass in progress is finished as "reset" and stored, not lost."""
         self._running.clear()
+        for thread in self._threads[:1]:  # the acquisition thread: no frame after this
+            thread.join(self.camera_timeout_s + 5.0)
         with self._lock:
-            self.trigger.reset()
+            step = self.trigger.reset()
+            if step.ended is not None and self.job is not None:
+                self._end_pass(self.job, step.ended, detail="the service stopped")
         for _ in range(self.n_workers):
             self._frames.put(None)
         self._ended.put(None)
@@ -386,7 +391,7 @@ def _failure(job: ScanJob, reason: EndReason, scan: Scan) -> str | None:
     if reason is EndReason.TOO_LONG:
         return "too long: the marker did not leave the view within the maximum pass length"
     if reason is EndReason.RESET:
-        return "reset: the service stopped or was reset during the pass"
+        return job.reason or "reset during the pass"
     if scan.frames == 0:
         return "no profile could be placed (the marker was never triangulated)"
     if job.worker_errors:

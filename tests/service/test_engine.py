@@ -219,3 +219,16 @@ def test_a_stalled_consumer_never_stalls_acquisition(tmp_path, cell, monkeypatch
     assert status["frames_dropped"] == 0 and sim.camera.frames_lost == 0
     assert info["state"] == "done" and info["frames"] > 0
 
+
+
+def test_stopping_during_a_pass_stores_it_as_failed(tmp_path, cell):
+    sim = LiveSimCell(cell.with_pass(speed_mm_s=100.0), seed=6)  # a slow pass: still running
+    settings = Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0")
+    service = Service(settings, devices=(sim.camera, sim.robot, SimPassDriver(sim), cell.calibration))
+    with serve_in_thread(create_app(service=service)) as client:
+        scan_id = client.post("/scans", json={}).json()["scan_id"]
+        wait_for(lambda: sim.robot.latest().position[1] > 5.0)
+    store = ScanStore(tmp_path / "data")
+    info = store.info(scan_id)
+    assert info["state"] == "failed" and info["reason"] == "reset: the service stopped"
+    assert info["points"] > 0 and store.file(scan_id, "cloud.ply").stat().st_size > 0
