@@ -30,6 +30,8 @@ from .subscriber import CloudSubscriber, MessageError
 SUBSCRIBE_SETTLE_S = 0.3
 # How long the ZeroMQ cloud may trail the REST state "done".
 ZMQ_GRACE_S = 2.0
+# Clouds kept for scans not yet asked for (another controller's scans are dropped, oldest first).
+KEEP_CLOUDS = 8
 
 
 class CloudCollector:
@@ -84,6 +86,8 @@ class CloudCollector:
                     self.lost = sub.lost
                     if msg.topic == "cloud":
                         self._clouds[msg.scan_id] = msg.array
+                        while len(self._clouds) > KEEP_CLOUDS:  # scans armed by others
+                            self._clouds.pop(next(iter(self._clouds)))
                         self._changed.notify_all()
 
 

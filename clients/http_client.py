@@ -238,14 +238,16 @@ class FlyscanClient:
         return self._json("GET", "/parts")["parts"]
 
     def upload_part(self, name: str, path: str | os.PathLike, units: str) -> dict:
-        """``PUT /parts/{name}?units=...``: upload a mesh file (STL, PLY, OBJ...) as a part.
+        """``PUT /parts/{name}?units=...&format=...``: upload a mesh file (STL, OBJ or PLY, told
+        by its suffix) as a part.
 
         A mesh file carries no reliable unit, so `units` (mm, cm, m, inch) is required.
         Raises Unprocessable (422) for a bad unit or mesh.
         """
         with open(path, "rb") as f:
             content = f.read()
-        return self._json("PUT", f"/parts/{_segment(name)}", params={"units": units},
+        params = {"units": units, "format": os.path.splitext(os.fspath(path))[1][1:].lower()}
+        return self._json("PUT", f"/parts/{_segment(name)}", params=params,
                           content=content,
                           headers={"Content-Type": "application/octet-stream"})
 

@@ -17,9 +17,13 @@ from scanner_core.devices import Robot
 DEFAULT_TOLERANCE_MM = 0.1
 #: Finite-difference step for the robot's velocity, s (a few samples at 500 Hz).
 VELOCITY_STEP_S = 0.004
-#: The clock offset is searched within this range, s, and refined this many times.
-MAX_OFFSET_S = 0.5
-OFFSET_ITERATIONS = 6
+#: The clock offset moves at most this far from its starting value in one estimate, s: along a
+#: straight stretch a clock offset and a position error along the track look alike, so a
+#: larger move would hide an error the check is there to flag.
+MAX_OFFSET_STEP_S = 0.05
+#: Gauss-Newton iterations, and the step below which the estimate has converged, s.
+OFFSET_ITERATIONS = 8
+OFFSET_CONVERGED_S = 1e-6
 #: At most this many frames enter the offset estimate (evenly spread over the pass).
 MAX_OFFSET_SAMPLES = 120
 #: Below this speed, mm/s, the track does not tell the clocks apart.
@@ -53,7 +57,9 @@ def estimate_clock_offset(times, positions_b, robot: Robot, *, initial_s: float 
     Returns
     -------
     float or None
-        None when the track is too short or too slow to tell, or the robot has no history.
+        None when the track is too short or too slow to tell, the robot has no history, the
+        estimate does not converge, or it would move more than ``MAX_OFFSET_STEP_S`` from
+        ``initial_s``.
     """
     times = np.asarray(times, dtype=np.float64)
     positions = np.asarray(positions_b, dtype=np.float64).reshape(-1, 3)
@@ -75,10 +81,12 @@ def estimate_clock_offset(times, positions_b, robot: Robot, *, initial_s: float 
             return None
         # Minimise sum |m_i - r(t_i + d)|^2: linearise r around the current d.
         step = np.einsum("ij,ij->", positions[ok] - p[ok], velocity) / speed2.sum()
-        offset = float(np.clip(offset + step, -MAX_OFFSET_S, MAX_OFFSET_S))
-        if abs(step) < 1e-7:
-            break
-    return offset
+        offset += float(step)
+        if abs(offset - initial_s) > MAX_OFFSET_STEP_S:
+            return None  # not a clock offset: the check measures the deviation instead
+        if abs(step) < OFFSET_CONVERGED_S:
+            return offset
+    return None  # did not converge
 
 
 def cross_check(times, positions_b, robot: Robot, *, clock_offset_s: float = 0.0,

@@ -269,6 +269,7 @@ class PassAccumulator:
         self._residuals: list[float] = []
         self._unplaced = 0
         self._held_rotation = 0
+        self._no_rotation = 0
         self._rotation: np.ndarray | None = None
         self._rotation_t = -np.inf
 
@@ -295,6 +296,7 @@ class PassAccumulator:
         """Place one profile; returns whether it was placed."""
         placed = None
         from_robot = True
+        rotation = None
         if profile.marker.valid:
             rotation, from_robot = self.rotation_at(profile.t)
             if rotation is not None:
@@ -308,6 +310,7 @@ class PassAccumulator:
                 self._residuals.append(profile.marker.residual_px)
             if placed is None:
                 self._unplaced += 1
+                self._no_rotation += profile.marker.valid and rotation is None
             else:
                 self._placed.append(placed)
                 self._held_rotation += not from_robot
@@ -328,7 +331,7 @@ class PassAccumulator:
             placed = sorted(self._placed, key=lambda p: p.frame_id)
             ids = sorted(self._frame_ids)
             residuals = list(self._residuals)
-            unplaced, held = self._unplaced, self._held_rotation
+            unplaced, held, no_rotation = self._unplaced, self._held_rotation, self._no_rotation
         if frames_dropped is None:
             frames_dropped = int(ids[-1] - ids[0] + 1 - len(ids)) if ids else 0
         counts = [len(p.cloud_t) for p in placed]
@@ -347,6 +350,7 @@ class PassAccumulator:
             marker_residual_px=float(np.median(residuals)) if residuals else float("nan"),
         )
         scan.frames_held_rotation = held
+        scan.frames_without_rotation = no_rotation
         scan.tcp_frame_ids = np.array([p.frame_id for p in placed], dtype=np.int64)
         return scan
 

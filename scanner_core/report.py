@@ -5,6 +5,9 @@ import math
 
 from scanner_core.types import Scan
 
+#: The stages of ``Scan.timings_ms`` that are processing (not waiting for frames or workers).
+PROCESSING_STAGES = ("marker", "profiles", "scan", "assemble")
+
 
 def _finite(x):
     """JSON has no NaN: non-finite numbers become None."""
@@ -22,12 +25,13 @@ def scan_report(scan: Scan, cross_check: dict | None = None, **extra) -> dict:
     **extra
         Further entries (``ground_truth`` of a simulated scan, the service's latency).
     """
-    processing_ms = sum(v for k, v in scan.timings_ms.items() if k != "acquire")
+    processing_ms = sum(v for k, v in scan.timings_ms.items() if k in PROCESSING_STAGES)
     return {
         "frames": scan.frames,
         "frames_dropped": scan.frames_dropped,
         "frames_unplaced": scan.frames_unplaced,
         "frames_held_rotation": scan.frames_held_rotation,
+        "frames_without_rotation": scan.frames_without_rotation,
         "queue_overflows": scan.queue_overflows,
         "end_reason": scan.end_reason,
         "interrupted": scan.interrupted,

@@ -121,6 +121,8 @@ class Scan:
         "timeout", "camera stopped", "too long" or "reset".
     frames_held_rotation : int
         Frames placed with the robot's last rotation because it had none for their time.
+    frames_without_rotation : int
+        Frames with a marker left unplaced because the robot had given no rotation yet.
     queue_overflows : int
         Frames of the pass lost because the processing queue was full (the service).
     """
@@ -139,5 +141,6 @@ class Scan:
     interrupted: str | None = None
     end_reason: str | None = None
     frames_held_rotation: int = 0
+    frames_without_rotation: int = 0
     tcp_frame_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     queue_overflows: int = 0

@@ -51,8 +51,11 @@ def main() -> int:
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     url, zmq = f"http://127.0.0.1:{args.port}", f"tcp://127.0.0.1:{args.zmq_port}"
     bin_dir = os.path.dirname(sys.executable)
+    # The children run in sessions of their own: Ctrl-C reaches this script alone, which stops
+    # the controller first and then the service, each with one SIGINT.
     server = subprocess.Popen([os.path.join(bin_dir, "flyscan"), "serve", "--sim", "--port",
-                               str(args.port), "--zmq", zmq, "--data", args.data])
+                               str(args.port), "--zmq", zmq, "--data", args.data],
+                              start_new_session=True)
     controller = None
     try:
         wait_healthy(url, server)
@@ -61,7 +64,8 @@ def main() -> int:
               "  the example cell controller now arms scan after scan; Ctrl-C stops both\n",
               flush=True)
         controller = subprocess.Popen([sys.executable, "-m", "clients.cell_controller", "--url",
-                                       url, "--zmq", zmq, "--count", str(args.count)])
+                                       url, "--zmq", zmq, "--count", str(args.count)],
+                                      start_new_session=True)
         while controller.poll() is None and server.poll() is None:
             time.sleep(0.2)
         return controller.returncode or server.returncode or 0

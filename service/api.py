@@ -15,13 +15,14 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, Response, status
 from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi_offline import FastAPIOffline
 
 from scanner_core.calibration import Calibration, CalibrationError
 from service.daemon import Service
 from service.engine import EngineBusy, EngineFault
 from service.models import (CalibrationModel, Health, PartInfo, PartList, Problem, ScanAccepted, ScanInfo, ScanList,
                             ScanRequest, Status)
-from service.parts import part_info
+from service.parts import MAX_MESH_BYTES, part_info
 from service.pictures import cloud_preview_png, frame_png
 from service.settings import Settings
 from simulator.parts import PartError
@@ -85,7 +86,9 @@ def get_calibration(service: ServiceDep) -> dict:
 @system.put("/calibration", response_model=CalibrationModel, dependencies=Auth,
             responses={**UNAUTHORIZED,
                        409: {"model": Problem, "description": "a scan is in progress"},
-                       422: {"model": Problem, "description": "not a valid calibration"}})
+                       422: {"model": Problem, "description": "not a valid calibration, or not "
+                                                              "for this camera's images"},
+                       507: {"model": Problem, "description": "it could not be saved"}})
 def put_calibration(body: CalibrationModel, service: ServiceDep) -> dict:
     try:
         calibration = Calibration.from_dict(body.model_dump())
@@ -93,8 +96,12 @@ def put_calibration(body: CalibrationModel, service: ServiceDep) -> dict:
         raise HTTPException(422, str(exc)) from None
     try:
         service.set_calibration(calibration)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
     except EngineBusy as exc:
         raise HTTPException(409, str(exc)) from None
+    except OSError as exc:
+        raise HTTPException(507, f"the calibration could not be saved: {exc}") from None
     return calibration.to_dict()
 
 
@@ -173,13 +180,12 @@ def get_preview(scan_id: str, service: ServiceDep) -> Response:
               responses={**UNAUTHORIZED, **NOT_FOUND,
                          409: {"model": Problem, "description": "the scan is in progress"}})
 def delete_scan(scan_id: str, service: ServiceDep) -> Response:
-    info = _scan_or_404(service, scan_id)
-    if info["state"] not in ("done", "failed"):
-        raise HTTPException(409, f"scan {scan_id} is {info['state']}")
     try:
-        service.store.delete(scan_id)
+        service.delete_scan(scan_id)
     except KeyError:
         raise HTTPException(404, f"no scan {scan_id!r}") from None
+    except ValueError as exc:
+        raise HTTPException(409, str(exc)) from None
     return Response(status_code=204)
 
 
@@ -195,6 +201,7 @@ def list_parts(service: ServiceDep) -> dict:
 
 @parts.put("/{name}", status_code=201, response_model=PartInfo, dependencies=Auth,
            responses={**UNAUTHORIZED,
+                      413: {"model": Problem, "description": "the mesh file is too large"},
                       422: {"model": Problem, "description": "bad unit, name or mesh"}},
            openapi_extra={"requestBody": {"required": True, "content": {
                "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
@@ -202,6 +209,9 @@ async def put_part(name: str, request: Request, service: ServiceDep,
                    units: Annotated[str, Query(description="unit of the mesh: mm, cm, m or inch")],
                    format: Annotated[str, Query(pattern="^(stl|obj|ply)$")] = "stl",
                    grasp: Annotated[str, Query(pattern="^(centred|identity)$")] = "centred") -> dict:
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > MAX_MESH_BYTES:
+        raise HTTPException(413, f"the mesh file is larger than {MAX_MESH_BYTES >> 20} MiB")
     data = await request.body()
     try:
         part = await asyncio.to_thread(service.parts.add, name, data, units,
@@ -247,7 +257,8 @@ def latest_frame(service: ServiceDep) -> Response:
 async def events(request: Request, service: ServiceDep) -> StreamingResponse:
     async def stream():
         while not await request.is_disconnected():
-            yield f"event: status\ndata: {json.dumps(service.status())}\n\n"
+            status_now = await asyncio.to_thread(service.status)
+            yield f"event: status\ndata: {json.dumps(status_now)}\n\n"
             await asyncio.sleep(EVENTS_PERIOD_S)
 
     return StreamingResponse(stream(), media_type="text/event-stream",
@@ -270,8 +281,10 @@ def create_app(settings: Settings | None = None, *, service: Service | None = No
         finally:
             await asyncio.to_thread(service.stop)
 
-    app = FastAPI(title="flyscan", version="0.2.0", lifespan=lifespan,
-                  description="In-flight laser-line 3D scanner: arm a scan, fetch its cloud.")
+    # The documentation pages' scripts are served by the service itself: a cell network is
+    # often offline (fastapi-offline ships Swagger UI and ReDoc).
+    app = FastAPIOffline(title="flyscan", version="0.2.0", lifespan=lifespan,
+                         description="In-flight laser-line 3D scanner: arm a scan, fetch its cloud.")
     app.state.service = service
     for router in (system, scans, parts, page):
         app.include_router(router)

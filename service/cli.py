@@ -294,7 +294,10 @@ def _cmd_serve(args) -> int:
                             log_level=args.log_level, access_log=False,
                             timeout_graceful_shutdown=SHUTDOWN_GRACE_S)
     server = uvicorn.Server(config)
-    server.run()
+    try:
+        server.run()
+    except KeyboardInterrupt:  # uvicorn re-raises Ctrl-C once it has shut down cleanly
+        pass
     return 0 if server.started else 2
 
 

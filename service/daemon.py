@@ -10,9 +10,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import OrderedDict
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from scanner_core.calibration import Calibration, load_calibration, save_calibration
 from scanner_core.pipeline import PipelineParams
@@ -24,6 +24,7 @@ from service.parts import DEMO_PART, PartLibrary
 from service.publisher import Publisher
 from service.settings import Settings
 from service.store import ScanStore
+from simulator.session import misplacement_matrix
 
 log = logging.getLogger("flyscan.service")
 
@@ -32,6 +33,8 @@ log = logging.getLogger("flyscan.service")
 PUBLISH_WAIT_S = 1.0
 #: The simulated robot finishes its previous pass (its lead-out) before starting the next, s.
 PREVIOUS_PASS_WAIT_S = 5.0
+#: Scans kept in memory (also those the store could not take), oldest dropped first.
+RECENT_JOBS = 32
 
 
 class SimPassDriver:
@@ -57,16 +60,6 @@ class SimPassDriver:
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.01)
-
-
-def misplacement_matrix(values) -> np.ndarray | None:
-    """[tx, ty, tz (mm), rx, ry, rz (deg)] -> 4x4, None for None."""
-    if values is None:
-        return None
-    m = np.eye(4)
-    m[:3, :3] = Rotation.from_rotvec(np.radians(values[3:])).as_matrix()
-    m[:3, 3] = values[:3]
-    return m
 
 
 def build_devices(settings: Settings):
@@ -111,9 +104,8 @@ class Service:
                              camera_timeout_s=settings.camera_timeout_s,
                              clock_offset_s=settings.clock_offset_s,
                              cross_check_tolerance_mm=settings.cross_check_tolerance_mm)
-        self._jobs: dict[str, ScanJob] = {}
+        self._jobs: OrderedDict[str, ScanJob] = OrderedDict()  # the recent ones, by arming
         self._jobs_lock = threading.Lock()
-        self._misplacements: dict[str, np.ndarray | None] = {}
         self.started = time.time()
 
     def _initial_calibration(self) -> Calibration:
@@ -128,15 +120,21 @@ class Service:
     # -- life cycle -------------------------------------------------------------------------
 
     def start(self) -> None:
+        """Open everything; if a step fails, what was started is stopped again."""
         self.settings.data.mkdir(parents=True, exist_ok=True)
         self.store.open()
         self.parts.open()
+        self.parts.get(self.default_part)  # KeyError: an unknown default part
         self.publisher.start()
-        self.engine.start()
-        if self.driver is not None:
-            # The default part's pass is rendered (and the simulator's kernels compiled) before
-            # the service says it is up, so that the first scan does not wait for it.
-            self.driver.prepare(self.parts.get(self.default_part))
+        try:
+            self.engine.start()
+            if self.driver is not None:
+                # The default part's pass is rendered (and the simulator's kernels compiled)
+                # before the service says it is up, so that the first scan does not wait.
+                self.driver.prepare(self.parts.get(self.default_part))
+        except BaseException:
+            self.stop()
+            raise
 
     def stop(self) -> None:
         self.engine.stop()
@@ -152,21 +150,20 @@ class Service:
         """Arm a scan of ``part``; KeyError for an unknown part, EngineBusy, EngineFault."""
         name = part or self.default_part
         self.parts.get(name)  # KeyError before anything is armed
-        job = self.engine.arm(name, timeout_s)
+        job = self.engine.arm(name, timeout_s, context=misplacement_matrix(misplace))
         with self._jobs_lock:
             self._jobs[job.scan_id] = job
-            self._misplacements[job.scan_id] = misplacement_matrix(misplace)
+            while len(self._jobs) > RECENT_JOBS:
+                self._jobs.popitem(last=False)
         return job
 
     def _on_pass_armed(self, job: ScanJob) -> None:
         if self.driver is None:
             return
-        with self._jobs_lock:
-            misplacement = self._misplacements.pop(job.scan_id, None)
 
         def go():
             try:
-                self.driver.start_pass(self.parts.get(job.part), misplacement)
+                self.driver.start_pass(self.parts.get(job.part), job.context)
             except Exception as exc:  # the pass never comes: the armed scan will time out
                 log.error("simulated pass for %s not started: %s", job.scan_id, exc)
                 job.note = f"simulated pass not started: {exc}"
@@ -174,8 +171,8 @@ class Service:
         threading.Thread(target=go, name="flyscan-sim-pass", daemon=True).start()
 
     def _on_scan(self, job: ScanJob, scan: Scan, cross_check) -> None:
-        """Finisher thread: publish, cross-check, store. The scan is kept even if publishing
-        fails; a failure to store fails the scan and is reported."""
+        """Finisher thread: publish, cross-check, store. A failure to store fails the scan, and
+        its info stays served from memory (``RECENT_JOBS``)."""
         sent = threading.Event()
 
         def on_sent(topic, when):
@@ -187,8 +184,9 @@ class Service:
         header = {"scan_id": job.scan_id, "part": job.part}
         placed = scan.frames > 0
         if placed:
-            self.publisher.publish("cloud", header, scan.cloud, on_sent=on_sent)
-            self.publisher.publish("edges", header, scan.edges)
+            outcome = {"state": job.state, "end_reason": scan.end_reason}
+            self.publisher.publish("cloud", {**header, **outcome}, scan.cloud, on_sent=on_sent)
+            self.publisher.publish("edges", {**header, **outcome}, scan.edges)
             sent.wait(PUBLISH_WAIT_S)
         check = cross_check(scan) if placed else None
         report = self.engine.report(job, scan, check)
@@ -197,6 +195,7 @@ class Service:
         try:
             self.store.save(job.scan_id, info, scan if placed else None, report)
         except OSError as exc:
+            log.error("scan %s not stored: %s", job.scan_id, exc)
             job.state, job.reason = "failed", f"could not store the scan: {exc}"
             info = self._info(job, report)
         job.info = info
@@ -204,8 +203,6 @@ class Service:
         self.publisher.publish("status", {**header, **self.status(), "scan_state": job.state,
                                           "reason": job.reason, "points": info["points"]})
         self.metrics.scan_finished(info)
-        with self._jobs_lock:
-            self._jobs.pop(job.scan_id, None)
 
     def _info(self, job: ScanJob, report: dict) -> dict:
         keys = ("frames", "frames_dropped", "frames_unplaced", "queue_overflows", "points",
@@ -215,29 +212,54 @@ class Service:
                 "created": job.created, "finished": time.time(),
                 **{k: report.get(k) for k in keys}}
 
+    @staticmethod
+    def _live_info(job: ScanJob) -> dict:
+        if job.finished is not None and job.info:
+            return job.info
+        # Finished but not yet handed back (stored, the trigger idle): still processing.
+        state = "processing" if job.state in ("done", "failed") else job.state
+        return {"scan_id": job.scan_id, "state": state, "reason": job.reason, "part": job.part,
+                "created": job.created, "frames": job.accumulator.frames_seen,
+                "frames_dropped": job.frames_dropped, "queue_overflows": job.queue_overflows}
+
     def scan_info(self, scan_id: str) -> dict:
-        """A scan in progress or stored; KeyError when unknown."""
+        """A recent scan (in progress or finished) or a stored one; KeyError when unknown."""
         with self._jobs_lock:
             job = self._jobs.get(scan_id)
-        if job is not None and not job.info:
-            # Finished but not yet stored: still processing for the outside world.
-            state = "processing" if job.state in ("done", "failed") else job.state
-            return {"scan_id": job.scan_id, "state": state, "reason": job.reason,
-                    "part": job.part, "created": job.created, "frames": job.accumulator.frames_seen,
-                    "frames_dropped": job.frames_dropped, "queue_overflows": job.queue_overflows}
-        return self.store.info(scan_id)
+        return self._live_info(job) if job is not None else self.store.info(scan_id)
+
+    def delete_scan(self, scan_id: str) -> None:
+        """KeyError when unknown; ValueError while in progress."""
+        info = self.scan_info(scan_id)
+        if info["state"] not in ("done", "failed"):
+            raise ValueError(f"scan {scan_id} is {info['state']}")
+        with self._jobs_lock:
+            recent = self._jobs.pop(scan_id, None)
+        try:
+            self.store.delete(scan_id)
+        except KeyError:
+            if recent is None:
+                raise
 
     def list_scans(self) -> list[dict]:
+        """Recent and stored scans, each once, newest first."""
         with self._jobs_lock:
-            live = [j for j in self._jobs.values() if not j.info]
-        stored = self.store.list()
-        return [self.scan_info(j.scan_id) for j in live] + stored
+            recent = {j.scan_id: self._live_info(j) for j in self._jobs.values()}
+        stored = [i for i in self.store.list() if i["scan_id"] not in recent]
+        return sorted([*recent.values(), *stored], key=lambda i: i["created"], reverse=True)
 
     # -- calibration ------------------------------------------------------------------------
 
     def set_calibration(self, calibration: Calibration) -> None:
+        """Use and keep a calibration: ValueError if it does not fit the camera, EngineBusy
+        during a scan, OSError if it cannot be saved (then the previous one stays)."""
+        previous = self.engine.calibration
         self.engine.set_calibration(calibration)
-        save_calibration(self.calibration_path, calibration)
+        try:
+            save_calibration(self.calibration_path, calibration)
+        except OSError:
+            self.engine.set_calibration(previous)
+            raise
 
     def status(self) -> dict:
         status = self.engine.status()

@@ -32,6 +32,8 @@ log = logging.getLogger("flyscan.engine")
 
 #: A camera that raised CameraClosed is reopened after this long, s.
 CAMERA_REOPEN_S = 1.0
+#: The finisher waits at most this long for a pass's last profiles, s.
+FINISH_WAIT_S = 30.0
 
 
 class EngineBusy(RuntimeError):
@@ -53,6 +55,7 @@ class ScanJob:
     state: str = "armed"
     reason: str | None = None
     note: str | None = None
+    context: object = None
     frames_dropped: int = 0
     queue_overflows: int = 0
     worker_errors: list[str] = field(default_factory=list)
@@ -118,6 +121,7 @@ class Engine:
         self._threads: list[threading.Thread] = []
         self._running = threading.Event()
         self.job: ScanJob | None = None
+        self._processing_job: ScanJob | None = None
         self.last_scan_id: str | None = None
         self.camera_state = "closed"
         self.camera_error: str | None = None
@@ -157,18 +161,19 @@ class Engine:
             if step.ended is not None and self.job is not None:
                 self._end_pass(self.job, step.ended, detail="the service stopped")
         for _ in range(self.n_workers):
-            self._frames.put(None)
+            self._frames.put(None)  # the acquisition thread is gone: the workers drain the queue
         self._ended.put(None)
-        for thread in self._threads:
-            thread.join(5.0)
+        for thread in self._threads[1:]:
+            thread.join(FINISH_WAIT_S + 5.0)
         self._threads.clear()
         self.camera.close()
         self.robot.disconnect()
 
     # -- commands ---------------------------------------------------------------------------
 
-    def arm(self, part: str | None = None, timeout_s: float | None = None) -> ScanJob:
-        """Arm the trigger for the next pass; raises EngineBusy or EngineFault."""
+    def arm(self, part: str | None = None, timeout_s: float | None = None, context=None) -> ScanJob:
+        """Arm the trigger for the next pass; raises EngineBusy or EngineFault. ``context``
+        rides on the job to ``on_pass_armed`` (the simulated pass's misplacement)."""
         with self._lock:
             if self.camera_state != "streaming":
                 raise EngineFault(f"the camera is {self.camera_state}"
@@ -180,16 +185,25 @@ class Engine:
             except TriggerError as exc:
                 raise EngineBusy(f"a scan is in progress ({self.job.scan_id if self.job else '?'}: "
                                  f"{self.trigger.state.value})") from exc
-            job = ScanJob(scan_id=new_scan_id(), part=part, created=time.time(),
+            job = ScanJob(scan_id=new_scan_id(), part=part, created=time.time(), context=context,
                           accumulator=PassAccumulator(self.calibration, self.robot, self.clock_offset_s))
             self.job = job
         if self.on_pass_armed is not None:
             self.on_pass_armed(job)
         return job
 
+    def check_calibration(self, calibration: Calibration) -> None:
+        """ValueError when the calibration's image is not the camera's."""
+        cam = calibration.camera
+        if (cam.width, cam.height) != (self.camera.width, self.camera.height):
+            raise ValueError(f"the calibration is for {cam.width} x {cam.height} images, the camera "
+                             f"gives {self.camera.width} x {self.camera.height}")
+
     def set_calibration(self, calibration: Calibration) -> None:
+        self.check_calibration(calibration)
         with self._lock:
-            if self.trigger.state in (TriggerState.ARMED, TriggerState.SCANNING, TriggerState.PROCESSING):
+            if self.trigger.state in (TriggerState.ARMED, TriggerState.SCANNING, TriggerState.PROCESSING) \
+                    or self._processing_job is not None:
                 raise EngineBusy("cannot change the calibration while a scan is in progress")
             self.calibration = calibration
 
@@ -247,6 +261,10 @@ class Engine:
                 if self._running.is_set():
                     self._camera_stopped("closed", str(exc))
                 continue
+            except Exception as exc:  # a backend's own failure: reopened like a closed camera
+                log.exception("camera failed")
+                self._camera_stopped("error", repr(exc))
+                continue
             if self.camera_state != "streaming":  # a stalled camera came back
                 with self._lock:
                     self.camera_state, self.camera_error = "streaming", None
@@ -260,23 +278,29 @@ class Engine:
                 period = (frame.t - last_t) / (gap + 1)
                 self.fps = 1.0 / period if self.fps == 0 else 0.95 * self.fps + 0.05 / period
             last_id, last_t = frame.frame_id, frame.t
-            self._on_frame(frame, gap, received, tracker)
+            try:
+                self._on_frame(frame, gap, received, tracker)
+            except Exception as exc:  # a frame the pipeline refuses (its size, its type)
+                log.exception("frame %s could not be handled", frame.frame_id)
+                self._camera_stopped("error", f"frame {frame.frame_id}: {exc!r}")
 
     def _on_frame(self, frame: Frame, gap: int, received: float, tracker: MarkerTracker) -> None:
+        # The marker search runs outside the lock, so that /status never waits for it; a
+        # state that changes meanwhile takes effect from the next frame.
         with self._lock:
-            state = self.trigger.state
-            if tracker.calibration is not self.calibration:
-                tracker.calibration = self.calibration
-            if state in (TriggerState.ARMED, TriggerState.SCANNING):
-                t0 = time.perf_counter()
-                marker = tracker.observe(frame)
-                present = marker_present(marker)
-                if self.job is not None:
-                    self.job.marker_ms += (time.perf_counter() - t0) * 1e3
-            else:
-                marker, present = None, False
-                tracker.reset()
-            self.latest = (frame, marker)
+            state, job = self.trigger.state, self.job
+            tracker.calibration = self.calibration  # changed only between passes
+        marker, present = None, False
+        if state in (TriggerState.ARMED, TriggerState.SCANNING):
+            t0 = time.perf_counter()
+            marker = tracker.observe(frame)
+            present = marker_present(marker)
+            if job is not None:
+                job.marker_ms += (time.perf_counter() - t0) * 1e3
+        else:
+            tracker.reset()
+        self.latest = (frame, marker)
+        with self._lock:
             step = self.trigger.feed((frame, marker), frame.t, present, frame.frame_id)
             job = self.job
             if job is None:
@@ -308,10 +332,14 @@ class Engine:
             if step.ended is not None and self.job is not None:
                 self._end_pass(self.job, step.ended, detail=reason)
             self.trigger.fault(f"camera {state}: {reason}")
-        if state == "closed":
+        if state in ("closed", "error"):
             self.camera.close()
 
     def _end_pass(self, job: ScanJob, reason: EndReason, detail: str | None = None) -> None:
+        """Under the lock: hand the job to the finisher; only the job whose pass put the trigger
+        in `processing` takes it back to idle."""
+        if self.trigger.state is TriggerState.PROCESSING:
+            self._processing_job = job
         job.end_monotonic = time.monotonic()
         job.state = "processing" if self.trigger.state is TriggerState.PROCESSING else job.state
         job.reason = reason.value + (f": {detail}" if detail else "")
@@ -325,9 +353,11 @@ class Engine:
             job, frame, marker = item
             t0 = time.perf_counter()
             try:
-                job.accumulator.add(process_frame(frame, self.calibration, self.params, marker))
-            except (ValueError, ArithmeticError) as exc:  # a frame the kernels refuse
-                job.worker_errors.append(f"frame {frame.frame_id}: {exc}")
+                calibration = job.accumulator.calibration  # the pass's, whatever came since
+                job.accumulator.add(process_frame(frame, calibration, self.params, marker))
+            except Exception as exc:  # a frame that cannot be processed: recorded, never fatal
+                log.exception("frame %s not processed", frame.frame_id)
+                job.worker_errors.append(f"frame {frame.frame_id}: {exc!r}")
             finally:
                 job.processed((time.perf_counter() - t0) * 1e3)
 
@@ -339,13 +369,23 @@ class Engine:
             job, reason = item
             try:
                 self._finish(job, reason)
+            except Exception as exc:  # the scan fails with the reason; the finisher goes on
+                log.exception("scan %s could not be finished", job.scan_id)
+                job.state, job.reason = "failed", f"could not be finished: {exc!r}"
             finally:
                 with self._lock:
-                    self.trigger.finish()
+                    if self._processing_job is job:
+                        self.trigger.finish()
+                        self._processing_job = None
+                    self.last_scan_id = job.scan_id
+                    self.scans_done += job.state == "done"
+                    self.scans_failed += job.state == "failed"
+                job.finished = time.time()
 
     def _finish(self, job: ScanJob, reason: EndReason) -> None:
         t0 = time.perf_counter()
-        job.wait_processed(timeout=30.0)
+        if not job.wait_processed(timeout=FINISH_WAIT_S):
+            job.worker_errors.append(f"frames still processing after {FINISH_WAIT_S:g} s: left out")
         t1 = time.perf_counter()
         scan = job.accumulator.scan(frames_dropped=job.frames_dropped)
         scan.queue_overflows = job.queue_overflows
@@ -358,20 +398,13 @@ class Engine:
         failure = _failure(job, reason, scan)
         job.state = "failed" if failure else "done"
         job.reason = failure if failure else job.reason
-        try:
-            self.on_scan(job, scan, self._cross_check)
-        finally:
-            job.finished = time.time()
-            with self._lock:
-                self.last_scan_id = job.scan_id
-                self.scans_done += job.state == "done"
-                self.scans_failed += job.state == "failed"
+        self.on_scan(job, scan, self._cross_check)
 
     def _cross_check(self, scan: Scan) -> dict:
         check = cross_check(scan.tcp_times, scan.tcp_positions_b, self.robot,
                             clock_offset_s=self.clock_offset_s,
                             tolerance_mm=self.cross_check_tolerance_mm)
-        if check.get("offset_estimated"):
+        if check.get("offset_estimated") and not check.get("flagged"):
             self.clock_offset_s = check["clock_offset_s"]  # the next pass starts from it
         return check
 
@@ -392,6 +425,8 @@ def _failure(job: ScanJob, reason: EndReason, scan: Scan) -> str | None:
         return "too long: the marker did not leave the view within the maximum pass length"
     if reason is EndReason.RESET:
         return job.reason or "reset during the pass"
+    if scan.frames == 0 and scan.frames_without_rotation:
+        return "no profile could be placed: the robot gave no pose to take the gripper's rotation from"
     if scan.frames == 0:
         return "no profile could be placed (the marker was never triangulated)"
     if job.worker_errors:

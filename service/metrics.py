@@ -24,7 +24,7 @@ class Metrics:
         self.overflows = Gauge("flyscan_queue_overflows", "Frames lost to a full processing queue", registry=r)
         self.fps = Gauge("flyscan_camera_fps", "Camera frame rate", registry=r)
         self.zmq_sent = Gauge("flyscan_zmq_sent", "ZeroMQ messages sent", registry=r)
-        self.zmq_dropped = Gauge("flyscan_zmq_dropped", "ZeroMQ messages dropped (queue or high-water mark)", registry=r)
+        self.zmq_dropped = Gauge("flyscan_zmq_dropped", "ZeroMQ messages the publisher's queue refused (a subscriber's own losses show as seq gaps)", registry=r)
         self.robot = Gauge("flyscan_robot_connected", "1 when the robot is connected", registry=r)
 
     def scan_finished(self, info: dict) -> None:

@@ -1,7 +1,7 @@
 """Typed request and response bodies of the REST API (they make the OpenAPI schema)."""
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -66,7 +66,7 @@ class ScanRequest(BaseModel):
     part: str | None = Field(None, description="a part of GET /parts; default the service's")
     timeout_s: float | None = Field(None, gt=0, le=600,
                                     description="fail when the marker has not appeared by then")
-    misplace: list[float] | None = Field(
+    misplace: list[Annotated[float, Field(allow_inf_nan=False)]] | None = Field(
         None, min_length=6, max_length=6,
         description="simulated mode only: the part's misplacement in the gripper, "
                     "[tx, ty, tz (mm), rx, ry, rz (rotation vector, degrees)]")

@@ -8,9 +8,11 @@ fits the inspection volume at its nominal grasp) before it is accepted.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import shutil
+import tempfile
 import threading
 import warnings
 from pathlib import Path
@@ -20,8 +22,11 @@ import numpy as np
 from simulator.parts import (Part, PartError, PartUnitWarning, block_with_holes_and_steps,
                              check_fits, load_part, part_from_mesh)
 
+log = logging.getLogger("flyscan.parts")
+
 DEMO_PART = "demo"
-PART_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+#: Part names become folder names: no leading dot (".", ".." and hidden folders), no separator.
+PART_NAME = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")
 MESH_SUFFIXES = (".stl", ".obj", ".ply")
 #: Uploaded meshes larger than this are refused (a CAD part of a bin-picking cell is far smaller).
 MAX_MESH_BYTES = 64 * 1024 * 1024
@@ -59,12 +64,17 @@ class PartLibrary:
         self._parts[DEMO_PART] = part_from_mesh(block_with_holes_and_steps(), name=DEMO_PART,
                                                 source="procedural:block_with_holes_and_steps")
         for folder in sorted(self.root.iterdir()):
-            if folder.name.startswith(".") or not (folder / "part.json").is_file():
-                shutil.rmtree(folder, ignore_errors=True) if folder.name.startswith(".tmp-") else None
+            if folder.name.startswith(".tmp-"):
+                shutil.rmtree(folder, ignore_errors=True)  # an upload that never finished
                 continue
-            meta = json.loads((folder / "part.json").read_text())
-            self._parts[folder.name] = load_part(folder / meta["file"], meta["units"],
-                                                 name=folder.name, grasp=_grasp(meta["grasp"]))
+            if not (folder / "part.json").is_file():
+                continue
+            try:
+                meta = json.loads((folder / "part.json").read_text())
+                self._parts[folder.name] = load_part(folder / meta["file"], meta["units"],
+                                                     name=folder.name, grasp=_grasp(meta["grasp"]))
+            except (OSError, ValueError, KeyError, TypeError) as exc:  # PartError is a ValueError
+                log.error("stored part %s skipped: %s", folder.name, exc)
 
     def names(self) -> list[str]:
         with self._lock:
@@ -78,24 +88,28 @@ class PartLibrary:
             grasp: str = "centred") -> Part:
         """Check and keep an uploaded mesh; raises PartError (or ValueError) with the reason."""
         if not PART_NAME.match(name) or name == DEMO_PART:
-            raise ValueError(f"part name must be 1-64 letters, digits, '.', '_' or '-' and not "
-                             f"{DEMO_PART!r}, got {name!r}")
+            raise ValueError(f"part name must be 1-64 letters, digits, '.', '_' or '-', not start "
+                             f"with '.', and not be {DEMO_PART!r}, got {name!r}")
         if suffix not in MESH_SUFFIXES:
             raise ValueError(f"mesh format must be one of {', '.join(MESH_SUFFIXES)}, got {suffix!r}")
         if not data:
             raise PartError("the mesh file is empty")
         if len(data) > MAX_MESH_BYTES:
             raise PartError(f"the mesh file is larger than {MAX_MESH_BYTES >> 20} MiB")
-        tmp = self.root / f".tmp-{name}"
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{name}-", dir=self.root))  # one per upload
         try:
             mesh_path = tmp / f"mesh{suffix}"
             mesh_path.write_bytes(data)
-            part = _checked(lambda: load_part(mesh_path, units, name=name, grasp=_grasp(grasp)))
+            try:
+                part = _checked(lambda: load_part(mesh_path, units, name=name, grasp=_grasp(grasp)))
+            except PartError as exc:  # said of the upload, not of a path on the server
+                raise PartError(str(exc).replace(f" ({mesh_path})", "").replace(str(mesh_path),
+                                                                                "the upload")) from None
             (tmp / "part.json").write_text(json.dumps({"file": mesh_path.name, "units": part.units,
                                                        "grasp": grasp}))
             final = self.root / name
+            if final.resolve().parent != self.root.resolve():
+                raise ValueError(f"part name {name!r} is not a plain folder name")
             with self._lock:
                 shutil.rmtree(final, ignore_errors=True)
                 os.replace(tmp, final)

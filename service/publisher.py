@@ -4,9 +4,14 @@ One thread owns the PUB socket (ZeroMQ sockets are not thread-safe); other threa
 messages through a bounded queue and never wait. A message is ``[topic, header]`` or
 ``[topic, header, payload]``: the header UTF-8 JSON (``scan_id``, ``seq``, ``frame`` "T",
 ``units`` "mm", ``t`` unix seconds and, with a payload, ``dtype``, ``shape``, ``fields``), the
-payload the raw C-order array. ``seq`` rises by one per message sent on a topic, so a subscriber
-counts what it lost of the topics it follows. A message the queue cannot take, or that a subscriber's high-water mark refuses
-(ZeroMQ drops it for that subscriber), is counted, never waited for.
+payload the raw C-order array.
+
+Nothing waits for a subscriber. Every message is numbered (``seq``, one more per message on its
+topic) when it is handed over, so every loss shows as a gap to the subscriber that suffered it:
+a message the queue cannot take (counted here in ``dropped``), or one that ZeroMQ drops for a
+subscriber more than its high-water mark behind (a PUB socket drops per subscriber and tells the
+sender nothing, so only that subscriber can count it: ``clients.CloudSubscriber.lost``). The
+others keep receiving everything.
 """
 from __future__ import annotations
 
@@ -48,6 +53,8 @@ class Publisher:
         self.hwm = int(hwm)
         self._context = context or zmq.Context.instance()
         self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_MESSAGES)
+        self._seq: dict[str, int] = {}
+        self._seq_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._ready = threading.Event()
         self._error: BaseException | None = None
@@ -65,7 +72,10 @@ class Publisher:
 
     def stop(self) -> None:
         if self._thread is not None:
-            self._queue.put(None)
+            try:
+                self._queue.put(None, timeout=5.0)
+            except queue.Full:
+                log.error("the publisher's queue stayed full: its thread is stuck")
             self._thread.join(5.0)
             self._thread = None
 
@@ -73,8 +83,10 @@ class Publisher:
                 on_sent=None) -> bool:
         """Queue one message; False (and counted) when the queue is full. ``on_sent`` is called
         on the socket's thread with the monotonic time the message left."""
+        with self._seq_lock:  # numbered here, so a message the queue refuses is a gap too
+            self._seq[topic] = seq = self._seq.get(topic, 0) + 1
         try:
-            self._queue.put_nowait((topic, header, array, on_sent))
+            self._queue.put_nowait((topic, {**header, "seq": seq}, array, on_sent))
             return True
         except queue.Full:
             self.dropped += 1
@@ -92,7 +104,6 @@ class Publisher:
             self._ready.set()
             return
         self._ready.set()
-        seq = dict.fromkeys(TOPICS, 0)
         try:
             while True:
                 item = self._queue.get()
@@ -100,12 +111,11 @@ class Publisher:
                     return
                 topic, header, array, on_sent = item
                 try:
-                    frames = encode_message(topic, {**header, "seq": seq.get(topic, 0) + 1, "t": time.time()}, array)
+                    frames = encode_message(topic, {**header, "t": time.time()}, array)
                 except (TypeError, ValueError) as exc:  # a caller's bug: counted, logged, survived
                     log.error("message on %r not sent: %s", topic, exc)
                     self.dropped += 1
                     continue
-                seq[topic] += 1
                 try:
                     socket.send_multipart(frames, flags=zmq.NOBLOCK, copy=False)
                     self.sent += 1
@@ -114,6 +124,9 @@ class Publisher:
                 now = time.monotonic()
                 self.last_sent_monotonic[topic] = now
                 if on_sent is not None:
-                    on_sent(topic, now)
+                    try:
+                        on_sent(topic, now)
+                    except Exception:  # the caller's bookkeeping must not end publishing
+                        log.exception("on_sent callback for %r failed", topic)
         finally:
             socket.close(linger=0)

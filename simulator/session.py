@@ -26,6 +26,20 @@ from simulator.parts import Part
 from simulator.render import PartScene
 
 
+def misplacement_matrix(values) -> np.ndarray | None:
+    """``[tx, ty, tz, rx, ry, rz]`` (mm, rotation vector in degrees) -> 4x4 transform in {T}
+    (X_T = R X_P + t); None for None. ValueError unless six finite numbers."""
+    if values is None:
+        return None
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape != (6,) or not np.all(np.isfinite(values)):
+        raise ValueError(f"a misplacement must be six finite numbers, got {values.tolist()}")
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_rotvec(np.radians(values[3:])).as_matrix()
+    m[:3, 3] = values[:3]
+    return m
+
+
 def parse_misplacement(text: str | None) -> np.ndarray:
     """``"tx,ty,tz,rx,ry,rz"`` (mm, rotation vector in degrees) -> 4x4 transform in {T}."""
     if text is None or text == "":
@@ -36,10 +50,7 @@ def parse_misplacement(text: str | None) -> np.ndarray:
         raise ValueError(f"--misplace must be six numbers 'tx,ty,tz,rx,ry,rz', got {text!r}") from None
     if len(values) != 6 or not np.all(np.isfinite(values)):
         raise ValueError(f"--misplace must be six finite numbers 'tx,ty,tz,rx,ry,rz', got {text!r}")
-    m = np.eye(4)
-    m[:3, :3] = Rotation.from_rotvec(np.radians(values[3:])).as_matrix()
-    m[:3, 3] = values[:3]
-    return m
+    return misplacement_matrix(values)
 
 
 @dataclass

@@ -55,9 +55,11 @@ function applyStatus(s) {
   setText($("queue-depth"), fmtInt(q.depth));
   setText($("queue-capacity"), fmtInt(q.capacity));
   setText($("queue-overflows"), fmtInt(q.overflows));
+  $("queue-overflows").classList.toggle("nonzero", q.overflows > 0);
   const z = s.zmq || {};
   setText($("zmq-sent"), fmtInt(z.sent));
   setText($("zmq-dropped"), fmtInt(z.dropped));
+  $("zmq-dropped").classList.toggle("nonzero", z.dropped > 0);
   const robot = s.robot || {};
   pill($("robot"), robot.connected ? "connected" : "not connected", robot.connected ? "ok" : "bad");
   setText($("scans-done"), fmtInt(s.scans_done));
@@ -134,7 +136,7 @@ function fmtTriple(v, digits) {
 function fmtMisplacement(m) {
   if (m === null || m === undefined) return "\u2013";
   if (Array.isArray(m) && m.length === 6 && m.every((x) => typeof x === "number")) {
-    return "t " + fmtTriple(m.slice(0, 3), 2) + " mm; r " + fmtTriple(m.slice(3), 2) + "\u00b0";
+    return "t " + fmtTriple(m.slice(0, 3), 2) + " mm\nr " + fmtTriple(m.slice(3), 2) + "\u00b0";
   }
   if (Array.isArray(m) && m.length === 4 && m.every(Array.isArray)) {   // 4x4 transform
     return "t " + fmtTriple(m.slice(0, 3).map((row) => row[3]), 2) + " mm";
@@ -142,7 +144,7 @@ function fmtMisplacement(m) {
   if (typeof m === "object" && !Array.isArray(m)) {
     return Object.entries(m).map(([k, v]) =>
       k + " " + (Array.isArray(v) ? fmtTriple(v.flat(), 2) : typeof v === "number" ? fmtNum(v, 2) : String(v))
-    ).join("; ");
+    ).join("\n");
   }
   return String(m);
 }
@@ -176,7 +178,7 @@ function renderScans(scans) {
     cell(tr, cc ? fmtNum(cc.rms_mm, 3) + " / " + fmtNum(cc.max_mm, 3) : "\u2013", "num");
     const flagged = cc && typeof cc.flagged === "boolean" ? cc.flagged : null;
     cell(tr, flagged === null ? "\u2013" : flagged ? "yes" : "no", flagged ? "flag-yes" : "");
-    cell(tr, pose ? fmtMisplacement(pose.misplacement) : "\u2013", "mono");
+    cell(tr, pose ? fmtMisplacement(pose.misplacement) : "\u2013", "mono misplacement");
     cell(tr, fmtNum(latency, 1), "num");
     rows.push(tr);
   }
@@ -195,6 +197,7 @@ let cloudId = null;
 
 function showCloud(scan) {
   const img = $("cloud");
+  const screen = $("cloud-screen");
   if (!scan) {
     setText($("cloud-note"), "none yet");
     return;
@@ -202,8 +205,15 @@ function showCloud(scan) {
   if (scan.scan_id === cloudId) return;
   cloudId = scan.scan_id;
   setText($("cloud-note"), scan.scan_id + " (loading)");
-  img.onload = () => setText($("cloud-note"), scan.scan_id + ", " + fmtInt(scan.points) + " points");
-  img.onerror = () => setText($("cloud-note"), scan.scan_id + ": no cloud");
+  img.onload = () => {
+    screen.dataset.empty = "false";
+    setText($("cloud-note"), scan.scan_id + ", " + fmtInt(scan.points) + " points");
+  };
+  img.onerror = () => {
+    screen.dataset.empty = "true";
+    setText($("cloud-placeholder"), "No cloud for scan " + scan.scan_id);
+    setText($("cloud-note"), scan.scan_id + ": no cloud");
+  };
   img.src = "/scans/" + encodeURIComponent(scan.scan_id) + "/preview.png";
 }
 
@@ -228,11 +238,13 @@ function setupFrame() {
   const img = $("frame");
   img.addEventListener("load", () => {
     frameLoading = false;
+    $("frame-screen").dataset.empty = "false";
     setText($("frame-note"), "");
     scheduleFrame(FRAME_PERIOD_MS);
   });
   img.addEventListener("error", () => {
     frameLoading = false;
+    $("frame-screen").dataset.empty = "true";
     setText($("frame-note"), "(no frame yet)");
     scheduleFrame(FRAME_RETRY_MS);
   });

@@ -177,6 +177,7 @@ def test_a_robot_that_drops_out_holds_its_last_rotation(cell):
     assert not acc.add(profile(15, nan_obs))
     scan = acc.scan()
     assert (scan.frames, scan.frames_unplaced, scan.frames_held_rotation) == (2, 2, 1)
+    assert scan.frames_without_rotation == 1  # frame 10; frame 15 had no marker
     assert scan.frames_dropped == 2  # ids 13 and 14
 
 
