@@ -10,9 +10,10 @@ ScanState = Literal["armed", "scanning", "processing", "done", "failed"]
 
 
 class Problem(BaseModel):
-    """An error: the reason, for a person and for the client's exception."""
+    """An error: the reason, for a person and for the client's exception (a request that does
+    not validate lists each field's problem: ``loc``, ``msg``, ``type``)."""
 
-    detail: str
+    detail: str | list[dict]
 
 
 class Health(BaseModel):

@@ -177,3 +177,20 @@ def test_the_documentation_pages_need_no_network(service):
     assert "cdn." not in page and "/static-offline-docs/swagger-ui-bundle.js" in page
     script = httpx.get(f"{service.url}/static-offline-docs/swagger-ui-bundle.js")
     assert script.status_code == 200 and len(script.content) > 100_000
+
+
+def test_a_simulated_misplacement_moves_the_cloud(service):
+    import httpx
+
+
+    with FlyscanClient(service.url) as client:
+        plain = client.cloud(client.wait(client.arm(), timeout=30)["scan_id"])
+        response = httpx.post(f"{service.url}/scans", json={"misplace": [4.0, 0, 0, 0, 0, 0]})
+        assert response.status_code == 202
+        moved = client.cloud(client.wait(response.json()["scan_id"], timeout=30)["scan_id"])
+        bad = httpx.post(f"{service.url}/scans", content=b'{"misplace": [NaN, 0, 0, 0, 0, 0]}',
+                         headers={"Content-Type": "application/json"})
+        assert bad.status_code == 422
+    # The block's x extent is exact at its ends: both ends move by the misplacement.
+    assert moved[:, 0].min() - plain[:, 0].min() == pytest.approx(4.0, abs=0.2)
+    assert moved[:, 0].max() - plain[:, 0].max() == pytest.approx(4.0, abs=0.2)
