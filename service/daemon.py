@@ -219,7 +219,8 @@ class Service:
         # Finished but not yet handed back (stored, the trigger idle): still processing.
         state = "processing" if job.state in ("done", "failed") else job.state
         return {"scan_id": job.scan_id, "state": state, "reason": job.reason, "part": job.part,
-                "created": job.created, "frames": job.accumulator.frames_seen,
+                "created": job.created,
+                "frames": job.accumulator.frames_seen if job.accumulator is not None else 0,
                 "frames_dropped": job.frames_dropped, "queue_overflows": job.queue_overflows}
 
     def scan_info(self, scan_id: str) -> dict:

@@ -51,7 +51,7 @@ class ScanJob:
     scan_id: str
     part: str | None
     created: float
-    accumulator: PassAccumulator
+    accumulator: PassAccumulator | None
     state: str = "armed"
     reason: str | None = None
     note: str | None = None
@@ -381,6 +381,7 @@ class Engine:
                     self.scans_done += job.state == "done"
                     self.scans_failed += job.state == "failed"
                 job.finished = time.time()
+                job.accumulator = None  # the scan is out: its profiles are not kept in memory
 
     def _finish(self, job: ScanJob, reason: EndReason) -> None:
         t0 = time.perf_counter()
