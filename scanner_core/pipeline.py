@@ -33,7 +33,7 @@ from scanner_core.calibration import Calibration
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
 from scanner_core.geometry import (base_to_tcp, reproject_marker, triangulate_marker,
                                    triangulate_stripe)
-from scanner_core.trigger import EndReason, Trigger, TriggerParams
+from scanner_core.trigger import EndReason, Trigger, TriggerParams, TriggerStep
 from scanner_core.types import Frame, MarkerObservation, Profile, Scan
 
 
@@ -146,7 +146,7 @@ class MarkerTracker:
         return obs
 
 
-def marker_present(marker: MarkerObservation) -> bool:
+def marker_in_view(marker: MarkerObservation) -> bool:
     """The trigger's presence test: the marker found in at least two views."""
     return marker.views >= 2
 
@@ -321,11 +321,14 @@ class PassAccumulator:
         with self._lock:
             return len(self._frame_ids)
 
-    def scan(self, *, frames_dropped: int | None = None) -> Scan:
+    def scan(self, *, frames_dropped: int | None = None, end_reason: EndReason | None = None,
+             stopped_because: str | None = None) -> Scan:
         """The scan so far, sorted by frame id.
 
         ``frames_dropped`` defaults to the gaps between the frame ids received; a caller that
-        knows better (frames lost by the camera, not by its own queue) passes its count.
+        knows better (frames lost by the camera, not by its own queue) passes its count. A pass
+        that ended because the camera stopped, with frames placed, is ``interrupted`` with
+        ``stopped_because``.
         """
         with self._lock:
             placed = sorted(self._placed, key=lambda p: p.frame_id)
@@ -352,6 +355,9 @@ class PassAccumulator:
         scan.frames_held_rotation = held
         scan.frames_without_rotation = no_rotation
         scan.tcp_frame_ids = np.array([p.frame_id for p in placed], dtype=np.int64)
+        scan.end_reason = end_reason.value if end_reason is not None else None
+        if end_reason is EndReason.CAMERA_STOPPED and scan.frames:
+            scan.interrupted = stopped_because
         return scan
 
 
@@ -363,6 +369,24 @@ def camera_frames(camera: Camera, timeout: float = 1.0) -> Iterator[Frame]:
             yield camera.grab(timeout)
         except CameraClosed:
             return
+
+
+def feed_frame(frame: Frame, tracker: MarkerTracker, trigger: Trigger,
+               accumulator: PassAccumulator, params: PipelineParams,
+               timings: dict | None = None) -> TriggerStep:
+    """One frame through the single-threaded core: the tracked marker, the trigger, and the
+    profiles of the frames it releases, placed. Adds seconds to ``timings["marker"]`` and
+    ``timings["profiles"]`` when given. (The service runs the same steps on two threads.)"""
+    t0 = time.perf_counter()
+    marker = tracker.observe(frame)
+    t1 = time.perf_counter()
+    step = trigger.feed((frame, marker), frame.t, marker_in_view(marker), frame.frame_id)
+    for held_frame, held_marker in step.emit:
+        accumulator.add(process_frame(held_frame, accumulator.calibration, params, held_marker))
+    if timings is not None:
+        timings["marker"] += t1 - t0
+        timings["profiles"] += time.perf_counter() - t1
+    return step
 
 
 def run_pass(frames: Iterable[Frame], calibration: Calibration, robot: Robot,
@@ -394,21 +418,11 @@ def run_pass(frames: Iterable[Frame], calibration: Calibration, robot: Robot,
             camera_error = f"camera timeout: {exc}"
             trigger.camera_stopped()
             break
-        t1 = time.perf_counter()
-        marker = tracker.observe(frame)
-        t2 = time.perf_counter()
-        step = trigger.feed((frame, marker), frame.t, marker_present(marker), frame.frame_id)
-        for held_frame, held_marker in step.emit:
-            accumulator.add(process_frame(held_frame, calibration, params, held_marker))
-        t3 = time.perf_counter()
-        timings["acquire"] += t1 - t0
-        timings["marker"] += t2 - t1
-        timings["profiles"] += t3 - t2
+        timings["acquire"] += time.perf_counter() - t0
+        feed_frame(frame, tracker, trigger, accumulator, params, timings)
     t0 = time.perf_counter()
-    scan = accumulator.scan()
+    scan = accumulator.scan(end_reason=trigger.end_reason,
+                            stopped_because=camera_error or "camera stream ended")
     timings["scan"] = time.perf_counter() - t0
     scan.timings_ms = {k: round(v * 1e3, 3) for k, v in timings.items()}
-    scan.end_reason = trigger.end_reason.value if trigger.end_reason else None
-    if trigger.end_reason is EndReason.CAMERA_STOPPED and scan.frames:
-        scan.interrupted = camera_error or "camera stream ended"
     return scan

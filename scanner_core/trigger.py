@@ -3,7 +3,8 @@
 The LED marker on the gripper triggers the scan (paper section V): once armed, the first frame
 that shows the marker starts the pass, and the pass ends once the marker has been gone for
 ``gap_frames`` frames in a row. Frames without the marker inside the pass (a view hidden for a
-moment) are held back and released when the marker comes back, so they are kept; those after
+moment) are held back and released when the marker comes back, so they belong to the pass (they
+are processed, and counted as unplaced when their marker cannot be triangulated); those after
 the end are not. A pass also ends when it runs too long (a marker that never leaves the view),
 or when the camera stops; an armed trigger that never sees the marker times out.
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from scanner_core.calibration import Calibration
 from scanner_core.crosscheck import cross_check
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
-from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_present,
+from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_in_view,
                                    process_frame, warm_up)
 from scanner_core.report import scan_report
 from scanner_core.trigger import EndReason, Trigger, TriggerError, TriggerState
@@ -294,7 +294,7 @@ class Engine:
         if state in (TriggerState.ARMED, TriggerState.SCANNING):
             t0 = time.perf_counter()
             marker = tracker.observe(frame)
-            present = marker_present(marker)
+            present = marker_in_view(marker)
             if job is not None:
                 job.marker_ms += (time.perf_counter() - t0) * 1e3
         else:
@@ -388,11 +388,9 @@ class Engine:
         if not job.wait_processed(timeout=FINISH_WAIT_S):
             job.worker_errors.append(f"frames still processing after {FINISH_WAIT_S:g} s: left out")
         t1 = time.perf_counter()
-        scan = job.accumulator.scan(frames_dropped=job.frames_dropped)
+        scan = job.accumulator.scan(frames_dropped=job.frames_dropped, end_reason=reason,
+                                    stopped_because=job.reason)
         scan.queue_overflows = job.queue_overflows
-        scan.end_reason = reason.value
-        if reason is EndReason.CAMERA_STOPPED and scan.frames:
-            scan.interrupted = job.reason
         scan.timings_ms = {"marker": round(job.marker_ms, 3), "profiles": round(job.profiles_ms, 3),
                            "wait_workers": round((t1 - t0) * 1e3, 3),
                            "assemble": round((time.perf_counter() - t1) * 1e3, 3)}

@@ -26,7 +26,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, camera_frames,
-                                   marker_present, process_frame, warm_up)
+                                   feed_frame, warm_up)
 from scanner_core.trigger import Trigger
 from service.bench.machine import machine_info
 from simulator.cell import load_cell
@@ -74,10 +74,7 @@ def per_frame(repeats: int) -> dict:
             t0 = time.perf_counter()
             frame.image.copy()
             t1 = time.perf_counter()
-            marker = tracker.observe(frame)
-            step = trigger.feed((frame, marker), frame.t, marker_present(marker), frame.frame_id)
-            for held, held_marker in step.emit:
-                accumulator.add(process_frame(held, calibration, params, held_marker))
+            step = feed_frame(frame, tracker, trigger, accumulator, params)
             t2 = time.perf_counter()
             copy_ms.append((t1 - t0) * 1e3)
             frame_ms.append((t2 - t1) * 1e3)
