@@ -173,10 +173,6 @@ class Trigger:
         self.fault_reason = None
         return step
 
-    @property
-    def in_pass(self) -> bool:
-        return self.state is TriggerState.SCANNING
-
     def _take(self, step: TriggerStep, item, frame_id) -> None:
         step.emit.append(item)
         self.last_frame = frame_id

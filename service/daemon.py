@@ -24,6 +24,7 @@ from service.parts import DEMO_PART, PartLibrary
 from service.publisher import Publisher
 from service.settings import Settings
 from service.store import ScanStore
+from simulator.live import PassInProgress
 from simulator.session import misplacement_matrix
 
 log = logging.getLogger("flyscan.service")
@@ -49,8 +50,6 @@ class SimPassDriver:
     def start_pass(self, part, misplacement: np.ndarray | None) -> None:
         """Start the pass once the robot has finished the previous one (its lead-out goes on
         after the scan has ended), as a robot program would."""
-        from simulator.live import PassInProgress
-
         deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
         while True:
             try:

@@ -6,7 +6,6 @@ robot can only report poses up to "now", as a real one would.
 """
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -107,7 +106,6 @@ class SimRobot:
 
     def __post_init__(self):
         self._connected = False
-        self._history: deque[TcpPose] = deque(maxlen=int(ROBOT_HISTORY_S * ROBOT_RATE_HZ))
 
     def connect(self) -> None:
         self._connected = True
@@ -122,27 +120,26 @@ class SimRobot:
     def _pose(self, t: float) -> TcpPose:
         return TcpPose(float(t), self.motion.tcp_position(t), self.rotation.copy())
 
-    def _sample_times(self) -> np.ndarray:
+    def _sample_range(self) -> tuple[float, float]:
+        """Indices (k_first, k_last) of the 500 Hz samples reported so far and still kept;
+        k_last < k_first when there is none."""
         now = self.clock.now
         first = max(now - ROBOT_HISTORY_S, -self.motion.profile.lead_in_s)
-        k0, k1 = np.ceil(first * ROBOT_RATE_HZ), np.floor(now * ROBOT_RATE_HZ)
-        return np.arange(k0, k1 + 1) / ROBOT_RATE_HZ
+        return np.ceil(first * ROBOT_RATE_HZ), np.floor(now * ROBOT_RATE_HZ)
 
     def latest(self) -> TcpPose:
         if not self._connected:
             raise RuntimeError("SimRobot is not connected")
-        times = self._sample_times()
-        if len(times) == 0:
+        k_first, k_last = self._sample_range()
+        if k_last < k_first:
             raise RuntimeError("no pose has arrived yet")
-        return self._pose(times[-1])
+        return self._pose(k_last / ROBOT_RATE_HZ)
 
     def pose_at(self, t: float) -> TcpPose:
         """Linear interpolation between the 500 Hz samples around ``t``."""
         if not self._connected:
             raise RuntimeError("SimRobot is not connected")
-        now = self.clock.now
-        first = max(now - ROBOT_HISTORY_S, -self.motion.profile.lead_in_s)
-        k_first, k_last = np.ceil(first * ROBOT_RATE_HZ), np.floor(now * ROBOT_RATE_HZ)
+        k_first, k_last = self._sample_range()
         if k_last < k_first or not k_first / ROBOT_RATE_HZ <= t <= k_last / ROBOT_RATE_HZ:
             raise LookupError(f"t = {t:.4f} s is outside the robot's history")
         # The two samples around t (one sample when the history holds only one).
@@ -151,4 +148,3 @@ class SimRobot:
         w = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
         pos = (1 - w) * self.motion.tcp_position(t0) + w * self.motion.tcp_position(t1)
         return TcpPose(float(t), pos, self.rotation.copy())
-
