@@ -81,27 +81,83 @@ class Calibration:
 
     @classmethod
     def from_dict(cls, data: dict) -> "Calibration":
-        try:
-            c = data["camera"]
-            rotation = np.array(c["rotation"], dtype=np.float64)
-            camera = PinholeCamera(
-                fx=float(c["fx"]), fy=float(c["fy"]), cx=float(c["cx"]), cy=float(c["cy"]),
-                width=int(c["width"]), height=int(c["height"]),
-                rotation=rotation, origin=np.array(c["origin_mm"], dtype=np.float64),
-            )
-            lp = data["light_plane_c"]
-            plane = Plane(np.array(lp["normal"], dtype=np.float64), float(lp["offset_mm"]))
-            mirrors = tuple(
-                Mirror(Plane(np.array(m["normal"], dtype=np.float64), float(m["offset_mm"])),
-                       (int(m["columns"][0]), int(m["columns"][1])))
-                for m in data["mirrors"]
-            )
-            direct = (int(data["direct_columns"][0]), int(data["direct_columns"][1]))
-            marker = np.array(data["marker_offset_t_mm"], dtype=np.float64)
-        except (KeyError, TypeError, IndexError, ValueError) as exc:
-            raise CalibrationError(f"calibration is missing or has a malformed field: {exc!r}") from exc
-        _check(camera, plane, mirrors, direct, marker)
-        return cls(camera, plane, mirrors, direct, marker)
+        """Build from the JSON form (`to_dict`); a missing or malformed field is named."""
+        c = _field(data, "camera")
+        camera = PinholeCamera(
+            fx=_number(c, "camera", "fx"), fy=_number(c, "camera", "fy"),
+            cx=_number(c, "camera", "cx"), cy=_number(c, "camera", "cy"),
+            width=_number(c, "camera", "width", int), height=_number(c, "camera", "height", int),
+            rotation=_array(c, "camera", "rotation", (3, 3)),
+            origin=_array(c, "camera", "origin_mm", (3,)),
+        )
+        lp = _field(data, "light_plane_c")
+        plane = Plane(_array(lp, "light_plane_c", "normal", (3,)),
+                      _number(lp, "light_plane_c", "offset_mm"))
+        mirror_list = _field(data, "mirrors")
+        if not isinstance(mirror_list, list):
+            raise CalibrationError(f"calibration field `mirrors` must be a list, got {_short(mirror_list)}")
+        mirrors = []
+        for i, m in enumerate(mirror_list):
+            where = f"mirrors[{i}]"
+            mirrors.append(Mirror(
+                Plane(_array(m, where, "normal", (3,)), _number(m, where, "offset_mm")),
+                _columns(m, where)))
+        direct = _columns(data, "", "direct_columns")
+        marker = _array(data, "", "marker_offset_t_mm", (3,))
+        _check(camera, plane, tuple(mirrors), direct, marker)
+        return cls(camera, plane, tuple(mirrors), direct, marker)
+
+
+def _columns(obj, where: str, key: str = "columns") -> tuple[int, int]:
+    c0, c1 = _array(obj, where, key, (2,))
+    if c0 != int(c0) or c1 != int(c1):
+        name = f"{where}.{key}" if where else key
+        raise CalibrationError(f"calibration field `{name}` must be two whole column numbers, "
+                               f"got {[c0, c1]}")
+    return int(c0), int(c1)
+
+
+def _short(value) -> str:
+    text = json.dumps(value) if isinstance(value, (int, float, str, list, dict, type(None))) \
+        else repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _lookup(obj, where: str, key: str):
+    """``obj[key]``, or a CalibrationError naming ``where.key``."""
+    name = f"{where}.{key}" if where else key
+    if not isinstance(obj, dict):
+        raise CalibrationError(f"calibration field `{where or 'top level'}` must be a JSON "
+                               f"object, got {_short(obj)}")
+    if key not in obj:
+        raise CalibrationError(f"calibration field `{name}` is missing")
+    return obj[key], name
+
+
+def _field(obj, key: str):
+    return _lookup(obj, "", key)[0]
+
+
+def _number(obj, where: str, key: str, kind=float):
+    value, name = _lookup(obj, where, key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise CalibrationError(f"calibration field `{name}` must be a number, got {_short(value)}")
+    if kind is int and value != int(value):
+        raise CalibrationError(f"calibration field `{name}` must be a whole number, got {value}")
+    return kind(value)
+
+
+def _array(obj, where: str, key: str, shape: tuple[int, ...]) -> np.ndarray:
+    value, name = _lookup(obj, where, key)
+    try:
+        array = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        array = None
+    if array is None or array.shape != shape:
+        form = " x ".join(map(str, shape))
+        raise CalibrationError(f"calibration field `{name}` must be {form} numbers, "
+                               f"got {_short(value)}")
+    return array
 
 
 def _check(camera, plane, mirrors, direct, marker) -> None:

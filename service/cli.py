@@ -1,4 +1,4 @@
-"""The ``flyscan`` command line.
+"""The flyscan command line: scan, simulate, serve, benchmark.
 
 Every command calls the same library functions the service and the benchmarks use; this
 module only parses arguments, reports errors clearly and exits non-zero on failure.
@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -20,13 +22,24 @@ class UsageError(ValueError):
 
 
 class ScanError(RuntimeError):
-    """The pass gave no usable scan (the marker never triggered, or its views disagree)."""
+    """Bad input found only once the pass or sweep ran: the marker's views disagree (the
+    calibration does not fit the cell), or the simulated camera sees nothing."""
+
+
+class ScanFailed(RuntimeError):
+    """The pass ran but gave no usable scan (no profile, or no point)."""
 
 
 #: Sanity limits on the pass: beyond them a typo (mm/s for m/s, a frame rate for a period)
 #: would simulate for hours.
 MAX_SPEED_MM_S = 5000.0
 MAX_FPS = 2000.0
+#: A pass must give at least this many profiles along the part, or it cannot be scanned.
+MIN_PROFILES = 5
+#: Options whose value is a list of numbers that may start with a minus sign.
+NUMBER_LIST_OPTIONS = ("--misplace", "--laser", "--camera")
+#: Exit status of a pass that ran and failed (bad input exits with 2).
+EXIT_SCAN_FAILED = 1
 #: Seconds a stopping service waits for open connections (server-sent events) to close.
 SHUTDOWN_GRACE_S = 3.0
 
@@ -41,11 +54,64 @@ def _non_negative_int(text: str) -> int:
     return value
 
 
+def _join_number_lists(argv: list[str]) -> list[str]:
+    """``--misplace -1,0,0,...`` -> ``--misplace=-1,0,0,...``.
+
+    argparse takes a value with a leading minus for an option unless it is a single number;
+    a list of numbers is not, yet misplacements are negative half the time.
+    """
+    out = []
+    args = iter(argv)
+    for arg in args:
+        if arg in NUMBER_LIST_OPTIONS:
+            value = next(args, None)
+            if value is not None and value.startswith("-") and _NUMBER_LIST.match(value):
+                out.append(f"{arg}={value}")
+                continue
+            out.append(arg)
+            if value is not None:
+                out.append(value)
+            continue
+        out.append(arg)
+    return out
+
+
+_NUMBER_LIST = re.compile(r"^\s*-?[\d.]")
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows an option's default, unless it has none or its help already names it."""
+
+    def _get_help_string(self, action):
+        if (action.default is None or action.default is False
+                or action.default == argparse.SUPPRESS or "default" in (action.help or "")):
+            return action.help
+        return super()._get_help_string(action)
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("flyscan")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def _parse_args(argv):
-    parser = argparse.ArgumentParser(prog="flyscan", description=__doc__.splitlines()[0])
+    from scanner_core.stripe import METHODS
+
+    argv = _join_number_lists(list(sys.argv[1:] if argv is None else argv))
+    parser = argparse.ArgumentParser(prog="flyscan", description=__doc__.splitlines()[0],
+                                     formatter_class=_HelpFormatter)
+    parser.add_argument("--version", action="version", version=f"flyscan {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    scan = sub.add_parser("scan", help="scan a CAD part in the simulated cell")
+    def command(name, **kwargs):
+        return sub.add_parser(name, formatter_class=_HelpFormatter,
+                              description=kwargs.get("help"), **kwargs)
+
+    scan = command("scan", help="scan a CAD part in the simulated cell")
     src = scan.add_mutually_exclusive_group(required=True)
     src.add_argument("--part", type=Path, help="mesh file (STL, OBJ, PLY)")
     src.add_argument("--demo", action="store_true", help="the built-in procedural block")
@@ -55,7 +121,9 @@ def _parse_args(argv):
                            "162 fps) and slow (50 mm/s, 16 fps) configurations")
     scan.add_argument("--speed", type=float, help="nominal pass speed, mm/s")
     scan.add_argument("--fps", type=float, help="camera frame rate, Hz")
-    scan.add_argument("--misplace", default=None, help="'tx,ty,tz,rx,ry,rz': mm and degrees, in {T}")
+    scan.add_argument("--misplace", default=None,
+                      help="'tx,ty,tz,rx,ry,rz': the part's misplacement in the gripper, mm and "
+                           "a rotation vector in degrees, in {T}; may start with a minus")
     scan.add_argument("--seed", type=_non_negative_int, default=0, help="image noise seed")
     scan.add_argument("--perturb-seed", type=_non_negative_int, default=None,
                       help="perturb the simulated cell's true geometry (repeatably)")
@@ -64,12 +132,13 @@ def _parse_args(argv):
     scan.add_argument("--grasp", choices=["centred", "identity"], default="centred",
                       help="nominal grasp: the part centred under the TCP (default), or the CAD "
                            "origin at the TCP")
-    scan.add_argument("--method", default="cog", help="stripe estimator")
+    scan.add_argument("--method", default="cog", choices=METHODS, help="sub-pixel stripe estimator")
     scan.add_argument("--drop-rate", type=float, default=0.0, help="fraction of frames lost")
     scan.add_argument("--no-eval", action="store_true", help="skip the ground-truth accuracy")
-    scan.add_argument("--out", type=Path, required=True)
+    scan.add_argument("--out", type=Path, required=True,
+                      help="folder for cloud.ply, edges.ply and report.json")
 
-    sim = sub.add_parser("simulate", help="predict the cloud of a CAD part by ray casting "
+    sim = command("simulate", help="predict the cloud of a CAD part by ray casting "
                                           "(the paper's scan simulator)")
     src = sim.add_mutually_exclusive_group(required=True)
     src.add_argument("--part", type=Path, help="mesh file (STL, OBJ, PLY)")
@@ -91,7 +160,7 @@ def _parse_args(argv):
     sim.add_argument("--threads", type=int, default=2, help="worker threads (default 2)")
     sim.add_argument("--out", type=Path, required=True, help="output PLY file")
 
-    serve = sub.add_parser("serve", help="run the real-time scanning service (REST, ZeroMQ, "
+    serve = command("serve", help="run the real-time scanning service (REST, ZeroMQ, "
                                          "status page)")
     serve.add_argument("--config", type=Path, default=None, help="settings file (TOML)")
     serve.add_argument("--sim", action="store_true", default=None,
@@ -104,10 +173,13 @@ def _parse_args(argv):
                                                                "(default ./flyscan-data)")
     serve.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
 
-    bench = sub.add_parser("bench", help="benchmarks: JSON figures and PNG charts")
+    bench = command("bench", help="benchmarks: JSON figures and PNG charts")
     bench.add_argument("what", choices=["stripe", "scan", "simulate", "service"])
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
+    bench.add_argument("--meshes", type=Path, default=None,
+                       help="folder of the reference meshes and their manifest.json (default: "
+                            "$FLYSCAN_MESHES, or ../shared/data/meshes beside a source checkout)")
     return parser.parse_args(argv)
 
 
@@ -115,21 +187,18 @@ def _cmd_scan(args) -> int:
     from scanner_core.calibration import load_calibration
     from scanner_core.pipeline import PipelineParams
     from scanner_core.scanio import save_scan
-    from scanner_core.stripe import METHODS
+    from scanner_core.fileio import save_json_atomic
     from simulator.cell import PASS_PRESETS, load_cell
     from simulator.parts import check_fits
     from simulator.session import parse_misplacement, run_simulated_scan
 
     # Everything is checked before the pass is simulated: a bad input writes nothing.
-    if args.method not in METHODS:
-        raise UsageError(f"--method must be one of {', '.join(METHODS)}, got {args.method!r}")
     _check_part_args(args)
     for name, limit in (("speed", MAX_SPEED_MM_S), ("fps", MAX_FPS)):
         value = getattr(args, name)
         if value is not None and not 0 < value <= limit:
             raise UsageError(f"--{name} must be positive and at most {limit:g}, got {value}")
-    if args.out.exists() and not args.out.is_dir():
-        raise UsageError(f"--out {args.out} exists and is not a directory")
+    _check_out_dir(args.out)
     if not 0.0 <= args.drop_rate < 1.0:
         raise UsageError(f"--drop-rate must be in [0, 1), got {args.drop_rate}")
     try:
@@ -137,10 +206,11 @@ def _cmd_scan(args) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     part = _load_part(args)
-    check_fits(part)
+    check_fits(part, pose=misplacement @ part.grasp)
     cell = load_cell(perturb_seed=args.perturb_seed)
     preset = PASS_PRESETS[args.preset]
     cell = cell.with_pass(speed_mm_s=args.speed or preset.speed_mm_s, fps=args.fps or preset.fps)
+    _check_frame_spacing(part, cell.pass_profile.speed_mm_s, cell.pass_profile.fps)
     calibration = load_calibration(args.calibration) if args.calibration else None
     params = PipelineParams(stripe_method=args.method)
     t0 = time.perf_counter()
@@ -153,10 +223,14 @@ def _cmd_scan(args) -> int:
         raise ScanError(
             f"the marker's three views disagree (median residual {scan.marker_residual_px:.2f} px "
             f"over {scan.frames + scan.frames_unplaced} frames): does the calibration fit the cell?")
-    if scan.frames == 0:
-        raise ScanError("the marker never triggered: no profile was acquired "
-                        f"(the pass ended: {scan.end_reason})")
     report["wall_s"] = round(time.perf_counter() - t0, 3)
+    failure = _scan_failure(scan)
+    if failure is not None:
+        # The pass's record is kept: its report says what was acquired and why it failed.
+        report.update(status="failed", failure=failure)
+        args.out.mkdir(parents=True, exist_ok=True)
+        save_json_atomic(args.out / "report.json", report)
+        raise ScanFailed(f"{failure}; the pass's report: {args.out / 'report.json'}")
     paths = save_scan(args.out, scan, report)
     acc = report["ground_truth"].get("accuracy", {})
     print(f"scanned {part.name}: {report['frames']} frames, {report['points']} points, "
@@ -168,6 +242,47 @@ def _cmd_scan(args) -> int:
     for key, path in paths.items():
         print(f"{key}: {path}")
     return 0
+
+
+def _scan_failure(scan) -> str | None:
+    """Why a pass that ran gave no usable scan, or None."""
+    if scan.frames == 0:
+        return f"the marker never triggered: no profile was acquired (the pass ended: {scan.end_reason})"
+    if len(scan.cloud) == 0:
+        return (f"no points: {scan.frames} profiles were acquired but the stripe was found on "
+                "none of them")
+    return None
+
+
+def _check_out_dir(out: Path) -> None:
+    """Refuse an output folder that cannot be written, before the pass runs (writes nothing)."""
+    import tempfile
+
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} exists and is not a directory")
+    existing = out
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise UsageError(f"--out {out}: {existing} is a file, not a directory")
+    try:  # os.access is no guide when running as root, or on a read-only mount
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as exc:
+        raise UsageError(f"--out {out} cannot be written: no file can be created in "
+                         f"{existing} ({exc.strerror})") from None
+
+
+def _check_frame_spacing(part, speed_mm_s: float, fps: float) -> None:
+    """Refuse a pass whose frames are too far apart to give `MIN_PROFILES` on the part."""
+    spacing = speed_mm_s / fps
+    length = float(part.extents_t[1])  # the part moves along y_T through the light sheet
+    if length / spacing < MIN_PROFILES:
+        need = MIN_PROFILES * speed_mm_s / length
+        raise UsageError(
+            f"at {speed_mm_s:g} mm/s and {fps:g} fps the frames are {spacing:.3g} mm apart, "
+            f"too few for the part's {length:.1f} mm along the pass (at least {MIN_PROFILES} "
+            f"profiles): raise --fps to {need:.3g} or more, or lower --speed")
 
 
 def _check_part_args(args) -> None:
@@ -322,6 +437,12 @@ def _check_addresses(settings) -> None:
 
 
 def _cmd_bench(args) -> int:
+    from simulator.parts import MESHES_ENV
+
+    if args.meshes is not None:
+        if not (args.meshes / "manifest.json").is_file():
+            raise UsageError(f"--meshes {args.meshes} holds no manifest.json")
+        os.environ[MESHES_ENV] = str(args.meshes)  # the benchmarks' reference-part loader reads it
     if args.what == "stripe":
         from service.bench import stripe as bench
     elif args.what == "simulate":
@@ -351,6 +472,9 @@ def main(argv=None) -> int:
         except (UsageError, PartError, CalibrationError, ScanError, SetupError) as exc:
             print(f"flyscan {args.command}: error: {exc}", file=sys.stderr)
             return 2
+        except ScanFailed as exc:
+            print(f"flyscan {args.command}: scan failed: {exc}", file=sys.stderr)
+            return EXIT_SCAN_FAILED
 
 
 if __name__ == "__main__":

@@ -428,6 +428,8 @@ def _failure(job: ScanJob, reason: EndReason, scan: Scan) -> str | None:
         return "no profile could be placed: the robot gave no pose to take the gripper's rotation from"
     if scan.frames == 0:
         return "no profile could be placed (the marker was never triangulated)"
+    if len(scan.cloud) == 0:
+        return f"no points: {scan.frames} profiles were placed but the stripe was found on none"
     if job.worker_errors:
         return f"{len(job.worker_errors)} frames failed to process: {job.worker_errors[0]}"
     return None

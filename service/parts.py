@@ -14,12 +14,11 @@ import re
 import shutil
 import tempfile
 import threading
-import warnings
 from pathlib import Path
 
 import numpy as np
 
-from simulator.parts import (Part, PartError, PartUnitWarning, block_with_holes_and_steps,
+from simulator.parts import (Part, PartError, block_with_holes_and_steps,
                              check_fits, load_part, part_from_mesh)
 
 log = logging.getLogger("flyscan.parts")
@@ -40,13 +39,8 @@ def part_info(part: Part) -> dict:
 
 
 def _checked(load) -> Part:
-    """Load a part, turning an implausible size for its unit into an error."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", PartUnitWarning)
-        part = load()
-    for w in caught:
-        if issubclass(w.category, PartUnitWarning):
-            raise PartError(str(w.message))
+    """Load a part (`load_part` refuses a size implausible for its unit) that fits the volume."""
+    part = load()
     check_fits(part)
     return part
 

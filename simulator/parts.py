@@ -26,7 +26,7 @@ from scanner_core.geometry import apply_transform, check_rigid
 from simulator.raycast import Intersector
 
 __all__ = [
-    "UNITS_MM", "PartError", "PartUnitWarning", "Part", "load_part", "part_from_mesh",
+    "UNITS_MM", "PartError", "PLAUSIBLE_SIZE_MM", "Part", "load_part", "part_from_mesh",
     "load_reference_part", "reference_meshes_dir", "centred_grasp", "check_fits",
     "block_with_holes_and_steps", "INSPECTION_VOLUME_MM",
 ]
@@ -41,9 +41,15 @@ _UNIT_ALIASES = {
 }
 #: The reference cell's inspection volume (x, y, z in {T}), mm.
 INSPECTION_VOLUME_MM = (150.0, 150.0, 100.0)
-# A part whose largest extent falls outside this range (mm) probably has the wrong unit: a
-# part the gripper picks is bigger than a millimetre and smaller than two metres.
-_PLAUSIBLE_SIZE_MM = (1.0, 2000.0)
+#: A mesh file whose largest extent falls outside this range (mm) is refused: it probably has
+#: the wrong unit. Below 6 mm the default pass (1.2 mm between profiles) gives fewer than five
+#: profiles, and every part that fits the inspection volume, read in inches or cm as if in mm,
+#: falls below it; above 2 m no gripper holds it.
+PLAUSIBLE_SIZE_MM = (6.0, 2000.0)
+#: How far (mm) a misplaced part may reach above z_T = 0. A tilt about the TCP lifts one edge
+#: of the gripped face (2 degrees over 60 mm: 1 mm); the simulated cell has no gripper body, so
+#: that is harmless. Beyond it the part would be inside the gripper.
+GRIPPER_TOLERANCE_MM = 5.0
 # Slack when comparing a part's size with the volume, mm: float noise of unit conversion.
 _FIT_TOL_MM = 1e-6
 _FORMATS = (".stl", ".obj", ".ply")
@@ -52,10 +58,6 @@ MESHES_ENV = "FLYSCAN_MESHES"
 
 class PartError(ValueError):
     """A part cannot be used: bad unit, unreadable or empty file, bad geometry, too large."""
-
-
-class PartUnitWarning(UserWarning):
-    """The part's size in mm is implausible for the unit given: probably the wrong unit."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,7 +93,7 @@ class Part:
     @property
     def extents_t(self) -> np.ndarray:
         """(3,) float64, mm: bounding-box size in {T} after the nominal grasp."""
-        lo, hi = _bounds_t(self.mesh, self.grasp)
+        lo, hi = _bounds_t(self, self.grasp)
         return hi - lo
 
     @cached_property
@@ -144,11 +146,8 @@ def load_part(path, units: str, *, name: str | None = None,
     ------
     PartError
         Unknown unit, missing, empty or unparseable file, no triangles, non-finite vertices.
-
-    Warns
-    -----
-    PartUnitWarning
-        When the size in mm is implausible for the unit (largest extent < 1 mm or > 2 m).
+        A size implausible for the unit (largest extent outside `PLAUSIBLE_SIZE_MM`), with
+        the unit that would make it plausible.
     """
     unit = _canonical_unit(units)
     p = Path(path)
@@ -170,7 +169,9 @@ def load_part(path, units: str, *, name: str | None = None,
     except Exception as exc:  # trimesh raises many types on a bad file; re-raised with the path
         raise PartError(f"cannot read part file {p}: {type(exc).__name__}: {exc}") from exc
     name = p.stem if name is None else name
-    return _make_part(loaded, name=name, unit=unit, source=str(p), grasp=grasp)
+    part = _make_part(loaded, name=name, unit=unit, source=str(p), grasp=grasp)
+    _check_plausible_size(part.mesh, name, unit)
+    return part
 
 
 def _check_content(p: Path) -> None:
@@ -237,12 +238,20 @@ def part_from_mesh(mesh: trimesh.Trimesh, *, name: str, units: str = "mm",
     return _make_part(mesh, name=name, unit=unit, source=source, grasp=grasp)
 
 
-def reference_meshes_dir() -> Path:
-    """The folder of the reference meshes: ``$FLYSCAN_MESHES`` or ``<repo>/../shared/data/meshes``."""
+def reference_meshes_dir() -> Path | None:
+    """The folder of the reference meshes, or None when nothing says where it is.
+
+    ``$FLYSCAN_MESHES`` (``flyscan bench --meshes DIR`` sets it) first; in a source checkout,
+    ``../shared/data/meshes`` beside the repository. An installed package has no such
+    neighbour: there the folder must be given.
+    """
     env = os.environ.get(MESHES_ENV)
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[1].parent / "shared" / "data" / "meshes"
+    checkout = Path(__file__).resolve().parents[1]
+    if (checkout / "pyproject.toml").is_file():
+        return checkout.parent / "shared" / "data" / "meshes"
+    return None
 
 
 def load_reference_part(name: str) -> Part:
@@ -264,10 +273,13 @@ def load_reference_part(name: str) -> Part:
         message lists the names available).
     """
     folder = reference_meshes_dir()
+    if folder is None:
+        raise PartError(f"where are the reference meshes? Give the folder with --meshes DIR or "
+                        f"the {MESHES_ENV} environment variable")
     manifest_path = folder / "manifest.json"
     if not manifest_path.is_file():
         raise PartError(f"no reference meshes at {folder} (missing manifest.json); "
-                        f"set {MESHES_ENV} to the folder")
+                        f"give the folder with --meshes DIR or {MESHES_ENV}")
     try:
         manifest = json.loads(manifest_path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
@@ -311,24 +323,24 @@ def _make_part(mesh, *, name: str, unit: str, source: str, grasp) -> Part:
     clean.remove_unreferenced_vertices()
     if len(clean.faces) == 0:
         raise PartError(f"part {name!r} ({source}) has no non-degenerate triangles")
-    _warn_if_implausible(clean, name, unit)
     grasp = centred_grasp(clean) if grasp is None else _check_grasp(grasp)
     grasp.setflags(write=False)
     return Part(name=name, mesh=clean, source=source, units=unit, grasp=grasp)
 
 
-def _warn_if_implausible(mesh: trimesh.Trimesh, name: str, unit: str) -> None:
+def _check_plausible_size(mesh: trimesh.Trimesh, name: str, unit: str) -> None:
     size = float(np.max(mesh.extents))
-    lo, hi = _PLAUSIBLE_SIZE_MM
+    lo, hi = PLAUSIBLE_SIZE_MM
     if lo <= size <= hi:
         return
     raw = size / UNITS_MM[unit]
     fits = [u for u, f in UNITS_MM.items() if u != unit and lo <= raw * f <= hi]
     # Prefer the unit that makes the part closest to a typical 100 mm part (log scale).
     fits.sort(key=lambda u: abs(np.log10(raw * UNITS_MM[u] / 100.0)))
-    hint = f"; did you mean units={fits[0]!r}?" if fits else ""
-    warnings.warn(f"part {name!r} is {size:.6g} mm across with units={unit!r}, which is "
-                  f"implausible{hint}", PartUnitWarning, stacklevel=4)
+    hint = f": did you mean units={fits[0]!r}?" if fits else ""
+    raise PartError(f"part {name!r} is {size:.6g} mm across read in {unit}, "
+                    f"{'smaller' if size < lo else 'larger'} than a part the scanner can take "
+                    f"({lo:g} to {hi:g} mm){hint}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -356,39 +368,54 @@ def centred_grasp(mesh: trimesh.Trimesh) -> np.ndarray:
     return x
 
 
-def check_fits(part: Part, volume_mm=INSPECTION_VOLUME_MM) -> None:
-    """Raise when the part, under its nominal grasp, does not fit the inspection volume.
+def check_fits(part: Part, volume_mm=INSPECTION_VOLUME_MM, *, pose=None) -> None:
+    """Raise when the part, under its nominal grasp or `pose`, does not fit the inspection volume.
 
     The volume hangs below the TCP: x_T and y_T within half its size either side, z_T from 0
     (the gripper) to its height. A part may be small enough and still sit outside it, when
-    its grasp (the identity, say, for a CAD origin far from the part) puts it elsewhere.
+    its grasp (the identity, say, for a CAD origin far from the part) or a misplacement puts
+    it elsewhere; a part reaching above z_T = 0 would be inside the gripper.
 
     Parameters
     ----------
     part : Part
     volume_mm : (3,) sequence of float
         Size of the inspection volume along x_T, y_T, z_T, mm.
+    pose : (4, 4) array_like, optional
+        ^T X_P actually held (a misplacement composed with the nominal grasp); default the
+        nominal grasp.
 
     Raises
     ------
     PartError
-        Naming the part's size and the volume's.
+        Naming the part's size and the volume's, or where the part lies.
     """
     vol = np.asarray(volume_mm, dtype=np.float64)
     if vol.shape != (3,) or not np.all(vol > 0):
         raise ValueError(f"`volume_mm` must be 3 positive sizes, got {volume_mm!r}")
-    ext = part.extents_t
+    misplaced = pose is not None
+    pose = part.grasp if pose is None else _check_grasp(pose)
+    lo, hi = _bounds_t(part, pose)
+    ext = hi - lo
     if np.any(ext > vol + _FIT_TOL_MM):
-        raise PartError(f"part {part.name!r} is {ext[0]:.1f} x {ext[1]:.1f} x {ext[2]:.1f} mm; "
-                        f"the inspection volume is {vol[0]:g} x {vol[1]:g} x {vol[2]:g} mm")
-    lo, hi = _bounds_t(part.mesh, part.grasp)
+        raise PartError(f"part {part.name!r} is {ext[0]:.1f} x {ext[1]:.1f} x {ext[2]:.1f} mm "
+                        f"in {{T}}; the inspection volume is {vol[0]:g} x {vol[1]:g} x "
+                        f"{vol[2]:g} mm")
     box_lo = np.array([-vol[0] / 2, -vol[1] / 2, 0.0]) - _FIT_TOL_MM
     box_hi = np.array([vol[0] / 2, vol[1] / 2, vol[2]]) + _FIT_TOL_MM
-    if np.any(lo < box_lo) or np.any(hi > box_hi):
-        raise PartError(
-            f"part {part.name!r} under its grasp spans {np.round(lo, 1).tolist()} to "
-            f"{np.round(hi, 1).tolist()} mm in {{T}}, outside the inspection volume below the "
-            f"TCP ({vol[0]:g} x {vol[1]:g} x {vol[2]:g} mm, z_T from 0): use the centred grasp")
+    if misplaced:
+        box_lo[2] -= GRIPPER_TOLERANCE_MM
+    if np.all(lo >= box_lo) and np.all(hi <= box_hi):
+        return
+    held = "with the misplacement" if misplaced else "under its grasp"
+    spans = (f"part {part.name!r} {held} spans {np.round(lo, 1).tolist()} to "
+             f"{np.round(hi, 1).tolist()} mm in {{T}}")
+    hint = ("a misplacement must leave the part in the volume" if misplaced
+            else "use the centred grasp")
+    if lo[2] < box_lo[2] and np.all(hi <= box_hi):
+        raise PartError(f"{spans}, reaching {-lo[2]:.1f} mm into the gripper (z_T < 0): {hint}")
+    raise PartError(f"{spans}, outside the inspection volume below the TCP ({vol[0]:g} x "
+                    f"{vol[1]:g} x {vol[2]:g} mm, z_T from 0): {hint}")
 
 
 def _check_grasp(grasp) -> np.ndarray:
@@ -398,10 +425,11 @@ def _check_grasp(grasp) -> np.ndarray:
         raise PartError(f"`grasp` {exc}") from None
 
 
-def _bounds_t(mesh: trimesh.Trimesh, grasp: np.ndarray) -> np.ndarray:
-    if np.allclose(grasp[:3, :3], np.eye(3)):
-        return np.asarray(mesh.bounds) + grasp[:3, 3]
-    v = apply_transform(grasp, mesh.vertices)
+def _bounds_t(part: "Part", pose: np.ndarray) -> np.ndarray:
+    """(2, 3) float64, mm: the part's bounding box in {T} under ^T X_P = `pose`."""
+    if np.allclose(pose[:3, :3], np.eye(3)):
+        return np.asarray(part.mesh.bounds) + pose[:3, 3]
+    v = apply_transform(pose, part.hull_vertices)  # the hull decides the extent
     return np.stack([v.min(axis=0), v.max(axis=0)])
 
 

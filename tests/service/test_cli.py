@@ -35,7 +35,8 @@ def test_scan_writes_the_contract_files(block_stl, tmp_path):
     assert report["ground_truth"]["accuracy"]["rms_um"] <= 20.0
     points, fields = read_ply(out / "cloud.ply")
     assert points.dtype == np.float32 and points.shape == (report["points"], 3)
-    assert set(fields) == {"frame_id", "quality"}
+    assert set(fields) == {"nx", "ny", "nz", "sensor_x", "sensor_y", "sensor_z", "frame_id",
+                           "quality"}
     # Another tool opens the same file and finds the same points, in mm.
     other = trimesh.load(out / "cloud.ply")
     np.testing.assert_allclose(np.asarray(other.vertices), points, atol=1e-6)
@@ -49,7 +50,6 @@ def test_scan_writes_the_contract_files(block_stl, tmp_path):
     ([], "--units is required"),
     (["--units", "inch", "--speed", "-5"], "--speed must be positive"),
     (["--units", "inch", "--misplace", "1,2,3"], "--misplace must be six"),
-    (["--units", "inch", "--method", "magic"], "--method must be one of"),
 ])
 def test_bad_input_is_refused_and_nothing_written(block_stl, tmp_path, capsys, argv, message):
     out = tmp_path / "scan"
@@ -130,7 +130,15 @@ def _calibration_with(tmp_path, mutate):
     (lambda t: _calibration_with(t, lambda d: d["light_plane_c"].__setitem__("offset_mm", float("nan"))),
      "`light_plane_c.offset_mm` must be finite"),
     (lambda t: _calibration_with(t, lambda d: d.__setitem__("marker_offset_t_mm", [0, "x", 0])),
-     "malformed"),
+     "calibration field `marker_offset_t_mm` must be 3 numbers"),
+    (lambda t: _calibration_with(t, lambda d: d.__setitem__("camera", 1)),
+     "calibration field `camera` must be a JSON object, got 1"),
+    (lambda t: _calibration_with(t, lambda d: d["camera"].pop("fx")),
+     "calibration field `camera.fx` is missing"),
+    (lambda t: _calibration_with(t, lambda d: d["mirrors"][1].__setitem__("columns", [1.5, 9])),
+     "calibration field `mirrors[1].columns` must be two whole column numbers"),
+    (lambda t: _calibration_with(t, lambda d: d["camera"].__setitem__("width", "wide")),
+     "calibration field `camera.width` must be a number"),
     (lambda t: (t / "one.json").write_text("1") and t / "one.json", "must hold a JSON object"),
     (lambda t: t, "cannot read calibration file"),  # a directory
 ])
@@ -202,3 +210,155 @@ def test_serve_refuses_bad_settings_in_one_line(tmp_path, capsys, argv, message)
 def test_serve_without_devices_says_what_to_do(tmp_path, capsys):
     assert main(["serve", "--data", str(tmp_path / "d")]) == 2
     assert "run with --sim" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# What a new user trips on (issue 11)
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("option", ["--misplace", "--laser", "--camera"])
+def test_number_lists_may_start_with_a_minus(option):
+    from service.cli import _join_number_lists
+    assert _join_number_lists(["simulate", option, "-1,0,-2", "--out", "x"]) == \
+        ["simulate", f"{option}=-1,0,-2", "--out", "x"]
+    # Another option after it is left alone, as is a value without a minus.
+    assert _join_number_lists([option, "--out", "x"]) == [option, "--out", "x"]
+    assert _join_number_lists([option, "1,2,3"]) == [option, "1,2,3"]
+
+
+def test_negative_misplacement_scans(tmp_path):
+    out = tmp_path / "o"
+    assert main(["scan", "--demo", "--fps", "60", "--no-eval", "--misplace", "-1.5,0,0,0,0,-2",
+                 "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    misplacement = np.asarray(report["ground_truth"]["misplacement"])
+    np.testing.assert_allclose(misplacement[:3, 3], [-1.5, 0.0, 0.0])
+    np.testing.assert_allclose(np.degrees(np.arctan2(misplacement[1, 0], misplacement[0, 0])), -2.0)
+    assert report["points"] > 1000
+
+
+def _inch_box(tmp_path, extents, name="part.stl"):
+    path = tmp_path / name
+    trimesh.creation.box(extents=extents).export(path)
+    return path
+
+
+@pytest.mark.parametrize("extents, units, hint", [
+    ((2.0, 1.0, 0.5), "mm", "did you mean units='inch'"),      # a 2-inch part read in mm
+    ((0.06, 0.04, 0.02), "mm", "did you mean units='m'"),      # a part in metres read in mm
+    ((60.0, 40.0, 20.0), "m", "did you mean units='mm'"),      # mm read in metres
+])
+def test_implausible_size_is_refused_with_the_unit_hint(tmp_path, capsys, extents, units, hint):
+    out = tmp_path / "o"
+    code = main(["scan", "--part", str(_inch_box(tmp_path, extents)), "--units", units,
+                 "--out", str(out)])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert hint in err and "Warning" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def _emptied(run, *, frames_too: bool):
+    """`run_simulated_scan`, with the pass's points (and frames) taken away."""
+    import dataclasses
+
+    def wrapped(*args, **kwargs):
+        scan, report = run(*args, **kwargs)
+        empty = dict(cloud=scan.cloud[:0], frame_ids=scan.frame_ids[:0],
+                     quality=scan.quality[:0])
+        if frames_too:
+            empty.update(frames=0)
+        return dataclasses.replace(scan, **empty), report
+    return wrapped
+
+
+@pytest.mark.parametrize("frames_too, message", [
+    (False, "no points: "),
+    (True, "the marker never triggered"),
+])
+def test_a_scan_without_points_fails(tmp_path, capsys, monkeypatch, frames_too, message):
+    import simulator.session
+    monkeypatch.setattr(simulator.session, "run_simulated_scan",
+                        _emptied(simulator.session.run_simulated_scan, frames_too=frames_too))
+    out = tmp_path / "o"
+    code = main(["scan", "--demo", "--fps", "60", "--no-eval", "--out", str(out)])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    # The pass's record is kept; no cloud claims to be a scan.
+    report = json.loads((out / "report.json").read_text())
+    assert report["status"] == "failed" and message in report["failure"]
+    assert not (out / "cloud.ply").exists()
+
+
+@pytest.mark.parametrize("out, message", [
+    ("/proc/flyscan-out/scan", "cannot be written"),       # procfs takes no new files, even from root
+    ("{file}/scan", "is a file, not a directory"),
+])
+def test_unwritable_out_is_refused_before_the_pass(tmp_path, capsys, monkeypatch, out, message):
+    import simulator.session
+
+    def never(*args, **kwargs):
+        raise AssertionError("the pass ran before --out was checked")
+    monkeypatch.setattr(simulator.session, "run_simulated_scan", never)
+    blocker = tmp_path / "file"
+    blocker.write_text("keep")
+    code = main(["scan", "--demo", "--out", out.format(file=blocker)])
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert blocker.read_text() == "keep"
+
+
+@pytest.mark.parametrize("misplace, message", [
+    ("0,0,300,0,0,0", "outside the inspection volume"),
+    ("0,0,0,180,0,0", "mm into the gripper"),
+    ("-100,0,0,0,0,0", "outside the inspection volume"),
+])
+def test_misplacement_out_of_the_volume_is_refused(tmp_path, capsys, misplace, message):
+    out = tmp_path / "o"
+    assert main(["scan", "--demo", "--misplace", misplace, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "misplacement" in err
+    assert not out.exists()
+
+
+def test_a_small_tilt_is_a_misplacement_not_an_error():
+    from simulator.parts import check_fits, part_from_mesh
+    from simulator.session import parse_misplacement
+    part = part_from_mesh(block_with_holes_and_steps(), name="block")
+    check_fits(part, pose=parse_misplacement("0.5,-1,0,2,-3,5") @ part.grasp)
+
+
+def test_too_low_a_frame_rate_names_the_frame_rate(tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["scan", "--demo", "--fps", "0.5", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    # 200 mm/s over 0.5 fps: 400 mm between frames on a 40 mm part; 5 profiles need 25 fps.
+    assert "frames are 400 mm apart" in err and "raise --fps to 25" in err
+    assert "marker never triggered" not in err
+    assert not out.exists()
+
+
+def test_help_and_version(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    top = capsys.readouterr().out
+    assert "``" not in top and "flyscan command line" in top
+    with pytest.raises(SystemExit):
+        main(["--version"])
+    from importlib.metadata import version
+    assert capsys.readouterr().out.strip() == f"flyscan {version('flyscan')}"
+    with pytest.raises(SystemExit):
+        main(["scan", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "{cog,gaussian3,parabola,blais_rioux,lsq_gauss}" in text
+    assert "(default: cog)" in text and "(default: 0)" in text  # defaults shown, 0 included
+    assert "(default: None)" not in text
+
+
+def test_unknown_method_lists_the_choices(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["scan", "--demo", "--method", "magic", "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    assert "invalid choice: 'magic'" in capsys.readouterr().err

@@ -234,3 +234,49 @@ def test_stopping_during_a_pass_stores_it_as_failed(tmp_path, cell):
     info = store.info(scan_id)
     assert info["state"] == "failed" and info["reason"] == "reset: the service stopped"
     assert info["points"] > 0 and store.file(scan_id, "cloud.ply").stat().st_size > 0
+
+
+class MarkerThenEmptyCamera(StuckMarkerCamera):
+    """The marker for ``marked`` frames, then background: a pass whose stripe never shows."""
+
+    def __init__(self, marked_image, empty_image, marked: int, fps=200.0):
+        super().__init__(marked_image, fps)
+        self.empty_image, self.marked = empty_image, marked
+
+    def grab(self, timeout):
+        frame = super().grab(timeout)
+        if frame.frame_id >= self.marked:
+            return Frame(self.empty_image, frame.frame_id, frame.t)
+        return frame
+
+
+def test_a_pass_without_points_is_a_failed_scan(cell, block_part):
+    import dataclasses
+
+    from simulator.live import frame_image
+    sim = LiveSimCell(cell, seed=2)
+    truths = sim.prepare_pass(block_part).truths
+    truth = truths[len(truths) // 2]  # mid-pass: the marker in all views
+    no_stripe = dataclasses.replace(truth, stripe_columns=truth.stripe_columns[:0],
+                                    stripe_rows=truth.stripe_rows[:0],
+                                    stripe_gain=truth.stripe_gain[:0])
+    rng = np.random.default_rng(0)
+    camera = MarkerThenEmptyCamera(frame_image(cell, no_stripe, rng), frame_image(cell, None, rng),
+                                   marked=30)
+    results, done = [], threading.Event()
+
+    def on_scan(job, scan, check):
+        results.append((job, scan))
+        done.set()
+
+    engine = Engine(camera, StillRobot(cell.gripper_rotation_b), cell.calibration,
+                    PipelineParams(), on_scan=on_scan, workers=1)
+    engine.start()
+    try:
+        engine.arm()
+        assert done.wait(10.0)
+    finally:
+        engine.stop()
+    job, scan = results[0]
+    assert scan.end_reason == "marker gone" and scan.frames >= 25 and len(scan.cloud) == 0
+    assert job.state == "failed" and job.reason.startswith("no points")

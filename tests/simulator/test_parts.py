@@ -8,7 +8,7 @@ from numpy.testing import assert_allclose
 
 from simulator import parts
 from simulator.parts import (
-    PartError, PartUnitWarning, block_with_holes_and_steps, centred_grasp, check_fits,
+    PartError, block_with_holes_and_steps, centred_grasp, check_fits,
     load_part, load_reference_part, part_from_mesh,
 )
 
@@ -139,13 +139,30 @@ def test_degenerate_faces_and_unreferenced_vertices_dropped(tmp_path):
 
 
 @pytest.mark.parametrize("extents, unit, hint", [
-    ((0.05, 0.02, 0.01), "mm", "did you mean units='m'"),
-    ((150.0, 40.0, 20.0), "m", "did you mean units='mm'"),
+    ((0.05, 0.02, 0.01), "mm", "smaller .* did you mean units='m'"),
+    ((2.0, 1.0, 0.5), "mm", "smaller .* did you mean units='inch'"),
+    ((150.0, 40.0, 20.0), "m", "larger .* did you mean units='mm'"),
 ])
-def test_implausible_size_warns(tmp_path, extents, unit, hint):
+def test_implausible_size_is_refused(tmp_path, extents, unit, hint):
     path = _box_file(tmp_path, extents)
-    with pytest.warns(PartUnitWarning, match=hint):
+    with pytest.raises(PartError, match=hint):
         load_part(path, unit)
+
+
+def test_a_misplaced_pose_is_checked_against_the_volume():
+    part = part_from_mesh(block_with_holes_and_steps(), name="block")
+    lifted = np.eye(4)
+    lifted[2, 3] = -6.0  # 6 mm up into the gripper: beyond the tilt tolerance
+    with pytest.raises(PartError, match="6.0 mm into the gripper"):
+        check_fits(part, pose=lifted @ part.grasp)
+    lifted[2, 3] = -4.0  # within it (a tilt lifts an edge by as much)
+    check_fits(part, pose=lifted @ part.grasp)
+    turned = np.eye(4)
+    turned[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # 90 degrees about z: 40 x 60 mm
+    check_fits(part, pose=turned @ part.grasp)
+    with pytest.raises(PartError, match="outside the inspection volume"):
+        check_fits(part, pose=np.array([[1, 0, 0, 60.0], [0, 1, 0, 0], [0, 0, 1, 0],
+                                        [0, 0, 0, 1]]) @ part.grasp)
 
 
 def test_centred_grasp(tmp_path):
@@ -163,7 +180,7 @@ def test_centred_grasp(tmp_path):
 def test_check_fits(tmp_path):
     check_fits(load_part(_box_file(tmp_path, (150.0, 150.0, 100.0)), "mm"))
     big = load_part(_box_file(tmp_path, (160.0, 40.0, 20.0), name="big.stl"), "mm")
-    with pytest.raises(PartError, match=r"part 'big' is 160\.0 x 40\.0 x 20\.0 mm; "
+    with pytest.raises(PartError, match=r"part .big. is 160\.0 x 40\.0 x 20\.0 mm in {T}; "
                                         r"the inspection volume is 150 x 150 x 100 mm"):
         check_fits(big)
     check_fits(big, volume_mm=(200.0, 200.0, 200.0))
