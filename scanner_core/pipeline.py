@@ -238,6 +238,7 @@ class PlacedProfile:
     quality: np.ndarray
     tcp_b: np.ndarray
     residual_px: float
+    rotation_b: np.ndarray | None = None
 
 
 class PassAccumulator:
@@ -303,7 +304,8 @@ class PassAccumulator:
                 tcp = profile.marker.position_b - rotation @ self.calibration.marker_offset_t
                 placed = PlacedProfile(profile.frame_id, profile.t,
                                        base_to_tcp(profile.points_b, tcp, rotation).astype(np.float32),
-                                       profile.quality, tcp, profile.marker.residual_px)
+                                       profile.quality, tcp, profile.marker.residual_px,
+                                       rotation)
         with self._lock:
             self._frame_ids.append(profile.frame_id)
             if np.isfinite(profile.marker.residual_px):
@@ -355,6 +357,12 @@ class PassAccumulator:
         scan.frames_held_rotation = held
         scan.frames_without_rotation = no_rotation
         scan.tcp_frame_ids = np.array([p.frame_id for p in placed], dtype=np.int64)
+        scan.tcp_rotations_b = np.array([p.rotation_b for p in placed],
+                                        dtype=np.float64).reshape(-1, 3, 3)
+        # The camera centre in {T} per frame: R^T (C_B - p), as base_to_tcp places points.
+        scan.sensor_positions_t = np.einsum(
+            "fji,fj->fi", scan.tcp_rotations_b,
+            self.calibration.camera.origin - scan.tcp_positions_b)
         scan.end_reason = end_reason.value if end_reason is not None else None
         if end_reason is EndReason.CAMERA_STOPPED and scan.frames:
             scan.interrupted = stopped_because

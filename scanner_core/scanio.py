@@ -1,8 +1,12 @@
 """Save a scan as the contract's files: ``cloud.ply``, ``edges.ply`` and ``report.json``.
 
-The clouds are binary little-endian PLY, float32 x, y, z in mm in {T}, with per-vertex
-``frame_id`` and ``quality``. Every file is written atomically and the report last, so a
-directory with a ``report.json`` holds a complete scan.
+The clouds are binary little-endian PLY, float32 x, y, z in mm in {T}. ``cloud.ply`` adds per
+vertex, in this order: the unit normal ``nx, ny, nz`` (float32, toward the camera that saw the
+point; :func:`scanner_core.normals.estimate_normals`), the camera's optical centre at the
+point's frame ``sensor_x, sensor_y, sensor_z`` (float32, mm in {T}), ``frame_id`` (int32, the
+camera frame counter) and ``quality`` (float32, the stripe's peak, DN). The names are those
+Open3D, CloudCompare and PCL read as normals. Every file is written atomically and the report
+last, so a directory with a ``report.json`` holds a complete scan.
 """
 from __future__ import annotations
 
@@ -11,19 +15,53 @@ from pathlib import Path
 import numpy as np
 
 from scanner_core.fileio import save_json_atomic
+from scanner_core.normals import estimate_normals
 from scanner_core.ply import write_ply
 from scanner_core.types import Scan
 
 
 def save_scan(out_dir, scan: Scan, report: dict) -> dict[str, Path]:
-    """Write a scan's files into ``out_dir`` (created if missing). Returns their paths."""
+    """Write a scan's files into ``out_dir`` (created if missing). Returns their paths.
+
+    A scan that does not carry its per-frame camera centres (``Scan.sensor_positions_t``,
+    e.g. one built by hand) is written with NaN sensor positions and normals: there is no
+    viewpoint to orient them by.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"cloud": out / "cloud.ply", "edges": out / "edges.ply", "report": out / "report.json"}
     comments = ("flyscan scan", "frame T", "units mm")
-    write_ply(paths["cloud"], scan.cloud,
-              fields={"frame_id": scan.frame_ids.astype(np.int32),
-                      "quality": scan.quality.astype(np.float32)}, comments=comments)
+    sensors = point_sensors(scan)
+    normals = estimate_normals(scan.cloud, sensors=sensors, frame_ids=scan.frame_ids)
+    fields = {f"n{c}": normals[:, i] for i, c in enumerate("xyz")}
+    fields.update({f"sensor_{c}": sensors[:, i].astype(np.float32) for i, c in enumerate("xyz")})
+    fields.update({"frame_id": scan.frame_ids.astype(np.int32),
+                   "quality": scan.quality.astype(np.float32)})
+    write_ply(paths["cloud"], scan.cloud, fields=fields, comments=comments)
     write_ply(paths["edges"], scan.edges, comments=comments)
     save_json_atomic(paths["report"], report)
     return paths
+
+
+def point_sensors(scan: Scan) -> np.ndarray:
+    """The camera's optical centre at each point's frame: (N, 3) float64, mm in {T}.
+
+    Looked up by ``Scan.frame_ids`` in ``Scan.tcp_frame_ids`` / ``Scan.sensor_positions_t``;
+    NaN for a point whose frame has no sensor position (none at all for a scan that does not
+    carry them). ValueError when the two per-frame arrays disagree in length.
+    """
+    n = len(scan.cloud)
+    out = np.full((n, 3), np.nan)
+    frames = np.asarray(scan.tcp_frame_ids)
+    positions = np.asarray(scan.sensor_positions_t, dtype=np.float64).reshape(-1, 3)
+    if len(positions) == 0:
+        return out
+    if frames.shape != (len(positions),):
+        raise ValueError(f"`scan.tcp_frame_ids` {frames.shape} and `scan.sensor_positions_t` "
+                         f"{positions.shape} must list the same frames")
+    order = np.argsort(frames, kind="stable")
+    ids = np.asarray(scan.frame_ids, dtype=np.int64)
+    slot = np.clip(np.searchsorted(frames[order], ids), 0, len(frames) - 1)
+    known = frames[order][slot] == ids
+    out[known] = positions[order[slot[known]]]
+    return out

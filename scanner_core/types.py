@@ -125,6 +125,13 @@ class Scan:
         Frames with a marker left unplaced because the robot had given no rotation yet.
     queue_overflows : int
         Frames of the pass lost because the processing queue was full (the service).
+    tcp_rotations_b : (F, 3, 3) float64
+        {T}'s rotation in {B} per placed frame (the robot's, as used to place it), in the
+        order of ``tcp_frame_ids``.
+    sensor_positions_t : (F, 3) float64
+        The camera's optical centre in {T} per placed frame, mm: ``R^T (C_B - p)`` for the
+        camera centre ``C_B`` in {B} and the frame's TCP position ``p`` and rotation ``R``;
+        the viewpoint of that frame's points (the stripe is seen in the direct view).
     """
 
     cloud: np.ndarray
@@ -144,3 +151,5 @@ class Scan:
     frames_without_rotation: int = 0
     tcp_frame_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     queue_overflows: int = 0
+    tcp_rotations_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    sensor_positions_t: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))

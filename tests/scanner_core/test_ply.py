@@ -161,3 +161,18 @@ def test_non_finite_points_are_refused(tmp_path):
     with pytest.raises(ValueError, match="must be finite"):
         write_ply(tmp_path / "nan.ply", np.array([[0.0, np.nan, 1.0]], np.float32))
     assert not (tmp_path / "nan.ply").exists()
+
+
+def test_normals_and_nan_fields_round_trip_in_order(tmp_path):
+    """cloud.ply's layout: x y z nx ny nz sensor_x sensor_y sensor_z frame_id quality; a NaN
+    normal (no viewpoint) is stored as it is, while NaN coordinates are refused above."""
+    names = ["nx", "ny", "nz", "sensor_x", "sensor_y", "sensor_z"]
+    fields = {name: np.array([0.0, np.nan, 1.0], np.float32) for name in names}
+    fields |= {"frame_id": np.array([1, 2, 3], np.int32), "quality": np.full(3, 200, np.float32)}
+    path = write_ply(tmp_path / "cloud.ply", np.zeros((3, 3)), fields=fields)
+    header = path.read_bytes().split(b"end_header\n")[0].decode()
+    assert [line.split()[-1] for line in header.splitlines() if line.startswith("property")] \
+        == ["x", "y", "z", *fields]
+    _, got = read_ply(path)
+    for name, values in fields.items():
+        assert_array_equal(got[name], values)

@@ -219,8 +219,10 @@ def test_a_stalled_consumer_never_stalls_acquisition(tmp_path, cell, monkeypatch
     assert info["queue_overflows"] > 10
     assert status["queue"]["overflows"] == info["queue_overflows"]
     assert sim.camera.frames_lost < info["queue_overflows"] / 4
-    assert info["state"] == "done" and info["frames"] > 0
-
+    # The frames that got through are the pass's first, often before the part meets the sheet:
+    # a scan without points is a failed scan, but its frames were placed.
+    assert info["frames"] > 0
+    assert info["state"] == "done" or info["reason"].startswith("no points")
 
 
 def test_stopping_during_a_pass_stores_it_as_failed(tmp_path, cell):
