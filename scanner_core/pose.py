@@ -1,0 +1,688 @@
+"""The part's pose in the gripper from its scan: the misplacement the robot corrects.
+
+The scan (points in {T}, with normals toward the sensor and the frame each point came from)
+is registered against the CAD model in {P}, starting from the nominal grasp ^T X_P:
+
+- **fine**: point-to-plane Gauss-Newton (Chen and Medioni 1992; Low 2004's linearisation),
+  robust to outliers (gripper fingers, reflections) through a correspondence gate, a normal
+  agreement test and Tukey's biweight on the residuals (IRLS, scale from the median absolute
+  residual). Motions the scan does not constrain (a turn about a symmetry axis, a slide along
+  a prism) are left at their starting value instead of drifting: the update is solved in the
+  observable subspace of the information matrix only.
+- **coarse**: used when the fine stage from the nominal grasp does not settle on a good fit; a
+  grid of orientations around the nominal grasp, each with its translation seeded from the
+  scan's extent, is refined briefly on a subsample and the best fit goes on to the fine stage.
+- **uncertainty**: the covariance of the six motion parameters is the cluster-robust
+  sandwich ``H^-1 (sum_f g_f g_f^T) H^-1`` over the frames f (Liang and Zeger 1986): the
+  points of one profile share that frame's placement error (the marker's triangulation), so
+  they are not independent, and the sandwich takes that from the residuals themselves.
+
+The model is the CAD surface sampled densely with face normals (`SurfaceModel.from_mesh`), or
+any points with normals, such as the simulator's predicted cloud of the same pass
+(`SurfaceModel.from_points`). Units: mm, radians inside, degrees in the report.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+__all__ = ["PoseParams", "SurfaceModel", "PoseResult", "register", "AXIS_NAMES"]
+
+AXIS_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
+_AXIS_LABELS = ("x_T", "y_T", "z_T")
+# Tukey's biweight constant: 95 % efficiency under Gaussian noise.
+_TUKEY_C = 4.685
+# The median absolute deviation of a Gaussian is 0.6745 sigma.
+_MAD_TO_SIGMA = 1.0 / 0.6745
+
+
+@dataclass(frozen=True)
+class PoseParams:
+    """Settings of the registration.
+
+    Attributes
+    ----------
+    max_points : int
+        Scan points used by the fine stage (a seeded, even subsample beyond it).
+    gate_mm : float
+        Correspondences farther than this are outliers at the start of the fine stage.
+    min_gate_mm : float
+        The gate shrinks to ``max(min_gate_mm, 6 sigma)`` as the fit settles.
+    normal_agreement_deg : float
+        A scan point and its model point whose normals differ by more are not matched (the
+        other side of a thin wall, the wrong face at an edge).
+    max_iterations : int
+        Gauss-Newton iterations of the fine stage.
+    tol_mm, tol_deg : float
+        Convergence: an update smaller than both ends the fine stage.
+    surface_noise_mm, edge_noise_mm : float
+        The expected scatter of surface and edge points: they weight the two kinds against
+        each other and decide what is observable (the geometry, not the noise of the
+        moment: early in a fit the residuals are large for want of a good pose).
+    free_std_mm : float
+        A motion that the scan, at the expected scatter, would pin down no better than this
+        (its standard deviation, mm; rotations as arc length at the scan's radius) is free:
+        not observable. It keeps its starting value.
+    good_inlier_fraction : float
+        The fine stage from the nominal grasp is accepted when at least this fraction of the
+        surface points and of the edge points are inliers; otherwise the coarse search runs.
+    coarse_step_deg, coarse_extent_deg : float
+        The coarse grid of rotation vectors around the nominal: every combination of
+        ``-extent..extent`` in ``step`` about the three {T} axes.
+    coarse_points : int
+        Scan points used to score each coarse candidate.
+    coarse_iterations : int
+        Iterations refining each coarse candidate.
+    seed : int
+        Seed of the subsampling.
+    """
+
+    max_points: int = 20000
+    gate_mm: float = 5.0
+    min_gate_mm: float = 0.2
+    normal_agreement_deg: float = 60.0
+    max_iterations: int = 60
+    tol_mm: float = 1e-5
+    tol_deg: float = 1e-5
+    surface_noise_mm: float = 0.01
+    edge_noise_mm: float = 0.03
+    free_std_mm: float = 0.05
+    good_inlier_fraction: float = 0.8
+    coarse_step_deg: float = 15.0
+    coarse_extent_deg: float = 15.0
+    coarse_points: int = 800
+    coarse_iterations: int = 8
+    seed: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceModel:
+    """Points on the part's surface with their normals, in {P}, and a KD-tree over them.
+
+    Attributes
+    ----------
+    points : (M, 3) float64
+        mm in {P}.
+    normals : (M, 3) float64
+        Unit outward normals.
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    spacing_mm: float = 0.5
+
+    @classmethod
+    def from_mesh(cls, mesh, *, spacing_mm: float = 0.25, max_points: int = 400_000,
+                  seed: int = 0) -> "SurfaceModel":
+        """Sample a mesh evenly by area, each sample with its face's normal.
+
+        Point-to-plane distances to a sample's plane are exact on planar faces whatever the
+        spacing; the spacing only decides which face a point finds near an edge.
+
+        Parameters
+        ----------
+        mesh : trimesh.Trimesh
+            The part in {P}, mm.
+        spacing_mm : float
+            Mean distance between samples.
+        max_points : int
+            Upper bound on the samples (large parts get a coarser spacing).
+        """
+        import trimesh
+
+        area = float(mesh.area)
+        count = int(min(max_points, max(1000, area / spacing_mm**2)))
+        rng_state = np.random.default_rng(seed)
+        points, faces = trimesh.sample.sample_surface(mesh, count, seed=rng_state)
+        normals = np.asarray(mesh.face_normals, dtype=np.float64)[faces]
+        return cls(np.asarray(points, dtype=np.float64), normals, float(np.sqrt(area / count)))
+
+    @classmethod
+    def from_points(cls, points, normals) -> "SurfaceModel":
+        """A model from points with normals (the simulator's predicted cloud, say), in {P}."""
+        points = np.asarray(points, dtype=np.float64)
+        normals = np.asarray(normals, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
+            raise ValueError(f"points and normals must both be (M, 3), got {points.shape} "
+                             f"and {normals.shape}")
+        keep = np.isfinite(points).all(axis=1) & np.isfinite(normals).all(axis=1)
+        n = normals[keep]
+        return cls(points[keep], n / np.linalg.norm(n, axis=1, keepdims=True))
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        return cKDTree(self.points)
+
+
+@dataclass(frozen=True, eq=False)
+class EdgeModel:
+    """Points along the part's sharp edges with the edge's direction, in {P}, and a KD-tree.
+
+    An edge point of the scan (where a profile crosses an edge: a drop-out or a step, placed
+    at half the step's height) lies on the vertical wall through the edge, so it constrains
+    the part across the edge in the (x_T, y_T) plane only: its residual is the distance to the
+    vertical plane through the edge line. That is what the surfaces cannot give: a part whose
+    visible faces are all level slides and turns freely over them.
+
+    Attributes
+    ----------
+    points : (M, 3) float64
+        mm in {P}.
+    directions : (M, 3) float64
+        Unit direction of the edge each point lies on.
+    """
+
+    points: np.ndarray
+    directions: np.ndarray
+    spacing_mm: float = 0.1
+
+    @classmethod
+    def from_mesh(cls, mesh, *, feature_angle_deg: float = 30.0,
+                  spacing_mm: float = 0.1) -> "EdgeModel":
+        """Sample the mesh's sharp edges: faces meeting at more than `feature_angle_deg`, and
+        the boundary of an open mesh."""
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        sharp = mesh.face_adjacency_edges[mesh.face_adjacency_angles > np.radians(feature_angle_deg)]
+        boundary = _boundary_edges(np.asarray(mesh.faces))
+        segments = np.concatenate([sharp.reshape(-1, 2), boundary.reshape(-1, 2)])
+        a, b = vertices[segments[:, 0]], vertices[segments[:, 1]]
+        length = np.linalg.norm(b - a, axis=1)
+        keep = length > 1e-9
+        a, b, length = a[keep], b[keep], length[keep]
+        counts = np.maximum(1, np.ceil(length / spacing_mm).astype(int))
+        owner = np.repeat(np.arange(len(a)), counts)
+        first = np.cumsum(counts) - counts
+        fraction = (np.arange(counts.sum()) - first[owner] + 0.5) / counts[owner]
+        points = a[owner] + fraction[:, None] * (b - a)[owner]
+        directions = ((b - a) / length[:, None])[owner]
+        return cls(points, directions, spacing_mm)
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        return cKDTree(self.points if len(self.points) else np.zeros((1, 3)) + np.inf)
+
+
+def _boundary_edges(faces: np.ndarray) -> np.ndarray:
+    """(B, 2) vertex pairs used by one face only."""
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    return unique[counts == 1]
+
+
+@dataclass
+class PoseResult:
+    """The registered pose and how far to trust it.
+
+    Attributes
+    ----------
+    matrix : (4, 4) float64
+        ^T X_P, mm.
+    misplacement : (4, 4) float64
+        ``matrix @ inv(nominal)``: the correction in {T}.
+    rms_mm : float
+        RMS point-to-plane residual of the inliers.
+    inlier_fraction : float
+        Fraction of the used scan points matched within the final gate.
+    std : (6,) float64
+        Standard deviation of tx, ty, tz (mm, of the {T} origin's correction) and rx, ry, rz
+        (degrees, about the {T} axes); NaN along a free motion.
+    free_axes : list of dict
+        The motions the scan does not constrain: ``{"kind": "translation" | "rotation",
+        "axis": [x, y, z] in {T}, "label": ...}``.
+    covariance : (6, 6) float64
+        Of (tx, ty, tz in mm, rx, ry, rz in rad); NaN rows and columns along free motions.
+    iterations : int
+    coarse : bool
+        Whether the coarse search ran.
+    time_ms : float
+    """
+
+    matrix: np.ndarray
+    misplacement: np.ndarray
+    rms_mm: float
+    inlier_fraction: float
+    std: np.ndarray
+    free_axes: list = field(default_factory=list)
+    covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
+    iterations: int = 0
+    coarse: bool = False
+    time_ms: float = 0.0
+
+    @property
+    def observable(self) -> bool:
+        return not self.free_axes
+
+    def misplacement_vector(self) -> np.ndarray:
+        """(6,) float64: translation mm and rotation vector degrees of `misplacement`."""
+        rotvec = Rotation.from_matrix(self.misplacement[:3, :3]).as_rotvec(degrees=True)
+        return np.concatenate([self.misplacement[:3, 3], rotvec])
+
+    def to_dict(self) -> dict:
+        """The ``pose`` entry of ``report.json`` (JSON-safe: NaN becomes None)."""
+        vector = self.misplacement_vector()
+
+        def clean(values):
+            return [None if not np.isfinite(v) else round(float(v), 7) for v in values]
+
+        return {
+            "matrix": np.asarray(self.matrix).tolist(),
+            "misplacement": {"translation_mm": clean(vector[:3]),
+                             "rotation_deg": clean(vector[3:])},
+            "rms_mm": round(float(self.rms_mm), 6),
+            "inlier_fraction": round(float(self.inlier_fraction), 4),
+            "observable": self.observable,
+            "free_axes": self.free_axes,
+            "std": dict(zip(("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg"),
+                            clean(self.std))),
+            "iterations": self.iterations,
+            "coarse": self.coarse,
+            "time_ms": round(self.time_ms, 3),
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# Registration
+# --------------------------------------------------------------------------------------------
+
+def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=None,
+             edges_t=None, edge_frame_ids=None, edge_model: EdgeModel | None = None,
+             params: PoseParams = PoseParams()) -> PoseResult:
+    """The part's pose ^T X_P from its scan.
+
+    Parameters
+    ----------
+    points_t : (N, 3) float
+        The scan in {T}, mm.
+    normals_t : (N, 3) float or None
+        Unit normals of the scan, oriented toward the sensor (``scanner_core.normals``);
+        NaN rows (or None) are used without the normal agreement test.
+    model : SurfaceModel
+        The part's surface in {P}.
+    nominal : (4, 4) array_like
+        The nominal grasp ^T X_P, mm: the starting point, and what free motions keep.
+    frame_ids : (N,) int, optional
+        The frame of each point, for the uncertainty (each frame one cluster); default
+        every point its own cluster, which underestimates the uncertainty of a real scan.
+    edges_t : (M, 3) float, optional
+        The edge cloud in {T}, mm; with `edge_model`, it constrains the in-plane motions.
+    edge_frame_ids : (M,) int, optional
+        The frame of each edge point.
+    edge_model : EdgeModel, optional
+        The part's sharp edges in {P}.
+    params : PoseParams
+
+    Returns
+    -------
+    PoseResult
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, or fewer than 6 finite points.
+    """
+    t0 = time.perf_counter()
+    points, normals, frames = _check_inputs(points_t, normals_t, frame_ids)
+    nominal = np.asarray(nominal, dtype=np.float64)
+    rng = np.random.default_rng(params.seed)
+    used = _subsample(len(points), params.max_points, rng)
+    surface = _Terms(points[used], normals[used], frames[used], model)
+    edges = None
+    if edges_t is not None and edge_model is not None and len(edge_model.points):
+        e_points, _, e_frames = _check_inputs(edges_t, None, edge_frame_ids, minimum=0)
+        if len(e_points):
+            edges = _Terms(e_points, None, e_frames, edge_model)
+
+    fit = _fine(surface, edges, nominal, params)
+    coarse = False
+    if min(fit.inlier_fraction, fit.edge_fraction) < params.good_inlier_fraction:
+        start = _coarse(surface, edges, nominal, params, rng)
+        candidate = _fine(surface, edges, start, params)
+        coarse = True
+        if _score(candidate) > _score(fit):
+            fit = candidate
+    covariance, std, free_axes = _uncertainty(fit, params)
+    return PoseResult(
+        matrix=fit.pose, misplacement=fit.pose @ np.linalg.inv(nominal), rms_mm=fit.rms,
+        inlier_fraction=fit.inlier_fraction, std=std, free_axes=free_axes,
+        covariance=covariance, iterations=fit.iterations, coarse=coarse,
+        time_ms=(time.perf_counter() - t0) * 1e3)
+
+
+@dataclass
+class _Terms:
+    """One kind of correspondence: scan points (with normals for surfaces) and their model."""
+
+    points: np.ndarray
+    normals: np.ndarray | None
+    frames: np.ndarray
+    model: SurfaceModel | EdgeModel
+
+    def subset(self, index) -> "_Terms":
+        return _Terms(self.points[index], None if self.normals is None else self.normals[index],
+                      self.frames[index], self.model)
+
+
+@dataclass
+class _Fit:
+    pose: np.ndarray
+    rms: float
+    inlier_fraction: float
+    edge_fraction: float        # of the edge points, matched (1.0 without edges)
+    iterations: int
+    jacobian: np.ndarray        # (K, 6) of the inliers, about `centre`
+    residuals: np.ndarray       # (K,)
+    weights: np.ndarray         # (K,)
+    frames: np.ndarray          # (K,) frame of each inlier
+    centre: np.ndarray          # (3,)
+    scale_mm: float             # radius that makes rotations comparable with translations
+
+
+def _fine(surface: _Terms, edges: _Terms | None, start, params, *, iterations=None,
+          gate_mm=None) -> _Fit:
+    pose = start.copy()
+    centre = surface.points.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((surface.points - centre) ** 2, axis=1)))) or 1.0
+    gates = [params.gate_mm if gate_mm is None else gate_mm] * 2
+    max_iter = params.max_iterations if iterations is None else iterations
+    step_tol = np.array([params.tol_mm] * 3 + [np.radians(params.tol_deg)] * 3)
+    it = 0
+    for it in range(1, max_iter + 1):
+        rows, sigmas = _linearise(surface, edges, pose, centre, gates, params)
+        jac, res, w = rows[:3]
+        if len(res) < 6:
+            break
+        delta, observed = _solve(jac, res, w, scale, params.free_std_mm)
+        pose = _apply(delta, centre) @ pose
+        if gate_mm is None:
+            gates = [max(params.min_gate_mm, min(g, 6.0 * sg)) for g, sg in zip(gates, sigmas)]
+        if np.all(np.abs(observed) < step_tol):
+            break
+    (jac, res, w, frames, matched), _ = _linearise(surface, edges, pose, centre, gates, params)
+    inlier_fraction = matched / max(len(surface.points), 1)
+    edge_fraction = ((len(res) - matched) / len(edges.points)) if edges is not None else 1.0
+    rms = float(np.sqrt(np.sum(w * res**2) / np.sum(w))) if len(res) else np.inf
+    return _Fit(pose, rms, inlier_fraction, edge_fraction, it, jac, res, w, frames, centre,
+                scale)
+
+
+def _linearise(surface, edges, pose, centre, gates, params):
+    """Residuals, Jacobian rows, robust weights and frames of all correspondences at `pose`.
+
+    Returns ``(jacobian, residuals, weights, frames, surface_inliers)`` and the robust scale
+    of each kind (surface, edges).
+    """
+    cos_agree = np.cos(np.radians(params.normal_agreement_deg))
+    parts, sigmas = [], []
+    surface_rows = _surface_rows(surface, pose, centre, gates[0], cos_agree,
+                                 params.surface_noise_mm)
+    parts.append(surface_rows[:4])
+    sigmas.append(surface_rows[4])
+    matched = len(surface_rows[1])
+    if edges is not None:
+        edge_rows = _edge_rows(edges, pose, centre, gates[1], params.edge_noise_mm)
+        parts.append(edge_rows[:4])
+        sigmas.append(edge_rows[4])
+    else:
+        sigmas.append(np.inf)
+    jac, res, w, frames = (np.concatenate(x) for x in zip(*parts))
+    return (jac, res, w, frames, matched), sigmas
+
+
+def _surface_rows(terms: _Terms, pose, centre, gate, cos_agree, noise_mm):
+    """Point-to-plane rows: the residual of scan point s matched to model point q (normal n)
+    is ``n . (s - X q)`` in {T}; a motion (t, w) about `centre` changes it by
+    ``-[n, (s - centre) x n] . (t, w)``."""
+    rotation, translation = pose[:3, :3], pose[:3, 3]
+    spacing = _spacing(terms.model)
+    idx, nearest = _match(terms, pose, gate + 2.0 * spacing)
+    n_t = terms.model.normals[nearest] @ rotation.T
+    if terms.normals is not None:
+        # Scan normals point to the sensor, model normals out of the part: the same way up.
+        scan_n = terms.normals[idx]
+        agree = np.einsum("ij,ij->i", n_t, np.nan_to_num(scan_n, nan=0.0))
+        ok = (agree >= cos_agree) | ~np.isfinite(scan_n[:, 0])
+        idx, nearest, n_t = idx[ok], nearest[ok], n_t[ok]
+    q_t = terms.model.points[nearest] @ rotation.T + translation
+    return _robust_rows(terms.points[idx], n_t, q_t, terms.frames[idx], centre, gate, noise_mm)
+
+
+def _edge_rows(terms: _Terms, pose, centre, gate, noise_mm):
+    """Edge rows: the distance in (x_T, y_T) from the edge point to the model's edge line,
+    i.e. to the vertical plane through it (normal ``d x z_T`` for edge direction d)."""
+    rotation, translation = pose[:3, :3], pose[:3, 3]
+    idx, nearest = _match(terms, pose, gate + _spacing(terms.model) + _EDGE_SEARCH_MM)
+    d_t = terms.model.directions[nearest] @ rotation.T
+    m = np.stack([d_t[:, 1], -d_t[:, 0], np.zeros(len(d_t))], axis=1)
+    length = np.linalg.norm(m, axis=1)
+    ok = length > _MIN_EDGE_LEVEL  # an edge along z_T is no line in the (x_T, y_T) plane
+    idx, nearest, m = idx[ok], nearest[ok], m[ok] / length[ok, None]
+    q_t = terms.model.points[nearest] @ rotation.T + translation
+    return _robust_rows(terms.points[idx], m, q_t, terms.frames[idx], centre, gate, noise_mm)
+
+
+# Information below this fraction of the strongest is no information (numerical zero).
+_SINGULAR = 1e-10
+# Model points that seed a coarse candidate's translation.
+_SEED_POINTS = 5000
+# Queries with more points than this use both cores.
+_THREADED_QUERY = 20_000
+# Floor of the robust scale, mm: no scan is better than this, and noise-free test data must
+# not make the weights infinite.
+_MIN_SIGMA_MM = 0.001
+# An edge point at half a step's height lies this far from the step's edges in 3D (up to
+# half the tallest step); the match searches that far, the residual is taken in the plane.
+_EDGE_SEARCH_MM = 15.0
+# |d x z_T| below this: the edge runs within 17 degrees of z_T.
+_MIN_EDGE_LEVEL = 0.3
+
+
+def _match(terms: _Terms, pose, bound):
+    """Indices of the scan points with a model point within `bound` mm, and those points."""
+    rotation, translation = pose[:3, :3], pose[:3, 3]
+    local = (terms.points - translation) @ rotation  # the scan in {P}
+    # Threads pay off only for large queries (each call starts its own).
+    workers = -1 if len(local) > _THREADED_QUERY else 1
+    dist, nearest = terms.model.tree.query(local, k=1, distance_upper_bound=bound, workers=workers)
+    idx = np.nonzero(np.isfinite(dist))[0]
+    return idx, nearest[idx]
+
+
+def _robust_rows(s_t, n_t, q_t, frames, centre, gate, noise_mm):
+    """Rows with residual within `gate`, weighted by Tukey's biweight at their own robust
+    scale and by the inverse variance of the expected scatter `noise_mm`."""
+    res = np.einsum("ij,ij->i", n_t, s_t - q_t)
+    inside = np.abs(res) <= gate
+    s_t, n_t, res, frames = s_t[inside], n_t[inside], res[inside], frames[inside]
+    if len(res) < 3:
+        return np.zeros((0, 6)), np.zeros(0), np.zeros(0), np.zeros(0, np.int64), np.inf
+    sigma = max(_MAD_TO_SIGMA * float(np.median(np.abs(res - np.median(res)))), _MIN_SIGMA_MM)
+    u = res / (_TUKEY_C * sigma)
+    w = np.where(np.abs(u) < 1.0, (1.0 - u**2) ** 2, 0.0) / noise_mm**2
+    jac = np.hstack([n_t, np.cross(s_t - centre, n_t)])
+    keep = w > 0
+    return jac[keep], res[keep], w[keep], frames[keep], sigma
+
+
+def _spacing(model) -> float:
+    """Typical distance between a model's points, mm (for the match radius)."""
+    return float(getattr(model, "spacing_mm", 0.5))
+
+
+def _information(jac, w, scale):
+    """J^T W J with rotations scaled to arc length at `scale` mm (comparable units)."""
+    js = jac / np.array([1.0, 1.0, 1.0, scale, scale, scale])
+    return js.T @ (js * w[:, None])
+
+
+def _observable(values, free_std_mm):
+    """Which eigen-directions of the information the scan pins down better than the limit."""
+    return values > max(1.0 / free_std_mm**2, _SINGULAR * values[-1])
+
+
+def _solve(jac, res, w, scale, free_std_mm):
+    """Gauss-Newton step, and its size along the observable motions only.
+
+    Every direction with information moves (early in a fit a motion may look free only for
+    want of matches); the step's size for convergence leaves out the free motions, which a
+    weak constraint (the facets of a turned cylinder) would otherwise creep along for ever.
+    """
+    s = np.array([1.0, 1.0, 1.0, scale, scale, scale])
+    info = _information(jac, w, scale)
+    rhs = (jac / s).T @ (w * res)
+    values, vectors = np.linalg.eigh(info)
+    moving = values > _SINGULAR * values[-1]
+    step_scaled = vectors[:, moving] @ ((vectors[:, moving].T @ rhs) / values[moving])
+    strong = _observable(values, free_std_mm)
+    observed = vectors[:, strong] @ (vectors[:, strong].T @ step_scaled)
+    return step_scaled / s, observed / s
+
+
+def _apply(delta, centre) -> np.ndarray:
+    """4x4 in {T}: rotate by ``delta[3:]`` about `centre`, then translate by ``delta[:3]``."""
+    m = np.eye(4)
+    rotation = Rotation.from_rotvec(delta[3:]).as_matrix()
+    m[:3, :3] = rotation
+    m[:3, 3] = centre + delta[:3] - rotation @ centre
+    return m
+
+
+def _score(fit: _Fit) -> float:
+    """Higher is better: inliers (surface and edges) first, then a tight fit."""
+    return fit.inlier_fraction + fit.edge_fraction - 0.01 * min(fit.rms, 10.0)
+
+
+def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> np.ndarray:
+    """The best start among a grid of orientations around the nominal grasp."""
+    few = surface.subset(_subsample(len(surface.points), params.coarse_points, rng))
+    few_edges = None if edges is None else edges.subset(
+        _subsample(len(edges.points), params.coarse_points, rng))
+    angles = np.arange(-params.coarse_extent_deg, params.coarse_extent_deg + 1e-9,
+                       params.coarse_step_deg)
+    grid = np.array(np.meshgrid(angles, angles, angles, indexing="ij")).reshape(3, -1).T
+    grid = grid[np.argsort(np.linalg.norm(grid, axis=1))]
+    best, best_score = nominal, -np.inf
+    for rotvec in grid:
+        turn = np.eye(4)
+        turn[:3, :3] = Rotation.from_rotvec(np.radians(rotvec)).as_matrix()
+        start = _seed_translation(few.points, surface.model, turn @ nominal)
+        fit = _fine(few, few_edges, start, params, iterations=params.coarse_iterations,
+                    gate_mm=params.gate_mm * 2)
+        score = _score(fit)
+        if score > best_score:
+            best, best_score = fit.pose, score
+    return best
+
+
+def _seed_translation(pts, model, pose) -> np.ndarray:
+    """Shift `pose` so that the model's sensor-facing side meets the scan: centres in x, y,
+    the nearest surfaces to the sensor (largest z_T) in z."""
+    few = slice(None, None, max(1, len(model.points) // _SEED_POINTS))
+    model_t = model.points[few] @ pose[:3, :3].T + pose[:3, 3]
+    facing = (model.normals[few] @ pose[:3, :3].T)[:, 2] > 0.3
+    if facing.sum() < 10:
+        facing = np.ones(len(model_t), bool)
+    shift = np.zeros(3)
+    shift[:2] = np.median(pts[:, :2], axis=0) - np.median(model_t[facing, :2], axis=0)
+    shift[2] = np.percentile(pts[:, 2], 95) - np.percentile(model_t[facing, 2], 95)
+    moved = pose.copy()
+    moved[:3, 3] += shift
+    return moved
+
+
+def _uncertainty(fit: _Fit, params) -> tuple[np.ndarray, np.ndarray, list]:
+    """Covariance (cluster-robust over frames), per-axis std, and the free axes, about the
+    {T} origin."""
+    nan6 = np.full(6, np.nan)
+    if len(fit.residuals) < 6:
+        return np.full((6, 6), np.nan), nan6, [{"kind": "all", "axis": None,
+                                                 "label": "too few matched points"}]
+    s = np.array([1.0, 1.0, 1.0, fit.scale_mm, fit.scale_mm, fit.scale_mm])
+    js = fit.jacobian / s
+    info = js.T @ (js * fit.weights[:, None])
+    values, vectors = np.linalg.eigh(info)
+    strong = _observable(values, params.free_std_mm)
+    info_inv = vectors[:, strong] @ np.diag(1.0 / values[strong]) @ vectors[:, strong].T
+    # Cluster-robust "meat": the weighted scores summed within each frame.
+    scores = js * (fit.weights * fit.residuals)[:, None]
+    _, inverse = np.unique(fit.frames, return_inverse=True)
+    per_cluster = np.zeros((inverse.max() + 1, 6))
+    np.add.at(per_cluster, inverse, scores)
+    clusters = len(per_cluster)
+    meat = per_cluster.T @ per_cluster * (clusters / max(clusters - 6, 1))
+    cov_scaled = info_inv @ meat @ info_inv
+    cov_centre = cov_scaled / np.outer(s, s)
+    # About the {T} origin: t_o = t_c + c x w.
+    c = fit.centre
+    cross = np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
+    to_origin = np.eye(6)
+    to_origin[:3, 3:] = cross
+    covariance = to_origin @ cov_centre @ to_origin.T
+    free_scaled = vectors[:, ~strong]
+    free_axes = [_describe(v, s, c) for v in free_scaled.T]
+    std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    std[3:] = np.degrees(std[3:])
+    if free_axes:
+        # Along a free motion the scan says nothing: the axes it moves are not reported. The
+        # others are reported holding the free motion at its start (a cylinder's position is
+        # known though its turn about its axis is not).
+        touched = np.any(np.abs(free_scaled) > 0.5, axis=1)  # unit columns, comparable units
+        std[touched] = np.nan
+        covariance[touched, :] = np.nan
+        covariance[:, touched] = np.nan
+    return covariance, std, free_axes
+
+
+def _describe(vector_scaled, s, centre) -> dict:
+    """A free motion (unit vector in scaled parameters) in words."""
+    motion = vector_scaled / s
+    t, w = motion[:3], motion[3:]
+    if np.linalg.norm(w) * s[3] > np.linalg.norm(t):
+        axis = w / np.linalg.norm(w)
+        kind = "rotation"
+        # The rotation's axis passes through the point where the motion leaves no translation.
+        through = centre + np.cross(axis, t) / np.linalg.norm(w)
+    else:
+        axis = t / np.linalg.norm(t)
+        kind = "translation"
+        through = None
+    axis = axis * np.sign(axis[np.argmax(np.abs(axis))])
+    main = int(np.argmax(np.abs(axis)))
+    label = (f"{'about' if kind == 'rotation' else 'along'} {_AXIS_LABELS[main]}"
+             if abs(axis[main]) > 0.9 else f"{kind} {np.round(axis, 3).tolist()}")
+    entry = {"kind": kind, "axis": np.round(axis, 6).tolist(), "label": label}
+    if through is not None:
+        entry["through_mm"] = np.round(through, 3).tolist()
+    return entry
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs
+# --------------------------------------------------------------------------------------------
+
+def _check_inputs(points_t, normals_t, frame_ids, minimum: int = 6):
+    points = np.asarray(points_t, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points_t must be (N, 3), got {points.shape}")
+    normals = (np.full(points.shape, np.nan) if normals_t is None
+               else np.asarray(normals_t, dtype=np.float64))
+    if normals.shape != points.shape:
+        raise ValueError(f"normals_t must be {points.shape}, got {normals.shape}")
+    frames = (np.arange(len(points)) if frame_ids is None
+              else np.asarray(frame_ids, dtype=np.int64))
+    if frames.shape != (len(points),):
+        raise ValueError(f"frame_ids must be ({len(points)},), got {frames.shape}")
+    keep = np.isfinite(points).all(axis=1)
+    if keep.sum() < minimum:
+        raise ValueError(f"a pose needs at least {minimum} finite points, got {int(keep.sum())}")
+    return points[keep], normals[keep], frames[keep]
+
+
+def _subsample(n: int, limit: int, rng) -> np.ndarray:
+    if n <= limit:
+        return np.arange(n)
+    return np.sort(rng.choice(n, size=limit, replace=False))

@@ -1,0 +1,212 @@
+"""Registration of a scan against its CAD model: analytic scans of a stepped block, a box, a
+cylinder and a long prism with known poses, noise, outliers and free motions."""
+import numpy as np
+import pytest
+import trimesh
+from numpy.testing import assert_allclose
+from scipy.spatial.transform import Rotation
+
+from scanner_core.pose import EdgeModel, PoseParams, SurfaceModel, register
+from simulator.parts import block_with_holes_and_steps, centred_grasp
+
+PROFILE_MM = 1.2      # distance between profiles along y_T (200 mm/s at 162 fps)
+SURFACE_NOISE_MM = 0.01
+EDGE_NOISE_MM = 0.02
+
+
+def misplacement(tx, ty, tz, rx, ry, rz) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_rotvec(np.radians([rx, ry, rz])).as_matrix()
+    m[:3, 3] = [tx, ty, tz]
+    return m
+
+
+def pose_error(estimate, truth):
+    """Translation (mm) and rotation vector (deg) of ``estimate @ inv(truth)``."""
+    e = estimate @ np.linalg.inv(truth)
+    return e[:3, 3], Rotation.from_matrix(e[:3, :3]).as_rotvec(degrees=True)
+
+
+def synthetic_scan(mesh, pose, *, seed=0, density=6.0, frame_sigma_mm=0.0, with_edges=True):
+    """What the scanner sees of `mesh` held at `pose`: the faces turned toward it (+z_T),
+    sampled along profiles every PROFILE_MM in y_T, with noise; and where each profile
+    crosses a sharp edge next to such a face, an edge point.
+
+    Returns points, normals (toward the sensor), frame ids, edge points, edge frame ids.
+    """
+    rng = np.random.default_rng(seed)
+    area = mesh.area
+    points_p, faces = trimesh.sample.sample_surface(mesh, int(area * density), seed=rng)
+    points = points_p @ pose[:3, :3].T + pose[:3, 3]
+    normals = mesh.face_normals[faces] @ pose[:3, :3].T
+    facing = normals[:, 2] > 0.2
+    points, normals = points[facing], normals[facing]
+    # Snap to profiles: every point on the nearest profile plane y = k * PROFILE_MM (on a
+    # face the snap moves it along the face; a level face keeps it on the face).
+    frames = np.round(points[:, 1] / PROFILE_MM).astype(np.int64)
+    keep = np.abs(points[:, 1] - frames * PROFILE_MM) < 0.05
+    points, normals, frames = points[keep], normals[keep], frames[keep]
+    shift = rng.normal(0.0, frame_sigma_mm, size=(frames.max() - frames.min() + 1, 3))
+    points = points + shift[frames - frames.min()] + rng.normal(0, SURFACE_NOISE_MM, points.shape)
+    if not with_edges:
+        return points, normals, frames, None, None
+    edges, edge_frames = _edge_points(mesh, pose, rng)
+    edges = edges + shift[np.clip(edge_frames - frames.min(), 0, len(shift) - 1)]
+    return points, normals, frames, edges, edge_frames
+
+
+def _edge_points(mesh, pose, rng):
+    adjacency = mesh.face_adjacency
+    sharp = mesh.face_adjacency_angles > np.radians(30)
+    normals_t = mesh.face_normals @ pose[:3, :3].T
+    seen = (normals_t[adjacency[:, 0], 2] > 0.2) | (normals_t[adjacency[:, 1], 2] > 0.2)
+    segments = mesh.face_adjacency_edges[sharp & seen]
+    v = mesh.vertices @ pose[:3, :3].T + pose[:3, 3]
+    a, b = v[segments[:, 0]], v[segments[:, 1]]
+    levels = np.arange(np.floor(v[:, 1].min() / PROFILE_MM), np.ceil(v[:, 1].max() / PROFILE_MM) + 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (levels[None, :] * PROFILE_MM - a[:, 1:2]) / (b[:, 1:2] - a[:, 1:2])
+    seg, lev = np.nonzero((t >= 0) & (t <= 1))
+    points = a[seg] + t[seg, lev][:, None] * (b - a)[seg]
+    noise = rng.normal(0, EDGE_NOISE_MM, points.shape)
+    noise[:, 1] = 0.0
+    return points + noise, levels[lev].astype(np.int64)
+
+
+@pytest.fixture(scope="module")
+def block():
+    mesh = block_with_holes_and_steps()
+    return mesh, centred_grasp(mesh), SurfaceModel.from_mesh(mesh), EdgeModel.from_mesh(mesh)
+
+
+@pytest.mark.parametrize("offset", [
+    (1.5, -2.0, 0.5, 1.0, -2.0, 3.0),
+    (-4.0, 3.0, -1.0, -3.0, 4.0, -8.0),
+])
+def test_block_pose_from_surfaces_and_edges(block, offset):
+    mesh, nominal, model, edge_model = block
+    truth = misplacement(*offset) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=1)
+    result = register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
+                      edge_frame_ids=edge_frames, edge_model=edge_model)
+    dt, dr = pose_error(result.matrix, truth)
+    assert np.abs(dt).max() < 0.005 and np.abs(dr).max() < 0.02, (dt, dr)
+    assert result.observable and result.free_axes == []
+    assert result.inlier_fraction > 0.95
+    assert_allclose(result.misplacement_vector()[:3], offset[:3], atol=0.005)
+    assert_allclose(result.misplacement_vector()[3:], offset[3:], atol=0.02)
+    # The reported sigma bounds the error.
+    assert np.all(np.abs(np.concatenate([dt, dr])) <= 4 * result.std + 1e-4)
+
+
+def test_surfaces_alone_leave_the_level_part_free_to_slide_and_turn(block):
+    """The block's visible faces are all level: without its edges, x, y and the turn about z
+    are not observable, reported as free and left at the nominal grasp."""
+    mesh, nominal, model, _ = block
+    truth = misplacement(0.3, -0.2, 0.4, 0.5, -0.4, 0.0) @ nominal
+    pts, nrm, frames, _, _ = synthetic_scan(mesh, truth, seed=2, with_edges=False)
+    result = register(pts, nrm, model, nominal, frame_ids=frames)
+    assert not result.observable
+    labels = sorted(axis["label"] for axis in result.free_axes)
+    assert labels == ["about z_T", "along x_T", "along y_T"]
+    assert np.isnan(result.std[[0, 1, 5]]).all() and np.isfinite(result.std[[2, 3, 4]]).all()
+    dt, dr = pose_error(result.matrix, truth)
+    assert abs(dt[2]) < 0.02 and np.abs(dr[:2]).max() < 0.02  # what it can see, it gets
+    assert result.to_dict()["std"]["rz_deg"] is None
+
+
+@pytest.mark.parametrize("force_coarse", [False, True])
+def test_a_large_misplacement_is_found(block, force_coarse):
+    """About 10 mm and 20 degrees from the nominal grasp: the fine fit from the nominal grasp
+    stays poor (its edges do not match), so the coarse search runs and finds it; forced to
+    run, it finds it too."""
+    mesh, nominal, model, edge_model = block
+    truth = misplacement(8.0, -6.0, 3.0, 8.0, -10.0, 15.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=3)
+    params = PoseParams(good_inlier_fraction=1.01 if force_coarse else 0.8)
+    result = register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
+                      edge_frame_ids=edge_frames, edge_model=edge_model, params=params)
+    dt, dr = pose_error(result.matrix, truth)
+    assert result.coarse
+    assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr)
+
+
+def test_outliers_do_not_pull_the_pose(block):
+    """A gripper finger in view and scattered reflections: 15 % of the points."""
+    mesh, nominal, model, edge_model = block
+    truth = misplacement(1.0, 1.0, 0.0, 0.0, 1.0, 2.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=4)
+    rng = np.random.default_rng(4)
+    n_out = int(0.15 * len(pts))
+    finger = rng.uniform([-5, -5, 21], [5, 5, 23], size=(n_out // 2, 3))      # below the part
+    scatter = pts[rng.choice(len(pts), n_out - n_out // 2)] + rng.normal(0, 1.0, (n_out - n_out // 2, 3))
+    bad = np.concatenate([finger, scatter])
+    bad_n = np.tile([0.0, 0.0, 1.0], (len(bad), 1))
+    result = register(np.concatenate([pts, bad]), np.concatenate([nrm, bad_n]), model, nominal,
+                      frame_ids=np.concatenate([frames, rng.choice(frames, len(bad))]),
+                      edges_t=edges, edge_frame_ids=edge_frames, edge_model=edge_model)
+    dt, dr = pose_error(result.matrix, truth)
+    assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.01, (dt, dr)
+    assert 0.75 < result.inlier_fraction < 0.92
+
+
+def test_a_cylinder_turns_freely_about_its_axis():
+    mesh = trimesh.creation.cylinder(radius=20.0, height=30.0, sections=256)
+    nominal = centred_grasp(mesh)
+    truth = misplacement(0.5, -0.4, 0.3, 0.5, 0.3, 12.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=5)
+    result = register(pts, nrm, SurfaceModel.from_mesh(mesh), nominal, frame_ids=frames,
+                      edges_t=edges, edge_frame_ids=edge_frames,
+                      edge_model=EdgeModel.from_mesh(mesh))
+    assert not result.observable
+    assert [axis["label"] for axis in result.free_axes] == ["about z_T"]
+    assert np.isnan(result.std[5]) and np.isfinite(result.std[:5]).all()
+    # The axis is found (its foot on the bottom face, and its direction); the turn about it
+    # is not claimed.
+    foot = np.array([0.0, 0.0, 15.0, 1.0])  # the cylinder's bottom centre in {P}
+    assert_allclose((result.matrix @ foot)[:3], (truth @ foot)[:3], atol=0.01)
+    axis = np.array([0.0, 0.0, 1.0])
+    tilt = np.degrees(np.arccos(np.clip((result.matrix[:3, :3] @ axis) @ (truth[:3, :3] @ axis), -1, 1)))
+    assert tilt < 0.01
+
+
+def test_a_long_prism_slides_along_itself():
+    """A prism whose ends the scan does not reach: nothing fixes it along its length."""
+    mesh = trimesh.creation.box(extents=(20.0, 140.0, 10.0))
+    nominal = centred_grasp(mesh)
+    truth = misplacement(0.3, 0.0, 0.2, 0.3, -0.2, 0.5) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=6)
+    # The prism lies along the pass (y_T): every profile crosses its long edges, none
+    # reaches its ends.
+    inside = np.abs(pts[:, 1]) < 60.0
+    keep_edges = np.abs(edges[:, 1]) < 60.0
+    result = register(pts[inside], nrm[inside], SurfaceModel.from_mesh(mesh), nominal,
+                      frame_ids=frames[inside], edges_t=edges[keep_edges],
+                      edge_frame_ids=edge_frames[keep_edges], edge_model=EdgeModel.from_mesh(mesh))
+    assert [axis["label"] for axis in result.free_axes] == ["along y_T"]
+    assert np.isnan(result.std[1]) and np.isfinite(result.std[[0, 2, 3, 4, 5]]).all()
+
+
+def test_sigma_bounds_the_error_with_correlated_profiles(block):
+    """Each profile shifted as a whole (the marker's triangulation error): the points of a
+    frame are not independent, and the reported sigma must still cover the error."""
+    mesh, nominal, model, edge_model = block
+    within = []
+    for seed in range(12):
+        offset = np.random.default_rng(100 + seed).uniform(-1, 1, 6) * [2, 2, 1, 2, 2, 4]
+        truth = misplacement(*offset) @ nominal
+        pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=seed,
+                                                              density=3.0, frame_sigma_mm=0.005)
+        result = register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
+                          edge_frame_ids=edge_frames, edge_model=edge_model)
+        dt, dr = pose_error(result.matrix, truth)
+        within.append(np.abs(np.concatenate([dt, dr])) <= 3 * result.std)
+    assert np.mean(within) >= 0.95
+
+
+def test_bad_input_is_refused(block):
+    _, nominal, model, _ = block
+    with pytest.raises(ValueError, match="points_t must be"):
+        register(np.zeros((10, 2)), None, model, nominal)
+    with pytest.raises(ValueError, match="at least 6 finite points"):
+        register(np.full((10, 3), np.nan), None, model, nominal)
