@@ -27,6 +27,7 @@ bench: $(BIN)/flyscan
 	$(BIN)/flyscan bench scan --out $(OUT)/bench/scan
 	$(BIN)/flyscan bench simulate --out $(OUT)/bench/simulate
 	$(BIN)/flyscan bench service --out $(OUT)/bench/service
+	$(BIN)/flyscan bench pose --out $(OUT)/bench/pose
 
 clean:
 	rm -rf $(VENV) $(OUT) *.egg-info

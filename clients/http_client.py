@@ -167,13 +167,20 @@ class FlyscanClient:
         return self._json("GET", "/status")
 
     # -- scans --------------------------------------------------------------------------------
-    def arm(self, part: str | None = None, timeout_s: float | None = None) -> str:
+    def arm(self, part: str | None = None, timeout_s: float | None = None,
+            misplace=None) -> str:
         """``POST /scans``: arm the trigger for the next pass; return the new scan id.
+
+        ``misplace`` ([tx, ty, tz, rx, ry, rz], mm and degrees) moves the part in the gripper
+        for the pass: honoured by a simulated cell only.
 
         Raises Conflict (409) when a scan is in progress, NotFound (404) for an unknown part,
         ServiceUnavailable (503) when the camera is not streaming.
         """
-        body = self._json("POST", "/scans", json={"part": part, "timeout_s": timeout_s})
+        request = {"part": part, "timeout_s": timeout_s}
+        if misplace is not None:
+            request["misplace"] = [float(v) for v in misplace]
+        body = self._json("POST", "/scans", json=request)
         try:
             return str(body["scan_id"])
         except (KeyError, TypeError):

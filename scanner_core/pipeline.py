@@ -31,6 +31,7 @@ from scanner_core import marker as marker_mod
 from scanner_core import stripe as stripe_mod
 from scanner_core.calibration import Calibration
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
+from scanner_core.edges import EdgeKind, EdgeParams, EdgePoints, find_edges, occluded_dropouts
 from scanner_core.geometry import (base_to_tcp, reproject_marker, triangulate_marker,
                                    triangulate_stripe)
 from scanner_core.trigger import EndReason, Trigger, TriggerParams, TriggerStep
@@ -66,6 +67,8 @@ class PipelineParams:
     max_marker_residual_px : float
         A marker whose views disagree by more than this (RMS reprojection) is rejected.
     trigger : TriggerParams
+    edges : scanner_core.edges.EdgeParams
+        Drop-out and step detection along each profile.
     """
 
     stripe_method: str = "cog"
@@ -75,6 +78,7 @@ class PipelineParams:
     marker_mask_px: float = 12.0
     max_marker_residual_px: float = 1.0
     trigger: TriggerParams = field(default_factory=TriggerParams)
+    edges: EdgeParams = field(default_factory=EdgeParams)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -180,16 +184,20 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
         # Seen only in the mirrors (cut off at the image edge, or hidden): mask where the
         # direct view must show it, since a partial blob still passes for the stripe.
         direct_px = reproject_marker(marker.position_b, calibration.camera, calibration.mirrors)[0]
+    near = None
     if np.all(np.isfinite(direct_px)):
         near = np.abs(np.arange(image.shape[1]) - direct_px[0]) <= params.marker_mask_px
         valid &= ~(near & (np.abs(result.row - direct_px[1]) <= params.marker_mask_px * MASK_ROW_FACTOR))
+    # Columns by the marker say nothing of the stripe: no drop-out there.
+    edges = find_edges(result, valid, calibration.camera, calibration.light_plane_c,
+                       params=params.edges, masked=near)
     columns = np.nonzero(valid)[0].astype(np.int32)
     pixels = np.stack([columns.astype(np.float64), result.row[columns].astype(np.float64)], axis=1)
     points_b = triangulate_stripe(pixels, calibration.camera, calibration.light_plane_c)
     finite = np.isfinite(points_b).all(axis=1)  # rays parallel to the sheet, or behind the camera
     columns, points_b = columns[finite], points_b[finite]
     return Profile(frame.frame_id, frame.t, points_b, columns,
-                   result.peak[columns].astype(np.float32), marker)
+                   result.peak[columns].astype(np.float32), marker, edges)
 
 
 def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams()) -> float:
@@ -239,6 +247,9 @@ class PlacedProfile:
     tcp_b: np.ndarray
     residual_px: float
     rotation_b: np.ndarray | None = None
+    edges_t: np.ndarray | None = None      # (M, 3) float32
+    edge_across_t: np.ndarray | None = None  # (M, 3) float64, unit, into the gap
+    edges: EdgePoints | None = None
 
 
 class PassAccumulator:
@@ -302,10 +313,13 @@ class PassAccumulator:
             rotation, from_robot = self.rotation_at(profile.t)
             if rotation is not None:
                 tcp = profile.marker.position_b - rotation @ self.calibration.marker_offset_t
+                edges = profile.edges if profile.edges is not None else EdgePoints.empty()
                 placed = PlacedProfile(profile.frame_id, profile.t,
                                        base_to_tcp(profile.points_b, tcp, rotation).astype(np.float32),
                                        profile.quality, tcp, profile.marker.residual_px,
-                                       rotation)
+                                       rotation,
+                                       base_to_tcp(edges.point_b, tcp, rotation).astype(np.float32),
+                                       edges.across_b @ rotation, edges)
         with self._lock:
             self._frame_ids.append(profile.frame_id)
             if np.isfinite(profile.marker.residual_px):
@@ -363,10 +377,34 @@ class PassAccumulator:
         scan.sensor_positions_t = np.einsum(
             "fji,fj->fi", scan.tcp_rotations_b,
             self.calibration.camera.origin - scan.tcp_positions_b)
+        _stitch_edges(scan, placed)
         scan.end_reason = end_reason.value if end_reason is not None else None
         if end_reason is EndReason.CAMERA_STOPPED and scan.frames:
             scan.interrupted = stopped_because
         return scan
+
+
+def _stitch_edges(scan: Scan, placed: list[PlacedProfile]) -> None:
+    """The profiles' edge points in {T}, less the drop-outs that bound an occlusion (which a
+    single profile cannot tell from a rim: ``scanner_core.edges.occluded_dropouts``)."""
+    if not placed:
+        return
+    counts = [len(p.edges_t) for p in placed]
+    points = np.concatenate([p.edges_t for p in placed]).reshape(-1, 3)
+    across = np.concatenate([p.edge_across_t for p in placed]).reshape(-1, 3)
+    kind = np.concatenate([p.edges.kind for p in placed]).astype(np.uint8)
+    size = np.concatenate([p.edges.size_mm for p in placed]).astype(np.float32)
+    peak = np.concatenate([p.edges.peak for p in placed]).astype(np.float32)
+    frames = np.repeat(np.array([p.frame_id for p in placed], np.int32), counts)
+    sensors = np.repeat(scan.sensor_positions_t, counts, axis=0)
+    keep = np.ones(len(points), bool)
+    dropout = np.nonzero(kind == EdgeKind.DROPOUT)[0]
+    if len(dropout) and len(scan.cloud):
+        keep[dropout[occluded_dropouts(points[dropout], across[dropout], sensors[dropout],
+                                       scan.cloud)]] = False
+    scan.edges, scan.edge_frame_ids, scan.edge_kind = points[keep], frames[keep], kind[keep]
+    scan.edge_size_mm, scan.edge_quality = size[keep], peak[keep]
+    scan.edges_occluded = int((~keep).sum())
 
 
 def camera_frames(camera: Camera, timeout: float = 1.0) -> Iterator[Frame]:

@@ -31,7 +31,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-__all__ = ["PoseParams", "SurfaceModel", "PoseResult", "register", "AXIS_NAMES"]
+__all__ = ["PoseParams", "SurfaceModel", "EdgeModel", "PoseResult", "register", "scan_pose",
+           "AXIS_NAMES", "MIN_POSE_POINTS"]
+
+#: A scan with fewer points gives no pose (refused, with the reason), not a guess.
+MIN_POSE_POINTS = 50
 
 AXIS_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
 _AXIS_LABELS = ("x_T", "y_T", "z_T")
@@ -240,6 +244,9 @@ class PoseResult:
     coarse : bool
         Whether the coarse search ran.
     time_ms : float
+    flags : list of str
+        Why not to trust the pose as it stands (a poor fit, too few edges, free motions);
+        empty for a pose to act on.
     """
 
     matrix: np.ndarray
@@ -252,6 +259,7 @@ class PoseResult:
     iterations: int = 0
     coarse: bool = False
     time_ms: float = 0.0
+    flags: list = field(default_factory=list)
 
     @property
     def observable(self) -> bool:
@@ -281,6 +289,7 @@ class PoseResult:
                             clean(self.std))),
             "iterations": self.iterations,
             "coarse": self.coarse,
+            "flags": list(self.flags),
             "time_ms": round(self.time_ms, 3),
         }
 
@@ -350,7 +359,46 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
         matrix=fit.pose, misplacement=fit.pose @ np.linalg.inv(nominal), rms_mm=fit.rms,
         inlier_fraction=fit.inlier_fraction, std=std, free_axes=free_axes,
         covariance=covariance, iterations=fit.iterations, coarse=coarse,
-        time_ms=(time.perf_counter() - t0) * 1e3)
+        time_ms=(time.perf_counter() - t0) * 1e3,
+        flags=_flags(fit, free_axes, edges is not None, params))
+
+
+def _flags(fit: _Fit, free_axes, with_edges: bool, params: PoseParams) -> list[str]:
+    flags = []
+    if fit.inlier_fraction < params.good_inlier_fraction:
+        flags.append(f"poor fit: {fit.inlier_fraction:.0%} of the points match the model")
+    if with_edges and fit.edge_fraction < params.good_inlier_fraction:
+        flags.append(f"poor fit: {fit.edge_fraction:.0%} of the edge points match the model's "
+                     "edges")
+    if fit.rms > _RMS_FLAG * params.surface_noise_mm:
+        flags.append(f"large residuals: {fit.rms * 1e3:.0f} um RMS")
+    if free_axes:
+        flags.append("not observable: " + ", ".join(a["label"] for a in free_axes))
+    return flags
+
+
+def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeModel | None = None,
+              params: PoseParams = PoseParams()) -> PoseResult:
+    """The pose of a stitched scan (``scanner_core.types.Scan``): its cloud with the normals
+    toward the camera, its frames as clusters, and its edge cloud when it has one.
+
+    Raises
+    ------
+    ValueError
+        Fewer than `MIN_POSE_POINTS` points: no pose is better than a guess.
+    """
+    from scanner_core.scanio import scan_normals
+
+    if len(scan.cloud) < MIN_POSE_POINTS:
+        raise ValueError(f"a pose needs at least {MIN_POSE_POINTS} points, the scan has "
+                         f"{len(scan.cloud)}")
+    edge_frames = getattr(scan, "edge_frame_ids", None)
+    use_edges = edge_model is not None and len(scan.edges) > 0 and edge_frames is not None
+    return register(scan.cloud, scan_normals(scan), surface_model, nominal,
+                    frame_ids=scan.frame_ids,
+                    edges_t=scan.edges if use_edges else None,
+                    edge_frame_ids=edge_frames if use_edges else None,
+                    edge_model=edge_model if use_edges else None, params=params)
 
 
 @dataclass
@@ -465,6 +513,8 @@ def _edge_rows(terms: _Terms, pose, centre, gate, noise_mm):
     return _robust_rows(terms.points[idx], m, q_t, terms.frames[idx], centre, gate, noise_mm)
 
 
+# A fit whose residuals exceed this many times the expected scatter is flagged.
+_RMS_FLAG = 5.0
 # Information below this fraction of the strongest is no information (numerical zero).
 _SINGULAR = 1e-10
 # Model points that seed a coarse candidate's translation.

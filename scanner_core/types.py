@@ -73,6 +73,8 @@ class Profile:
     quality : (N,) float32
         Peak intensity of the stripe at that column, DN (a proxy for the point's reliability).
     marker : MarkerObservation
+    edges : scanner_core.edges.EdgePoints or None
+        Drop-out and step edge points of the profile, {B}.
     """
 
     frame_id: int
@@ -81,6 +83,7 @@ class Profile:
     columns: np.ndarray
     quality: np.ndarray
     marker: MarkerObservation
+    edges: object = None
 
 
 @dataclass
@@ -96,7 +99,8 @@ class Scan:
     quality : (N,) float32
         Stripe peak intensity, DN.
     edges : (M, 3) float32
-        Edge points in {T}, mm (empty until edge extraction exists).
+        Edge points in {T}, mm (``scanner_core.edges``: drop-outs and steps along each
+        profile, stitched like the cloud), sorted by frame.
     tcp_positions_b : (F, 3) float64
         Marker-derived TCP position per used frame, {B}, mm.
     tcp_times : (F,) float64
@@ -132,6 +136,21 @@ class Scan:
         The camera's optical centre in {T} per placed frame, mm: ``R^T (C_B - p)`` for the
         camera centre ``C_B`` in {B} and the frame's TCP position ``p`` and rotation ``R``;
         the viewpoint of that frame's points (the stripe is seen in the direct view).
+    edge_frame_ids : (M,) int32
+        Frame of each edge point.
+    edge_kind : (M,) uint8
+        ``scanner_core.edges.EdgeKind``: 0 drop-out, 1 step.
+    edge_size_mm : (M,) float32
+        Drop-out: the gap's width, mm (NaN when the stripe does not come back); step: its
+        height, mm.
+    edge_quality : (M,) float32
+        Stripe peak on the edge's side, DN.
+    edges_occluded : int
+        Drop-outs dropped because the camera's view past them ran into the part (an
+        occlusion's boundary, not an edge).
+    normals : (N, 3) float32 or None
+        Unit normals of the cloud toward the camera; computed once, on first use, by
+        ``scanner_core.scanio.scan_normals``.
     """
 
     cloud: np.ndarray
@@ -153,3 +172,9 @@ class Scan:
     queue_overflows: int = 0
     tcp_rotations_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     sensor_positions_t: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    edge_frame_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    edge_kind: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
+    edge_size_mm: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    edge_quality: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    edges_occluded: int = 0
+    normals: np.ndarray | None = None

@@ -123,6 +123,8 @@ def arm_scan(service: ServiceDep, request: ScanRequest | None = None) -> ScanAcc
         job = service.arm(request.part, request.timeout_s, request.misplace)
     except KeyError:
         raise HTTPException(404, f"unknown part {request.part!r}: see GET /parts") from None
+    except PartError as exc:  # a misplacement out of the inspection volume
+        raise HTTPException(422, str(exc)) from None
     except EngineBusy as exc:
         raise HTTPException(409, str(exc)) from None
     except EngineFault as exc:

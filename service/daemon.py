@@ -16,6 +16,7 @@ import numpy as np
 
 from scanner_core.calibration import Calibration, load_calibration, save_calibration
 from scanner_core.pipeline import PipelineParams
+from scanner_core.pose import PoseParams, scan_pose
 from scanner_core.trigger import TriggerParams
 from scanner_core.types import Scan
 from service.engine import Engine, ScanJob
@@ -25,6 +26,7 @@ from service.publisher import Publisher
 from service.settings import Settings
 from service.store import ScanStore
 from simulator.live import PassInProgress
+from simulator.parts import check_fits
 from simulator.session import misplacement_matrix
 
 log = logging.getLogger("flyscan.service")
@@ -93,6 +95,7 @@ class Service:
         self.parts = PartLibrary(settings.data)
         self.publisher = Publisher(settings.zmq, hwm=settings.zmq_hwm)
         self.metrics = Metrics()
+        self.pose_params = PoseParams()
         params = PipelineParams(stripe_method=settings.stripe_method,
                                 trigger=TriggerParams(gap_frames=settings.gap_frames,
                                                       max_pass_s=settings.max_pass_s,
@@ -123,7 +126,8 @@ class Service:
         self.settings.data.mkdir(parents=True, exist_ok=True)
         self.store.open()
         self.parts.open()
-        self.parts.get(self.default_part)  # KeyError: an unknown default part
+        default = self.parts.get(self.default_part)  # KeyError: an unknown default part
+        default.surface_model, default.edge_model  # built now, not at the first scan's pose
         self.publisher.start()
         try:
             self.engine.start()
@@ -146,10 +150,14 @@ class Service:
     # -- scans ------------------------------------------------------------------------------
 
     def arm(self, part: str | None, timeout_s: float | None, misplace=None) -> ScanJob:
-        """Arm a scan of ``part``; KeyError for an unknown part, EngineBusy, EngineFault."""
+        """Arm a scan of ``part``; KeyError for an unknown part, PartError for a misplacement
+        that leaves the inspection volume, EngineBusy, EngineFault."""
         name = part or self.default_part
-        self.parts.get(name)  # KeyError before anything is armed
-        job = self.engine.arm(name, timeout_s, context=misplacement_matrix(misplace))
+        held = self.parts.get(name)  # KeyError before anything is armed
+        misplacement = misplacement_matrix(misplace)
+        if misplacement is not None:
+            check_fits(held, pose=misplacement @ held.grasp)
+        job = self.engine.arm(name, timeout_s, context=misplacement)
         with self._jobs_lock:
             self._jobs[job.scan_id] = job
             while len(self._jobs) > RECENT_JOBS:
@@ -189,6 +197,8 @@ class Service:
             sent.wait(PUBLISH_WAIT_S)
         check = cross_check(scan) if placed else None
         report = self.engine.report(job, scan, check)
+        if job.state == "done":
+            report["pose"] = self._pose(job, scan)
         report["latency_ms"] = dict(job.latency_ms)
         info = self._info(job, report)
         try:
@@ -202,6 +212,21 @@ class Service:
         self.publisher.publish("status", {**header, **self.status(), "scan_state": job.state,
                                           "reason": job.reason, "points": info["points"]})
         self.metrics.scan_finished(info)
+
+    def _pose(self, job: ScanJob, scan: Scan) -> dict:
+        """The part's pose in the gripper (``report.json`` ``pose``), or why there is none."""
+        t0 = time.perf_counter()
+        try:
+            try:
+                part = self.parts.get(job.part)
+            except KeyError:
+                raise ValueError(f"no CAD model for part {job.part!r}") from None
+            pose = scan_pose(scan, part.surface_model, part.grasp, edge_model=part.edge_model,
+                             params=self.pose_params).to_dict()
+        except ValueError as exc:
+            pose = {"refused": str(exc)}
+        job.latency_ms["pose"] = round((time.perf_counter() - t0) * 1e3, 3)
+        return pose
 
     def _info(self, job: ScanJob, report: dict) -> dict:
         keys = ("frames", "frames_dropped", "frames_unplaced", "queue_overflows", "points",

@@ -103,6 +103,19 @@ class Part:
         return Intersector(self.mesh)
 
     @cached_property
+    def surface_model(self):
+        """The CAD surface sampled for registration (``scanner_core.pose.SurfaceModel``),
+        built on first use and kept: every scan of the part reuses it."""
+        from scanner_core.pose import SurfaceModel
+        return SurfaceModel.from_mesh(self.mesh)
+
+    @cached_property
+    def edge_model(self):
+        """The CAD's sharp edges for registration (``scanner_core.pose.EdgeModel``)."""
+        from scanner_core.pose import EdgeModel
+        return EdgeModel.from_mesh(self.mesh)
+
+    @cached_property
     def hull_vertices(self) -> np.ndarray:
         """(H, 3) float64, mm in {P}: the vertices of the convex hull, all that decides the
         part's extent in any direction; all vertices when the mesh is flat (no hull)."""

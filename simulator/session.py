@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from scanner_core.calibration import Calibration
 from scanner_core.crosscheck import cross_check
 from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
+from scanner_core.pose import PoseParams, PoseResult, scan_pose
 from scanner_core.report import scan_report
 from scanner_core.types import Scan
 from simulator.cell import Cell
@@ -83,6 +84,7 @@ def simulated_cell(part: Part, cell: Cell, *, misplacement=None, seed: int = 0,
 def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | None = None,
                        misplacement=None, seed: int = 0, drop_rate: float = 0.0,
                        params: PipelineParams = PipelineParams(), evaluate: bool = True,
+                       pose: bool = True, pose_params: PoseParams = PoseParams(),
                        ) -> tuple[Scan, dict]:
     """Scan ``part`` in the simulated ``cell``.
 
@@ -90,13 +92,16 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
     ----------
     calibration : Calibration, optional
         What the scanner believes; default the cell's truth.
+    pose : bool
+        Register the scan against the part's CAD model (``scanner_core.pose``).
 
     Returns
     -------
     scan : Scan
     report : dict
         ``report.json`` content: frames, frames_dropped, points, edge_points, timings_ms,
-        pose (None: registration is another stage), cross_check and ground_truth.
+        pose (None when not asked for, or ``{"refused": reason}``), cross_check and
+        ground_truth (with the pose's error against the true grasp).
     """
     sim = simulated_cell(part, cell, misplacement=misplacement, seed=seed, drop_rate=drop_rate)
     calibration = cell.calibration if calibration is None else calibration
@@ -110,6 +115,14 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
         sim.camera.close()
         sim.robot.disconnect()
     report = scan_report(scan, check)
+    result = None
+    if pose:
+        try:
+            result = scan_pose(scan, part.surface_model, part.grasp, edge_model=part.edge_model,
+                               params=pose_params)
+            report["pose"] = result.to_dict()
+        except ValueError as exc:
+            report["pose"] = {"refused": str(exc)}
     processing_ms = report["timings_ms"]["processing"]
     report["timings_ms"]["warmup"] = round(warmup_ms, 3)
     # The pass's span on the camera clock, frames lost or unplaced included.
@@ -124,6 +137,8 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
                  "faces": int(len(part.mesh.faces))},
         "cell": cell.to_dict(),
     }
+    if result is not None:
+        report["ground_truth"]["pose_error"] = pose_error(result, sim.true_grasp)
     if evaluate:
         t0 = time.perf_counter()
         report["ground_truth"]["accuracy"] = cloud_accuracy(
@@ -131,3 +146,22 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
             cell.gripper_rotation_b, seed=seed)
         report["ground_truth"]["accuracy"]["eval_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
     return scan, report
+
+
+def pose_error(result: PoseResult, true_grasp: np.ndarray) -> dict:
+    """How far a registered pose is from the truth, per axis, and in reported sigmas.
+
+    The error is ``result.matrix @ inv(true_grasp)``: a motion in {T}, translation of the
+    {T} origin in um, rotation vector in millidegrees; ``sigmas`` divides each axis by its
+    reported standard deviation (None along a free motion).
+    """
+    e = result.matrix @ np.linalg.inv(true_grasp)
+    values = np.concatenate([e[:3, 3] * 1e3, Rotation.from_matrix(e[:3, :3]).as_rotvec(degrees=True) * 1e3])
+    std = result.std * np.array([1e3, 1e3, 1e3, 1e3, 1e3, 1e3])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sigmas = np.abs(values) / std
+    return {
+        "translation_um": np.round(values[:3], 3).tolist(),
+        "rotation_mdeg": np.round(values[3:], 3).tolist(),
+        "sigmas": [None if not np.isfinite(v) else round(float(v), 3) for v in sigmas],
+    }

@@ -310,7 +310,8 @@ def test_cloud_ply_fields(saved_block):
     for name, values in fields.items():
         assert_array_equal(served[name], values)
     edges, edge_fields = read_ply(out / "edges.ply")
-    assert edges.shape == (0, 3) and edge_fields == {}
+    assert edges.shape == (len(scan.edges), 3) and len(scan.edges) > 0
+    assert list(edge_fields) == [*fields, "kind", "size_mm"]
 
 
 def test_normals_of_the_underside_are_its_face_normal_toward_the_camera(saved_block):

@@ -30,8 +30,13 @@ def test_scan_writes_the_contract_files(block_stl, tmp_path):
     assert code == 0
     report = json.loads((out / "report.json").read_text())
     assert REPORT_KEYS <= report.keys()
-    assert report["pose"] is None
-    assert report["points"] > 1000 and report["edge_points"] == 0
+    assert report["points"] > 1000 and report["edge_points"] > 20
+    # The pose: the misplacement given, found within its reported uncertainty.
+    pose = report["pose"]
+    assert pose["observable"] and pose["flags"] == []
+    np.testing.assert_allclose(pose["misplacement"]["translation_mm"], [0.5, 0, 0], atol=0.05)
+    np.testing.assert_allclose(pose["misplacement"]["rotation_deg"], [0, 0, 1], atol=0.03)
+    assert all(s <= 4 for s in report["ground_truth"]["pose_error"]["sigmas"])
     assert report["ground_truth"]["accuracy"]["rms_um"] <= 20.0
     points, fields = read_ply(out / "cloud.ply")
     assert points.dtype == np.float32 and points.shape == (report["points"], 3)
@@ -41,8 +46,10 @@ def test_scan_writes_the_contract_files(block_stl, tmp_path):
     other = trimesh.load(out / "cloud.ply")
     np.testing.assert_allclose(np.asarray(other.vertices), points, atol=1e-6)
     assert np.ptp(points[:, 0]) > 55.0  # the 60 mm block, not 60 inches or 2.4 mm
-    edges, _ = read_ply(out / "edges.ply")
-    assert edges.shape == (0, 3)
+    edges, edge_fields = read_ply(out / "edges.ply")
+    assert edges.shape == (report["edge_points"], 3)
+    assert set(edge_fields) == set(fields) | {"kind", "size_mm"}
+    assert set(np.unique(edge_fields["kind"])) <= {0, 1}
 
 
 @pytest.mark.parametrize("argv, message", [

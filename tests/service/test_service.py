@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_array_equal
 
-from clients import CloudSubscriber, Conflict, FlyscanClient, NotFound, Unauthorized
+from clients import CloudSubscriber, Conflict, FlyscanClient, NotFound, Unauthorized, Unprocessable
 from running import FAST_PASS, RunningService
 
 #: The subscriber's first messages after connecting are lost (slow joiner): wait this long.
@@ -17,7 +17,8 @@ def test_arm_pass_and_the_same_cloud_over_rest_and_zeromq(service):
     with FlyscanClient(service.url) as client, CloudSubscriber(service.zmq, topics=("cloud", "pose")) as sub:
         time.sleep(SLOW_JOINER_S)
         assert client.health() == {"status": "ok"}
-        scan_id = client.arm()
+        misplace = [0.8, -0.5, 0.3, 0.5, -1.0, 2.0]
+        scan_id = client.arm(misplace=misplace)
         info = client.wait(scan_id, timeout=30)
         assert info["state"] == "done" and info["end_reason"] == "marker gone"
         assert info["points"] > 1000 and info["frames"] > 20
@@ -33,6 +34,14 @@ def test_arm_pass_and_the_same_cloud_over_rest_and_zeromq(service):
         assert np.abs(cloud_rest[:, 2] - 20.0).min() < 0.05
         pose = sub.receive(timeout=5)
         assert pose.topic == "pose" and pose.scan_id == scan_id and pose.array is None
+        # The misplacement the simulated pass was given, found, and the same over REST.
+        assert pose.header["pose"] == info["pose"] and info["pose"]["observable"]
+        # At 1 m/s (6 mm between profiles) the turn about z_T is known to about 0.1 degree:
+        # the error stays within the uncertainty reported.
+        found, std = info["pose"]["misplacement"], info["pose"]["std"]
+        error = np.abs(np.subtract([*found["translation_mm"], *found["rotation_deg"]], misplace))
+        assert np.all(error <= 3 * np.array(list(std.values())) + 1e-3), (error, std)
+        assert error[:3].max() < 0.1 and error[3:].max() < 0.4
         assert sub.lost == 0
         assert client.scans()[0]["scan_id"] == scan_id
         fields = client.cloud_fields(scan_id)
@@ -45,6 +54,15 @@ def test_a_second_arm_during_a_scan_is_refused(service):
         with pytest.raises(Conflict, match="in progress"):
             client.arm()
         client.wait(first, timeout=30)
+
+
+def test_a_misplacement_out_of_the_volume_is_refused(service):
+    with FlyscanClient(service.url) as client:
+        with pytest.raises(Unprocessable, match="into the gripper"):
+            client.arm(misplace=[0, 0, 0, 180, 0, 0])
+        with pytest.raises(Unprocessable, match="outside the inspection volume"):
+            client.arm(misplace=[0, 0, 300, 0, 0, 0])
+        assert client.status()["state"] == "idle"  # nothing was armed
 
 
 def test_unknown_scan_and_part(service):
@@ -109,7 +127,7 @@ def test_a_slow_subscriber_never_stalls_acquisition(tmp_path):
 def test_parts_uploaded_with_their_unit_are_scanned(service, tmp_path):
     import trimesh
 
-    from clients import Unprocessable
+
 
     mesh_path = tmp_path / "plate.stl"
     trimesh.creation.box(extents=(4.0, 3.0, 1.0)).export(mesh_path)  # cm
@@ -131,7 +149,7 @@ def test_parts_uploaded_with_their_unit_are_scanned(service, tmp_path):
 
 
 def test_calibration_round_trip_and_a_bad_one_refused(service):
-    from clients import Unprocessable
+
 
     with FlyscanClient(service.url) as client:
         calibration = client.calibration()

@@ -1,0 +1,418 @@
+"""Edge points along one profile against analytic profiles with known edges (paper section II).
+
+A profile here is built in the reference cell's light plane: a surface line at range ``d``
+(``scanner_core.edges.profile_axes``) is projected into the image, which gives each column's
+exact stripe row; peaks and Reason codes are set per column as the stripe extraction would.
+"""
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+from scipy.special import ndtr
+
+from scanner_core.edges import (EdgeKind, EdgeParams, EdgePoints, find_edges, occluded_dropouts,
+                                profile_axes)
+from scanner_core.stripe import Reason
+
+WIDTH = 1920
+#: The direct view of the reference cell (columns processed by the stripe extraction).
+DIRECT = (384, 1536)
+#: Ranges of the near and far surfaces in the sheet, mm (about the demo part's underside).
+NEAR_MM, FAR_MM = 420.0, 425.0
+#: Stripe amplitude above the background and the background, DN (the reference image model).
+PEAK_DN, BACKGROUND_DN = 200.0, 10.0
+#: The largest background pixel of a 1200-row column: about 10 + 3 sigma of the read noise.
+DARK_PEAK_DN = 19.0
+#: Extraction threshold and the pipeline's minimum peak, DN.
+THRESHOLD_DN, MIN_PEAK_DN = 20.0, 40.0
+#: The brief's tolerance for a drop-out edge's sub-pixel column, px.
+SUBPIXEL_TOL_PX = 0.1
+#: Noise-free geometry: float32 rows (6e-5 px) and the projective round trip, mm.
+EXACT_MM = 1e-3
+#: With 0.03 px row noise (the centre of gravity's), a line fit over 6 columns extrapolated half
+#: a column: about 0.02 px, times about 0.4 mm of range per row px.
+NOISY_MM = 0.03
+#: Row noise of the stripe centre, px: the reference centroid's 0.026 px, and a bad stripe's.
+ROW_NOISE_PX = (0.03, 0.1)
+
+
+@dataclass(frozen=True)
+class Profile:
+    """StripeResult-like arrays of one synthetic frame."""
+
+    row: np.ndarray
+    peak: np.ndarray
+    reason: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        return (self.reason == Reason.OK) & (self.peak >= MIN_PEAK_DN)
+
+
+@pytest.fixture(scope="module")
+def geometry(cell):
+    cal = cell.calibration
+    e_a, e_d = profile_axes(cal.camera, cal.light_plane_c)
+    return cal.camera, cal.light_plane_c, e_a, e_d
+
+
+def surface_at(geometry, columns, d):
+    """Where each column's line of sight meets the sheet's line at range ``d``: (a, rows)."""
+    cam, plane, e_a, e_d = geometry
+    base = plane.normal * plane.offset + d * e_d  # in {C}
+    k = (np.asarray(columns, dtype=np.float64) - cam.cx) / cam.fx
+    a = (k * base[2] - base[0]) / (e_a[0] - k * e_a[2])  # (u - cx) Z = fx X, linear in a
+    p = base + a[:, None] * e_a
+    return a, cam.fy * p[:, 1] / p[:, 2] + cam.cy
+
+
+def sheet_point_b(geometry, a, d):
+    cam, plane, e_a, e_d = geometry
+    return cam.to_base(plane.normal * plane.offset + a * e_a + d * e_d)[0]
+
+
+def blank_profile():
+    """Nothing in the direct view: every processed column dark, the mirror strips unprocessed."""
+    row = np.full(WIDTH, np.nan)
+    peak = np.full(WIDTH, np.nan)
+    reason = np.full(WIDTH, Reason.NOT_PROCESSED, np.uint8)
+    peak[DIRECT[0]:DIRECT[1]] = DARK_PEAK_DN
+    reason[DIRECT[0]:DIRECT[1]] = Reason.NO_PEAK
+    return row, peak, reason
+
+
+def set_stripe(profile, columns, rows, peaks=None):
+    row, peak, reason = profile
+    columns = np.asarray(columns)
+    peaks = np.full(len(columns), PEAK_DN + BACKGROUND_DN) if peaks is None else peaks
+    lit = peaks > THRESHOLD_DN
+    row[columns] = np.where(lit, rows, np.nan)
+    peak[columns] = peaks
+    reason[columns] = np.where(lit, Reason.OK, Reason.NO_PEAK)
+
+
+def make(profile, rng=None, row_noise_px=0.0):
+    row, peak, reason = (a.copy() for a in profile)
+    if row_noise_px:
+        row = row + rng.normal(0.0, row_noise_px, row.shape)
+    return Profile(row.astype(np.float32), peak.astype(np.float32), reason)
+
+
+def edges_of(geometry, profile, **kwargs):
+    cam, plane, _, _ = geometry
+    return find_edges(profile, profile.valid, cam, plane, **kwargs)
+
+
+def blurred_edge_peaks(columns, edge_col, blur_px, lit_below):
+    """Peak DN of columns near a stripe's end at ``edge_col``, blurred by a Gaussian PSF along
+    the stripe (sigma ``blur_px``): half the stripe's level exactly at the edge."""
+    z = (edge_col - columns) / blur_px if lit_below else (columns - edge_col) / blur_px
+    return BACKGROUND_DN + PEAK_DN * ndtr(z)
+
+
+# ---------------------------------------------------------------------------------------------
+# Drop-outs
+
+
+@pytest.mark.parametrize("blur_px", [0.7, 1.0, 1.5])
+@pytest.mark.parametrize("phase", [0.0, 0.25, 0.5, 0.8])
+def test_dropout_edges_at_half_intensity_within_a_tenth_of_a_pixel(geometry, blur_px, phase):
+    """A gap of known sub-pixel ends: one drop-out edge per side, at the half-intensity column,
+    its row on the side's line, its point on the surface there."""
+    left_end, right_end = 800.0 + phase, 900.0 - phase / 2  # the stripe's ends, px
+    cols = np.arange(600, 1100)
+    a, rows = surface_at(geometry, cols, NEAR_MM)
+    peaks = np.where(cols < 850, blurred_edge_peaks(cols, left_end, blur_px, True),
+                     blurred_edge_peaks(cols, right_end, blur_px, False))
+    profile = blank_profile()
+    set_stripe(profile, cols, rows, peaks)
+    edges = edges_of(geometry, make(profile))
+    assert len(edges) == 4 and np.all(edges.kind == EdgeKind.DROPOUT)  # the stripe's ends too
+    order = np.argsort(edges.pixel[:, 0])
+    assert_allclose(edges.pixel[order, 0], [599.5, left_end, right_end, 1099.5],
+                    atol=SUBPIXEL_TOL_PX)
+    assert_allclose(edges.direction[order], [-1, 1, -1, 1])
+    order = order[1:3]
+    for i, end in zip(order, (left_end, right_end)):
+        a_end, row_end = surface_at(geometry, [edges.pixel[i, 0]], NEAR_MM)
+        assert_allclose(edges.pixel[i, 1], row_end[0], atol=1e-3)
+        assert_allclose(edges.point_b[i], sheet_point_b(geometry, a_end[0], NEAR_MM),
+                        atol=EXACT_MM)
+    # the gap's width in the sheet: between the two stripe ends
+    assert_allclose(edges.size_mm[order], edges.size_mm[order[0]])
+    assert 0 < edges.size_mm[order[0]] < (right_end - left_end) * 0.2
+
+
+def test_dropout_of_a_point_sampled_edge_lies_half_way_between_columns(geometry):
+    """The simulator samples each column at one point: the stripe stops between two columns at
+    full intensity, and half the relative step falls half way between them."""
+    cols = np.arange(700, 1000)
+    _, rows = surface_at(geometry, cols, NEAR_MM)
+    profile = blank_profile()
+    set_stripe(profile, cols, rows)
+    edges = edges_of(geometry, make(profile))
+    assert_allclose(np.sort(edges.pixel[:, 0]), [699.5, 999.5], atol=1e-6)
+    assert np.all(np.isnan(edges.size_mm))  # the stripe does not come back within the view
+
+
+def test_stripe_cut_by_the_view_is_no_edge(geometry):
+    """A stripe running into the border of the processed columns ends there, not at the part."""
+    cols = np.arange(DIRECT[0], 1000)
+    _, rows = surface_at(geometry, cols, NEAR_MM)
+    profile = blank_profile()
+    set_stripe(profile, cols, rows)
+    edges = edges_of(geometry, make(profile))
+    assert len(edges) == 1 and edges.pixel[0, 0] == pytest.approx(999.5)
+
+
+def test_chamfer_at_the_outline_is_one_dropout_at_its_end(geometry):
+    """A dimmer 45 degree chamfer over the last 4 columns before the gap: no step (no surface
+    beyond it), and the drop-out at the chamfer's end, by the chamfer's own level."""
+    cols = np.arange(800, 1004)
+    d = NEAR_MM + np.clip(cols - 999, 0, None) * 0.16  # about a column's width per column
+    rows = np.array([surface_at(geometry, [c], dd)[1][0] for c, dd in zip(cols, d)])
+    peaks = np.where(cols > 999, BACKGROUND_DN + 0.65 * PEAK_DN, BACKGROUND_DN + PEAK_DN)
+    profile = blank_profile()
+    set_stripe(profile, cols, rows, peaks)
+    edges = edges_of(geometry, make(profile))
+    assert np.all(edges.kind == EdgeKind.DROPOUT)
+    assert_allclose(np.sort(edges.pixel[:, 0]), [799.5, 1003.5], atol=1e-6)
+
+
+@pytest.mark.parametrize("gap", [1, 2])
+def test_narrow_gaps_and_specks_are_no_edges(geometry, gap):
+    cols = np.arange(DIRECT[0], DIRECT[1])
+    _, rows = surface_at(geometry, cols, NEAR_MM)
+    profile = blank_profile()
+    set_stripe(profile, cols, rows)
+    row, peak, reason = profile
+    for start in (600, 900, 1200):  # dark columns inside the stripe
+        reason[start:start + gap] = Reason.NO_PEAK
+        peak[start:start + gap] = DARK_PEAK_DN
+        row[start:start + gap] = np.nan
+    reason[700:706] = Reason.SATURATED  # a saturated stretch holds a stripe: no drop-out
+    row[700:706] = np.nan
+    edges = edges_of(geometry, make(profile))
+    assert len(edges) == 0
+    # a speck: gap-wide valid columns alone in the dark
+    dark = blank_profile()
+    set_stripe(dark, np.arange(1000, 1000 + gap), rows[1000 - DIRECT[0]:1000 - DIRECT[0] + gap])
+    assert len(edges_of(geometry, make(dark))) == 0
+
+
+def test_masked_columns_make_no_dropout(geometry):
+    cols = np.arange(DIRECT[0], DIRECT[1])
+    _, rows = surface_at(geometry, cols, NEAR_MM)
+    profile = blank_profile()
+    set_stripe(profile, cols, rows)
+    p = make(profile)
+    masked = np.zeros(WIDTH, bool)
+    masked[1000:1025] = True  # the LED marker's columns, taken out by the pipeline
+    cam, plane, _, _ = geometry
+    assert len(find_edges(p, p.valid & ~masked, cam, plane, masked=masked)) == 0
+    # without telling, the masked columns look dark: two drop-outs
+    assert len(find_edges(p, p.valid & ~masked, cam, plane)) == 2
+
+
+def test_shadow_side_of_a_gap_across_a_step_is_dropped(geometry):
+    """A gap between a near and a far surface: the near side's end is the edge that casts the
+    shadow; the far side's end is the shadow's boundary (kept only on request)."""
+    near_cols, far_cols = np.arange(700, 900), np.arange(920, 1100)
+    _, near_rows = surface_at(geometry, near_cols, NEAR_MM)
+    _, far_rows = surface_at(geometry, far_cols, FAR_MM)
+    profile = blank_profile()
+    set_stripe(profile, near_cols, near_rows)
+    set_stripe(profile, far_cols, far_rows)
+    edges = edges_of(geometry, make(profile))
+    assert_allclose(np.sort(edges.pixel[:, 0]), [699.5, 899.5, 1099.5], atol=1e-6)
+    kept = edges_of(geometry, make(profile), params=EdgeParams(keep_far_side=True))
+    assert_allclose(np.sort(kept.pixel[:, 0]), [699.5, 899.5, 919.5, 1099.5], atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Steps
+
+
+def step_profile(geometry, wall_col, near_left=True, lo=700, hi=1100):
+    """A step whose wall stands half a column beyond the near side's last column ``wall_col``.
+
+    Each column sees the near surface while it meets it before the wall, the far surface
+    when it meets it beyond the wall, and else the unlit wall (dark). Returns the profile and
+    the wall's position ``a`` in the sheet."""
+    cols = np.arange(lo, hi)
+    toward = 0.5 if near_left else -0.5
+    a_wall = surface_at(geometry, [wall_col + toward], NEAR_MM)[0][0]
+    a_near, r_near = surface_at(geometry, cols, NEAR_MM)
+    a_far, r_far = surface_at(geometry, cols, FAR_MM)
+    sees_near = a_near < a_wall if near_left else a_near > a_wall
+    sees_far = ~sees_near & (a_far > a_wall if near_left else a_far < a_wall)
+    profile = blank_profile()
+    set_stripe(profile, cols[sees_near], r_near[sees_near])
+    set_stripe(profile, cols[sees_far], r_far[sees_far])
+    return profile, a_wall
+
+
+@pytest.mark.parametrize("near_left", [True, False])
+@pytest.mark.parametrize("wall_col", [900, 1203])
+def test_step_edge_at_half_height_on_the_wall(geometry, wall_col, near_left):
+    profile, a_wall = step_profile(geometry, wall_col, near_left, lo=wall_col - 150,
+                                   hi=wall_col + 150)
+    edges = edges_of(geometry, make(profile))
+    steps = edges.kind == EdgeKind.STEP
+    assert steps.sum() == 1 and (~steps).sum() == 2  # and the two ends of the stripe
+    i = np.nonzero(steps)[0][0]
+    assert_allclose(edges.point_b[i], sheet_point_b(geometry, a_wall, 0.5 * (NEAR_MM + FAR_MM)),
+                    atol=EXACT_MM)
+    assert_allclose(edges.size_mm[i], FAR_MM - NEAR_MM, atol=EXACT_MM)
+    assert edges.direction[i] == (1 if near_left else -1)
+    # in the image: at the wall's column, half way between the two sides' rows
+    col = wall_col + (0.5 if near_left else -0.5)
+    rows = [surface_at(geometry, [col], r)[1][0] for r in (NEAR_MM, FAR_MM)]
+    assert_allclose(edges.pixel[i], [col, np.mean(rows)], atol=1e-3)
+
+
+@pytest.mark.parametrize("row_noise_px", ROW_NOISE_PX)
+def test_step_with_stripe_noise(geometry, rng, row_noise_px):
+    profile, a_wall = step_profile(geometry, 1000)
+    for _ in range(20):
+        edges = edges_of(geometry, make(profile, rng, row_noise_px))
+        steps = edges.kind == EdgeKind.STEP
+        assert steps.sum() == 1
+        expected = sheet_point_b(geometry, a_wall, 0.5 * (NEAR_MM + FAR_MM))
+        assert np.linalg.norm(edges.point_b[steps][0] - expected) < NOISY_MM * row_noise_px / 0.03
+
+
+def test_resolved_ramp_is_interpolated_at_half_height(geometry):
+    """A step seen over a few columns (an inclined wall): the edge point lies on the ramp where
+    it crosses half the step height."""
+    cols = np.arange(800, 1100)
+    a_n, _ = surface_at(geometry, cols, NEAR_MM)
+    # range along the profile: near, a linear ramp over 4 columns, far
+    t = np.clip((cols - 950) / 4.0, 0.0, 1.0)
+    d = NEAR_MM + t * (FAR_MM - NEAR_MM)
+    cam, plane, e_a, e_d = geometry
+    # each column's line of sight meets the sheet where the range is d: solve per column
+    rows = np.array([surface_at(geometry, [c], dd)[1][0] for c, dd in zip(cols, d)])
+    a_cols = np.array([surface_at(geometry, [c], dd)[0][0] for c, dd in zip(cols, d)])
+    profile = blank_profile()
+    set_stripe(profile, cols, rows)
+    edges = edges_of(geometry, make(profile))
+    i = np.nonzero(edges.kind == EdgeKind.STEP)[0]
+    assert len(i) == 1
+    mid = 0.5 * (NEAR_MM + FAR_MM)
+    a_mid = np.interp(mid, d[148:156], a_cols[148:156])  # half height: column 952
+    assert_allclose(edges.point_b[i[0]], sheet_point_b(geometry, a_mid, mid), atol=EXACT_MM)
+    assert_allclose(edges.pixel[i[0], 0], 952.0, atol=0.05)
+
+
+@pytest.mark.parametrize("row_noise_px", ROW_NOISE_PX)
+def test_noise_slopes_and_small_jumps_are_surface(geometry, rng, row_noise_px):
+    """Stripe noise on a flat, a sloped and a curved surface, and a jump below min_step_mm:
+    no step, and only the stripe's two ends as drop-outs."""
+    cols = np.arange(600, 1300)
+    x = (cols - 950) / 350.0
+    for d in (np.full(len(cols), NEAR_MM),
+              NEAR_MM + 8.0 * x,  # 8 mm over 110 mm: a 4 degree slope
+              NEAR_MM + 6.0 * x**2,  # a gentle bulge
+              NEAR_MM + 0.2 * (cols > 950)):  # a 0.2 mm step: below min_step_mm
+        rows = np.array([surface_at(geometry, [c], dd)[1][0] for c, dd in zip(cols, d)])
+        profile = blank_profile()
+        set_stripe(profile, cols, rows)
+        for _ in range(5):
+            edges = edges_of(geometry, make(profile, rng, row_noise_px))
+            assert np.all(edges.kind == EdgeKind.DROPOUT)
+            assert_allclose(np.sort(edges.pixel[:, 0]), [599.5, 1299.5], atol=SUBPIXEL_TOL_PX)
+
+
+def test_noise_estimate(geometry, rng):
+    cols = np.arange(600, 1300)
+    _, rows = surface_at(geometry, cols, NEAR_MM)
+    profile = blank_profile()
+    set_stripe(profile, cols, rows)
+    quiet = edges_of(geometry, make(profile, rng, 0.03)).noise_mm
+    loud = edges_of(geometry, make(profile, rng, 0.3)).noise_mm
+    assert 0.003 < quiet < 0.03  # about 0.4 mm of range per row px
+    assert loud == pytest.approx(10 * quiet, rel=0.2)
+
+
+# ---------------------------------------------------------------------------------------------
+# Contract
+
+
+def test_result_contract(geometry):
+    profile, _ = step_profile(geometry, 1000)
+    edges = edges_of(geometry, make(profile))
+    assert isinstance(edges, EdgePoints)
+    m = len(edges)
+    for name, shape, dtype in (("pixel", (m, 2), np.float64), ("point_b", (m, 3), np.float64),
+                               ("kind", (m,), np.uint8), ("size_mm", (m,), np.float64),
+                               ("peak", (m,), np.float32), ("direction", (m,), np.int8),
+                               ("across_b", (m, 3), np.float64)):
+        arr = getattr(edges, name)
+        assert arr.shape == shape and arr.dtype == dtype, name
+    assert_allclose(np.linalg.norm(edges.across_b, axis=1), 1.0)
+    # a drop-out's pixel is the projection of its point
+    cam, dropout = geometry[0], edges.kind == EdgeKind.DROPOUT
+    assert_allclose(cam.project(edges.point_b[dropout]), edges.pixel[dropout], atol=1e-6)
+    # the peak is the stripe's level
+    assert_allclose(edges.peak, PEAK_DN + BACKGROUND_DN)
+
+
+def test_empty_profiles(geometry):
+    empty = edges_of(geometry, make(blank_profile()))
+    assert len(empty) == 0 and empty.point_b.shape == (0, 3) and empty.across_b.shape == (0, 3)
+    assert np.all(np.isfinite(empty.along_b))
+
+
+def test_inputs_are_checked(geometry):
+    cam, plane, _, _ = geometry
+    p = make(blank_profile())
+    with pytest.raises(ValueError, match="`valid` must be a \\(1920,\\) bool"):
+        find_edges(p, p.valid[:10], cam, plane)
+    with pytest.raises(ValueError, match="`masked`"):
+        find_edges(p, p.valid, cam, plane, masked=np.zeros(WIDTH))
+    with pytest.raises(ValueError, match="`result` must have"):
+        find_edges(np.zeros(WIDTH), p.valid, cam, plane)
+    with pytest.raises(ValueError, match="`min_step_mm`"):
+        EdgeParams(min_step_mm=0.0)
+    with pytest.raises(ValueError, match="`min_gap_px`"):
+        EdgeParams(min_gap_px=1.5)
+
+
+# ---------------------------------------------------------------------------------------------
+# Occlusions (per scan)
+
+
+def test_occluded_dropouts():
+    """A plate (the cloud) between the camera and the probe past one drop-out hides it; the
+    other drop-out's line of sight is clear."""
+    g = np.mgrid[-10:10:0.5, -10:10:0.5].reshape(2, -1).T
+    plate = np.column_stack([g[:, 0], g[:, 1] + 20.0, np.full(len(g), 10.0)])  # z = 10 mm
+    points = np.array([[0.0, 0.0, 0.0], [0.0, -40.0, 0.0]])
+    across = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    sensors = np.array([[0.0, 200.0, 100.0], [0.0, 160.0, 100.0]])  # through the plate, past it
+    assert occluded_dropouts(points, across, sensors, plate).tolist() == [True, False]
+    assert occluded_dropouts(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
+                             plate).shape == (0,)
+    with pytest.raises(ValueError, match="`across_t`"):
+        occluded_dropouts(points, across[:1], sensors, plate)
+
+
+# ---------------------------------------------------------------------------------------------
+# Speed: a printout, not an assertion
+
+
+def test_speed_printout(geometry, capsys):
+    profile, _ = step_profile(geometry, 1000, lo=DIRECT[0] + 50, hi=DIRECT[1] - 50)
+    p = make(profile, np.random.default_rng(0), 0.03)
+    edges_of(geometry, p)  # compiled (or loaded from the cache) before timing
+    n = 200
+    t0 = time.perf_counter()
+    for _ in range(n):
+        edges_of(geometry, p)
+    per_frame_ms = (time.perf_counter() - t0) / n * 1e3
+    with capsys.disabled():
+        print(f"\nfind_edges: {per_frame_ms:.3f} ms per 1920-column frame "
+              f"({int(p.valid.sum())} valid columns)")

@@ -1,0 +1,133 @@
+"""Edge accuracy against the CAD's sharp edges: analytic cases, then the edges of a simulated
+pass of the demo part (paper section II; issue 8's target: 30 um RMS, under 5 % beyond 0.5 mm)."""
+import numpy as np
+import pytest
+import trimesh
+from numpy.testing import assert_allclose
+
+from scanner_core import stripe
+from scanner_core.edges import EdgeKind, find_edges
+from scanner_core.geometry import apply_transform, base_to_tcp, reproject_marker
+from scanner_core.pipeline import MASK_ROW_FACTOR, PipelineParams, observe_marker
+from simulator.evaluate import edge_accuracy, sharp_edges
+from simulator.session import camera_frames, parse_misplacement, simulated_cell
+
+#: Float round-off of the distances, um.
+EXACT_UM = 1e-6
+#: Edge figures of the demo part's pass below (measured: drop-outs 44 um RMS, steps 49 um,
+#: no outliers). A drop-out's column is only known to the column in the simulator, which
+#: samples each column at one point: the stripe stops at full intensity between two columns,
+#: the edge is put half way, and its error is uniform over +-0.5 px (0.16 mm): 46 um RMS where
+#: the edge crosses the stripe at right angles. Steps fare the same where their wall falls
+#: within one column.
+DROPOUT_RMS_UM, STEP_RMS_UM = 60.0, 65.0
+#: The issue's outlier target is 5 %; the demo part has none.
+MAX_OUTLIER_FRACTION = 0.01
+
+
+@pytest.fixture(scope="module")
+def box():
+    mesh = trimesh.creation.box(extents=(60.0, 40.0, 20.0))
+    mesh.apply_translation((0.0, 0.0, 10.0))  # z in [0, 20], as a part hanging along +z_T
+    return mesh
+
+
+def test_sharp_edges_of_a_box_and_of_an_open_sheet(box):
+    segments = sharp_edges(box)
+    assert segments.shape == (12, 2, 3)  # the face diagonals are coplanar: not sharp
+    lengths = np.sort(np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1))
+    assert_allclose(lengths, [20.0] * 4 + [40.0] * 4 + [60.0] * 4)
+    sheet = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]])
+    assert sharp_edges(sheet).shape == (4, 2, 3)  # its boundary, not its diagonal
+
+
+def test_distances_are_measured_across_z_t(box):
+    """Points beside the outline, on a wall at half height, and in the middle of a face."""
+    grasp = np.eye(4)
+    points = np.array([
+        [30.03, 5.0, 20.0],  # 30 um outside the wall x = 30, at the underside
+        [-30.0, -20.04, 20.0],  # 40 um beside a corner's vertical edge
+        [10.0, -19.95, 15.0],  # 50 um inside, 5 mm up the wall: a step's half-height point
+        [30.0, 0.0, 10.0],  # on the wall at half height: on its top and bottom edges' line
+        [0.0, 0.0, 20.0],  # the middle of the underside: 20 mm from any edge, an outlier
+    ])
+    acc = edge_accuracy(points, box, grasp, kinds=[0, 0, 1, 1, 0])
+    xy_um = np.array([30.0, 40.0, 50.0, 0.0, 20000.0])
+    assert acc["count"] == 5 and acc["sharp_edges"] == 12
+    assert_allclose(acc["rms_um"], np.sqrt(np.mean(xy_um**2)), rtol=1e-9)
+    assert_allclose(acc["outlier_fraction"], 0.2)
+    assert_allclose(acc["rms_inliers_um"], np.sqrt(np.mean(xy_um[:4] ** 2)), rtol=1e-9)
+    d3_um = np.array([30.0, 40.0, np.hypot(50.0, 5000.0), 10000.0, 20000.0])
+    assert_allclose(acc["rms_3d_um"], np.sqrt(np.mean(d3_um**2)), rtol=1e-9)
+    assert acc["by_kind"]["dropout"]["count"] == 3 and acc["by_kind"]["step"]["count"] == 2
+    assert_allclose(acc["by_kind"]["step"]["rms_um"], np.sqrt(np.mean([50.0**2, 0.0])), rtol=1e-9)
+    # the same part and points moved by a grasp give the same figures
+    grasp = parse_misplacement("3,-2,1,0,0,25")
+    moved = edge_accuracy(apply_transform(grasp, points), box, grasp)
+    for key in ("rms_um", "p99_um", "outlier_fraction", "rms_3d_um"):
+        assert_allclose(moved[key], acc[key], rtol=1e-6, atol=EXACT_UM)
+
+
+def test_no_points_and_bad_kinds(box):
+    assert edge_accuracy(np.zeros((0, 3)), box, np.eye(4))["count"] == 0
+    with pytest.raises(ValueError, match="`kinds`"):
+        edge_accuracy(np.zeros((2, 3)), box, np.eye(4), kinds=[0])
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end: the edges of real simulated frames
+
+
+def profile_inputs(frame, calibration, params: PipelineParams):
+    """The stripe, the valid columns and the marker-masked columns of one frame, as
+    ``pipeline.process_frame`` computes them."""
+    image = frame.image
+    marker = observe_marker(image, calibration, params)
+    result = stripe.extract(image, method=params.stripe_method,
+                            threshold=params.stripe_threshold_dn,
+                            columns=calibration.direct_columns)
+    valid = result.valid & (result.peak >= params.min_peak_dn)
+    direct_px = marker.pixels[0]
+    if not np.all(np.isfinite(direct_px)) and marker.valid:
+        direct_px = reproject_marker(marker.position_b, calibration.camera, calibration.mirrors)[0]
+    masked = np.zeros(image.shape[1], dtype=bool)
+    if np.all(np.isfinite(direct_px)):
+        near = np.abs(np.arange(image.shape[1]) - direct_px[0]) <= params.marker_mask_px
+        rows_near = np.abs(result.row - direct_px[1]) <= params.marker_mask_px * MASK_ROW_FACTOR
+        masked = near & rows_near
+    return result, valid & ~masked, masked, marker
+
+
+@pytest.fixture(scope="module")
+def demo_pass_edges(block_part, cell):
+    """Edge points of one pass of the demo part (misplaced and turned), placed in {T} by the
+    marker and the robot's rotation as the accumulator places profiles."""
+    misplacement = parse_misplacement("1.5,-2,0.5,2,-3,5")
+    sim = simulated_cell(block_part, cell, misplacement=misplacement, seed=3)
+    sim.camera.open()
+    cal, params, rotation = cell.calibration, PipelineParams(), cell.gripper_rotation_b
+    points, kinds = [], []
+    for frame in camera_frames(sim.camera):
+        result, valid, masked, marker = profile_inputs(frame, cal, params)
+        edges = find_edges(result, valid, cal.camera, cal.light_plane_c, masked=masked)
+        if len(edges) and marker.valid:
+            tcp = marker.position_b - rotation @ cal.marker_offset_t
+            points.append(base_to_tcp(edges.point_b, tcp, rotation))
+            kinds.append(edges.kind)
+    sim.camera.close()
+    return np.concatenate(points), np.concatenate(kinds), sim.true_grasp
+
+
+def test_demo_part_edges_lie_on_the_cad_edges(demo_pass_edges, block_part):
+    points, kinds, true_grasp = demo_pass_edges
+    acc = edge_accuracy(points, block_part.mesh, true_grasp, kinds=kinds)
+    dropout, step = acc["by_kind"]["dropout"], acc["by_kind"]["step"]
+    # the outline, both holes' rims and the blind hole's and the step's walls
+    assert dropout["count"] >= 60 and step["count"] >= 20
+    assert acc["outlier_fraction"] <= MAX_OUTLIER_FRACTION
+    assert dropout["rms_um"] < DROPOUT_RMS_UM
+    assert step["rms_um"] < STEP_RMS_UM
+    # a step's point lies half way up its wall: 2.5 mm (the step) or 5 mm (the blind hole)
+    # from the wall's edges in 3-D
+    assert step["rms_3d_um"] > 2000.0
+    assert np.all(np.isin(kinds, [EdgeKind.DROPOUT, EdgeKind.STEP]))
