@@ -149,6 +149,14 @@ function fmtMisplacement(m) {
   return String(m);
 }
 
+// The misplacement, and why not to act on it (flags), or why there is no pose.
+function fmtPose(p) {
+  if (p.refused) return "no pose: " + p.refused;
+  let text = fmtMisplacement(p.misplacement);
+  if (p.flags && p.flags.length) text += "\n" + p.flags.join("; ");
+  return text;
+}
+
 function cell(tr, text, cls) {
   const td = document.createElement("td");
   td.textContent = text;
@@ -178,7 +186,8 @@ function renderScans(scans) {
     cell(tr, cc ? fmtNum(cc.rms_mm, 3) + " / " + fmtNum(cc.max_mm, 3) : "\u2013", "num");
     const flagged = cc && typeof cc.flagged === "boolean" ? cc.flagged : null;
     cell(tr, flagged === null ? "\u2013" : flagged ? "yes" : "no", flagged ? "flag-yes" : "");
-    cell(tr, pose ? fmtMisplacement(pose.misplacement) : "\u2013", "mono misplacement");
+    const poseCell = cell(tr, pose ? fmtPose(pose) : "\u2013", "mono misplacement");
+    if (pose && (pose.refused || (pose.flags && pose.flags.length))) poseCell.classList.add("flag-yes");
     cell(tr, fmtNum(latency, 1), "num");
     rows.push(tr);
   }

@@ -95,6 +95,10 @@ def test_the_page_shows_the_live_status_and_a_scan_armed_from_it(page, service):
     assert state_cell.inner_text() == "done", info
     points = int(row.locator("td.points").inner_text().replace(",", ""))
     assert points > 0 and points == info["points"]
+    # The pose's misplacement as the service reports it, to the digits shown.
+    shown = row.locator("td.misplacement").inner_text()
+    tx = info["pose"]["misplacement"]["translation_mm"][0]
+    assert "translation_mm" in shown and f"{tx:.2f}" in shown.replace("\u2212", "-"), shown
     assert page.locator("#scans tr[data-scan-id]").first.get_attribute("data-scan-id") == scan_id
 
     # The cloud picture is the new scan's.
