@@ -64,7 +64,7 @@ FALLBACKS = ("view", "nan")
 def estimate_normals(points, *, sensors, frame_ids=None, k: int = DEFAULT_K,
                      radius: float | None = None,
                      min_neighbours: int = DEFAULT_MIN_NEIGHBOURS,
-                     fallback: str = "view", workers: int = 1) -> np.ndarray:
+                     fallback: str = "view", workers: int = 1, index=None) -> np.ndarray:
     """Unit surface normals by PCA over each point's neighbours, oriented toward the sensor.
 
     Parameters
@@ -98,10 +98,13 @@ def estimate_normals(points, *, sensors, frame_ids=None, k: int = DEFAULT_K,
     workers : int
         Threads of the neighbour search (``cKDTree.query``; -1: all cores). One by default:
         the service runs this beside its acquisition.
+    index : (M,) int, optional
+        Estimate the normals of these points only (their neighbours still come from the
+        whole cloud): the registration needs a subsample's.
 
     Returns
     -------
-    normals : (N, 3) float32
+    normals : (N, 3) float32 (or (M, 3) with `index`)
         Unit vectors, ``dot(normal, sensor - point) >= 0``; NaN where the sensor is unknown,
         and with ``fallback="nan"`` where no plane could be fitted.
 
@@ -125,13 +128,14 @@ def estimate_normals(points, *, sensors, frame_ids=None, k: int = DEFAULT_K,
         radius = _check_radius(radius)
     if fallback not in FALLBACKS:
         raise ValueError(f"`fallback` must be one of {FALLBACKS}, got {fallback!r}")
-    normals = np.full((n, 3), np.nan)
-    if n:
-        index, distance, own = _neighbours(pts, ranks, k, radius, workers)
-        normals, planar = _pca_normals(pts, index, distance, min_neighbours)
-        if own < index.shape[1]:  # a profile stack: a plane needs the neighbouring profiles
+    query = np.arange(n) if index is None else _check_index(index, n)
+    normals = np.full((len(query), 3), np.nan)
+    if len(query):
+        neighbours, distance, own = _neighbours(pts, ranks, k, radius, workers, query)
+        normals, planar = _pca_normals(pts, neighbours, distance, min_neighbours, query)
+        if own < neighbours.shape[1]:  # a profile stack: a plane needs the neighbouring profiles
             planar &= np.isfinite(distance[:, own:]).sum(axis=1) >= MIN_ACROSS
-        to_sensor = sens - pts
+        to_sensor = sens[query] - pts[query]
         if fallback == "view":
             with np.errstate(invalid="ignore", divide="ignore"):  # a sensor on its point: NaN
                 normals[~planar] = unit(to_sensor[~planar])
@@ -190,10 +194,18 @@ def _check_frame_ids(frame_ids, n: int) -> np.ndarray | None:
     return np.unique(arr, return_inverse=True)[1].reshape(n)
 
 
+def _check_index(index, n: int) -> np.ndarray:
+    arr = np.asarray(index)
+    if arr.ndim != 1 or arr.dtype.kind not in "iu" or (len(arr) and (arr.min() < 0 or arr.max() >= n)):
+        raise ValueError(f"`index` must be a 1-D array of point indices in [0, {n}), got "
+                         f"{arr.shape} {arr.dtype}")
+    return arr.astype(np.int64)
+
+
 def _neighbours(pts: np.ndarray, ranks: np.ndarray | None, k: int, radius: float | None,
-                workers: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """Neighbour indices (N, K) (N where none), distances (N, K) (inf where none), and how
-    many of the K columns come first from the point's own profile."""
+                workers: int, query_index: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Neighbour indices (M, K) of the query points (N where none), distances (M, K) (inf
+    where none), and how many of the K columns come first from the point's own profile."""
     centred = pts - pts.mean(axis=0)
     diameter = float(np.linalg.norm(np.ptp(centred, axis=0)))
     # Profiles lie `separation` apart in the fourth coordinate: a query at a profile's rank is
@@ -209,12 +221,13 @@ def _neighbours(pts: np.ndarray, ranks: np.ndarray | None, k: int, radius: float
     offsets = (0, -1, 1) if structured else (0,)
     own_k = k if structured else 3 * k  # the point itself included
     index, distance = [], []
+    m = len(query_index)
     for offset in offsets:
-        query = np.column_stack([centred, (ranks + offset) * separation])
+        query = np.column_stack([centred[query_index], (ranks[query_index] + offset) * separation])
         d, i = tree.query(query, k=own_k if offset == 0 else k, distance_upper_bound=bound,
                           workers=workers)
-        distance.append(d.reshape(len(pts), -1))
-        index.append(i.reshape(len(pts), -1))
+        distance.append(d.reshape(m, -1))
+        index.append(i.reshape(m, -1))
     if radius is None:
         reach = distance[0][:, -1]
         spacing = [np.median(reach[np.isfinite(reach)])] if np.isfinite(reach).any() else []
@@ -229,14 +242,14 @@ def _neighbours(pts: np.ndarray, ranks: np.ndarray | None, k: int, radius: float
 
 
 def _pca_normals(pts: np.ndarray, index: np.ndarray, distance: np.ndarray,
-                 min_neighbours: int) -> tuple[np.ndarray, np.ndarray]:
+                 min_neighbours: int, query_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Smallest-eigenvalue eigenvectors of the neighbours' covariance (Hoppe et al. [1]_),
-    unoriented, and whether the neighbourhood fixed a plane."""
-    n = len(pts)
+    unoriented, and whether the neighbourhood fixed a plane, for the query points."""
+    n = len(query_index)
     found = np.isfinite(distance)
     count = found.sum(axis=1)
     # A missing neighbour stands in as the point itself: its offset is 0 and adds nothing.
-    index = np.where(found, index, np.arange(n)[:, None])
+    index = np.where(found, index, query_index[:, None])
     coords = [np.ascontiguousarray(pts[:, c]) for c in range(3)]
     normals = np.empty((n, 3))
     planar = np.zeros(n, bool)
@@ -244,7 +257,7 @@ def _pca_normals(pts: np.ndarray, index: np.ndarray, distance: np.ndarray,
         block = slice(start, min(start + BLOCK, n))
         # Offsets from the query point, one (B, K) array per coordinate: the covariance is
         # translation-invariant, and small offsets keep it exact wherever the cloud sits.
-        d = [c[index[block]] - c[block, None] for c in coords]
+        d = [c[index[block]] - c[query_index[block], None] for c in coords]
         m = count[block].astype(np.float64)
         mean = [di.sum(axis=1) / m for di in d]
         cov = np.empty((len(m), 3, 3))

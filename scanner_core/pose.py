@@ -86,7 +86,7 @@ class PoseParams:
         Seed of the subsampling.
     """
 
-    max_points: int = 20000
+    max_points: int = 6000
     gate_mm: float = 5.0
     min_gate_mm: float = 0.2
     normal_agreement_deg: float = 60.0
@@ -308,8 +308,9 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
     points_t : (N, 3) float
         The scan in {T}, mm.
     normals_t : (N, 3) float or None
-        Unit normals of the scan, oriented toward the sensor (``scanner_core.normals``);
-        NaN rows (or None) are used without the normal agreement test.
+        Unit normals of the scan, oriented toward the sensor (``scanner_core.normals``):
+        a model point whose normal differs by more than ``normal_agreement_deg`` is no match.
+        NaN rows (or None) are used without that test.
     model : SurfaceModel
         The part's surface in {P}.
     nominal : (4, 4) array_like
@@ -335,11 +336,12 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
         Bad shapes, or fewer than 6 finite points.
     """
     t0 = time.perf_counter()
-    points, normals, frames = _check_inputs(points_t, normals_t, frame_ids)
+    points, directions, frames = _check_inputs(points_t, normals_t, frame_ids)
+    agreement = np.cos(np.radians(params.normal_agreement_deg))
     nominal = np.asarray(nominal, dtype=np.float64)
     rng = np.random.default_rng(params.seed)
     used = _subsample(len(points), params.max_points, rng)
-    surface = _Terms(points[used], normals[used], frames[used], model)
+    surface = _Terms(points[used], directions[used], frames[used], model, agreement)
     edges = None
     if edges_t is not None and edge_model is not None and len(edge_model.points):
         e_points, _, e_frames = _check_inputs(edges_t, None, edge_frame_ids, minimum=0)
@@ -379,23 +381,30 @@ def _flags(fit: _Fit, free_axes, with_edges: bool, params: PoseParams) -> list[s
 
 def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeModel | None = None,
               params: PoseParams = PoseParams()) -> PoseResult:
-    """The pose of a stitched scan (``scanner_core.types.Scan``): its cloud with the normals
-    toward the camera, its frames as clusters, and its edge cloud when it has one.
+    """The pose of a stitched scan (``scanner_core.types.Scan``): its cloud (up to
+    ``params.max_points`` of it) with normals toward the camera, its frames as clusters, and
+    its edge cloud when it has one.
 
     Raises
     ------
     ValueError
         Fewer than `MIN_POSE_POINTS` points: no pose is better than a guess.
     """
-    from scanner_core.scanio import scan_normals
+    from scanner_core.normals import estimate_normals
+    from scanner_core.scanio import point_sensors
 
     if len(scan.cloud) < MIN_POSE_POINTS:
         raise ValueError(f"a pose needs at least {MIN_POSE_POINTS} points, the scan has "
                          f"{len(scan.cloud)}")
     edge_frames = getattr(scan, "edge_frame_ids", None)
     use_edges = edge_model is not None and len(scan.edges) > 0 and edge_frames is not None
-    return register(scan.cloud, scan_normals(scan), surface_model, nominal,
-                    frame_ids=scan.frame_ids,
+    # Normals only where the fit looks (neighbours from the whole cloud): most of a pose's
+    # time would otherwise go to normals it never uses.
+    used = _subsample(len(scan.cloud), params.max_points, np.random.default_rng(params.seed))
+    normals = estimate_normals(scan.cloud, sensors=point_sensors(scan), frame_ids=scan.frame_ids,
+                               index=used)
+    return register(scan.cloud[used], normals, surface_model, nominal,
+                    frame_ids=scan.frame_ids[used],
                     edges_t=scan.edges if use_edges else None,
                     edge_frame_ids=edge_frames if use_edges else None,
                     edge_model=edge_model if use_edges else None, params=params)
@@ -409,10 +418,11 @@ class _Terms:
     normals: np.ndarray | None
     frames: np.ndarray
     model: SurfaceModel | EdgeModel
+    agreement: float = -1.0     # least cosine between `normals` and a match's normal
 
     def subset(self, index) -> "_Terms":
         return _Terms(self.points[index], None if self.normals is None else self.normals[index],
-                      self.frames[index], self.model)
+                      self.frames[index], self.model, self.agreement)
 
 
 @dataclass
@@ -464,10 +474,8 @@ def _linearise(surface, edges, pose, centre, gates, params):
     Returns ``(jacobian, residuals, weights, frames, surface_inliers)`` and the robust scale
     of each kind (surface, edges).
     """
-    cos_agree = np.cos(np.radians(params.normal_agreement_deg))
     parts, sigmas = [], []
-    surface_rows = _surface_rows(surface, pose, centre, gates[0], cos_agree,
-                                 params.surface_noise_mm)
+    surface_rows = _surface_rows(surface, pose, centre, gates[0], params.surface_noise_mm)
     parts.append(surface_rows[:4])
     sigmas.append(surface_rows[4])
     matched = len(surface_rows[1])
@@ -481,7 +489,7 @@ def _linearise(surface, edges, pose, centre, gates, params):
     return (jac, res, w, frames, matched), sigmas
 
 
-def _surface_rows(terms: _Terms, pose, centre, gate, cos_agree, noise_mm):
+def _surface_rows(terms: _Terms, pose, centre, gate, noise_mm):
     """Point-to-plane rows: the residual of scan point s matched to model point q (normal n)
     is ``n . (s - X q)`` in {T}; a motion (t, w) about `centre` changes it by
     ``-[n, (s - centre) x n] . (t, w)``."""
@@ -493,7 +501,7 @@ def _surface_rows(terms: _Terms, pose, centre, gate, cos_agree, noise_mm):
         # Scan normals point to the sensor, model normals out of the part: the same way up.
         scan_n = terms.normals[idx]
         agree = np.einsum("ij,ij->i", n_t, np.nan_to_num(scan_n, nan=0.0))
-        ok = (agree >= cos_agree) | ~np.isfinite(scan_n[:, 0])
+        ok = (agree >= terms.agreement) | ~np.isfinite(scan_n[:, 0])
         idx, nearest, n_t = idx[ok], nearest[ok], n_t[ok]
     q_t = terms.model.points[nearest] @ rotation.T + translation
     return _robust_rows(terms.points[idx], n_t, q_t, terms.frames[idx], centre, gate, noise_mm)
@@ -520,7 +528,7 @@ _SINGULAR = 1e-10
 # Model points that seed a coarse candidate's translation.
 _SEED_POINTS = 5000
 # Queries with more points than this use both cores.
-_THREADED_QUERY = 20_000
+_THREADED_QUERY = 50_000
 # Floor of the robust scale, mm: no scan is better than this, and noise-free test data must
 # not make the weights infinite.
 _MIN_SIGMA_MM = 0.001
