@@ -114,9 +114,9 @@ def run(api: FlyscanClient, clouds: CloudCollector, *, count: int, part: str | N
 
 def scan_line(n: int, info: dict, rest_cloud: np.ndarray, zmq_cloud: np.ndarray | None,
               *, lost: int = 0) -> str:
-    """One line: scan id, state, points, misplacement (or "no pose yet"), cross-check, ZeroMQ."""
-    pose = info.get("pose")
-    misplacement = _compact(pose["misplacement"]) if pose else "no pose yet"
+    """One line: scan id, state, points, the misplacement to correct (or why not), cross-check,
+    ZeroMQ."""
+    misplacement = describe_pose(info.get("pose"))
     if zmq_cloud is None:
         zmq = f"zmq: no cloud received (lost {lost})"
     else:
@@ -127,6 +127,18 @@ def scan_line(n: int, info: dict, rest_cloud: np.ndarray, zmq_cloud: np.ndarray 
             f"({len(rest_cloud)} fetched), {info.get('edge_points')} edge points, "
             f"misplacement {misplacement}, cross-check {_compact(info.get('cross_check'))}, "
             f"{zmq}")
+
+
+def describe_pose(pose: dict | None) -> str:
+    """The misplacement a robot would correct, or why it should not act on it."""
+    if not pose:
+        return "no pose"
+    if "refused" in pose:
+        return f"no pose ({pose['refused']})"
+    text = _compact(pose["misplacement"])
+    if pose.get("flags"):
+        text += " NOT TO ACT ON: " + "; ".join(pose["flags"])
+    return text
 
 
 def _compact(value) -> str:

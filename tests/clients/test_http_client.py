@@ -335,7 +335,7 @@ def test_cell_controller_scans_and_compares_the_two_clouds(publisher, rng, monke
     lines = out.getvalue().splitlines()
     assert len(lines) == 2
     assert lines[0].startswith("#1 scan-1 done: 4 points")
-    assert "no pose yet" in lines[0] and '{"rms_mm":0.012}' in lines[0]
+    assert "no pose," in lines[0] and '{"rms_mm":0.012}' in lines[0]
     assert lines[0].endswith("zmq cloud == rest cloud")
 
 
@@ -356,6 +356,17 @@ def test_scan_line_reports_pose_and_mismatch():
     assert '{"translation_mm":[1.235,0.0,0.0]}' in line and line.endswith("DIFFERS from rest cloud")
     assert cell_controller.scan_line(3, info, rest, None, lost=2).endswith(
         "no cloud received (lost 2)")
+
+
+@pytest.mark.parametrize("pose, expected", [
+    (None, "no pose"),
+    ({"refused": "a pose needs at least 50 points, the scan has 3"}, "no pose (a pose needs"),
+    ({"misplacement": {"translation_mm": [1.0, 0, 0]}, "flags": ["not observable: about z_T"]},
+     'NOT TO ACT ON: not observable: about z_T'),
+])
+def test_the_controller_says_when_not_to_act_on_a_pose(pose, expected):
+    assert expected in cell_controller.describe_pose(pose)
+    assert cell_controller.describe_pose({"misplacement": {"x": 1}, "flags": []}) == '{"x":1}'
 
 
 def test_clients_import_nothing_of_the_service():
