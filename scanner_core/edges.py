@@ -33,10 +33,12 @@ Along the profile (columns in order):
   step; the edge point lies at half of it. Where the step is resolved (its half-height level
   falls between two adjacent columns that hold less than half of it) the point is
   interpolated there; otherwise (a jump within one column, or across a bridged gap) the wall
-  stands at the near side's boundary, half a column beyond its last column, and the point is
-  that boundary on the near surface moved by ``h / 2`` along ``d``: walls are taken to run
-  along the range axis (vertical walls in the reference cell), so in {T} the point projects
-  onto the wall's top and bottom edges.
+  stands at the near side's boundary: where the near side's stripe falls to half its level, as
+  a drop-out's (a pixel column holding the wall is lit in part by the near surface, in
+  proportion to the share of the pixel it covers; a column holding both sides' stripes, a
+  double, is taken as half lit by each), and the point is that boundary on the near surface
+  moved by ``h / 2`` along ``d``: walls are taken to run along the range axis (vertical walls
+  in the reference cell), so in {T} the point projects onto the wall's top and bottom edges.
 
 Drop-outs at the boundary of an occlusion by a feature outside the sheet look, in one profile,
 like a rim: :func:`occluded_dropouts` finds them in the scan.
@@ -315,10 +317,11 @@ def find_edges(result, valid, camera: PinholeCamera, light_plane_c: Plane, *,
         return EdgePoints.empty(along_b)
     dark = (~valid & ~masked
             & ((reason == Reason.NO_PEAK) | (reason == Reason.TOO_NARROW) | (reason == Reason.OK)))
+    double = ~valid & (reason == Reason.DOUBLE)
     n = np.asarray(light_plane_c.normal, dtype=np.float64)
     p = params
     pixel, point_c, kind, size, pk, direction, noise = _edges_kernel(
-        row, peak, valid, dark, float(camera.fx), float(camera.fy), float(camera.cx),
+        row, peak, valid, dark, double, float(camera.fx), float(camera.fy), float(camera.cx),
         float(camera.cy), n, float(light_plane_c.offset), e_a, e_d, int(p.min_gap_px),
         int(p.max_bridge_px), int(p.min_run_px), int(p.side_px), float(p.min_step_mm),
         float(p.noise_factor), int(p.max_ramp_px), bool(p.keep_far_side))
@@ -591,8 +594,48 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
 
 
 @njit(nogil=True, cache=True)
-def _step(k0, k1, llo, rhi, cols, a, d, pts, vcol, vrow, vpeak, threshold, fx, fy, cx, cy, n,
-          offset, e_a, e_d, out_pc, out):
+def _near_end(near, toward, nlo, nhi, cols, vpeak, double):
+    """Column (sub-pixel) where the near side's stripe ends at a step within one column.
+
+    The pixel column holding the wall is lit in part by each side's stripe (in proportion to
+    the share of the pixel each surface covers); the near side's stripe is taken to end where
+    its intensity falls to half its level, as a drop-out's: between its last column (bright
+    in part when the wall lies within it) and the next one. The next column, when it holds
+    the far side's stripe, holds too little of the near side's to be measured (a share below
+    ``DOUBLE_PEAK_RATIO`` of the far one's, or it would be a double stripe), and when it is
+    dark (the wall or its shadow) it holds too little to pass the threshold: none is assumed;
+    when it holds two stripes (a double), the wall lies within it: half is assumed."""
+    # the near side's points up to its end (which may lie inside a ramp of jumps)
+    nlo, nhi = min(nlo, near), max(nhi, near + 1)
+    # the near side's level, from the top of its flank inward (as a drop-out side's)
+    k_top = near
+    while (nlo <= k_top - toward < nhi
+           and vpeak[k_top - toward] > (1.0 + FLANK_RISE) * vpeak[k_top]):
+        k_top -= toward
+    if toward > 0:
+        lo, hi = max(k_top - LEVEL_PX + 1, nlo), k_top + 1
+    else:
+        lo, hi = k_top, min(k_top + LEVEL_PX, nhi)
+    level = _median_of(vpeak, lo, hi)
+    half = 0.5 * level
+    c_near = cols[near]
+    c_next = c_near + toward
+    share = 0.0
+    if 0 <= c_next < double.shape[0] and double[c_next]:
+        share = half
+    if vpeak[near] < half:
+        c_in, p_in, p_out = c_near - toward, level, vpeak[near]
+    elif share >= half:
+        c_in, p_in, p_out = c_next, share, 0.0
+    else:
+        c_in, p_in, p_out = c_near, vpeak[near], share
+    f = (p_in - half) / (p_in - p_out) if p_in > p_out else 0.5
+    return float(c_in) + toward * min(max(f, 0.0), 1.0)
+
+
+@njit(nogil=True, cache=True)
+def _step(k0, k1, llo, rhi, cols, a, d, pts, vcol, vrow, vpeak, double, threshold, fx, fy,
+          cx, cy, n, offset, e_a, e_d, out_pc, out):
     """The step edge of the jumps k0..k1 (points k0..k1+1) with its sides llo..k0 and
     k1+1..rhi, into out_pc (point in {C}) and out (u, v, height, level, direction). False
     when the step is below threshold or has no clean half-height crossing."""
@@ -625,14 +668,14 @@ def _step(k0, k1, llo, rhi, cols, a, d, pts, vcol, vrow, vpeak, threshold, fx, f
         u = vcol[p] + f
         v = vrow[p] + f * (vrow[q] - vrow[p])
     else:
-        # the wall stands half a column beyond the near side's last column
+        # the wall stands where the near side's stripe ends: at half its level
         if h > 0:
             near, toward, nlo, nhi, flo, fhi = p, 1, llo, k0 + 1, k1 + 1, rhi + 1
         else:
             near, toward, nlo, nhi, flo, fhi = q, -1, k1 + 1, rhi + 1, llo, k0 + 1
-        u = vcol[near] + 0.5 * toward
+        u = _near_end(near, toward, nlo, nhi, cols, vpeak, double)
         cxm, cym, csl = _fit_line(vcol, vrow, nlo, nhi)
-        v = cym + csl * (u - cxm) if nlo <= near < nhi else vrow[near] + csl * 0.5 * toward
+        v = cym + csl * (u - cxm) if nlo <= near < nhi else vrow[near] + csl * (u - vcol[near])
         if not _triangulate(u, v, fx, fy, cx, cy, n, offset, out_pc):
             return False
         a_n = out_pc[0] * e_a[0] + out_pc[1] * e_a[1] + out_pc[2] * e_a[2]
@@ -650,7 +693,7 @@ def _step(k0, k1, llo, rhi, cols, a, d, pts, vcol, vrow, vpeak, threshold, fx, f
 
 
 @njit(nogil=True, cache=True)
-def _edges_kernel(row, peak, valid_in, dark_in, fx, fy, cx, cy, n, offset, e_a, e_d,
+def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offset, e_a, e_d,
                   min_gap, max_bridge, min_run, side_px, min_step, noise_factor, max_ramp,
                   keep_far):
     w = row.shape[0]
@@ -754,8 +797,8 @@ def _edges_kernel(row, peak, valid_in, dark_in, fx, fy, cx, cy, n, offset, e_a, 
                 rhi += 1
             if k0 - llo + 1 < min_run or rhi - k1 < min_run:
                 continue  # a step needs surface on both sides (a chamfer into a drop-out has not)
-            if _step(k0, k1, llo, rhi, cols, a, d, pts, vcol, vrow, vpeak, threshold, fx, fy, cx,
-                     cy, n, offset, e_a, e_d, pc, res):
+            if _step(k0, k1, llo, rhi, cols, a, d, pts, vcol, vrow, vpeak, double, threshold,
+                     fx, fy, cx, cy, n, offset, e_a, e_d, pc, res):
                 out_px[count, 0], out_px[count, 1] = res[0], res[1]
                 out_pc[count, :] = pc
                 out_kind[count] = 1

@@ -72,6 +72,9 @@ class PoseParams:
         A motion that the scan, at the expected scatter, would pin down no better than this
         (its standard deviation, mm; rotations as arc length at the scan's radius) is free:
         not observable. It keeps its starting value.
+    min_frames : float
+        Nor is a motion whose information comes from fewer profiles than this (their
+        participation ratio): a profile's points share its placement error.
     good_inlier_fraction : float
         The fine stage from the nominal grasp is accepted when at least this fraction of the
         surface points and of the edge points are inliers; otherwise the coarse search runs.
@@ -96,6 +99,7 @@ class PoseParams:
     surface_noise_mm: float = 0.01
     edge_noise_mm: float = 0.03
     free_std_mm: float = 0.05
+    min_frames: float = 4.0
     good_inlier_fraction: float = 0.8
     coarse_step_deg: float = 15.0
     coarse_extent_deg: float = 15.0
@@ -403,11 +407,43 @@ def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeMod
     used = _subsample(len(scan.cloud), params.max_points, np.random.default_rng(params.seed))
     normals = estimate_normals(scan.cloud, sensors=point_sensors(scan), frame_ids=scan.frame_ids,
                                index=used)
-    return register(scan.cloud[used], normals, surface_model, nominal,
-                    frame_ids=scan.frame_ids[used],
-                    edges_t=scan.edges if use_edges else None,
-                    edge_frame_ids=edge_frames if use_edges else None,
-                    edge_model=edge_model if use_edges else None, params=params)
+    result = register(scan.cloud[used], normals, surface_model, nominal,
+                      frame_ids=scan.frame_ids[used],
+                      edges_t=scan.edges if use_edges else None,
+                      edge_frame_ids=edge_frames if use_edges else None,
+                      edge_model=edge_model if use_edges else None, params=params)
+    result.flags += _coverage_flags(scan, result.matrix, surface_model)
+    return result
+
+
+#: Profiles farther apart than this (mm) sample a part's features too coarsely for the
+#: uncertainty to be trusted: a hole's rim crossed by two profiles pins little.
+MAX_PROFILE_SPACING_MM = 3.0
+#: A scan covering less of the part's length along the pass than this is partial.
+MIN_COVERAGE = 0.9
+
+
+def _coverage_flags(scan, pose, surface_model: SurfaceModel) -> list[str]:
+    """Flags a pose cannot raise from its fit alone: profiles too far apart, and a pass that
+    saw only part of the part (the trigger started late, or the pass ended early)."""
+    flags = []
+    track = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
+    if len(track) > 1:
+        spacing = float(np.median(np.linalg.norm(np.diff(track, axis=0), axis=1)))
+        if spacing > MAX_PROFILE_SPACING_MM:
+            flags.append(f"sparse: {spacing:.1f} mm between profiles (at most "
+                         f"{MAX_PROFILE_SPACING_MM:g})")
+    normals_t = surface_model.normals @ pose[:3, :3].T
+    facing = normals_t[:, 2] > 0.3  # the sensor looks up at the part along -z_T
+    if facing.any():
+        along = (surface_model.points[facing] @ pose[:3, :3].T + pose[:3, 3])[:, 1]
+        seen = scan.cloud[:, 1]
+        length = float(along.max() - along.min())
+        overlap = min(along.max(), seen.max()) - max(along.min(), seen.min())
+        coverage = max(0.0, float(overlap)) / length if length > 0 else 1.0
+        if coverage < MIN_COVERAGE:
+            flags.append(f"partial scan: {coverage:.0%} of the part's length along the pass")
+    return flags
 
 
 @dataclass
@@ -460,12 +496,46 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, iterations=No
             gates = [max(params.min_gate_mm, min(g, 6.0 * sg)) for g, sg in zip(gates, sigmas)]
         if np.all(np.abs(observed) < step_tol):
             break
+    if iterations is None:
+        pose = _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params)
     (jac, res, w, frames, matched), _ = _linearise(surface, edges, pose, centre, gates, params)
     inlier_fraction = matched / max(len(surface.points), 1)
     edge_fraction = ((len(res) - matched) / len(edges.points)) if edges is not None else 1.0
     rms = float(np.sqrt(np.sum(w * res**2) / np.sum(w))) if len(res) else np.inf
     return _Fit(pose, rms, inlier_fraction, edge_fraction, it, jac, res, w, frames, centre,
                 scale)
+
+
+def _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params):
+    """Take back what the fit moved along free motions, and settle the rest with them held.
+
+    A free motion is one the scan does not pin down (`_observable`); a weak constraint (the
+    facets of a turned cylinder) or the noise would otherwise leave it anywhere, and with it
+    the {T} origin of a part turned about an axis that misses the origin.
+    """
+    (jac, res, w, frames, _), _ = _linearise(surface, edges, pose, centre, gates, params)
+    if len(res) < 6:
+        return pose
+    _, vectors, strong = _directions(jac, w, frames, scale, params)
+    free = vectors[:, ~strong]
+    if free.shape[1] == 0:
+        return pose
+    s = np.array([1.0, 1.0, 1.0, scale, scale, scale])
+    moved = pose @ np.linalg.inv(start)
+    twist = np.concatenate([moved[:3, :3] @ centre + moved[:3, 3] - centre,
+                            Rotation.from_matrix(moved[:3, :3]).as_rotvec()]) * s
+    twist -= free @ (free.T @ twist)
+    pose = _apply(twist / s, centre) @ start
+    step_tol = np.array([params.tol_mm] * 3 + [np.radians(params.tol_deg)] * 3)
+    for _ in range(params.max_iterations):
+        (jac, res, w, _, _), _ = _linearise(surface, edges, pose, centre, gates, params)
+        if len(res) < 6:
+            break
+        _, observed = _solve(jac, res, w, scale, params.free_std_mm)
+        pose = _apply(observed, centre) @ pose
+        if np.all(np.abs(observed) < step_tol):
+            break
+    return pose
 
 
 def _linearise(surface, edges, pose, centre, gates, params):
@@ -521,6 +591,8 @@ def _edge_rows(terms: _Terms, pose, centre, gate, noise_mm):
     return _robust_rows(terms.points[idx], m, q_t, terms.frames[idx], centre, gate, noise_mm)
 
 
+# A free motion moves the axes whose component in its unit direction exceeds this.
+_TOUCHED = 0.2
 # A fit whose residuals exceed this many times the expected scatter is flagged.
 _RMS_FLAG = 5.0
 # Information below this fraction of the strongest is no information (numerical zero).
@@ -580,6 +652,25 @@ def _information(jac, w, scale):
 def _observable(values, free_std_mm):
     """Which eigen-directions of the information the scan pins down better than the limit."""
     return values > max(1.0 / free_std_mm**2, _SINGULAR * values[-1])
+
+
+def _directions(jac, w, frames, scale, params):
+    """Eigen-decomposition of the information and which directions are observable: pinned
+    down better than ``free_std_mm`` at the expected scatter, by at least ``min_frames``
+    profiles' worth of information (two points at a part's far end, in one profile, pin
+    nothing one can trust: that profile's placement error moves them together)."""
+    s = np.array([1.0, 1.0, 1.0, scale, scale, scale])
+    values, vectors = np.linalg.eigh(_information(jac, w, scale))
+    strong = _observable(values, params.free_std_mm)
+    projected = ((jac / s) @ vectors) ** 2 * w[:, None]  # (K, 6) information per row
+    _, inverse = np.unique(frames, return_inverse=True)
+    per_frame = np.zeros((inverse.max() + 1, 6))
+    np.add.at(per_frame, inverse, projected)
+    total = per_frame.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        effective = total**2 / np.sum(per_frame**2, axis=0)  # participation ratio
+    strong &= np.nan_to_num(effective) >= params.min_frames
+    return values, vectors, strong
 
 
 def _solve(jac, res, w, scale, free_std_mm):
@@ -661,9 +752,8 @@ def _uncertainty(fit: _Fit, params) -> tuple[np.ndarray, np.ndarray, list]:
                                                  "label": "too few matched points"}]
     s = np.array([1.0, 1.0, 1.0, fit.scale_mm, fit.scale_mm, fit.scale_mm])
     js = fit.jacobian / s
-    info = js.T @ (js * fit.weights[:, None])
-    values, vectors = np.linalg.eigh(info)
-    strong = _observable(values, params.free_std_mm)
+    values, vectors, strong = _directions(fit.jacobian, fit.weights, fit.frames, fit.scale_mm,
+                                          params)
     info_inv = vectors[:, strong] @ np.diag(1.0 / values[strong]) @ vectors[:, strong].T
     # Cluster-robust "meat": the weighted scores summed within each frame.
     scores = js * (fit.weights * fit.residuals)[:, None]
@@ -685,10 +775,22 @@ def _uncertainty(fit: _Fit, params) -> tuple[np.ndarray, np.ndarray, list]:
     std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     std[3:] = np.degrees(std[3:])
     if free_axes:
-        # Along a free motion the scan says nothing: the axes it moves are not reported. The
-        # others are reported holding the free motion at its start (a cylinder's position is
-        # known though its turn about its axis is not).
-        touched = np.any(np.abs(free_scaled) > 0.5, axis=1)  # unit columns, comparable units
+        # Along a free motion the scan says nothing: the axes it moves are not reported. A
+        # free turn about an axis that misses the {T} origin carries the origin round with it:
+        # those translation axes are not reported either.
+        touched = np.zeros(6, bool)
+        for axis in free_axes:
+            direction = np.asarray(axis["axis"])
+            if axis["kind"] == "translation":
+                touched[:3] |= np.abs(direction) > _TOUCHED
+                continue
+            touched[3:] |= np.abs(direction) > _TOUCHED
+            through = np.asarray(axis["through_mm"])
+            swing = np.zeros(3)
+            for angle in (np.pi / 2, np.pi, -np.pi / 2):
+                turn = Rotation.from_rotvec(angle * direction).as_matrix()
+                swing = np.maximum(swing, np.abs(turn @ -through + through))
+            touched[:3] |= swing > 3.0 * np.nan_to_num(std[:3], nan=np.inf)
         std[touched] = np.nan
         covariance[touched, :] = np.nan
         covariance[:, touched] = np.nan

@@ -3,8 +3,9 @@
 Distances are to the true CAD surface (exact closest points, trimesh), after mapping the
 cloud from {T} back to {P} through the true grasp. Provenance: every cloud point must lie
 near a stripe sample that the renderer found lit by the laser and seen by the camera in the
-same frame; a point that does not came from a surface the camera cannot see (or from
-nothing at all). Edge points are scored against the CAD's sharp edges (:func:`edge_accuracy`).
+same frame (or between two samples of one pixel column: their blend); a point that does not
+came from a surface the camera cannot see (or from nothing at all). Edge points are scored
+against the CAD's sharp edges (:func:`edge_accuracy`).
 """
 from __future__ import annotations
 
@@ -69,13 +70,20 @@ def cloud_accuracy(cloud_t, frame_ids, mesh: trimesh.Trimesh, true_grasp: np.nda
 
 def unmatched(cloud_t, frame_ids, truths: dict, gripper_rotation_b) -> np.ndarray:
     """(N,) bool: points with no lit-and-seen stripe sample within PROVENANCE_TOL_MM in
-    their own frame."""
+    their own frame.
+
+    A pixel column holding several samples (section segments meeting in it, a surface and a
+    wall at a rim) shows their blend: the stripe measured there lies between them, and it
+    has visible sources. So the chords between the samples of one column, in the order of
+    their rows, count as sources too."""
     r = np.asarray(gripper_rotation_b, dtype=np.float64)
     ref, ref_ids = [], []
     for fid in np.unique(frame_ids):
         truth = truths[int(fid)]
-        ref.append(base_to_tcp(truth.stripe_points_b, truth.tcp_b, r))
-        ref_ids.append(np.full(len(truth.stripe_points_b), fid))
+        points = _with_column_chords(truth.stripe_columns, truth.stripe_rows,
+                                     truth.stripe_points_b)
+        ref.append(base_to_tcp(points, truth.tcp_b, r))
+        ref_ids.append(np.full(len(points), fid))
     ref = np.concatenate(ref) if ref else np.zeros((0, 3))
     if len(ref) == 0:
         return np.ones(len(cloud_t), dtype=bool)
@@ -84,6 +92,26 @@ def unmatched(cloud_t, frame_ids, truths: dict, gripper_rotation_b) -> np.ndarra
     query = np.column_stack([cloud_t, np.asarray(frame_ids, np.float64) * FRAME_SPACING_MM])
     dist, _ = tree.query(query, distance_upper_bound=PROVENANCE_TOL_MM)
     return ~np.isfinite(dist)
+
+
+def _with_column_chords(columns, rows, points) -> np.ndarray:
+    """The samples' points followed by points every ``PROVENANCE_TOL_MM / 2`` along the
+    chords between consecutive samples (by row) of each column: (N + M, 3)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) < 2:
+        return points
+    order = np.lexsort((rows, columns))
+    pts = points[order]
+    pair = np.nonzero(np.diff(np.asarray(columns)[order]) == 0)[0]
+    if len(pair) == 0:
+        return points
+    a, b = pts[pair], pts[pair + 1]
+    steps = np.ceil(np.linalg.norm(b - a, axis=1) / (0.5 * PROVENANCE_TOL_MM)).astype(np.int64)
+    inner = np.maximum(steps - 1, 0)  # interior points of each chord
+    which = np.repeat(np.arange(len(pair)), inner)
+    k = np.arange(inner.sum()) - np.repeat(np.cumsum(inner) - inner, inner) + 1
+    t = (k / steps[which])[:, None]
+    return np.concatenate([points, a[which] + t * (b[which] - a[which])])
 
 
 # ---------------------------------------------------------------------------------------------

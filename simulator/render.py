@@ -1,11 +1,13 @@
 """Frame rendering: what the camera sees of the part in the sheet, and of the LED marker.
 
-For one gripper pose the part is cut by the light plane (exact mesh section), each image
-column of the direct view is intersected with the section, and every intersection that the
-laser reaches and the camera sees (Embree ray casts) becomes a stripe sample at its exact
-sub-pixel row. The LED marker is projected into the direct view and, through each mirror,
-into the mirror views, unless the part hides it. ``simulator.imaging`` turns the samples into
-pixels. The ground truth of every frame comes back with it.
+For one gripper pose the part is cut by the light plane (exact mesh section), the section is
+split at the boundaries of the direct view's pixel columns, and every piece that the laser
+reaches and the camera sees (Embree ray casts at its middle) becomes a stripe sample at its
+exact sub-pixel row, as bright as the share of the pixel it covers (the pixel integrates over
+its area: a stripe ending inside a column lights it in part). The LED marker is projected
+into the direct view and, through each mirror, into the mirror views, unless the part hides
+it. ``simulator.imaging`` turns the samples into pixels. The ground truth of every frame
+comes back with it.
 
 The mesh stays put in {P}; the sheet, camera and laser are moved into {P} instead (the
 paper's section III: moving the virtual setup is cheaper than moving the CAD model).
@@ -35,12 +37,15 @@ class FrameTruth:
     part_pose_b : (4, 4) float64
         ^B X_P at this frame.
     stripe_columns : (N,) int32
+        Image column of each stripe sample (:func:`column_hits`): one per section segment
+        overlapping the column, so a column may hold several.
     stripe_rows : (N,) float64
         Exact sub-pixel row of each stripe sample (before noise).
     stripe_points_b : (N, 3) float64
         The 3-D point of each sample, {B}, mm.
     stripe_gain : (N,) float64
-        Relative brightness (cosine of the laser's incidence).
+        Relative brightness: the cosine of the laser's incidence times the share of the pixel
+        column the sample covers.
     marker_b : (3,) float64
         LED centre, {B}, mm.
     marker_pixels : (3, 2) float64
@@ -118,11 +123,12 @@ class PartScene:
         tcp_b = np.asarray(tcp_b, dtype=np.float64)
         pose = self.part_pose(tcp_b, grasp)
         segments, faces = self.section(pose)
-        cols, rows, points_p, seg_index = column_hits(segments, pose, cam, cal.direct_columns)
+        cols, rows, points_p, seg_index, coverage = column_hits(segments, pose, cam,
+                                                                cal.direct_columns)
         points_b = apply_transform(pose, points_p)
         keep = (rows >= 0) & (rows <= cam.height - 1) & self._in_fan(points_b)
         cols, rows, points_p, points_b = cols[keep], rows[keep], points_p[keep], points_b[keep]
-        faces = faces[seg_index[keep]]
+        faces, coverage = faces[seg_index[keep]], coverage[keep]
         inv = np.linalg.inv(pose)
         laser_p = apply_transform(inv, self.cell.laser_origin_b)
         camera_p = apply_transform(inv, cam.origin)
@@ -132,7 +138,8 @@ class PartScene:
         cols, rows, points_p, points_b = cols[keep], rows[keep], points_p[keep], points_b[keep]
         incidence = points_p - laser_p
         incidence /= np.linalg.norm(incidence, axis=1, keepdims=True)
-        gain = np.abs(np.einsum("ij,ij->i", incidence, self._face_normals[faces[keep]]))
+        cosine = np.abs(np.einsum("ij,ij->i", incidence, self._face_normals[faces[keep]]))
+        gain = cosine * coverage[keep]  # the pixel integrates over the part the sample covers
         marker_b = tcp_b + self.cell.gripper_rotation_b @ cal.marker_offset_t
         marker_px = self.marker_pixels(marker_b, inv) if with_marker else np.full((3, 2), np.nan)
         return FrameTruth(tcp_b, pose, cols.astype(np.int32), rows, points_b, gain, marker_b, marker_px)
@@ -209,24 +216,44 @@ def slice_mesh(vertices, faces, normal, offset) -> tuple[np.ndarray, np.ndarray]
 
 
 def column_hits(segments_p, pose_b, camera, columns):
-    """Where each image column's line of sight meets the section segments.
+    """Where the section segments fall in each image column, weighted by pixel coverage.
 
-    Each column's pixel rays form a plane through the camera centre; it cuts a segment at
-    most once. Columns are taken half-open along each segment so that a shared endpoint is
-    counted once.
+    A camera integrates over each pixel's area: pixel column ``c`` covers ``u`` in
+    ``[c - 0.5, c + 0.5]``. A segment projecting to ``[u_min, u_max]`` gives one sample to
+    every column it overlaps, taken at the middle of the overlap (where that column plane,
+    through the camera centre, cuts the segment), with the overlap's share of the pixel as its
+    coverage: the last column of a stripe that ends inside it is lit in proportion to the
+    part it covers, and two segments meeting inside a column give two partial samples whose
+    coverages add up to 1 (for a straight section, their coverage-weighted row is the row at
+    the column's centre). Overlaps of zero length (a segment along a line of sight) give no
+    sample.
+
+    Parameters
+    ----------
+    segments_p : (K, 2, 3) float64
+        Section segments in {P}, mm.
+    pose_b : (4, 4) float64
+        ^B X_P.
+    camera : PinholeCamera
+    columns : (2,) int
+        The view's columns, half-open ``[c0, c1)``: coverage is counted within
+        ``[c0 - 0.5, c1 - 0.5]``.
 
     Returns
     -------
     cols : (N,) int64
     rows : (N,) float64
-        Exact sub-pixel row.
+        Exact sub-pixel row at the middle of the overlap.
     points_p : (N, 3) float64
-        The 3-D point, in {P}.
+        The 3-D point there, in {P}.
     segment : (N,) int64
         Which segment it came from.
+    coverage : (N,) float64
+        Share of the pixel column the segment covers, in (0, 1].
     """
     if len(segments_p) == 0:
-        return (np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64))
+        return (np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64),
+                np.zeros(0))
     seg_b = apply_transform(pose_b, segments_p.reshape(-1, 3))
     q = camera.to_camera(seg_b).reshape(-1, 2, 3)
     qa, qb = q[:, 0], q[:, 1]
@@ -234,14 +261,25 @@ def column_hits(segments_p, pose_b, camera, columns):
     with np.errstate(divide="ignore", invalid="ignore"):
         ua = camera.fx * qa[:, 0] / qa[:, 2] + camera.cx
         ub = camera.fx * qb[:, 0] / qb[:, 2] + camera.cx
-    lo = np.clip(np.ceil(np.minimum(ua, ub)), columns[0], columns[1])
-    hi = np.clip(np.ceil(np.maximum(ua, ub)), columns[0], columns[1])
-    counts = np.where(front, hi - lo, 0).astype(np.int64)
+    umin = np.clip(np.minimum(ua, ub), columns[0] - 0.5, columns[1] - 0.5)
+    umax = np.clip(np.maximum(ua, ub), columns[0] - 0.5, columns[1] - 0.5)
+    # Columns whose pixel [c - 0.5, c + 0.5] overlaps [umin, umax] (a span ending on a pixel
+    # boundary does not reach into the next pixel).
+    first = np.floor(umin + 0.5)
+    last = np.ceil(umax + 0.5) - 1.0
+    spans = front & (umax > umin)
+    counts = np.where(spans, last - first + 1.0, 0.0).astype(np.int64)
     segment = np.repeat(np.arange(len(q)), counts)
-    starts = np.repeat(lo.astype(np.int64), counts)
+    starts = np.repeat(np.where(spans, first, 0.0).astype(np.int64), counts)
     offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
     cols = starts + offsets
-    k = (cols - camera.cx) / camera.fx
+    lo = np.maximum(umin[segment], cols - 0.5)
+    hi = np.minimum(umax[segment], cols + 0.5)
+    coverage = hi - lo
+    keep = coverage > 0.0
+    cols, segment, coverage = cols[keep], segment[keep], coverage[keep]
+    u = 0.5 * (lo[keep] + hi[keep])  # the middle of the overlap
+    k = (u - camera.cx) / camera.fx
     a, b = qa[segment], qb[segment]
     d = b - a
     t = (k * a[:, 2] - a[:, 0]) / (d[:, 0] - k * d[:, 2])
@@ -249,4 +287,4 @@ def column_hits(segments_p, pose_b, camera, columns):
     x = a + t[:, None] * d
     rows = camera.fy * x[:, 1] / x[:, 2] + camera.cy
     points_p = segments_p[segment, 0] + t[:, None] * (segments_p[segment, 1] - segments_p[segment, 0])
-    return cols, rows, points_p, segment
+    return cols, rows, points_p, segment, coverage

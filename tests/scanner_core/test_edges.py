@@ -29,6 +29,13 @@ DARK_PEAK_DN = 19.0
 THRESHOLD_DN, MIN_PEAK_DN = 20.0, 40.0
 #: The brief's tolerance for a drop-out edge's sub-pixel column, px.
 SUBPIXEL_TOL_PX = 0.1
+#: A stripe ending inside a column without blur: its intensity ramps down over that one column,
+#: and half the relative step interpolated linearly between column centres is off by up to
+#: 0.086 px, 0.118 px with the background under the partial column (measured over phases).
+BOX_RAMP_TOL_PX = 0.125
+#: A double stripe (stripe.DOUBLE_PEAK_RATIO = 0.3) in the column holding a step's wall: both
+#: sides cover at least 0.3 / 1.3 of it, so the wall lies within 0.27 px of its centre.
+DOUBLE_COLUMN_TOL_PX = 0.27
 #: Noise-free geometry: float32 rows (6e-5 px) and the projective round trip, mm.
 EXACT_MM = 1e-3
 #: With 0.03 px row noise (the centre of gravity's), a line fit over 6 columns extrapolated half
@@ -146,8 +153,8 @@ def test_dropout_edges_at_half_intensity_within_a_tenth_of_a_pixel(geometry, blu
 
 
 def test_dropout_of_a_point_sampled_edge_lies_half_way_between_columns(geometry):
-    """The simulator samples each column at one point: the stripe stops between two columns at
-    full intensity, and half the relative step falls half way between them."""
+    """A stripe that stops on the boundary between two columns at full intensity: half the
+    relative step falls half way between them."""
     cols = np.arange(700, 1000)
     _, rows = surface_at(geometry, cols, NEAR_MM)
     profile = blank_profile()
@@ -155,6 +162,23 @@ def test_dropout_of_a_point_sampled_edge_lies_half_way_between_columns(geometry)
     edges = edges_of(geometry, make(profile))
     assert_allclose(np.sort(edges.pixel[:, 0]), [699.5, 999.5], atol=1e-6)
     assert np.all(np.isnan(edges.size_mm))  # the stripe does not come back within the view
+
+
+@pytest.mark.parametrize("phase", [-0.4, -0.2, 0.0, 0.1, 0.3, 0.45])
+def test_dropout_of_a_stripe_ending_inside_a_column(geometry, phase):
+    """Each pixel integrates over its width: a stripe ending at ``c + phase`` lights column c
+    in proportion to the part it covers (``0.5 + phase``), with no blur. Half the relative
+    step, interpolated between columns, finds the end to about a tenth of a pixel."""
+    cols = np.arange(700, 1001)
+    _, rows = surface_at(geometry, cols, NEAR_MM)
+    left_end, right_end = 700.0 - phase, 1000.0 + phase
+    coverage = np.ones(len(cols))
+    coverage[[0, -1]] = 0.5 + phase
+    profile = blank_profile()
+    set_stripe(profile, cols, rows, BACKGROUND_DN + PEAK_DN * coverage)
+    edges = edges_of(geometry, make(profile))
+    assert len(edges) == 2 and np.all(edges.kind == EdgeKind.DROPOUT)
+    assert_allclose(np.sort(edges.pixel[:, 0]), [left_end, right_end], atol=BOX_RAMP_TOL_PX)
 
 
 def test_stripe_cut_by_the_view_is_no_edge(geometry):
@@ -271,6 +295,58 @@ def test_step_edge_at_half_height_on_the_wall(geometry, wall_col, near_left):
     col = wall_col + (0.5 if near_left else -0.5)
     rows = [surface_at(geometry, [col], r)[1][0] for r in (NEAR_MM, FAR_MM)]
     assert_allclose(edges.pixel[i], [col, np.mean(rows)], atol=1e-3)
+
+
+def split_column_step(geometry, column, phase, near_left):
+    """A step whose wall stands inside pixel column ``column``, at ``column + phase``: that
+    column is lit in part by each side, in proportion to the share of the pixel each surface
+    covers (the wall unlit). As the stripe extraction sees it, the column holds the brighter
+    side's stripe, or a double stripe (not valid) when the fainter one reaches 0.3 of it.
+    Returns the profile and whether that column holds a double stripe."""
+    cols = np.arange(column - 150, column + 151)
+    near_share = (0.5 + phase) if near_left else (0.5 - phase)
+    far_share = 1.0 - near_share
+    near = cols < column if near_left else cols > column
+    far = ~near & (cols != column)
+    profile = blank_profile()
+    set_stripe(profile, cols[near], surface_at(geometry, cols[near], NEAR_MM)[1])
+    set_stripe(profile, cols[far], surface_at(geometry, cols[far], FAR_MM)[1])
+    bright, faint = max(near_share, far_share), min(near_share, far_share)
+    peak = BACKGROUND_DN + PEAK_DN * bright
+    if faint >= 0.3 * bright:  # stripe.DOUBLE_PEAK_RATIO
+        row, peaks, reason = profile
+        row[column], peaks[column], reason[column] = np.nan, peak, Reason.DOUBLE
+        return profile, True
+    side_mm = NEAR_MM if near_share > far_share else FAR_MM
+    set_stripe(profile, [column], surface_at(geometry, [column], side_mm)[1], np.array([peak]))
+    return profile, False
+
+
+@pytest.mark.parametrize("near_left", [True, False])
+@pytest.mark.parametrize("phase", [-0.45, -0.1, 0.0, 0.15, 0.45])
+def test_step_with_its_wall_inside_a_column(geometry, phase, near_left):
+    """The wall within one column, that column lit in part by each side: the near side's
+    stripe ends where its intensity falls to half its level, as a drop-out's: within a tenth
+    of a pixel of the wall when the column holds one side's stripe (the near side's share of
+    a column holding the far side's, below 0.23, is taken as none: at 0.05 here); at the
+    column's centre when it holds both (a double stripe, whose two parts the extraction does
+    not report)."""
+    column = 1000
+    profile, double = split_column_step(geometry, column, phase, near_left)
+    edges = edges_of(geometry, make(profile))
+    steps = edges.kind == EdgeKind.STEP
+    assert steps.sum() == 1
+    i = np.nonzero(steps)[0][0]
+    if double:
+        assert_allclose(edges.pixel[i, 0], column, atol=1e-9)
+        assert abs(phase) <= DOUBLE_COLUMN_TOL_PX
+    else:
+        assert_allclose(edges.pixel[i, 0], column + phase, atol=SUBPIXEL_TOL_PX)
+    # the point: the near surface's end at that column, moved up the wall to half the step
+    a_found = surface_at(geometry, [edges.pixel[i, 0]], NEAR_MM)[0][0]
+    assert_allclose(edges.point_b[i], sheet_point_b(geometry, a_found, 0.5 * (NEAR_MM + FAR_MM)),
+                    atol=EXACT_MM)
+    assert edges.direction[i] == (1 if near_left else -1)
 
 
 @pytest.mark.parametrize("row_noise_px", ROW_NOISE_PX)

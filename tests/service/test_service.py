@@ -35,13 +35,17 @@ def test_arm_pass_and_the_same_cloud_over_rest_and_zeromq(service):
         pose = sub.receive(timeout=5)
         assert pose.topic == "pose" and pose.scan_id == scan_id and pose.array is None
         # The misplacement the simulated pass was given, found, and the same over REST.
-        assert pose.header["pose"] == info["pose"] and info["pose"]["observable"]
-        # At 1 m/s (6 mm between profiles) the turn about z_T is known to about 0.1 degree:
-        # the error stays within the uncertainty reported.
-        found, std = info["pose"]["misplacement"], info["pose"]["std"]
+        assert pose.header["pose"] == info["pose"], (pose.header["pose"], info["pose"])
+        # At 1 m/s profiles lie 6 mm apart: the pose says not to act on it as it stands, and
+        # what it reports as known is still near the truth.
+        pose_info = info["pose"]
+        assert any(flag.startswith("sparse: 6.") for flag in pose_info["flags"]), pose_info
+        found, std = pose_info["misplacement"], list(pose_info["std"].values())
         error = np.abs(np.subtract([*found["translation_mm"], *found["rotation_deg"]], misplace))
-        assert np.all(error <= 3 * np.array(list(std.values())) + 1e-3), (error, std)
-        assert error[:3].max() < 0.1 and error[3:].max() < 0.4
+        known = np.array([v is not None for v in std])
+        assert known[[2, 3, 4]].all()  # height and tilt: the level faces fix them
+        limits = np.array([0.1, 0.1, 0.1, 0.2, 0.2, 0.2])  # mm, degrees
+        assert np.all(error[known] < limits[known]), (error, std)
         assert sub.lost == 0
         assert client.scans()[0]["scan_id"] == scan_id
         fields = client.cloud_fields(scan_id)

@@ -14,13 +14,15 @@ from simulator.session import camera_frames, parse_misplacement, simulated_cell
 
 #: Float round-off of the distances, um.
 EXACT_UM = 1e-6
-#: Edge figures of the demo part's pass below (measured: drop-outs 44 um RMS, steps 49 um,
-#: no outliers). A drop-out's column is only known to the column in the simulator, which
-#: samples each column at one point: the stripe stops at full intensity between two columns,
-#: the edge is put half way, and its error is uniform over +-0.5 px (0.16 mm): 46 um RMS where
-#: the edge crosses the stripe at right angles. Steps fare the same where their wall falls
-#: within one column.
-DROPOUT_RMS_UM, STEP_RMS_UM = 60.0, 65.0
+#: Edge figures of the demo part's pass below (measured: drop-outs 16 um RMS, steps 27 um,
+#: all 20 um, no outliers; the issue's target is 30 um). The simulator lights each pixel
+#: column in proportion to the part of it the stripe covers, so a stripe ending inside a
+#: column leaves it partly lit and half the relative step finds the end to about 0.1 px
+#: (when each column was sampled at one point, the stripe stopped at full intensity between
+#: two columns: 44 um and 49 um, the +-0.5 px of a column's uniform error). A step whose wall
+#: lies in a column holding both sides' stripes (a double) is put at that column's centre,
+#: within 0.27 px.
+EDGE_RMS_UM, DROPOUT_RMS_UM, STEP_RMS_UM = 30.0, 30.0, 40.0
 #: The issue's outlier target is 5 %; the demo part has none.
 MAX_OUTLIER_FRACTION = 0.01
 
@@ -125,6 +127,7 @@ def test_demo_part_edges_lie_on_the_cad_edges(demo_pass_edges, block_part):
     # the outline, both holes' rims and the blind hole's and the step's walls
     assert dropout["count"] >= 60 and step["count"] >= 20
     assert acc["outlier_fraction"] <= MAX_OUTLIER_FRACTION
+    assert acc["rms_um"] < EDGE_RMS_UM
     assert dropout["rms_um"] < DROPOUT_RMS_UM
     assert step["rms_um"] < STEP_RMS_UM
     # a step's point lies half way up its wall: 2.5 mm (the step) or 5 mm (the blind hole)

@@ -3,10 +3,13 @@ import trimesh
 from numpy.testing import assert_allclose
 
 from simulator.parts import part_from_mesh
-from simulator.render import PartScene, slice_mesh
+from scanner_core.geometry import PinholeCamera
+from simulator.render import PartScene, column_hits, slice_mesh
 
 #: Geometry computed in float64 from an exact section: sub-nanometre.
 EXACT_MM = 1e-6
+#: Pixel coverage from float64 projections of columns near 100: round-off only.
+EXACT_COVERAGE = 1e-9
 
 
 def test_slice_box_perimeter():
@@ -39,18 +42,80 @@ def test_flat_plate_stripe_is_exact(cell, rng):
     # The underside hangs 10 mm below the TCP ({T} z points down), on the sheet y = 0.
     assert_allclose(pts[:, 2], tcp[2] - 10.0, atol=EXACT_MM)
     assert_allclose(cell.light_plane_b.signed_distance(pts), 0.0, atol=EXACT_MM)
-    # One sample per column, across the whole plate, at the camera's projection.
-    assert len(np.unique(truth.stripe_columns)) == len(truth.stripe_columns)
     assert pts[:, 0].min() < -49.5 and pts[:, 0].max() > 49.5
+    # Each sample lies at the camera's projection of its point, inside its pixel column.
     proj = cell.calibration.camera.project(pts)
-    assert_allclose(proj[:, 0], truth.stripe_columns, atol=1e-6)
     assert_allclose(proj[:, 1], truth.stripe_rows, atol=1e-6)
-    # Brightness follows the laser's incidence on a face pointing down at it.
+    assert np.all(np.abs(proj[:, 0] - truth.stripe_columns) <= 0.5 + 1e-9)
+    # Brightness follows the laser's incidence on a face pointing down at it, times the share
+    # of the pixel column covered: the columns inside the plate are covered once in full,
+    # the two at its ends in part, as far as the plate's sides reach into them.
     laser = cell.laser_origin_b
     cos = (pts - laser)[:, 2] / np.linalg.norm(pts - laser, axis=1)
-    assert_allclose(truth.stripe_gain, cos, atol=1e-9)
+    cols = truth.stripe_columns
+    coverage = np.bincount(cols - cols.min(), truth.stripe_gain / cos)
+    assert_allclose(coverage[1:-1], 1.0, atol=EXACT_COVERAGE)
+    ends_b = np.array([[-50.0, 0.0, tcp[2] - 10.0], [50.0, 0.0, tcp[2] - 10.0]])
+    u_ends = np.sort(cell.calibration.camera.project(ends_b)[:, 0])
+    expected_ends = [cols.min() + 0.5 - u_ends[0], u_ends[1] - (cols.max() - 0.5)]
+    assert_allclose(coverage[[0, -1]], expected_ends, atol=EXACT_COVERAGE)
     # The marker shows in all three views.
     assert np.all(np.isfinite(truth.marker_pixels))
+
+
+def _camera():
+    """A camera at the origin of {B} looking along +z_B: u = 10 x / z * 100 + 100."""
+    return PinholeCamera(fx=1000.0, fy=1000.0, cx=100.0, cy=50.0, width=200, height=100,
+                         rotation=np.eye(3), origin=np.zeros(3))
+
+
+def _segment_at(camera, u, row_slope=0.3, depth=(100.0, 140.0)):
+    """A straight 3-D segment whose ends project to columns ``u`` (its depth varying
+    linearly from ``depth[0]`` at u = 0 to ``depth[1]`` at u = 200, its row as
+    50 + row_slope * (u - 100) ): (2, 3)."""
+    u = np.asarray(u, dtype=np.float64)
+    z = depth[0] + (depth[1] - depth[0]) * u / 200.0
+    x = (u - camera.cx) / camera.fx * z
+    y = row_slope * (u - camera.cx) / camera.fy * z
+    return np.stack([x, y, z], axis=1)
+
+
+def test_coverage_of_the_last_column_of_a_segment():
+    """A segment ending at u = c + 0.3 lights column c at 0.8 of a full one; each sample sits
+    at the middle of the part of its pixel column it covers."""
+    cam = _camera()
+    seg = _segment_at(cam, [37.6, 50.3])
+    cols, rows, points, segment, coverage = column_hits(seg[None], np.eye(4), cam, (0, 200))
+    assert_allclose(cols, np.arange(38, 51))
+    assert np.all(segment == 0)
+    assert_allclose(coverage, [0.9] + [1.0] * 11 + [0.8], atol=EXACT_COVERAGE)
+    middle = np.where(cols == 38, (37.6 + 38.5) / 2, np.where(cols == 50, (49.5 + 50.3) / 2, cols))
+    assert_allclose(cam.project(points), np.column_stack([middle, rows]), atol=1e-9)
+    assert_allclose(rows, 50.0 + 0.3 * (middle - 100.0), atol=1e-9)
+    # the direct view's border cuts the segment like a pixel boundary
+    cols, _, _, _, coverage = column_hits(seg[None], np.eye(4), cam, (40, 45))
+    assert_allclose(cols, np.arange(40, 45))
+    assert_allclose(coverage, 1.0, atol=EXACT_COVERAGE)
+
+
+def test_segments_sharing_a_column_add_up_to_a_full_stripe():
+    """Two pieces of one straight section meeting at u = 45.3: column 45 gets two samples
+    whose coverages sum to 1 and whose coverage-weighted row is the row at its centre. A
+    segment along a line of sight (no extent in u) and one ending on a pixel boundary add
+    nothing."""
+    cam = _camera()
+    line = _segment_at(cam, [37.6, 45.3, 50.5])
+    edge_on = np.array([[0.0, 0.0, 100.0], [0.0, 1.0, 120.0]])  # both ends at u = 100
+    segments = np.stack([line[[0, 1]], line[[1, 2]], edge_on])
+    cols, rows, points, segment, coverage = column_hits(segments, np.eye(4), cam, (0, 200))
+    assert not np.any(segment == 2)
+    assert np.bincount(cols)[45] == 2 and np.bincount(cols)[50] == 1  # u = 50.5: no column 51
+    full = np.bincount(cols, coverage, minlength=52)[38:51]
+    assert_allclose(full, [0.9] + [1.0] * 12, atol=EXACT_COVERAGE)
+    shared = cols == 45
+    assert_allclose(coverage[shared], [0.8, 0.2], atol=EXACT_COVERAGE)
+    weighted_row = np.sum(coverage[shared] * rows[shared]) / np.sum(coverage[shared])
+    assert_allclose(weighted_row, 50.0 + 0.3 * (45.0 - 100.0), atol=1e-9)
 
 
 def test_visibility_agrees_with_independent_ray_casts(cell, rng, block_part):
