@@ -15,7 +15,9 @@ is registered against the CAD model in {P}, starting from the nominal grasp ^T X
 - **uncertainty**: the covariance of the six motion parameters is the cluster-robust
   sandwich ``H^-1 (sum_f g_f g_f^T) H^-1`` over the frames f (Liang and Zeger 1986): the
   points of one profile share that frame's placement error (the marker's triangulation), so
-  they are not independent, and the sandwich takes that from the residuals themselves.
+  they are not independent, and the sandwich takes that from the residuals themselves. It is
+  scaled by ``PoseParams.sigma_inflation`` (2, measured by ``flyscan bench pose``) for what
+  it cannot see: biases shared by every profile that crosses one edge.
 
 The model is the CAD surface sampled densely with face normals (`SurfaceModel.from_mesh`), or
 any points with normals, such as the simulator's predicted cloud of the same pass
@@ -75,9 +77,16 @@ class PoseParams:
     min_frames : float
         Nor is a motion whose information comes from fewer profiles than this (their
         participation ratio): a profile's points share its placement error.
-    good_inlier_fraction : float
-        The fine stage from the nominal grasp is accepted when at least this fraction of the
+    good_inlier_fraction, good_edge_fraction : float
+        The fine stage from the nominal grasp is accepted when at least these fractions of the
         surface points and of the edge points are inliers; otherwise the coarse search runs.
+        (Fewer edge points match than surface points on a sound fit: chamfers, rounded rims
+        and occlusion boundaries give edge points the CAD's sharp edges do not have.)
+    sigma_inflation : float
+        The reported standard deviations are the sandwich estimate times this: what
+        ``flyscan bench pose`` measured it takes for the errors of converged poses to stay
+        within 3 sigma (the errors the sandwich cannot see: edge placement biases shared by
+        all the profiles crossing one edge).
     coarse_step_deg, coarse_extent_deg : float
         The coarse grid of rotation vectors around the nominal: every combination of
         ``-extent..extent`` in ``step`` about the three {T} axes.
@@ -99,8 +108,10 @@ class PoseParams:
     surface_noise_mm: float = 0.01
     edge_noise_mm: float = 0.03
     free_std_mm: float = 0.05
-    min_frames: float = 4.0
+    min_frames: float = 2.0
     good_inlier_fraction: float = 0.8
+    good_edge_fraction: float = 0.6
+    sigma_inflation: float = 2.0
     coarse_step_deg: float = 15.0
     coarse_extent_deg: float = 15.0
     coarse_points: int = 800
@@ -248,6 +259,7 @@ class PoseResult:
     coarse : bool
         Whether the coarse search ran.
     time_ms : float
+        The registration's time; `normals_ms` before it (`scan_pose`) estimated the normals.
     flags : list of str
         Why not to trust the pose as it stands (a poor fit, too few edges, free motions);
         empty for a pose to act on.
@@ -264,6 +276,7 @@ class PoseResult:
     coarse: bool = False
     time_ms: float = 0.0
     flags: list = field(default_factory=list)
+    normals_ms: float = 0.0
 
     @property
     def observable(self) -> bool:
@@ -295,6 +308,7 @@ class PoseResult:
             "coarse": self.coarse,
             "flags": list(self.flags),
             "time_ms": round(self.time_ms, 3),
+            "normals_ms": round(self.normals_ms, 3),
         }
 
 
@@ -354,7 +368,8 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
 
     fit = _fine(surface, edges, nominal, params)
     coarse = False
-    if min(fit.inlier_fraction, fit.edge_fraction) < params.good_inlier_fraction:
+    if (fit.inlier_fraction < params.good_inlier_fraction
+            or fit.edge_fraction < params.good_edge_fraction):
         start = _coarse(surface, edges, nominal, params, rng)
         candidate = _fine(surface, edges, start, params)
         coarse = True
@@ -373,7 +388,7 @@ def _flags(fit: _Fit, free_axes, with_edges: bool, params: PoseParams) -> list[s
     flags = []
     if fit.inlier_fraction < params.good_inlier_fraction:
         flags.append(f"poor fit: {fit.inlier_fraction:.0%} of the points match the model")
-    if with_edges and fit.edge_fraction < params.good_inlier_fraction:
+    if with_edges and fit.edge_fraction < params.good_edge_fraction:
         flags.append(f"poor fit: {fit.edge_fraction:.0%} of the edge points match the model's "
                      "edges")
     if fit.rms > _RMS_FLAG * params.surface_noise_mm:
@@ -404,6 +419,7 @@ def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeMod
     use_edges = edge_model is not None and len(scan.edges) > 0 and edge_frames is not None
     # Normals only where the fit looks (neighbours from the whole cloud): most of a pose's
     # time would otherwise go to normals it never uses.
+    t0 = time.perf_counter()
     used = _subsample(len(scan.cloud), params.max_points, np.random.default_rng(params.seed))
     normals = estimate_normals(scan.cloud, sensors=point_sensors(scan), frame_ids=scan.frame_ids,
                                index=used)
@@ -413,6 +429,7 @@ def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeMod
                       edge_frame_ids=edge_frames if use_edges else None,
                       edge_model=edge_model if use_edges else None, params=params)
     result.flags += _coverage_flags(scan, result.matrix, surface_model)
+    result.normals_ms = (time.perf_counter() - t0) * 1e3 - result.time_ms
     return result
 
 
@@ -762,7 +779,7 @@ def _uncertainty(fit: _Fit, params) -> tuple[np.ndarray, np.ndarray, list]:
     np.add.at(per_cluster, inverse, scores)
     clusters = len(per_cluster)
     meat = per_cluster.T @ per_cluster * (clusters / max(clusters - 6, 1))
-    cov_scaled = info_inv @ meat @ info_inv
+    cov_scaled = info_inv @ meat @ info_inv * params.sigma_inflation**2
     cov_centre = cov_scaled / np.outer(s, s)
     # About the {T} origin: t_o = t_c + c x w.
     c = fit.centre

@@ -1,0 +1,109 @@
+"""The pose benchmark's quick set (the procedural block): its files, its structure, and figures
+that would show a broken registration: accuracy on the block, the basin at small
+misplacements, the side by side's same start and target."""
+import json
+import math
+
+import pytest
+
+from service.bench import pose as bench
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+# The demo block with its edges (the default configuration): well inside these, or broken.
+BLOCK_TRANSLATION_UM = 50.0
+BLOCK_ROTATION_MDEG = 50.0
+
+
+@pytest.fixture(scope="module")
+def quick_bench(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench_pose")
+    lines = []
+    result = bench.run(out, quick=True, progress=lines.append)
+    return out, result, lines
+
+
+def test_writes_json_and_charts(quick_bench):
+    out, result, lines = quick_bench
+    written = json.loads((out / "pose.json").read_text())
+    assert written["summary"] == json.loads(json.dumps(result["summary"]))
+    for name in ("pose.png", "pose_calibration.png"):
+        assert (out / name).read_bytes()[:8] == PNG_MAGIC
+    for key in ("cpu_count", "python", "numpy", "date"):
+        assert key in written["machine"]
+    assert written["quick"] is True and written["settings"]["parts"] == ["block"]
+    assert len(lines) >= bench.QUICK_SCANS_PER_PART  # progress for every scan
+
+
+def test_one_trial_per_scan_and_configuration(quick_bench):
+    _, result, _ = quick_bench
+    trials = result["trials"]
+    keys = {(t["scan"], t["config"]) for t in trials}
+    assert len(keys) == len(trials) == bench.QUICK_SCANS_PER_PART * len(bench.QUICK_CONFIGS)
+    assert [c["config"] for c in result["configs"]] == list(bench.QUICK_CONFIGS)
+    for t in trials:
+        assert t["refused"] is None
+        assert math.isfinite(t["time_ms"]) and t["time_ms"] > 0
+        assert len(t["translation_um"]) == 3 and len(t["rotation_mdeg"]) == 3
+        norm = math.sqrt(sum(v * v for v in t["translation_um"]))
+        assert t["translation_norm_um"] == pytest.approx(norm, rel=1e-4, abs=1e-3)
+        # A sigma for every axis the pose observes, none for a free one.
+        assert (None in t["std_um_mdeg"]) == bool(t["free_axes"])
+    for c in result["configs"]:
+        assert c["time_ms"]["n"] == bench.QUICK_SCANS_PER_PART
+
+
+def test_the_block_is_registered_accurately_with_its_edges(quick_bench):
+    _, result, _ = quick_bench
+    default = next(c for c in result["configs"] if c["config"] == bench.DEFAULT_CONFIG)
+    assert default["not_observable"] < default["trials"]
+    # Every trial, free axes included: with its edges the block has none to slide along.
+    assert default["all_trials"]["translation_um"]["max"] < BLOCK_TRANSLATION_UM
+    assert default["all_trials"]["rotation_mdeg"]["max"] < BLOCK_ROTATION_MDEG
+    assert default["converged"] == 1.0
+    # Its visible faces are mostly level: without the edges it slides and turns (unless a
+    # tilt shows a step's side), and says so: no configuration gives a confident wrong pose.
+    surfaces = next(c for c in result["configs"] if c["config"] == "mesh")
+    assert surfaces["not_observable"] >= 1
+    assert all(c["confident_wrong"] == 0 for c in result["configs"])
+    assert result["summary"]["model"]["keep"] in ("mesh", "predicted")
+
+
+def test_basin_converges_at_small_misplacements(quick_bench):
+    _, result, _ = quick_bench
+    levels = result["basin"]["levels"]
+    assert [(lv["mm"], lv["deg"]) for lv in levels] == list(bench.QUICK_BASIN_LEVELS)
+    smallest = levels[0]["displaced start"]
+    assert smallest["trials"] == bench.QUICK_BASIN_TRIALS
+    assert smallest["success_rate"] == 1.0
+    basin = result["summary"]["basin"]
+    assert basin["trials"] == len(bench.QUICK_BASIN_LEVELS) * bench.QUICK_BASIN_TRIALS
+    assert basin["success_rate"]["met"] == (basin["success_rate"]["value"] >= bench.TARGET_BASIN)
+
+
+def test_calibration_is_consistent(quick_bench):
+    _, result, _ = quick_bench
+    cal = result["calibration"][bench.DEFAULT_CONFIG]
+    assert cal["all"]["trials"] == bench.QUICK_SCANS_PER_PART
+    worst = [max(abs(v) for v in z if v is not None) for z in cal["z"]]
+    within = sum(w <= bench.SIGMA_BOUND for w in worst) / len(worst)
+    assert cal["all"]["within"] == pytest.approx(within)
+    assert cal["all"]["inflation_needed"] >= 1.0
+    summary = result["summary"]["calibration"]
+    assert summary["within_3_sigma"]["met"] == (within >= bench.TARGET_CALIBRATED)
+
+
+def test_side_by_side_has_every_method_or_a_note(quick_bench):
+    _, result, _ = quick_bench
+    side = result["side_by_side"]
+    (case,) = side["cases"]
+    methods = case["methods"]
+    assert "flyscan" in methods and "flyscan surfaces, all points" in methods
+    for library, names in (("open3d", ["open3d point-to-plane"]),
+                           ("small_gicp", ["small_gicp plane ICP", "small_gicp GICP"])):
+        assert (library in side["skipped"]) != all(n in methods for n in names)
+    for name, m in methods.items():
+        assert m["total_ms"] == pytest.approx(m["preprocess_ms"] + m["register_ms"], rel=0.05)
+        if not name.startswith("flyscan"):
+            assert case["ratios"][f"flyscan/{name}"] == pytest.approx(
+                methods["flyscan"]["total_ms"] / m["total_ms"], rel=1e-4)
+    assert methods["flyscan"]["translation_um"] < BLOCK_TRANSLATION_UM
