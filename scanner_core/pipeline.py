@@ -155,6 +155,35 @@ def marker_in_view(marker: MarkerObservation) -> bool:
     return marker.views >= 2
 
 
+def frame_stripe(image: np.ndarray, calibration: Calibration, params: PipelineParams,
+                 marker: MarkerObservation):
+    """The stripe of one frame, the columns kept, and the columns beside the marker.
+
+    Returns
+    -------
+    result : scanner_core.stripe.StripeResult
+    valid : (W,) bool
+        Valid, bright enough (``min_peak_dn``) and not the marker's blob.
+    near : (W,) bool or None
+        The columns within ``marker_mask_px`` of the marker in the direct view (None when it
+        is not there): where a missing stripe says nothing.
+    """
+    result = stripe_mod.extract(image, method=params.stripe_method,
+                                threshold=params.stripe_threshold_dn,
+                                columns=calibration.direct_columns)
+    valid = result.valid & (result.peak >= params.min_peak_dn)
+    direct_px = marker.pixels[0]
+    if not np.all(np.isfinite(direct_px)) and marker.valid:
+        # Seen only in the mirrors (cut off at the image edge, or hidden): mask where the
+        # direct view must show it, since a partial blob still passes for the stripe.
+        direct_px = reproject_marker(marker.position_b, calibration.camera, calibration.mirrors)[0]
+    near = None
+    if np.all(np.isfinite(direct_px)):
+        near = np.abs(np.arange(image.shape[1]) - direct_px[0]) <= params.marker_mask_px
+        valid &= ~(near & (np.abs(result.row - direct_px[1]) <= params.marker_mask_px * MASK_ROW_FACTOR))
+    return result, valid, near
+
+
 def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams = PipelineParams(),
                   marker: MarkerObservation | None = None) -> Profile:
     """One frame -> one profile (stripe points in {B}) and the marker position.
@@ -175,19 +204,7 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
     image = frame.image
     if marker is None:
         marker = observe_marker(image, calibration, params)
-    result = stripe_mod.extract(image, method=params.stripe_method,
-                                threshold=params.stripe_threshold_dn,
-                                columns=calibration.direct_columns)
-    valid = result.valid & (result.peak >= params.min_peak_dn)
-    direct_px = marker.pixels[0]
-    if not np.all(np.isfinite(direct_px)) and marker.valid:
-        # Seen only in the mirrors (cut off at the image edge, or hidden): mask where the
-        # direct view must show it, since a partial blob still passes for the stripe.
-        direct_px = reproject_marker(marker.position_b, calibration.camera, calibration.mirrors)[0]
-    near = None
-    if np.all(np.isfinite(direct_px)):
-        near = np.abs(np.arange(image.shape[1]) - direct_px[0]) <= params.marker_mask_px
-        valid &= ~(near & (np.abs(result.row - direct_px[1]) <= params.marker_mask_px * MASK_ROW_FACTOR))
+    result, valid, near = frame_stripe(image, calibration, params, marker)
     # Columns by the marker say nothing of the stripe: no drop-out there.
     edges = find_edges(result, valid, calibration.camera, calibration.light_plane_c,
                        params=params.edges, masked=near)

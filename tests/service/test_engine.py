@@ -132,6 +132,25 @@ class StillRobot:
         return TcpPose(t, np.zeros(3), self.rotation)
 
 
+def one_armed_pass(camera, cell, params):
+    """Arm an engine on `camera` (with a still robot) and return its one finished job and scan."""
+    results, done = [], threading.Event()
+
+    def on_scan(job, scan, check):
+        results.append((job, scan))
+        done.set()
+
+    engine = Engine(camera, StillRobot(cell.gripper_rotation_b), cell.calibration, params,
+                    on_scan=on_scan, workers=1)
+    engine.start()
+    try:
+        engine.arm()
+        assert done.wait(10.0)
+    finally:
+        engine.stop()
+    return results[0]
+
+
 def test_a_marker_that_never_leaves_ends_at_the_maximum_pass_length(cell, block_part):
     sim = LiveSimCell(cell, seed=2)
     prepared = sim.prepare_pass(block_part)
@@ -139,23 +158,8 @@ def test_a_marker_that_never_leaves_ends_at_the_maximum_pass_length(cell, block_
     assert np.isfinite(truth.marker_pixels).all()
     from simulator.live import frame_image
     image = frame_image(cell, truth, np.random.default_rng(0))
-    results = []
-    done = threading.Event()
-
-    def on_scan(job, scan, check):
-        results.append((job, scan))
-        done.set()
-
     params = PipelineParams(trigger=TriggerParams(max_pass_s=0.4))
-    engine = Engine(StuckMarkerCamera(image), StillRobot(cell.gripper_rotation_b),
-                    cell.calibration, params, on_scan=on_scan, workers=1)
-    engine.start()
-    try:
-        engine.arm()
-        assert done.wait(10.0)
-    finally:
-        engine.stop()
-    job, scan = results[0]
+    job, scan = one_armed_pass(StuckMarkerCamera(image), cell, params)
     assert job.state == "failed" and job.reason.startswith("too long")
     assert scan is not None and scan.end_reason == "too long"
     assert abs(scan.frames - 0.4 * 200) <= 2
@@ -265,20 +269,6 @@ def test_a_pass_without_points_is_a_failed_scan(cell, block_part):
     rng = np.random.default_rng(0)
     camera = MarkerThenEmptyCamera(frame_image(cell, no_stripe, rng), frame_image(cell, None, rng),
                                    marked=30)
-    results, done = [], threading.Event()
-
-    def on_scan(job, scan, check):
-        results.append((job, scan))
-        done.set()
-
-    engine = Engine(camera, StillRobot(cell.gripper_rotation_b), cell.calibration,
-                    PipelineParams(), on_scan=on_scan, workers=1)
-    engine.start()
-    try:
-        engine.arm()
-        assert done.wait(10.0)
-    finally:
-        engine.stop()
-    job, scan = results[0]
+    job, scan = one_armed_pass(camera, cell, PipelineParams())
     assert scan.end_reason == "marker gone" and scan.frames >= 25 and len(scan.cloud) == 0
     assert job.state == "failed" and job.reason.startswith("no points")

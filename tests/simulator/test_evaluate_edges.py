@@ -5,10 +5,9 @@ import pytest
 import trimesh
 from numpy.testing import assert_allclose
 
-from scanner_core import stripe
-from scanner_core.edges import EdgeKind, find_edges
-from scanner_core.geometry import apply_transform, base_to_tcp, reproject_marker
-from scanner_core.pipeline import MASK_ROW_FACTOR, PipelineParams, observe_marker
+from scanner_core.edges import EdgeKind
+from scanner_core.geometry import apply_transform, base_to_tcp
+from scanner_core.pipeline import PipelineParams, process_frame
 from simulator.evaluate import edge_accuracy, sharp_edges
 from simulator.session import camera_frames, parse_misplacement, simulated_cell
 
@@ -80,26 +79,6 @@ def test_no_points_and_bad_kinds(box):
 # End to end: the edges of real simulated frames
 
 
-def profile_inputs(frame, calibration, params: PipelineParams):
-    """The stripe, the valid columns and the marker-masked columns of one frame, as
-    ``pipeline.process_frame`` computes them."""
-    image = frame.image
-    marker = observe_marker(image, calibration, params)
-    result = stripe.extract(image, method=params.stripe_method,
-                            threshold=params.stripe_threshold_dn,
-                            columns=calibration.direct_columns)
-    valid = result.valid & (result.peak >= params.min_peak_dn)
-    direct_px = marker.pixels[0]
-    if not np.all(np.isfinite(direct_px)) and marker.valid:
-        direct_px = reproject_marker(marker.position_b, calibration.camera, calibration.mirrors)[0]
-    masked = np.zeros(image.shape[1], dtype=bool)
-    if np.all(np.isfinite(direct_px)):
-        near = np.abs(np.arange(image.shape[1]) - direct_px[0]) <= params.marker_mask_px
-        rows_near = np.abs(result.row - direct_px[1]) <= params.marker_mask_px * MASK_ROW_FACTOR
-        masked = near & rows_near
-    return result, valid & ~masked, masked, marker
-
-
 @pytest.fixture(scope="module")
 def demo_pass_edges(block_part, cell):
     """Edge points of one pass of the demo part (misplaced and turned), placed in {T} by the
@@ -110,8 +89,8 @@ def demo_pass_edges(block_part, cell):
     cal, params, rotation = cell.calibration, PipelineParams(), cell.gripper_rotation_b
     points, kinds = [], []
     for frame in camera_frames(sim.camera):
-        result, valid, masked, marker = profile_inputs(frame, cal, params)
-        edges = find_edges(result, valid, cal.camera, cal.light_plane_c, masked=masked)
+        profile = process_frame(frame, cal, params)  # the pipeline's own edges
+        edges, marker = profile.edges, profile.marker
         if len(edges) and marker.valid:
             tcp = marker.position_b - rotation @ cal.marker_offset_t
             points.append(base_to_tcp(edges.point_b, tcp, rotation))
