@@ -23,6 +23,8 @@ test: $(BIN)/flyscan
 	$(BIN)/python -m pytest -q
 
 bench: $(BIN)/flyscan
+	bash scripts/system-deps.sh bench
+	$(BIN)/pip install --quiet -e '.[test,bench]'
 	$(BIN)/flyscan bench stripe --out $(OUT)/bench/stripe
 	$(BIN)/flyscan bench scan --out $(OUT)/bench/scan
 	$(BIN)/flyscan bench simulate --out $(OUT)/bench/simulate

@@ -7,7 +7,9 @@ properties (binary little- or big-endian, or ASCII), so a cloud from another too
 """
 from __future__ import annotations
 
+import os
 import re
+import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
@@ -15,7 +17,7 @@ import numpy as np
 
 from scanner_core.fileio import write_bytes_atomic
 
-__all__ = ["write_ply", "read_ply", "PLY_TYPES"]
+__all__ = ["write_ply", "write_ply_rows", "read_ply", "PLY_TYPES"]
 
 #: PLY scalar type name -> numpy dtype (native byte order; the file's order is applied on use).
 PLY_TYPES: dict[str, np.dtype] = {
@@ -57,9 +59,14 @@ def write_ply(path, points, *, fields: Mapping[str, np.ndarray] | None = None,
     path : str or os.PathLike
         Destination file. Its directory must exist. The file is written to a temporary file in
         the same directory and moved into place, so a failure never leaves a partial file.
-    points : (N, 3) array_like of float
+    points : (N, 3) array_like of float, or (N,) structured ndarray
         Point coordinates, mm, normally in the gripper frame {T}. Stored as float32 ``x, y, z``.
         N may be 0 (a valid, empty PLY).
+        Or the whole vertex table at once: a structured array whose first fields are
+        little-endian float32 ``x, y, z``, followed by the other properties (scalar fields of
+        the dtypes below, little-endian, in file order; `fields` must then be None). Its
+        bytes are written as they are, without a copy: the fast path for large clouds. The
+        file is the one the (N, 3) form with the same values and `fields` gives.
     fields : dict of str -> (N,) ndarray, optional
         Extra per-vertex properties, in order. Allowed dtypes: int8, uint8, int16, uint16,
         int32, uint32, float32, float64 (PLY char, uchar, short, ushort, int, uint, float,
@@ -80,6 +87,10 @@ def write_ply(path, points, *, fields: Mapping[str, np.ndarray] | None = None,
         offending parameter.
     """
     path = Path(path)
+    if isinstance(points, np.ndarray) and points.dtype.names is not None:
+        if fields is not None:
+            raise ValueError("`fields` must be None when `points` is a structured vertex table")
+        return write_ply_rows(path, points, comments=comments)
     pts = _check_points(points)
     n = pts.shape[0]
     extra = _check_fields(fields, n)
@@ -93,16 +104,140 @@ def write_ply(path, points, *, fields: Mapping[str, np.ndarray] | None = None,
     for name, arr in extra.items():
         data[name] = arr
 
+    blob = _header(n, data.dtype, comment_lines) + data.tobytes()
+    write_bytes_atomic(path, blob)
+    return path
+
+
+def _header(n: int, dtype: np.dtype, comment_lines: list[str]) -> bytes:
+    """The header of `n` vertices of `dtype` (float32 x, y, z first), as bytes."""
     header = ["ply", "format binary_little_endian 1.0"]
     header += [f"comment {c}" if c else "comment" for c in comment_lines]
     header.append(f"element vertex {n}")
     header += [f"property float {c}" for c in _COORDS]
-    header += [f"property {_PLY_NAME[(a.dtype.kind, a.dtype.itemsize)]} {name}"
-               for name, a in extra.items()]
+    header += [f"property {_PLY_NAME[(dtype[name].kind, dtype[name].itemsize)]} {name}"
+               for name in dtype.names[3:]]
     header.append("end_header")
-    blob = ("\n".join(header) + "\n").encode("ascii") + data.tobytes()
-    write_bytes_atomic(path, blob)
+    return ("\n".join(header) + "\n").encode("ascii")
+
+
+def write_ply_rows(path, rows, *, count: int | None = None, comments: Iterable[str] = ()) -> Path:
+    """Write a vertex table as binary little-endian PLY, atomically, as it is: no copy.
+
+    The fast path of `write_ply` for large clouds: the rows' bytes go to the file unchanged,
+    from one structured array or from blocks of rows made as they are written (so the whole
+    table never needs to exist at once). The file is the one `write_ply` gives for the same
+    values with the (N, 3) points and the other fields as `fields`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Destination file; its directory must exist. Written to a temporary file in the same
+        directory and moved into place, so a failure never leaves a partial file.
+    rows : (N,) structured ndarray, or an iterable of them
+        Little-endian float32 ``x, y, z`` first, then the other vertex properties, in file
+        order: packed scalar fields of the dtypes `write_ply` allows. Blocks must share one
+        dtype; each is written before the next is asked for, so a producer may reuse its
+        buffers.
+    count : int, optional
+        Number of rows in all (the header comes first). Required with blocks, checked against
+        the rows written.
+    comments : iterable of str, optional
+        Header comment lines.
+
+    Returns
+    -------
+    pathlib.Path
+
+    Raises
+    ------
+    ValueError
+        A dtype PLY cannot store as it is, non-finite coordinates, blocks of another dtype, or
+        a `count` the rows do not match; nothing is left at `path`.
+    """
+    path = Path(path)
+    comment_lines = _check_comments(comments)
+    if isinstance(rows, np.ndarray):
+        if count is not None and count != len(rows):
+            raise ValueError(f"`count` {count} does not match the {len(rows)} rows given")
+        count, rows = len(rows), (rows,)
+    elif count is None or int(count) < 0:
+        raise ValueError(f"`count` must give the number of rows when `rows` come in blocks, "
+                         f"got {count!r}")
+    blocks = iter(rows)
+    first = next(blocks, None)
+    if first is None:
+        raise ValueError("`rows` must hold at least one block (an empty one for no rows)")
+    dtype = first.dtype if isinstance(first, np.ndarray) else None
+    _check_row_dtype(dtype)
+
+    def checked():
+        written = 0
+        for block in _chain(first, blocks):
+            if (not isinstance(block, np.ndarray) or block.dtype != dtype or block.ndim != 1
+                    or not block.flags.c_contiguous):
+                raise ValueError(f"`rows` blocks must be 1-D C-contiguous arrays of {dtype}")
+            for c in _COORDS:
+                if not np.all(np.isfinite(block[c])):
+                    raise ValueError("`points` must be finite: a cloud with NaN or inf is "
+                                     "never written")
+            written += len(block)
+            if written > count:
+                break
+            yield block
+        if written != count:
+            raise ValueError(f"`rows` held {written} rows, the header promised `count` {count}")
+
+    _write_parts_atomic(path, _chain(_header(int(count), dtype, comment_lines), checked()))
     return path
+
+
+def _chain(first, rest):
+    yield first
+    yield from rest
+
+
+def _check_row_dtype(dtype) -> None:
+    """Raise unless `dtype` is a PLY vertex row: packed little-endian scalars, x, y, z first."""
+    if dtype is None or dtype.names is None:
+        raise ValueError(f"`rows` must be structured arrays, got {dtype}")
+    names = dtype.names
+    if names[:3] != _COORDS or any(dtype[c] != np.dtype("<f4") for c in _COORDS):
+        raise ValueError(f"`rows` must start with float32 x, y, z, got "
+                         f"{[(name, str(dtype[name])) for name in names[:3]]}")
+    offset = 0
+    for name in names:
+        field_dt, at = dtype.fields[name][:2]
+        if not _NAME_RE.match(name):
+            raise ValueError(f"`rows` field name {name!r} must be a single printable ASCII word")
+        if (field_dt.shape or (field_dt.kind, field_dt.itemsize) not in _PLY_NAME
+                or field_dt.byteorder == ">" or at != offset):
+            raise ValueError(f"`rows` field {name!r} ({field_dt} at byte {at}) is not a packed "
+                             "little-endian scalar PLY can store")
+        offset += field_dt.itemsize
+    if offset != dtype.itemsize:
+        raise ValueError(f"`rows` hold {dtype.itemsize - offset} bytes of padding")
+
+
+def _write_parts_atomic(path: Path, parts) -> None:
+    """`scanner_core.fileio.write_bytes_atomic` for buffers written in turn, none copied (an
+    exception from `parts`, as from the writing, leaves nothing)."""
+    directory = path.parent if str(path.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            for part in parts:
+                fh.write(memoryview(part).cast("B"))
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600; results are meant to be read by others
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
 
 
 def _check_points(points) -> np.ndarray:

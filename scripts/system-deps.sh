@@ -3,8 +3,10 @@
 #   libgl1: pymeshlab (the simulator's mesh simplification) links against libGL.
 #   chromium: the status page's browser test (playwright drives Debian's chromium; it cannot
 #     download a browser of its own here).
+#   libusb-1.0-0 (with the argument "bench"): Open3D, the benchmarks' yardstick, links to it.
 set -euo pipefail
 packages=(libgl1 chromium)
+[ "${1:-}" = bench ] && packages+=(libusb-1.0-0)
 missing=()
 for pkg in "${packages[@]}"; do
     dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")

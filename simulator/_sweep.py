@@ -3,6 +3,11 @@
 They turn Embree's answers into points and visibility rays without Python loops or
 temporary arrays, and release the GIL, so two threads keep both cores busy. All coordinates
 are relative to the intersector's centre (float32 for Embree, float64 for the points).
+
+A sweep keeps only each point's ray and face while it runs (8 bytes a point); the point, its
+normal and its PLY row are computed from them, exactly as the sweep computed them, when they
+are asked for (`emit_points`, `emit_rows`): a sweep of millions of points never holds its
+float64 arrays unless someone reads them.
 """
 from __future__ import annotations
 
@@ -40,12 +45,27 @@ def fan_rays(laser0, shift, steps, fan, origins, directions):
 
 
 @numba.njit(nogil=True, cache=True)
+def _on_face(laser0, shift, step, fan, r, normals, offsets, f):
+    """Ray ``r`` of step `step` meets face `f`'s plane: (x, y, z, dn, t); ``dn = normal . ray``.
+
+    Embree answers in float32; intersecting the same ray with the plane of the face it hit,
+    in float64, puts the point on the surface to far below a micrometre. The one place this
+    is computed, so a point recomputed later is the very point the sweep tested.
+    """
+    lx = laser0[0] + step * shift[0]
+    ly = laser0[1] + step * shift[1]
+    lz = laser0[2] + step * shift[2]
+    dn = normals[f, 0] * fan[r, 0] + normals[f, 1] * fan[r, 1] + normals[f, 2] * fan[r, 2]
+    if dn == 0.0:
+        return lx, ly, lz, dn, 0.0
+    t = (offsets[f] - (normals[f, 0] * lx + normals[f, 1] * ly + normals[f, 2] * lz)) / dn
+    return lx + t * fan[r, 0], ly + t * fan[r, 1], lz + t * fan[r, 2], dn, t
+
+
+@numba.njit(nogil=True, cache=True)
 def lit_points(laser0, shift, steps, fan, face, normals, offsets, index, points, point_normals,
                point_faces, point_steps):
     """The points the light source lights: each first hit, placed exactly on its face's plane.
-
-    Embree answers in float32; intersecting the same ray with the plane of the face it hit,
-    in float64, puts the point on the surface to far below a micrometre.
 
     Parameters
     ----------
@@ -80,24 +100,18 @@ def lit_points(laser0, shift, steps, fan, face, normals, offsets, index, points,
             continue
         s = i // n_rays
         r = i - s * n_rays
-        lx = laser0[0] + steps[s] * shift[0]
-        ly = laser0[1] + steps[s] * shift[1]
-        lz = laser0[2] + steps[s] * shift[2]
-        nx, ny, nz = normals[f, 0], normals[f, 1], normals[f, 2]
-        dn = nx * fan[r, 0] + ny * fan[r, 1] + nz * fan[r, 2]
-        if dn == 0.0:  # a degenerate face, or a ray in the face's plane: lights nothing
-            continue
-        t = (offsets[f] - (nx * lx + ny * ly + nz * lz)) / dn
-        if t <= 0.0:
+        x, y, z, dn, t = _on_face(laser0, shift, steps[s], fan, r, normals, offsets, f)
+        # A degenerate face, or a ray in the face's plane, lights nothing.
+        if dn == 0.0 or t <= 0.0:
             continue
         sign = -1.0 if dn > 0.0 else 1.0
         index[k] = i
-        points[k, 0] = lx + t * fan[r, 0]
-        points[k, 1] = ly + t * fan[r, 1]
-        points[k, 2] = lz + t * fan[r, 2]
-        point_normals[k, 0] = sign * nx
-        point_normals[k, 1] = sign * ny
-        point_normals[k, 2] = sign * nz
+        points[k, 0] = x
+        points[k, 1] = y
+        points[k, 2] = z
+        point_normals[k, 0] = sign * normals[f, 0]
+        point_normals[k, 1] = sign * normals[f, 1]
+        point_normals[k, 2] = sign * normals[f, 2]
         point_faces[k] = f
         point_steps[k] = steps[s]
         k += 1
@@ -174,3 +188,75 @@ def keep_rows(mask, index, points, point_normals, point_faces, point_steps):
                 point_normals[w, c] = point_normals[j, c]
         w += 1
     return w
+
+
+@numba.njit(nogil=True, cache=True)
+def emit_points(laser0, shift, first_step, fan, ray, face, normals, offsets, rot, trans,
+                out_points, out_normals, out_step, out_ray, out_face, start):
+    """Write kept points, from their rays and faces, into the cloud's arrays, in the setup frame.
+
+    Parameters
+    ----------
+    laser0, shift : (3,) float64
+    first_step : int
+        Step of ray 0 of `ray`'s numbering.
+    fan : (R, 3) float64
+    ray : (K,) int32
+        ``(step - first_step) * R + r`` of each point.
+    face : (K,) int32
+    normals, offsets : (F, 3), (F,) float64
+        Face planes.
+    rot : (3, 3) float64
+    trans : (3,) float64
+        The part's frame, relative to the intersector's centre, to the setup frame:
+        ``x_setup = rot @ x + trans``.
+    out_points, out_normals : (N, 3) float64
+    out_step, out_ray : (N,) int32
+    out_face : (N,) int64
+        Output, rows ``start`` to ``start + K``.
+    """
+    n_rays = fan.shape[0]
+    for j in range(ray.shape[0]):
+        s = ray[j] // n_rays
+        r = ray[j] - s * n_rays
+        f = face[j]
+        x, y, z, dn, _ = _on_face(laser0, shift, first_step + s, fan, r, normals, offsets, f)
+        sign = -1.0 if dn > 0.0 else 1.0
+        k = start + j
+        for c in range(3):
+            out_points[k, c] = rot[c, 0] * x + rot[c, 1] * y + rot[c, 2] * z + trans[c]
+            out_normals[k, c] = sign * (rot[c, 0] * normals[f, 0] + rot[c, 1] * normals[f, 1]
+                                        + rot[c, 2] * normals[f, 2])
+        out_step[k] = first_step + s
+        out_ray[k] = r
+        out_face[k] = f
+
+
+@numba.njit(nogil=True, cache=True)
+def emit_rows(laser0, shift, first_step, fan, ray, face, normals, offsets, rot, trans, rows,
+              start):
+    """As `emit_points`, into PLY rows: float32 x, y, z, int32 step and ray, float32 normal.
+
+    `rows` is a record array with the fields ``x, y, z, step, ray, nx, ny, nz`` (a view of
+    the file's vertex table, which may hold further fields); rows ``start`` to
+    ``start + K`` are written.
+    """
+    n_rays = fan.shape[0]
+    for j in range(ray.shape[0]):
+        s = ray[j] // n_rays
+        r = ray[j] - s * n_rays
+        f = face[j]
+        x, y, z, dn, _ = _on_face(laser0, shift, first_step + s, fan, r, normals, offsets, f)
+        sign = -1.0 if dn > 0.0 else 1.0
+        row = rows[start + j]
+        row.x = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+        row.y = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+        row.z = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+        row.step = first_step + s
+        row.ray = r
+        row.nx = sign * (rot[0, 0] * normals[f, 0] + rot[0, 1] * normals[f, 1]
+                         + rot[0, 2] * normals[f, 2])
+        row.ny = sign * (rot[1, 0] * normals[f, 0] + rot[1, 1] * normals[f, 1]
+                         + rot[1, 2] * normals[f, 2])
+        row.nz = sign * (rot[2, 0] * normals[f, 0] + rot[2, 1] * normals[f, 1]
+                         + rot[2, 2] * normals[f, 2])

@@ -4,8 +4,9 @@ The light source fires a fan of rays in its light plane; each ray's first hit on
 model is a candidate point, kept when the camera sees it (the visibility check). The setup,
 not the mesh, moves: at step ``n`` the light source and the camera stand at their step-0
 positions plus ``n * step_mm`` along the motion axis (the paper's Eq. 4, with the depth-buffer
-line's rays), and the steps run over the whole part. The only inputs are the two positions
-and the two densities (step size and rays per line).
+line's rays). Eq. 4's step number is any integer: the sweep covers every step whose light
+plane meets the part, negative ones included, wherever the user puts the setup at step 0.
+The only inputs are the two positions and the two densities (step size and rays per line).
 
 Frames: everything is given and returned in one *setup frame* in which the part is fixed,
 {T} in the CLI (the gripper frame: the part hangs along +z_T, the setup moves along +y_T
@@ -16,19 +17,26 @@ A point is kept when the light source lights it (first hit), the camera stands o
 side of its surface (no point from the back side) and nothing on the mesh lies between the
 camera and the point (Embree's occlusion query). The camera's field of view and the stripe's
 image are not modelled here: `simulator.render` does that for whole frames.
+
+While it sweeps, a cloud keeps only each point's ray and face (8 bytes a point, see
+`simulator._sweep`); its float64 arrays are computed on first use, and its PLY file is
+written straight from the rays and faces, so writing millions of points costs one pass.
 """
 from __future__ import annotations
 
+import threading
 import time
+from bisect import bisect_left, bisect_right
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
 from scanner_core.geometry import (apply_transform, base_to_tcp, check_rigid,
                                    reflection_matrix, unit)
-from scanner_core.ply import write_ply
+from scanner_core.ply import write_ply_rows
 from simulator import _sweep
 from simulator.parts import Part
 from simulator.raycast import SURFACE_TOL_MM, Intersector
@@ -43,14 +51,25 @@ DEFAULT_RAYS_PER_LINE = 1000
 #: step size typed in metres instead of millimetres should fail at once, not after an hour.
 MAX_RAYS = 100_000_000
 # Rays per Embree call: large enough to hide the per-call cost (12-26 us, NOTES.md), small
-# enough that two threads share the work evenly.
+# enough that two threads share the work evenly and each thread's scratch (about 110 bytes a
+# ray, reused from chunk to chunk) stays a few megabytes.
 _CHUNK_RAYS = 1 << 16
+# Clouds smaller than this are laid out by the calling thread alone: threads cost more.
+_SERIAL_ROWS = 1 << 16
+# Rows of a PLY file made at a time (about 4 MB): large enough that a write call costs
+# nothing, small enough to stay in memory already in use. On the reference machine (a virtual
+# machine) memory touched for the first time cost 0.3 to 3 ms a megabyte: more than the work
+# done in it; a whole table of 3.8 M points (121 MB) took 0.05 to 0.35 s to allocate.
+_PLY_BLOCK_ROWS = 1 << 17
+# Directions in which `_check_paths` probes whether a viewpoint is inside the part: three,
+# far from each other and from the axes (rays along a face's plane prove nothing).
+_PROBES = unit(np.array([[0.57, 0.61, 0.55], [-0.7, 0.1, -0.71], [0.05, -0.9, 0.43]]))
 MAIN_VIEW = "camera"
 
 
 class SetupError(ValueError):
     """The virtual setup cannot sweep this part: a bad density, or a source or camera that
-    stands in, behind or level with the part."""
+    stands in, or passes through, the part, or a source level with it."""
 
 
 @dataclass(frozen=True)
@@ -140,7 +159,7 @@ class VirtualSetup:
                                             self.step_mm * self.motion)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class PredictedCloud:
     """What the scanner should see of the part: the simulator's output.
 
@@ -151,7 +170,8 @@ class PredictedCloud:
     normals : (N, 3) float64
         Unit surface normals at the points, pointing to the side the light comes from.
     step : (N,) int32
-        Step number of each point: the light source stood at ``setup.laser_at(step)``.
+        Step number of each point (any integer, negative too): the light source stood at
+        ``setup.laser_at(step)``.
     ray : (N,) int32
         Index of the point's ray in its line's fan (`fan`).
     face : (N,) int64
@@ -169,13 +189,14 @@ class PredictedCloud:
     setup : VirtualSetup
     pose : (4, 4) float64
         The part's pose in the setup frame the sweep used.
+
+    Notes
+    -----
+    The sweep keeps each point's ray and face only; `points`, `normals`, `step`, `ray` and
+    `face` are computed from them, all at once, when one of them is first read, and kept.
+    `save_predicted_cloud` needs none of them.
     """
 
-    points: np.ndarray
-    normals: np.ndarray
-    step: np.ndarray
-    ray: np.ndarray
-    face: np.ndarray
     seen: dict
     fan: np.ndarray
     steps: tuple[int, int]
@@ -185,13 +206,38 @@ class PredictedCloud:
     elapsed_s: float
     setup: VirtualSetup
     pose: np.ndarray
+    # The points as the sweep kept them, chunk by chunk: (first step, (K,) int32 ray numbered
+    # from that step's ray 0, (K,) int32 face), with the plan that lays them out.
+    _hits: tuple = field(repr=False)
+    _plan: "SweepPlan" = field(repr=False)
+    _threads: int = field(default=1, repr=False)
 
     def __len__(self) -> int:
-        return len(self.points)
+        return self._offsets[-1]
 
     @property
     def rays_per_second(self) -> float:
         return self.rays_cast / self.elapsed_s if self.elapsed_s > 0 else float("nan")
+
+    @property
+    def points(self) -> np.ndarray:
+        return self._arrays[0]
+
+    @property
+    def normals(self) -> np.ndarray:
+        return self._arrays[1]
+
+    @property
+    def step(self) -> np.ndarray:
+        return self._arrays[2]
+
+    @property
+    def ray(self) -> np.ndarray:
+        return self._arrays[3]
+
+    @property
+    def face(self) -> np.ndarray:
+        return self._arrays[4]
 
     def summary(self) -> dict:
         """Counts and rates, JSON-ready."""
@@ -199,6 +245,77 @@ class PredictedCloud:
                 "facing_camera": self.facing, "steps": list(self.steps),
                 "elapsed_s": round(self.elapsed_s, 6),
                 "mrays_per_s": round(self.rays_per_second / 1e6, 3)}
+
+    @cached_property
+    def _offsets(self) -> list[int]:
+        """Row of each chunk's first point, and the total."""
+        return np.concatenate([[0], np.cumsum([len(ray) for _, ray, _ in self._hits],
+                                              dtype=np.int64)]).tolist()
+
+    @cached_property
+    def _arrays(self) -> tuple:
+        n = len(self)
+        out = (np.empty((n, 3)), np.empty((n, 3)), np.empty(n, np.int32),
+               np.empty(n, np.int32), np.empty(n, np.int64))
+        self._plan.to_setup  # noqa: B018 - computed once, before the threads read it
+        chunks = range(len(self._hits))
+        if self._threads <= 1 or n < _SERIAL_ROWS:
+            for i in chunks:
+                self._emit(_sweep.emit_points, i, 0, n, *out)
+        else:
+            with ThreadPoolExecutor(self._threads, thread_name_prefix="emit") as pool:
+                list(pool.map(lambda i: self._emit(_sweep.emit_points, i, 0, n, *out), chunks))
+        return out
+
+    def _ply_blocks(self, rows: int | None = None):
+        """The PLY vertex table of `save_predicted_cloud`, in blocks of up to `rows` rows.
+
+        A worker thread makes each block while the caller writes the one before, in two
+        buffers: the whole table never exists at once. Each block is valid until the next is
+        asked for. One (empty) block for an empty cloud.
+        """
+        dtype = np.dtype([(c, "<f4") for c in "xyz"] + [("step", "<i4"), ("ray", "<i4")]
+                         + [(f"n{c}", "<f4") for c in "xyz"]
+                         + [(f"seen_{name}", "u1") for name in self.seen])
+        # The kernel writes the fixed fields through a view that skips the flags after them.
+        fixed = np.dtype({"names": dtype.names[:8], "formats": [dtype[i] for i in range(8)],
+                          "offsets": [dtype.fields[name][1] for name in dtype.names[:8]],
+                          "itemsize": dtype.itemsize})
+        n, offsets = len(self), self._offsets
+        rows = max(1, _PLY_BLOCK_ROWS if rows is None else int(rows))
+        buffers = [np.empty(min(rows, n), dtype) for _ in range(2)]
+        self._plan.to_setup  # noqa: B018 - computed once, before the thread reads it
+
+        def fill(which, lo):
+            block = buffers[which][:min(rows, n - lo)]
+            # The chunks that hold rows lo to lo + len(block).
+            for i in range(max(bisect_right(offsets, lo) - 1, 0),
+                           bisect_left(offsets, lo + len(block))):
+                self._emit(_sweep.emit_rows, i, lo, lo + len(block), block.view(fixed))
+            for name, seen in self.seen.items():
+                block[f"seen_{name}"] = seen[lo:lo + len(block)]
+            return block
+
+        starts = range(0, max(n, 1), rows)
+        with ThreadPoolExecutor(1, thread_name_prefix="ply") as pool:
+            pending = pool.submit(fill, 0, 0)
+            for b, _ in enumerate(starts):
+                block = pending.result()
+                if b + 1 < len(starts):
+                    pending = pool.submit(fill, (b + 1) % 2, starts[b + 1])
+                yield block
+
+    def _emit(self, kernel, chunk: int, lo: int, hi: int, *out) -> None:
+        """Run an emit kernel (`simulator._sweep`) over the rows of chunk `chunk` that fall in
+        rows ``lo`` to ``hi`` of the cloud, into `out` (whose row 0 is the cloud's row `lo`)."""
+        start, end = self._offsets[chunk], self._offsets[chunk + 1]
+        a, b = max(lo, start) - start, min(hi, end) - start
+        if a >= b:
+            return
+        plan = self._plan
+        first, ray, face = self._hits[chunk]
+        kernel(plan.laser0, plan.shift, first, plan.fan64, ray[a:b], face[a:b], plan.normals,
+               plan.offsets, plan.to_setup[0], plan.to_setup[1], *out, start + a - lo)
 
 
 @dataclass(frozen=True)
@@ -222,6 +339,8 @@ class SweepPlan:
         The part's face planes (`Intersector.face_planes`).
     pose : (4, 4) float64
         The part's pose in the setup frame (^T X_P), checked rigid.
+    centre : (3,) float64
+        The intersector's centre in the part's frame, mm.
     """
 
     fan: np.ndarray
@@ -235,6 +354,7 @@ class SweepPlan:
     normals: np.ndarray
     offsets: np.ndarray
     pose: np.ndarray
+    centre: np.ndarray
 
     @property
     def steps(self) -> np.ndarray:
@@ -245,6 +365,13 @@ class SweepPlan:
     def rays(self) -> int:
         """Rays the sweep casts."""
         return max(self.last - self.first + 1, 0) * len(self.fan)
+
+    @cached_property
+    def to_setup(self) -> tuple[np.ndarray, np.ndarray]:
+        """(3, 3) and (3,) float64: ``x_setup = rot @ x + trans`` for x in the sweep's frame
+        (the part's, relative to `centre`)."""
+        rot = np.array(self.pose[:3, :3])
+        return rot, rot @ self.centre + self.pose[:3, 3]
 
 
 def predict_cloud(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = None,
@@ -284,21 +411,30 @@ def predict_cloud(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = 
     t0 = time.perf_counter()
     if int(threads) < 1:
         raise SetupError(f"`threads` must be >= 1, got {threads!r}")
+    threads = int(threads)
     plan = plan_sweep(part, setup, pose=pose, max_rays=max_rays)
     ix = part.intersector
-    steps = plan.steps
+    n_rays = len(plan.fan)
     # Several chunks per thread even for small sweeps, so both threads finish together.
-    per_chunk = max(1, min(_CHUNK_RAYS // setup.rays_per_line,
-                           -(-len(steps) // (4 * int(threads)))))
-    chunks = [steps[i:i + per_chunk] for i in range(0, len(steps), per_chunk)]
+    lines = plan.last - plan.first + 1
+    per_chunk = max(1, min(_CHUNK_RAYS // n_rays, -(-lines // (4 * threads))))
+    starts = range(plan.first, plan.last + 1, per_chunk)
+    local = threading.local()
+
+    def sweep(first):
+        scratch = getattr(local, "scratch", None)
+        if scratch is None:  # one per thread, reused by all its chunks
+            scratch = local.scratch = _Scratch(per_chunk * n_rays)
+        return _sweep_chunk(ix, plan, first, min(per_chunk, plan.last + 1 - first), scratch)
+
     parts, done = [], 0
-    with ThreadPoolExecutor(int(threads), thread_name_prefix="sweep") as pool:
-        for chunk, result in zip(chunks, pool.map(lambda c: _sweep_chunk(ix, plan, c), chunks)):
+    with ThreadPoolExecutor(threads, thread_name_prefix="sweep") as pool:
+        for result in pool.map(sweep, starts):
             parts.append(result)
-            done += len(chunk) * len(plan.fan)
+            done += result["lines"] * n_rays
             if progress is not None:
                 progress(done, plan.rays)
-    return _assemble(parts, setup, ix, plan, time.perf_counter() - t0)
+    return _assemble(parts, setup, plan, threads, time.perf_counter() - t0)
 
 
 def plan_sweep(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = None,
@@ -314,7 +450,8 @@ def plan_sweep(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = Non
         pose = part.grasp if pose is None else check_rigid(pose)
     except ValueError as exc:
         raise SetupError(f"`pose`: {exc}") from None
-    # The fan and the steps depend only on the part's extremes: its hull will do.
+    # The fan and the steps depend only on the part's extremes: its hull will do (built once
+    # per part, it keeps each plan to a fraction of a millisecond).
     vertices = apply_transform(pose, part.hull_vertices)
     first, last = _step_range(setup, vertices)
     lines = max(last - first + 1, 0)
@@ -335,33 +472,43 @@ def plan_sweep(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = Non
         shift=rot @ (setup.step_mm * setup.motion),
         viewpoints=tuple((name, apply_transform(inv, p) - ix.centre) for name, p in viewpoints),
         fan64=fan_p, fan32=fan_p.astype(np.float32), normals=normals, offsets=offsets,
-        pose=pose)
+        pose=pose, centre=ix.centre)
     if last >= first:
-        _check_path(part, ix, plan.laser0, plan.shift, first, last, "light source")
-        for name, view0 in plan.viewpoints:
-            _check_path(part, ix, view0, plan.shift, first, last, name)
+        _check_paths(part, ix, plan)
     return plan
 
 
 def prepare(part: Part) -> float:
-    """Build what a part's sweeps share (its intersector and hull) now; returns the seconds
-    it took (nothing the second time)."""
+    """Build what a part's sweeps share (its intersector, face planes and hull) now; returns
+    the seconds it took (nothing the second time)."""
     t0 = time.perf_counter()
-    part.intersector  # noqa: B018 - cached properties: computed once, kept on the part
+    part.intersector.face_planes  # noqa: B018 - cached properties: computed once, kept
     part.hull_vertices  # noqa: B018
     return time.perf_counter() - t0
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) every kernel of the sweep, on a small cube, so
-    that the first real sweep's time is the sweep's own."""
+    """Load every kernel of a sweep and of its output from numba's cache (compiling them the
+    first time), on a tetrahedron, so that the first real sweep's time is the sweep's own.
+
+    It takes the real code paths, so it loads exactly the signatures they use: a sweep
+    without extra views and one with two (the mirrors), the cloud's arrays and its PLY rows.
+    Most of its time is numba's own start-up, paid once by the first kernel of a process.
+    """
     import trimesh
 
-    cube = Part(name="warm-up", mesh=trimesh.creation.box(extents=(10.0, 10.0, 10.0)),
-                source="procedural:cube", units="mm", grasp=np.eye(4))
-    setup = VirtualSetup(laser=[0.0, -10.0, 100.0], camera=[0.0, 40.0, 100.0], step_mm=1.0,
-                         rays_per_line=64, views=(("other", [0.0, 40.0, 90.0]),))
-    predict_cloud(cube, setup, threads=1)
+    tetra = trimesh.Trimesh([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [0.0, 5.0, 0.0],
+                             [0.0, 0.0, 8.0]], [[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]],
+                            process=False)
+    part = Part(name="warm-up", mesh=tetra, source="procedural:tetrahedron", units="mm",
+                grasp=np.eye(4))
+    for views in ((), (("left", [-20.0, 40.0, 100.0]), ("right", [20.0, 40.0, 100.0]))):
+        setup = VirtualSetup(laser=[0.0, -10.0, 100.0], camera=[0.0, 40.0, 100.0],
+                             step_mm=2.0, rays_per_line=16, views=views)
+        cloud = predict_cloud(part, setup, threads=1)
+        cloud.points  # noqa: B018 - computes the arrays
+        for _ in cloud._ply_blocks():
+            pass
 
 
 def _fan(setup: VirtualSetup, vertices: np.ndarray) -> np.ndarray:
@@ -390,39 +537,54 @@ def _fan(setup: VirtualSetup, vertices: np.ndarray) -> np.ndarray:
 def _step_range(setup: VirtualSetup, vertices: np.ndarray) -> tuple[int, int]:
     """First and last step whose light plane meets the part (Eq. 4: y + NmSt * StRs).
 
-    The setup moves forwards from step 0: a light plane already past the part's near end at
-    step 0 would miss part of it, and is refused.
+    NmSt is any integer: a setup given where it stands, its light plane already in or past
+    the part at step 0, sweeps the part with negative steps too.
     """
     along = vertices @ setup.motion - setup.laser @ setup.motion
     # Python floats: a step in the denormals overflows to inf instead of warning.
     lo, hi = float(along.min()) / setup.step_mm, float(along.max()) / setup.step_mm
-    if not (np.isfinite(lo) and np.isfinite(hi)) or max(abs(lo), abs(hi)) > 2 ** 62:
-        raise SetupError(f"`step_mm` {setup.step_mm:g} is too small for a part "
-                         f"{np.ptp(along):.3g} mm long")
-    if lo < 0:
-        raise SetupError(
-            f"at step 0 the light plane is already {-along.min():.3f} mm past the part's near "
-            "end (the setup moves forwards along the motion from step 0): start the light "
-            "source and camera before the part")
+    # The PLY file stores the step as int32.
+    if not (np.isfinite(lo) and np.isfinite(hi)) or max(abs(lo), abs(hi)) > 2 ** 31 - 2:
+        raise SetupError(f"`step_mm` {setup.step_mm:g} is too small: the part lies up to "
+                         f"{max(abs(lo), abs(hi)):.3g} steps from the light source at step 0, "
+                         "more than int32 step numbers hold; use a larger step, or start the "
+                         "setup nearer the part")
     return int(np.ceil(lo)), int(np.floor(hi))
 
 
-def _sweep_chunk(ix: Intersector, sweep: SweepPlan, steps: np.ndarray) -> dict:
-    """Cast the lines of `steps`: lit points, then the visibility check from each viewpoint."""
-    n = len(steps) * len(sweep.fan64)
-    origins = np.empty((n, 3), np.float32)
-    directions = np.empty((n, 3), np.float32)
+class _Scratch:
+    """One thread's working arrays for chunks of up to `rays` rays, reused chunk after chunk
+    (fresh memory costs more than the work done in it)."""
+
+    def __init__(self, rays: int):
+        self.origins = np.empty((rays, 3), np.float32)  # light rays, then sight rays
+        self.directions = np.empty((rays, 3), np.float32)
+        self.index = np.empty(rays, np.int64)
+        self.points = np.empty((rays, 3))
+        self.normals = np.empty((rays, 3))
+        self.faces = np.empty(rays, np.int64)
+        self.steps = np.empty(rays, np.int64)
+        self.reach = np.empty(rays, np.float32)
+        self.chosen = np.empty(rays, np.int64)
+
+
+def _sweep_chunk(ix: Intersector, sweep: SweepPlan, first: int, lines: int,
+                 scratch: _Scratch) -> dict:
+    """Cast the lines of steps ``first`` to ``first + lines - 1``: lit points, then the
+    visibility check from each viewpoint; returns the kept points' rays and faces."""
+    steps = np.arange(first, first + lines, dtype=np.int64)
+    n = lines * len(sweep.fan64)
+    origins, directions = scratch.origins[:n], scratch.directions[:n]
     _sweep.fan_rays(sweep.laser0, sweep.shift, steps, sweep.fan32, origins, directions)
     face = ix.cast_faces(origins, directions)
-    del origins, directions
-    arrays = (np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3)), np.empty(n, np.int64),
-              np.empty(n, np.int64))
+    rows = (scratch.index[:n], scratch.points[:n], scratch.normals[:n], scratch.faces[:n],
+            scratch.steps[:n])
     k = _sweep.lit_points(sweep.laser0, sweep.shift, steps, sweep.fan64, face, sweep.normals,
-                          sweep.offsets, *arrays)
-    index, points, normals, faces, point_steps = (a[:k] for a in arrays)
-    out = {"hits": int(np.count_nonzero(face >= 0)), "facing": 0, "seen": {}}
+                          sweep.offsets, *rows)
+    index, points, normals, faces, point_steps = (a[:k] for a in rows)
+    out = {"lines": lines, "hits": int(np.count_nonzero(face >= 0)), "facing": 0, "seen": {}}
     for name, view0 in sweep.viewpoints:
-        seen, facing = _visible_from(ix, sweep, view0, point_steps, points, normals)
+        seen, facing = _visible_from(ix, sweep, view0, point_steps, points, normals, scratch)
         if name == MAIN_VIEW:
             out["facing"] = facing
             k = _sweep.keep_rows(seen, index, points, normals, faces, point_steps)
@@ -430,20 +592,16 @@ def _sweep_chunk(ix: Intersector, sweep: SweepPlan, steps: np.ndarray) -> dict:
                 a[:k] for a in (index, points, normals, faces, point_steps))
         else:
             out["seen"][name] = seen
-    # Copies: views would keep the chunk's full-size buffers alive until the end.
-    out.update(index=index.copy(), points=points.copy(), normals=normals.copy(),
-               face=faces.copy(), step=point_steps.copy())
-    out["seen"] = {name: seen.copy() for name, seen in out["seen"].items()}
+    # Copies out of the scratch: 8 bytes a point, from which the rest is recomputed.
+    out.update(first=first, ray=index.astype(np.int32), face=faces.astype(np.int32))
     return out
 
 
-def _visible_from(ix, sweep: SweepPlan, view0, point_steps, points, normals):
+def _visible_from(ix, sweep: SweepPlan, view0, point_steps, points, normals, scratch):
     """(K,) bool: the viewpoint sees each point; and how many points face it."""
     k = len(points)
-    origins = np.empty((k, 3), np.float32)
-    directions = np.empty((k, 3), np.float32)
-    reach = np.empty(k, np.float32)
-    chosen = np.empty(k, np.int64)
+    origins, directions = scratch.origins[:k], scratch.directions[:k]
+    reach, chosen = scratch.reach[:k], scratch.chosen[:k]
     m = _sweep.sight_rays(view0, sweep.shift, point_steps, points, normals, SURFACE_TOL_MM,
                           origins, directions, reach, chosen)
     seen = np.zeros(k, dtype=bool)
@@ -452,30 +610,16 @@ def _visible_from(ix, sweep: SweepPlan, view0, point_steps, points, normals):
     return seen, m
 
 
-def _assemble(parts, setup, ix, plan: SweepPlan, elapsed) -> PredictedCloud:
-    pose = plan.pose
-    rot = pose[:3, :3]
-    n_rays = setup.rays_per_line
-
-    def cat(key, shape, dtype):
-        arrays = [p[key] for p in parts]
-        return np.concatenate(arrays) if arrays else np.zeros(shape, dtype)
-
-    points_p = cat("points", (0, 3), np.float64) + ix.centre
-    # Each chunk numbers its rays from zero at a line's start: the ray in the fan is intact.
-    index = cat("index", (0,), np.int64)
+def _assemble(parts, setup, plan: SweepPlan, threads: int, elapsed) -> PredictedCloud:
     seen = {name: (np.concatenate([p["seen"][name] for p in parts]) if parts
                    else np.zeros(0, bool)) for name, _ in setup.views}
     return PredictedCloud(
-        points=apply_transform(pose, points_p),
-        normals=cat("normals", (0, 3), np.float64) @ rot.T,
-        step=cat("step", (0,), np.int64).astype(np.int32),
-        ray=(index % n_rays).astype(np.int32),
-        face=cat("face", (0,), np.int64),
         seen=seen, fan=plan.fan, steps=(plan.first, plan.last) if plan.rays else (0, -1),
         rays_cast=plan.rays,
         first_hits=sum(p["hits"] for p in parts), facing=sum(p["facing"] for p in parts),
-        elapsed_s=elapsed, setup=setup, pose=pose)
+        elapsed_s=elapsed, setup=setup, pose=plan.pose,
+        _hits=tuple((p["first"], p["ray"], p["face"]) for p in parts), _plan=plan,
+        _threads=threads)
 
 
 def reference_setup(cell, *, step_mm: float = DEFAULT_STEP_MM,
@@ -522,47 +666,54 @@ def reference_setup(cell, *, step_mm: float = DEFAULT_STEP_MM,
                         rays_per_line=rays_per_line, views=tuple(views), motion=motion)
 
 
-def _check_path(part: Part, ix: Intersector, start, shift, first: int, last: int,
-                what: str) -> None:
-    """Refuse a light source or camera that is inside the part, or passes through it.
+def _check_paths(part: Part, ix: Intersector, plan: SweepPlan) -> None:
+    """Refuse a light source or viewpoint that is inside the part, or passes through it.
 
-    `start` and `shift` are relative to the intersector's centre, as in `SweepPlan`."""
-    p0 = start + first * shift + ix.centre
-    path = (last - first) * shift
+    One Embree call for every path: its segment from the first step to the last, and three
+    probes from its first position. Only when two probes of a position hit the part does the
+    mesh's closure and orientation decide whether it is inside (an open mesh has no inside).
+    """
+    named = (("light source", plan.laser0),) + plan.viewpoints
+    start = np.array([p for _, p in named]) + plan.first * plan.shift + ix.centre
+    path = (plan.last - plan.first) * plan.shift
     length = float(np.linalg.norm(path))
-    if length > 0:
-        dist, _ = ix.first_hit(p0[None], path[None])
-        if dist[0] <= length:
+    n = len(named)
+    origins = np.concatenate([start, np.repeat(start, len(_PROBES), axis=0)])
+    directions = np.concatenate([np.broadcast_to(path if length > 0 else _PROBES[0], (n, 3)),
+                                 np.tile(_PROBES, (n, 1))])
+    dist, face = ix.first_hit(origins, directions)
+    probe_faces = face[n:].reshape(n, len(_PROBES))
+    for i, (what, _) in enumerate(named):
+        if length > 0 and dist[i] <= length:
             raise SetupError(f"the {what} passes through the part during the sweep (steps "
-                             f"{first} to {last}): move it away from the part")
-    if not part.mesh.is_watertight:
-        return  # an open mesh has no inside
-    probes = unit(np.array([[0.57, 0.61, 0.55], [-0.7, 0.1, -0.71], [0.05, -0.9, 0.43]]))
-    dist, face = ix.first_hit(np.repeat(p0[None], 3, axis=0), probes)
-    normals, _ = ix.face_planes
-    # From inside a closed surface every ray leaves through a face that points the way the
-    # ray goes (outward normals; trimesh's volume is negative for an inward-wound mesh).
-    outward = 1.0 if part.mesh.volume >= 0 else -1.0
-    inside = sum(f >= 0 and outward * (normals[f] @ d) > 0 for f, d in zip(face, probes))
-    if inside >= 2:
-        raise SetupError(f"the {what} is inside the part at step {first}")
+                             f"{plan.first} to {plan.last}): move it away from the part")
+        hit = probe_faces[i] >= 0
+        if np.count_nonzero(hit) < 2 or not part.mesh.is_watertight:
+            continue
+        # From inside a closed surface every ray leaves through a face that points the way
+        # the ray goes (outward normals; trimesh's volume is negative for an inward-wound mesh).
+        outward = 1.0 if part.mesh.volume >= 0 else -1.0
+        normals, _ = ix.face_planes
+        leaving = outward * np.einsum("ij,ij->i", normals[probe_faces[i][hit]], _PROBES[hit]) > 0
+        if np.count_nonzero(leaving) >= 2:
+            raise SetupError(f"the {what} is inside the part at step {plan.first}")
 
 
 def save_predicted_cloud(path, cloud: PredictedCloud, *, frame: str = "T") -> Path:
     """Write a predicted cloud as binary little-endian PLY (float32 x, y, z in mm).
 
-    Per-vertex properties: ``step`` and ``ray`` (int32: the light source stood at
-    ``laser + step * step_mm * motion``, the header's comments), ``nx, ny, nz`` (float32
-    normals towards the light) and, for each extra view, ``seen_<name>`` (uint8).
+    Per-vertex properties: ``step`` and ``ray`` (signed int32: the light source stood at
+    ``laser + step * step_mm * motion``, the header's comments; a step may be negative),
+    ``nx, ny, nz`` (float32 normals towards the light) and, for each extra view,
+    ``seen_<name>`` (uint8). The rows are made from the cloud's rays and faces block by
+    block as the file is written (`scanner_core.ply.write_ply_rows`), without the cloud's
+    float64 arrays.
 
     Returns
     -------
     pathlib.Path
     """
     s = cloud.setup
-    fields = {"step": cloud.step, "ray": cloud.ray}
-    fields.update({f"n{c}": cloud.normals[:, i].astype(np.float32) for i, c in enumerate("xyz")})
-    fields.update({f"seen_{name}": seen.astype(np.uint8) for name, seen in cloud.seen.items()})
 
     def xyz(v):
         return " ".join(f"{x:.9g}" for x in v)
@@ -573,4 +724,4 @@ def save_predicted_cloud(path, cloud: PredictedCloud, *, frame: str = "T") -> Pa
                 f"rays_per_line {s.rays_per_line}", f"steps {cloud.steps[0]} {cloud.steps[1]}"]
     comments += [f"view_{name}_step0 {xyz(p)}" for name, p in s.views]
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    return write_ply(path, cloud.points.astype(np.float32), fields=fields, comments=comments)
+    return write_ply_rows(path, cloud._ply_blocks(), count=len(cloud), comments=comments)

@@ -10,6 +10,16 @@ ratio. The big part's sustained rate is timed apart on longer sweeps (5 M rays).
 simplification study (`simulator.simplify`): the coarsest decimation of a mesh whose
 predicted cloud stays within 5 um RMS of the full mesh's, and the time it saves.
 
+Side by side with Open3D (`side_by_side`): ``flyscan simulate`` and the same sweep written
+as a careful Open3D user would (`service.bench.open3d_sweep`: RaycastingScene on all cores,
+many fans per call, float32 rays, the fan computed once, first hits and the occlusion test
+toward the camera both in Open3D, the same PLY written), each run as a whole process in
+turn on a part of about 100 k triangles (idler_riser split three times: 100 608) and about
+7.3 M rays. Reported: the whole processes' wall and CPU times, and the ray work alone
+(flyscan's sweep; Open3D's ``cast_rays`` and ``test_occlusions`` calls). Open3D is an
+optional, benchmark-only dependency (``pip install 'flyscan[bench]'``); without it the
+comparison is skipped with a note.
+
 Times exclude what a part's sweeps share, its intersector and hull (`prepare`, reported
 apart), and the numba compile (an untimed warm-up). A configuration's time is the fastest of
 at least ``repeats`` sweeps (more for short ones, about 0.3 s of sweeping in all), for the
@@ -19,9 +29,14 @@ fast path and the reference loop alike.
 """
 from __future__ import annotations
 
+import importlib.util
 import json
+import os
 import pathlib
+import resource
+import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -37,7 +52,7 @@ from simulator.simplify import coarsest_simplification
 from simulator.virtual_setup import (plan_sweep, predict_cloud, prepare, reference_setup,
                                      warm_up)
 
-__all__ = ["run", "subdivided_copy", "reference_loop"]
+__all__ = ["run", "subdivided_copy", "reference_loop", "side_by_side"]
 
 REFERENCE_PARTS = ("idler_riser", "featuretype", "ADIS16480", "cycloidal")
 # The paper's Model 2 has 128 590 triangles; ADIS16480 split twice has 118 976, the closest a
@@ -54,10 +69,16 @@ QUICK_SIMPLIFY_DENSITY = (0.2, 500)
 MIN_TIMED_S, MAX_REPEATS = 0.3, 20
 # The sustained rate on the big part: sweeps of about this many rays, timed this often.
 THROUGHPUT_RAYS, THROUGHPUT_RUNS = 5_000_000, 5
+# Side by side with Open3D: a part of about 100 k triangles (idler_riser split three times,
+# 100 608), about this many rays (lines of 1000), each tool run this often, in turn.
+SIDE_BASE, SIDE_LEVELS = "idler_riser", 3
+SIDE_RAYS, SIDE_RAYS_PER_LINE, SIDE_RUNS = 7_300_000, 1000, 5
+QUICK_SIDE_RAYS, QUICK_SIDE_RUNS = 400_000, 1
 # The issue's targets.
 TARGET_MRAYS_PER_S = 8.0
 TARGET_R2 = 0.98
 TARGET_COST_RATIO = 1.5
+TARGET_WHOLE_RATIO = 0.6  # whole `flyscan simulate` against the whole Open3D script
 
 
 def subdivided_copy(part: Part, levels: int) -> Part:
@@ -161,6 +182,8 @@ def run(out_dir: pathlib.Path, *, quick: bool = False, repeats: int = 3, progres
     steps_mm = QUICK_STEPS_MM if quick else STEPS_MM
     rays_per_line = QUICK_RAYS_PER_LINE if quick else RAYS_PER_LINE
     cell = load_cell()
+    # Other processes on the machine show in every figure: their load is recorded beside them.
+    load_before = os.getloadavg()
     with threadpool_limits(limits=1, user_api="blas"):
         warm_up()
         parts = _parts(quick)
@@ -178,9 +201,15 @@ def run(out_dir: pathlib.Path, *, quick: bool = False, repeats: int = 3, progres
         say(f"{parts[-1].name}: {throughput['rays_cast']} rays, median "
             f"{throughput['median_mrays_per_s']:.2f} Mrays/s over {THROUGHPUT_RUNS} sweeps")
         studies = _simplification_studies(parts, cell, quick, say)
+        side_part = parts[-1] if quick else subdivided_copy(
+            next(p for p in parts if p.name == SIDE_BASE), SIDE_LEVELS)
+        side = side_by_side(side_part, cell, rays=QUICK_SIDE_RAYS if quick else SIDE_RAYS,
+                            runs=QUICK_SIDE_RUNS if quick else SIDE_RUNS, progress=say)
     result = {"machine": machine_info(), "quick": quick, "repeats": repeats,
+              "load_average": {"start": [round(x, 2) for x in load_before],
+                               "end": [round(x, 2) for x in os.getloadavg()]},
               "builds": builds, "rows": rows, "throughput": throughput,
-              "simplification": studies}
+              "simplification": studies, "open3d": side}
     result["fits"] = {name: {"fast": _fit(*_xy(rows, name, "")),
                              "reference": _fit(*_xy(rows, name, "reference_"))}
                       for name in builds}
@@ -223,6 +252,129 @@ def _throughput(part: Part, cell, rays: int) -> dict:
             "seconds": [round(c.elapsed_s, 6) for c in clouds],
             "median_mrays_per_s": round(float(np.median(rates)), 3),
             "min_mrays_per_s": round(min(rates), 3), "max_mrays_per_s": round(max(rates), 3)}
+
+
+def side_by_side(part: Part, cell, *, rays: int = SIDE_RAYS, runs: int = SIDE_RUNS,
+                 progress=None) -> dict:
+    """``flyscan simulate`` against the same sweep in Open3D, each a whole process, in turn.
+
+    Both read the same STL (the part under its nominal grasp, in mm in {T}) and sweep it from
+    the reference cell's setup with `SIDE_RAYS_PER_LINE` rays a line, the step chosen for
+    about `rays` rays, and write their PLY; the outputs are deleted before each run, and the
+    order alternates from run to run.
+
+    Returns
+    -------
+    dict
+        The command lines, per-run wall and CPU seconds of each process, each tool's own
+        figures (flyscan's summary; the Open3D script's phases), their medians, the ratios
+        (flyscan over Open3D) and the points each kept; or ``{"skipped": reason}`` when
+        Open3D cannot be imported.
+    """
+    say = progress or (lambda line: None)
+    if importlib.util.find_spec("open3d") is None:
+        return {"skipped": "open3d is not installed (pip install 'flyscan[bench]'): no "
+                           "comparison"}
+    probe = reference_setup(cell, step_mm=1.0, rays_per_line=SIDE_RAYS_PER_LINE)
+    vertices = part.vertices_t()
+    extent = float(np.ptp(vertices @ probe.motion))
+    step = extent * SIDE_RAYS_PER_LINE / rays
+    setup = reference_setup(cell, step_mm=step, rays_per_line=SIDE_RAYS_PER_LINE)
+    if not np.allclose(setup.motion, [0.0, 1.0, 0.0]):
+        raise RuntimeError("the Open3D script sweeps along +y_T, the reference cell no longer")
+
+    def xyz(v):
+        return ",".join(repr(float(c)) for c in v)
+
+    with tempfile.TemporaryDirectory(prefix="flyscan-side-") as tmp:
+        mesh = pathlib.Path(tmp) / f"{part.name}-T.stl"
+        trimesh.Trimesh(vertices, part.mesh.faces, process=False).export(mesh)
+        common = ["--part", str(mesh), f"--laser={xyz(setup.laser)}",
+                  f"--camera={xyz(setup.camera)}", "--step", repr(step),
+                  "--rays", str(SIDE_RAYS_PER_LINE)]
+        outs = {"flyscan": pathlib.Path(tmp) / "flyscan.ply",
+                "open3d": pathlib.Path(tmp) / "open3d.ply"}
+        commands = {
+            "flyscan": [sys.executable, "-m", "service.cli", "simulate", *common, "--units",
+                        "mm", "--grasp", "identity", "--out", str(outs["flyscan"])],
+            "open3d": [sys.executable, "-m", "service.bench.open3d_sweep", *common,
+                       "--out", str(outs["open3d"])],
+        }
+        runs_of = {name: [] for name in commands}
+        for i in range(runs):
+            for name in (("flyscan", "open3d") if i % 2 == 0 else ("open3d", "flyscan")):
+                for out in outs.values():
+                    out.unlink(missing_ok=True)
+                run = _timed(commands[name])
+                if run["returncode"] != 0:
+                    if name == "open3d" and "ImportError" in run["stderr"]:
+                        return {"skipped": "open3d does not import: "
+                                           + run["stderr"].strip().splitlines()[-1]}
+                    raise RuntimeError(f"{name} failed ({run['returncode']}): {run['stderr']}")
+                run["report"] = json.loads(run.pop("stdout").splitlines()[0])
+                run.pop("stderr")
+                runs_of[name].append(run)
+            say(f"side by side, run {i + 1}/{runs}: flyscan {runs_of['flyscan'][-1]['wall_s']:.2f}"
+                f" s, Open3D {runs_of['open3d'][-1]['wall_s']:.2f} s (whole processes)")
+        shown = {name: " ".join(["python", *c[1:]]).replace(tmp, "$TMP")
+                 for name, c in commands.items()}
+    return _side_summary(part, setup, step, shown, runs_of)
+
+
+def _timed(command: list[str]) -> dict:
+    """Run a process; its wall and CPU seconds (user + system), exit code and output."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return {"wall_s": round(wall, 4), "cpu_s": round(cpu, 4), "returncode": done.returncode,
+            "stdout": done.stdout, "stderr": done.stderr}
+
+
+def _side_summary(part: Part, setup, step: float, commands: dict[str, str],
+                  runs_of: dict) -> dict:
+    def median(name, key, report=False):
+        values = [r["report"][key] if report else r[key] for r in runs_of[name]]
+        return float(np.median(values))
+
+    fly, o3d = runs_of["flyscan"], runs_of["open3d"]
+    whole = median("flyscan", "wall_s") / median("open3d", "wall_s")
+    return {
+        "part": part.name, "faces": len(part.mesh.faces), "step_mm": step,
+        "rays_per_line": setup.rays_per_line, "rays_cast": fly[0]["report"]["rays_cast"],
+        "open3d_rays_cast": o3d[0]["report"]["rays_cast"],
+        "points": fly[0]["report"]["points"], "open3d_points": o3d[0]["report"]["points"],
+        "first_hits": fly[0]["report"]["first_hits"],
+        "open3d_first_hits": o3d[0]["report"]["first_hits"],
+        "open3d_version": o3d[0]["report"]["open3d"],
+        # $TMP/<part>-T.stl: the part under its nominal grasp, mm in {T}, binary STL.
+        "commands": commands,
+        "runs": runs_of,
+        "median": {
+            "flyscan_wall_s": median("flyscan", "wall_s"),
+            "open3d_wall_s": median("open3d", "wall_s"),
+            "flyscan_cpu_s": median("flyscan", "cpu_s"),
+            "open3d_cpu_s": median("open3d", "cpu_s"),
+            "flyscan_sweep_s": median("flyscan", "elapsed_s", True),
+            "open3d_ray_calls_s": median("open3d", "ray_calls_s", True),
+            "open3d_sweep_s": median("open3d", "sweep_s", True),
+            "open3d_import_s": median("open3d", "import_open3d_s", True),
+            "open3d_write_s": median("open3d", "write_s", True),
+        },
+        "ratios": {
+            "whole_process": round(whole, 4),
+            "whole_process_per_run": [round(f["wall_s"] / o["wall_s"], 4)
+                                      for f, o in zip(fly, o3d)],
+            "whole_process_cpu": round(median("flyscan", "cpu_s") / median("open3d", "cpu_s"), 4),
+            "ray_calls": round(median("flyscan", "elapsed_s", True)
+                               / median("open3d", "ray_calls_s", True), 4),
+            "sweep": round(median("flyscan", "elapsed_s", True)
+                           / median("open3d", "sweep_s", True), 4),
+        },
+        "target_whole_process": _target(whole, TARGET_WHOLE_RATIO, "<="),
+    }
 
 
 def _progress_line(row: dict) -> str:
@@ -279,6 +431,13 @@ def _summary(result: dict, parts: list[Part]) -> dict:
                             "sweep_time_saved": s["sweep_time_saved"]}
                            for s in result["simplification"]],
     }
+    side = result["open3d"]
+    summary["open3d_side_by_side"] = side if "skipped" in side else {
+        "part": side["part"], "faces": side["faces"], "rays_cast": side["rays_cast"],
+        "whole_process_ratio": side["target_whole_process"],
+        "ray_calls_ratio": side["ratios"]["ray_calls"],
+        "flyscan_wall_s": side["median"]["flyscan_wall_s"],
+        "open3d_wall_s": side["median"]["open3d_wall_s"]}
     return summary
 
 
@@ -289,7 +448,7 @@ def _plot(result: dict, path: pathlib.Path) -> None:
     import matplotlib.pyplot as plt
 
     rows, fits = result["rows"], result["fits"]
-    fig, axes = plt.subplots(1, 3, figsize=(17, 5.2))
+    fig, axes = plt.subplots(1, 4, figsize=(22.5, 5.2))
     ax = axes[0]
     for i, name in enumerate(result["builds"]):
         colour = f"C{i}"
@@ -330,9 +489,44 @@ def _plot(result: dict, path: pathlib.Path) -> None:
     ax.set_ylabel("RMS point-to-plane deviation from the full mesh (um; 0 drawn at 0.001)")
     ax.set_title("simplification: coarsest mesh within 5 um")
     ax.legend(fontsize=7)
+    _plot_side_by_side(axes[3], result["open3d"])
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _plot_side_by_side(ax, side: dict) -> None:
+    """Bars: whole processes and ray work, flyscan against Open3D (medians, each run a dot)."""
+    if "skipped" in side:
+        ax.text(0.5, 0.5, "Open3D comparison skipped:\n" + side["skipped"], ha="center",
+                va="center", wrap=True, fontsize=9, transform=ax.transAxes)
+        ax.set_axis_off()
+        return
+    m, runs = side["median"], side["runs"]
+    groups = [("whole process\n(wall)", m["flyscan_wall_s"], m["open3d_wall_s"],
+               [r["wall_s"] for r in runs["flyscan"]], [r["wall_s"] for r in runs["open3d"]]),
+              ("whole process\n(CPU, 2 cores)", m["flyscan_cpu_s"], m["open3d_cpu_s"],
+               [r["cpu_s"] for r in runs["flyscan"]], [r["cpu_s"] for r in runs["open3d"]]),
+              ("ray work: sweep /\ncast_rays + test_occlusions", m["flyscan_sweep_s"],
+               m["open3d_ray_calls_s"], [r["report"]["elapsed_s"] for r in runs["flyscan"]],
+               [r["report"]["ray_calls_s"] for r in runs["open3d"]])]
+    x = np.arange(len(groups))
+    width = 0.38
+    for offset, index, colour, label in ((-width / 2, 1, "C0", "flyscan simulate"),
+                                         (width / 2, 2, "C3", f"Open3D {side['open3d_version']}")):
+        ax.bar(x + offset, [g[index] for g in groups], width, color=colour, alpha=0.8,
+               label=label)
+        for i, g in enumerate(groups):
+            ax.plot(np.full(len(g[index + 2]), x[i] + offset), g[index + 2], "k.", ms=3)
+    for i, g in enumerate(groups):
+        ax.text(x[i], max(g[1], g[2]) * 1.04, f"x{g[1] / g[2]:.2f}", ha="center", fontsize=9)
+    ax.set_xticks(x, [g[0] for g in groups], fontsize=8)
+    ax.set_ylabel("seconds (median of runs in turn; dots: each run)")
+    target = side["target_whole_process"]
+    ax.set_title(f"side by side: {side['part']} ({side['faces']} tri), "
+                 f"{side['rays_cast'] / 1e6:.1f} M rays\nwhole process x{target['value']:.2f} "
+                 f"(target <= {target['limit']})")
+    ax.legend(fontsize=7)
 
 
 if __name__ == "__main__":  # python -m service.bench.simulate OUT_DIR

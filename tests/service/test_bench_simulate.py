@@ -1,11 +1,14 @@
 """The simulator benchmark's quick set: its files, rows consistent with each other, fits
 recomputable from the rows, and the lossless levels of the simplification study."""
+import importlib.util
 import json
 
 import numpy as np
 import pytest
+import trimesh
 
 from service.bench import simulate as bench
+from simulator.parts import part_from_mesh
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -86,3 +89,84 @@ def test_simplification_recovers_the_subdivided_block(quick_bench):
     coarser = [lv for lv in levels if lv["faces"] < chosen["faces"]]
     assert all(lv["rms_um"] > 5.0 or lv["coverage_change"] > 0.01 for lv in coarser)
     assert chosen["faces"] < 1000 and chosen["switched"] <= 0.01 * study["full"]["points"]
+
+
+# ------------------------------------------------------------------------------------------
+# Side by side with Open3D
+# ------------------------------------------------------------------------------------------
+
+def test_side_by_side_runs_the_same_sweep_in_both_tools(quick_bench):
+    out, result, lines = quick_bench
+    side = result["open3d"]
+    if importlib.util.find_spec("open3d") is None:
+        assert "not installed" in side["skipped"]
+        return
+    assert side["part"] == "block-26k" and side["faces"] == 26240
+    assert side["rays_cast"] == side["open3d_rays_cast"] >= bench.QUICK_SIDE_RAYS * 0.99
+    # Robust and non-robust scenes may part on a ray grazing an edge; nothing more.
+    assert abs(side["points"] - side["open3d_points"]) <= 1e-3 * side["points"]
+    assert abs(side["first_hits"] - side["open3d_first_hits"]) <= 1e-3 * side["first_hits"]
+    runs = side["runs"]
+    assert len(runs["flyscan"]) == len(runs["open3d"]) == bench.QUICK_SIDE_RUNS
+    median = side["median"]
+    assert median["flyscan_wall_s"] == np.median([r["wall_s"] for r in runs["flyscan"]])
+    assert side["ratios"]["whole_process"] == pytest.approx(
+        median["flyscan_wall_s"] / median["open3d_wall_s"], abs=1e-4)
+    assert side["ratios"]["ray_calls"] == pytest.approx(
+        median["flyscan_sweep_s"] / median["open3d_ray_calls_s"], abs=1e-4)
+    # A process is slower than the work inside it.
+    for f, o in zip(runs["flyscan"], runs["open3d"]):
+        assert f["wall_s"] > f["report"]["elapsed_s"] and o["wall_s"] > o["report"]["sweep_s"]
+    target = side["target_whole_process"]
+    assert target["met"] == (target["value"] <= bench.TARGET_WHOLE_RATIO)
+    assert result["summary"]["open3d_side_by_side"]["whole_process_ratio"] == target
+    assert any("side by side" in line for line in lines)
+
+
+def test_side_by_side_is_skipped_with_a_note_without_open3d(monkeypatch, tmp_path, cell):
+    real = importlib.util.find_spec
+    monkeypatch.setattr(bench.importlib.util, "find_spec",
+                        lambda name, *a: None if name == "open3d" else real(name, *a))
+    part = part_from_mesh(trimesh.creation.box(extents=(20.0, 20.0, 20.0)), name="cube")
+    side = bench.side_by_side(part, cell, rays=10_000, runs=1)
+    assert set(side) == {"skipped"} and "pip install 'flyscan[bench]'" in side["skipped"]
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    bench._plot_side_by_side(ax, side)  # a note instead of bars
+    fig.savefig(tmp_path / "skipped.png")
+    plt.close(fig)
+    assert (tmp_path / "skipped.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_the_open3d_script_sweeps_as_flyscan_does(tmp_path, cell):
+    """The yardstick itself: the Open3D script's cloud is flyscan's, ray for ray."""
+    pytest.importorskip("open3d")
+    from scanner_core.ply import read_ply
+    from service.bench import open3d_sweep
+    from simulator.virtual_setup import VirtualSetup, predict_cloud
+
+    box = trimesh.creation.box(extents=(40.0, 30.0, 20.0))
+    box.apply_translation((0.0, 0.0, 10.0))
+    box.apply_transform(trimesh.transformations.rotation_matrix(0.3, [0.2, 0.1, 1.0]))
+    part = part_from_mesh(box, name="tilted box", grasp=np.eye(4))
+    mesh = tmp_path / "box.stl"
+    part.mesh.export(mesh)
+    laser, camera = [0.0, -130.0, 400.0], [0.0, 95.0, 439.7]
+    cloud = predict_cloud(part, VirtualSetup(laser=laser, camera=camera, step_mm=0.5,
+                                             rays_per_line=300))
+    out = tmp_path / "o3d.ply"
+    assert open3d_sweep.main(["--part", str(mesh), "--laser=0,-130,400",
+                              "--camera=0,95,439.7", "--step", "0.5", "--rays", "300",
+                              "--out", str(out)]) == 0
+    points, fields = read_ply(out)
+    ours = cloud.step.astype(np.int64) * 300 + cloud.ray
+    theirs = fields["step"].astype(np.int64) * 300 + fields["ray"]
+    common, i, j = np.intersect1d(ours, theirs, assume_unique=True, return_indices=True)
+    assert len(common) >= 0.999 * max(len(ours), len(theirs)) and len(ours) > 10_000
+    np.testing.assert_allclose(points[j], cloud.points[i], atol=2e-3)  # float32 hits
+    normals = np.stack([fields[f"n{c}"] for c in "xyz"], axis=1)
+    np.testing.assert_allclose(normals[j], cloud.normals[i], atol=1e-5)

@@ -25,7 +25,7 @@ def block_stl(tmp_path_factory):
 
 def test_scan_writes_the_contract_files(block_stl, tmp_path):
     out = tmp_path / "scan"
-    code = main(["scan", "--part", str(block_stl), "--units", "inch", "--fps", "60",
+    code = main(["scan", "--part", str(block_stl), "--units", "inch", "--fps", "100",
                  "--misplace", "0.5,0,0,0,0,1", "--seed", "3", "--out", str(out)])
     assert code == 0
     report = json.loads((out / "report.json").read_text())

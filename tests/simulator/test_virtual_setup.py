@@ -1,4 +1,6 @@
 """The paper's scan simulator (section III) against analytic scenes and independent checks."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
@@ -342,9 +344,91 @@ def test_progress_reports_every_ray_once(block_part):
     assert calls[-1] == (cloud.rays_cast, cloud.rays_cast)
 
 
-def test_a_light_plane_already_past_the_part_at_step_0_is_refused(cube):
-    with pytest.raises(SetupError, match="past the part's near end"):
-        predict_cloud(cube, _setup(laser=[0.0, 0.0, 400.0], camera=[0.0, 225.0, 439.7]))
+# ------------------------------------------------------------------------------------------
+# Eq. 4's step number is any integer: a setup given where it stands
+# ------------------------------------------------------------------------------------------
+
+def test_a_setup_standing_over_the_part_sweeps_negative_steps_too(cube, tmp_path):
+    # At step 0 the light plane y = 0 cuts the cube (y in [-20, 20]) in two.
+    step = 0.5
+    setup = _setup(step=step, rays=101, laser=[0.0, 0.0, 400.0], camera=[0.0, 225.0, 439.7])
+    cloud = predict_cloud(cube, setup)
+    assert cloud.steps == (-40, 40)
+    assert cloud.rays_cast == 81 * 101
+    assert cloud.step.min() == -40 and cloud.step.max() == 40
+    assert np.count_nonzero(cloud.step < 0) == np.count_nonzero(cloud.step > 0) > 0
+    np.testing.assert_allclose(cloud.points[:, 1], step * cloud.step, atol=1e-9)
+    np.testing.assert_allclose(cloud.points[:, 2], 40.0, atol=1e-9)
+    # The same planes from a setup that starts 40 steps before: the same cloud, its steps
+    # offset by 40.
+    before = predict_cloud(cube, _setup(step=step, rays=101, laser=[0.0, -20.0, 400.0],
+                                        camera=[0.0, 205.0, 439.7]))
+    assert before.steps == (0, 80)
+    np.testing.assert_array_equal(before.fan, cloud.fan)
+    np.testing.assert_array_equal(before.step, cloud.step + 40)
+    for key in ("ray", "face"):
+        np.testing.assert_array_equal(getattr(before, key), getattr(cloud, key))
+    np.testing.assert_allclose(before.points, cloud.points, atol=1e-9)
+    np.testing.assert_allclose(before.normals, cloud.normals, atol=1e-12)
+    # The PLY file stores the step as a signed int, negative values intact.
+    path = save_predicted_cloud(tmp_path / "negative.ply", cloud)
+    header = path.read_bytes().split(b"end_header")[0].decode()
+    assert "property int step" in header.splitlines()
+    assert "comment steps -40 40" in header.splitlines()
+    points, fields = read_ply(path)
+    assert fields["step"].dtype == np.int32
+    np.testing.assert_array_equal(fields["step"], cloud.step)
+    np.testing.assert_allclose(points, cloud.points, atol=1e-4)
+
+
+def test_a_part_wholly_behind_the_step_0_plane_gets_only_negative_steps(cube):
+    setup = _setup(step=1.0, rays=51, laser=[0.0, 100.0, 400.0], camera=[0.0, 325.0, 439.7])
+    cloud = predict_cloud(cube, setup)
+    assert cloud.steps == (-120, -80) and len(cloud) > 0
+    np.testing.assert_allclose(cloud.points[:, 1], 100.0 + cloud.step, atol=1e-9)
+
+
+def test_a_light_source_passing_through_the_part_is_still_refused():
+    # A block on the light source's path, and a rod that makes the part 200 mm long; the fan
+    # is fixed towards the rod (a fitted fan would refuse the block beside the source).
+    block = trimesh.creation.box(extents=(20.0, 20.0, 20.0))
+    block.apply_translation((0.0, 10.0, 10.0))
+    rod = trimesh.creation.box(extents=(2.0, 200.0, 2.0))
+    rod.apply_translation((50.0, 0.0, 1.0))
+    part = _part(trimesh.util.concatenate([block, rod]), "block and rod")
+    fan = np.array([[1.0, 0.0, 0.0], [0.995, 0.0, -0.0998749]])
+    setup = VirtualSetup(laser=[0.0, -100.0, 10.0], camera=[0.0, -100.0, 400.0], step_mm=10.0,
+                         rays_per_line=2).with_fan(fan)
+    with pytest.raises(SetupError, match="the light source passes through the part during "
+                                         r"the sweep \(steps 0 to 20\)"):
+        predict_cloud(part, setup)
+    # Beside the block, the same sweep runs.
+    assert predict_cloud(part, replace(setup, laser=np.array([0.0, -100.0, 30.0]))).rays_cast == 42
+
+
+@pytest.mark.parametrize("block_rows", [None, 1000])
+def test_the_ply_file_is_the_one_write_ply_gives_for_the_same_values(
+        tmp_path, block_part, cell, monkeypatch, block_rows):
+    """The cloud's PLY rows are written straight from its rays and faces, block by block:
+    the very file the general writer gives from its float64 arrays."""
+    from scanner_core.ply import write_ply
+    from simulator import virtual_setup
+
+    if block_rows is not None:
+        monkeypatch.setattr(virtual_setup, "_PLY_BLOCK_ROWS", block_rows)
+    cloud = predict_cloud(block_part, reference_setup(cell, step_mm=0.5, rays_per_line=200,
+                                                      mirrors=True))
+    assert len(cloud) > 10 * 1000  # many blocks of 1000 rows, the last one partial
+    fast = save_predicted_cloud(tmp_path / "fast.ply", cloud)
+    fields = {"step": cloud.step, "ray": cloud.ray}
+    fields.update({f"n{c}": cloud.normals[:, i].astype(np.float32) for i, c in enumerate("xyz")})
+    fields.update({f"seen_{name}": seen for name, seen in cloud.seen.items()})
+    comments = [line[len("comment "):] for line in
+                fast.read_bytes().split(b"end_header")[0].decode().splitlines()
+                if line.startswith("comment ")]
+    plain = write_ply(tmp_path / "plain.ply", cloud.points.astype(np.float32), fields=fields,
+                      comments=comments)
+    assert fast.read_bytes() == plain.read_bytes()
 
 
 def test_absurd_densities_are_refused_before_anything_is_allocated(cube):
@@ -360,3 +444,22 @@ def test_a_fixed_fan_sweeps_another_mesh_with_the_same_rays(cube, sphere):
     np.testing.assert_array_equal(again.fan, ref.fan)
     with pytest.raises(SetupError, match="fan"):
         _setup(rays=3).with_fan(np.array([[0.0, 1.0, 0.0]] * 3))  # along the motion
+
+
+def test_after_the_warm_up_a_sweep_compiles_nothing(block_part, cell, tmp_path):
+    """The warm-up loads the very signatures a sweep and its outputs use: none is left to
+    compile (seconds each) during the first real sweep."""
+    from simulator import _sweep, embree
+    from simulator.virtual_setup import warm_up
+
+    kernels = [_sweep.fan_rays, _sweep.lit_points, _sweep.sight_rays, _sweep.keep_rows,
+               _sweep.emit_points, _sweep.emit_rows, embree._intersect16, embree._occluded16]
+    warm_up()
+    loaded = [list(k.signatures) for k in kernels]
+    assert all(loaded)
+    for mirrors in (False, True):
+        cloud = predict_cloud(block_part, reference_setup(cell, step_mm=0.5, rays_per_line=300,
+                                                          mirrors=mirrors))
+        cloud.points  # noqa: B018
+        save_predicted_cloud(tmp_path / f"mirrors_{mirrors}.ply", cloud)
+    assert [list(k.signatures) for k in kernels] == loaded
