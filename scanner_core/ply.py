@@ -7,15 +7,13 @@ properties (binary little- or big-endian, or ASCII), so a cloud from another too
 """
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
 
-from scanner_core.fileio import write_bytes_atomic
+from scanner_core.fileio import write_bytes_atomic, write_parts_atomic
 
 __all__ = ["write_ply", "write_ply_rows", "read_ply", "PLY_TYPES"]
 
@@ -188,7 +186,7 @@ def write_ply_rows(path, rows, *, count: int | None = None, comments: Iterable[s
         if written != count:
             raise ValueError(f"`rows` held {written} rows, the header promised `count` {count}")
 
-    _write_parts_atomic(path, _chain(_header(int(count), dtype, comment_lines), checked()))
+    write_parts_atomic(path, _chain(_header(int(count), dtype, comment_lines), checked()))
     return path
 
 
@@ -217,27 +215,6 @@ def _check_row_dtype(dtype) -> None:
         offset += field_dt.itemsize
     if offset != dtype.itemsize:
         raise ValueError(f"`rows` hold {dtype.itemsize - offset} bytes of padding")
-
-
-def _write_parts_atomic(path: Path, parts) -> None:
-    """`scanner_core.fileio.write_bytes_atomic` for buffers written in turn, none copied (an
-    exception from `parts`, as from the writing, leaves nothing)."""
-    directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            for part in parts:
-                fh.write(memoryview(part).cast("B"))
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; results are meant to be read by others
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
 
 
 def _check_points(points) -> np.ndarray:
