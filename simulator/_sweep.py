@@ -191,6 +191,24 @@ def keep_rows(mask, index, points, point_normals, point_faces, point_steps):
 
 
 @numba.njit(nogil=True, cache=True)
+def _kept_point(laser0, shift, first_step, fan, ray_index, f, normals, offsets, rot, trans):
+    """One kept point from its ray number and face, in the setup frame: its step and ray in
+    the fan, the point, and the face normal turned toward the light source."""
+    n_rays = fan.shape[0]
+    s = ray_index // n_rays
+    r = ray_index - s * n_rays
+    x, y, z, dn, _ = _on_face(laser0, shift, first_step + s, fan, r, normals, offsets, f)
+    sign = -1.0 if dn > 0.0 else 1.0
+    px = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
+    py = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
+    pz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
+    nx = sign * (rot[0, 0] * normals[f, 0] + rot[0, 1] * normals[f, 1] + rot[0, 2] * normals[f, 2])
+    ny = sign * (rot[1, 0] * normals[f, 0] + rot[1, 1] * normals[f, 1] + rot[1, 2] * normals[f, 2])
+    nz = sign * (rot[2, 0] * normals[f, 0] + rot[2, 1] * normals[f, 1] + rot[2, 2] * normals[f, 2])
+    return first_step + s, r, px, py, pz, nx, ny, nz
+
+
+@numba.njit(nogil=True, cache=True)
 def emit_points(laser0, shift, first_step, fan, ray, face, normals, offsets, rot, trans,
                 out_points, out_normals, out_step, out_ray, out_face, start):
     """Write kept points, from their rays and faces, into the cloud's arrays, in the setup frame.
@@ -215,21 +233,15 @@ def emit_points(laser0, shift, first_step, fan, ray, face, normals, offsets, rot
     out_face : (N,) int64
         Output, rows ``start`` to ``start + K``.
     """
-    n_rays = fan.shape[0]
     for j in range(ray.shape[0]):
-        s = ray[j] // n_rays
-        r = ray[j] - s * n_rays
-        f = face[j]
-        x, y, z, dn, _ = _on_face(laser0, shift, first_step + s, fan, r, normals, offsets, f)
-        sign = -1.0 if dn > 0.0 else 1.0
+        step, r, px, py, pz, nx, ny, nz = _kept_point(laser0, shift, first_step, fan, ray[j],
+                                                      face[j], normals, offsets, rot, trans)
         k = start + j
-        for c in range(3):
-            out_points[k, c] = rot[c, 0] * x + rot[c, 1] * y + rot[c, 2] * z + trans[c]
-            out_normals[k, c] = sign * (rot[c, 0] * normals[f, 0] + rot[c, 1] * normals[f, 1]
-                                        + rot[c, 2] * normals[f, 2])
-        out_step[k] = first_step + s
+        out_points[k, 0], out_points[k, 1], out_points[k, 2] = px, py, pz
+        out_normals[k, 0], out_normals[k, 1], out_normals[k, 2] = nx, ny, nz
+        out_step[k] = step
         out_ray[k] = r
-        out_face[k] = f
+        out_face[k] = face[j]
 
 
 @numba.njit(nogil=True, cache=True)
@@ -241,22 +253,11 @@ def emit_rows(laser0, shift, first_step, fan, ray, face, normals, offsets, rot, 
     the file's vertex table, which may hold further fields); rows ``start`` to
     ``start + K`` are written.
     """
-    n_rays = fan.shape[0]
     for j in range(ray.shape[0]):
-        s = ray[j] // n_rays
-        r = ray[j] - s * n_rays
-        f = face[j]
-        x, y, z, dn, _ = _on_face(laser0, shift, first_step + s, fan, r, normals, offsets, f)
-        sign = -1.0 if dn > 0.0 else 1.0
+        step, r, px, py, pz, nx, ny, nz = _kept_point(laser0, shift, first_step, fan, ray[j],
+                                                      face[j], normals, offsets, rot, trans)
         row = rows[start + j]
-        row.x = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z + trans[0]
-        row.y = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z + trans[1]
-        row.z = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z + trans[2]
-        row.step = first_step + s
+        row.x, row.y, row.z = px, py, pz
+        row.step = step
         row.ray = r
-        row.nx = sign * (rot[0, 0] * normals[f, 0] + rot[0, 1] * normals[f, 1]
-                         + rot[0, 2] * normals[f, 2])
-        row.ny = sign * (rot[1, 0] * normals[f, 0] + rot[1, 1] * normals[f, 1]
-                         + rot[1, 2] * normals[f, 2])
-        row.nz = sign * (rot[2, 0] * normals[f, 0] + rot[2, 1] * normals[f, 1]
-                         + rot[2, 2] * normals[f, 2])
+        row.nx, row.ny, row.nz = nx, ny, nz

@@ -131,8 +131,6 @@ def test_a_slow_subscriber_never_stalls_acquisition(tmp_path):
 def test_parts_uploaded_with_their_unit_are_scanned(service, tmp_path):
     import trimesh
 
-
-
     mesh_path = tmp_path / "plate.stl"
     trimesh.creation.box(extents=(4.0, 3.0, 1.0)).export(mesh_path)  # cm
     with FlyscanClient(service.url) as client:
@@ -153,8 +151,6 @@ def test_parts_uploaded_with_their_unit_are_scanned(service, tmp_path):
 
 
 def test_calibration_round_trip_and_a_bad_one_refused(service):
-
-
     with FlyscanClient(service.url) as client:
         calibration = client.calibration()
         assert client.put_calibration(calibration)["camera"] == calibration["camera"]
