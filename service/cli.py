@@ -6,6 +6,8 @@ module only parses arguments, reports errors clearly and exits non-zero on failu
 from __future__ import annotations
 
 import argparse
+import atexit
+import gc
 import json
 import os
 import re
@@ -336,8 +338,6 @@ class _SweepProgress:
 
 
 def _cmd_simulate(args) -> int:
-    import atexit
-    import gc
     from concurrent.futures import ThreadPoolExecutor
 
     from simulator.cell import load_cell
@@ -392,10 +392,6 @@ def _cmd_simulate(args) -> int:
     print(json.dumps(summary))
     print(f"predicted {len(cloud)} points of {part.name} in {cloud.elapsed_s:.3f} s "
           f"({cloud.rays_per_second / 1e6:.1f} Mrays/s): {path}")
-    # The process ends next. Its last garbage collections, over the objects numba and trimesh
-    # made, took 0.3 s; frozen at exit, they are skipped (in a test run, at the test's end).
-    atexit.unregister(gc.freeze)
-    atexit.register(gc.freeze)
     return 0
 
 
@@ -485,7 +481,26 @@ def _cmd_bench(args) -> int:
 
 
 def main(argv=None) -> int:
-    args = _parse_args(argv)
+    # A batch command lives for seconds: the cyclic collector's passes over the objects its
+    # imports make (numba, trimesh) cost 0.1-0.2 s and free nothing that matters, and its last
+    # collections at exit 0.3 s (frozen, they are skipped; in a test run, at the test's end).
+    # The service lives on and keeps the collector.
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        args = _parse_args(argv)
+        if args.command == "serve":
+            gc.enable()
+        else:
+            atexit.unregister(gc.freeze)
+            atexit.register(gc.freeze)
+        return _run(args)
+    finally:
+        if collecting:
+            gc.enable()
+
+
+def _run(args) -> int:
     # A real-time process keeps BLAS to one thread: OpenBLAS workers spin for ~100 ms after
     # each call and steal the other core (NOTES.md).
     from scanner_core.calibration import CalibrationError
