@@ -379,7 +379,7 @@ def _cmd_simulate(args) -> int:
         warming.result()
     cloud = predict_cloud(part, setup, pose=pose, threads=args.threads,
                           progress=_SweepProgress())
-    summary = {"part": part.name, "faces": len(part.mesh.faces),
+    summary = {"part": part.name, "faces": len(part.faces),
                "intersector_build_s": round(build_s, 4), **cloud.summary()}
     summary.update({f"seen_{name}": int(seen.sum()) for name, seen in cloud.seen.items()})
     if cloud.first_hits == 0:

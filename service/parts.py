@@ -32,7 +32,7 @@ MAX_MESH_BYTES = 64 * 1024 * 1024
 
 
 def part_info(part: Part) -> dict:
-    return {"name": part.name, "units": part.units, "faces": int(len(part.mesh.faces)),
+    return {"name": part.name, "units": part.units, "faces": int(len(part.faces)),
             "source": "built-in" if part.source.startswith("procedural") else "uploaded",
             "extents_mm": np.round(part.extents, 4).tolist(),
             "nominal_grasp": np.asarray(part.grasp).tolist()}

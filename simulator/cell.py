@@ -16,8 +16,6 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from scanner_core.calibration import Calibration
 from scanner_core.fileio import save_json_atomic
@@ -155,6 +153,8 @@ def design_mirror(camera: PinholeCamera, target_b, pixel, guess_distance_mm: flo
     the marker's track runs along the mirror view's rows as it does in the direct view.
     The solution is started from the mirror met ``guess_distance_mm`` along the pixel's ray.
     """
+    from scipy.optimize import least_squares  # only when designing a cell: a slow import
+
     target_b = np.asarray(target_b, dtype=np.float64)
     ray = camera.rays([pixel])[0]
     hit = camera.origin + guess_distance_mm * ray
@@ -209,6 +209,8 @@ def design_reference_cell() -> Cell:
 
 
 def _small_rotation(rng: np.random.Generator, sigma_deg: float) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_rotvec(np.radians(sigma_deg) * rng.standard_normal(3)).as_matrix()
 
 

@@ -38,7 +38,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.special import ndtri
 
 __all__ = ["ImageModel", "render_image", "cramer_rao_bound_px", "speckle_factors"]
 
@@ -147,6 +146,8 @@ def speckle_factors(width: int, model: ImageModel, rng: np.random.Generator) -> 
 
 def _noise_tables(model: ImageModel, base_levels: np.ndarray) -> np.ndarray:
     """Quantised Gaussian quantiles: ``(len(base_levels), 256)`` int16 grey levels."""
+    from scipy.special import ndtri  # only where images are made: scipy.special is slow to load
+
     z = ndtri((np.arange(NOISE_TABLE_SIZE) + 0.5) / NOISE_TABLE_SIZE)
     v = np.rint(base_levels[:, None] + model.read_noise_dn * z[None, :])
     return np.clip(v, 0.0, model.saturation_dn).astype(np.int16)
@@ -246,6 +247,8 @@ def render_image(
     else:
         # one table of (unclipped) integer offsets per quantised fractional part of the mean;
         # the integer part is added and the result clipped per pixel
+        from scipy.special import ndtri
+
         fractions = np.arange(AMBIENT_FRACTION_STEPS + 1) / AMBIENT_FRACTION_STEPS
         z = ndtri((np.arange(NOISE_TABLE_SIZE) + 0.5) / NOISE_TABLE_SIZE)
         tables = np.rint(fractions[:, None] + model.read_noise_dn * z[None, :]).astype(np.int16)

@@ -14,16 +14,20 @@ from __future__ import annotations
 
 import json
 import os
-import warnings
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 
 from scanner_core.geometry import apply_transform, check_rigid
+from simulator.meshfile import clean_triangles, is_binary_stl, read_mesh
 from simulator.raycast import Intersector
+
+if TYPE_CHECKING:  # imported where used: ray casting alone needs neither trimesh nor scipy
+    import trimesh
 
 __all__ = [
     "UNITS_MM", "PartError", "PLAUSIBLE_SIZE_MM", "Part", "load_part", "part_from_mesh",
@@ -68,9 +72,10 @@ class Part:
     ----------
     name : str
         Name of the part (by default the file's stem).
-    mesh : trimesh.Trimesh
-        Triangle mesh in mm in the part's CAD frame {P}; not necessarily watertight. Treat as
-        read-only.
+    vertices : (V, 3) float64
+        The mesh's vertices in mm in the part's CAD frame {P}. Read-only.
+    faces : (F, 3) int64
+        Its triangles, indices into `vertices`; not necessarily watertight. Read-only.
     source : str
         The file it came from, or ``"procedural:..."``.
     units : str
@@ -80,15 +85,29 @@ class Part:
     """
 
     name: str
-    mesh: trimesh.Trimesh
+    vertices: np.ndarray = field(repr=False)
+    faces: np.ndarray = field(repr=False)
     source: str
     units: str
     grasp: np.ndarray = field(repr=False)
 
+    @cached_property
+    def mesh(self) -> trimesh.Trimesh:
+        """The part as a ``trimesh.Trimesh`` (built on first use: ray casting alone does not
+        need trimesh, whose import costs half a second). Treat as read-only."""
+        import trimesh
+
+        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+    @cached_property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64, mm: the bounding box's corners in {P}, min then max."""
+        return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
+
     @property
     def extents(self) -> np.ndarray:
         """(3,) float64, mm: bounding-box size in {P}."""
-        return np.asarray(self.mesh.extents, dtype=np.float64)
+        return self.bounds[1] - self.bounds[0]
 
     @property
     def extents_t(self) -> np.ndarray:
@@ -100,7 +119,7 @@ class Part:
     def intersector(self) -> Intersector:
         """The part's Embree scene in {P}, built on first use and kept: most of its cost is
         copying the mesh (NOTES.md), and every simulated pass or frame reuses it."""
-        return Intersector(self.mesh)
+        return Intersector(self.vertices, self.faces)
 
     @cached_property
     def surface_model(self):
@@ -115,18 +134,9 @@ class Part:
         from scanner_core.pose import EdgeModel
         return EdgeModel.from_mesh(self.mesh)
 
-    @cached_property
-    def hull_vertices(self) -> np.ndarray:
-        """(H, 3) float64, mm in {P}: the vertices of the convex hull, all that decides the
-        part's extent in any direction; all vertices when the mesh is flat (no hull)."""
-        try:
-            return np.asarray(self.mesh.convex_hull.vertices, dtype=np.float64)
-        except Exception:  # qhull refuses flat or degenerate point sets, in many ways
-            return np.asarray(self.mesh.vertices, dtype=np.float64)
-
     def vertices_t(self) -> np.ndarray:
         """(V, 3) float64, mm: the mesh vertices in {T} under the nominal grasp."""
-        return apply_transform(self.grasp, self.mesh.vertices)
+        return apply_transform(self.grasp, self.vertices)
 
 
 # --------------------------------------------------------------------------------------------
@@ -175,15 +185,12 @@ def load_part(path, units: str, *, name: str | None = None,
         raise PartError(f"part file is empty: {p}")
     _check_content(p)
     try:
-        with warnings.catch_warnings():
-            # trimesh's own warnings on odd files are not ours to raise; we check the result.
-            warnings.simplefilter("ignore")
-            loaded = trimesh.load(str(p), force="mesh", process=False)
+        vertices, faces = read_mesh(p)
     except Exception as exc:  # trimesh raises many types on a bad file; re-raised with the path
         raise PartError(f"cannot read part file {p}: {type(exc).__name__}: {exc}") from exc
     name = p.stem if name is None else name
-    part = _make_part(loaded, name=name, unit=unit, source=str(p), grasp=grasp)
-    _check_plausible_size(part.mesh, name, unit)
+    part = _make_part(vertices, faces, name=name, unit=unit, source=str(p), grasp=grasp)
+    _check_plausible_size(part, unit)
     return part
 
 
@@ -194,14 +201,12 @@ def _check_content(p: Path) -> None:
     optional charset-detection module.)
     """
     suffix = p.suffix.lower()
-    if suffix == ".stl":
+    if suffix == ".stl" and not is_binary_stl(p):
         with open(p, "rb") as fh:
             head = fh.read(84)
         size = p.stat().st_size
         if len(head) == 84:
             n = int(np.frombuffer(head[80:84], "<u4")[0])
-            if size == 84 + 50 * n:
-                return  # a consistent binary STL
         if not _is_text(p):
             expected = f"{84 + 50 * n} bytes for its {n} triangles" if len(head) == 84 else "84"
             raise PartError(f"cannot read part file {p}: neither a binary STL (its header needs "
@@ -248,7 +253,11 @@ def part_from_mesh(mesh: trimesh.Trimesh, *, name: str, units: str = "mm",
         As `load_part`, for the mesh content.
     """
     unit = _canonical_unit(units)
-    return _make_part(mesh, name=name, unit=unit, source=source, grasp=grasp)
+    if not hasattr(mesh, "vertices") or not hasattr(mesh, "faces"):
+        raise PartError(f"part {name!r} ({source}) is not a triangle mesh "
+                        f"(got {type(mesh).__name__})")
+    return _make_part(mesh.vertices, mesh.faces, name=name, unit=unit, source=source,
+                      grasp=grasp)
 
 
 def reference_meshes_dir() -> Path | None:
@@ -313,16 +322,17 @@ def _canonical_unit(units) -> str:
     return key
 
 
-def _make_part(mesh, *, name: str, unit: str, source: str, grasp) -> Part:
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise PartError(f"part {name!r} ({source}) is not a triangle mesh "
-                        f"(got {type(mesh).__name__})")
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64)
+def _make_part(vertices, faces, *, name: str, unit: str, source: str, grasp) -> Part:
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces)
     if faces.ndim != 2 or len(faces) == 0:
         raise PartError(f"part {name!r} ({source}) has no triangles")
     if faces.shape[1] != 3:
         raise PartError(f"part {name!r} ({source}) faces must be triangles, got {faces.shape}")
+    faces = faces.astype(np.int64, copy=False)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise PartError(f"part {name!r} ({source}) vertices must be (V, 3), got "
+                        f"{vertices.shape}")
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise PartError(f"part {name!r} ({source}) has face indices outside its "
                         f"{len(vertices)} vertices")
@@ -330,19 +340,18 @@ def _make_part(mesh, *, name: str, unit: str, source: str, grasp) -> Part:
     if bad.any():
         raise PartError(f"part {name!r} ({source}) has {int(bad.sum())} vertices with NaN or "
                         "infinite coordinates")
-    clean = trimesh.Trimesh(vertices * UNITS_MM[unit], faces, process=False)
-    clean.merge_vertices()
-    clean.update_faces(clean.nondegenerate_faces())
-    clean.remove_unreferenced_vertices()
-    if len(clean.faces) == 0:
+    vertices, faces = clean_triangles(vertices * UNITS_MM[unit], faces)
+    if len(faces) == 0:
         raise PartError(f"part {name!r} ({source}) has no non-degenerate triangles")
-    grasp = centred_grasp(clean) if grasp is None else _check_grasp(grasp)
-    grasp.setflags(write=False)
-    return Part(name=name, mesh=clean, source=source, units=unit, grasp=grasp)
+    grasp = centred_grasp(vertices) if grasp is None else _check_grasp(grasp)
+    for array in (vertices, faces, grasp):
+        array.setflags(write=False)
+    return Part(name=name, vertices=vertices, faces=faces, source=source, units=unit,
+                grasp=grasp)
 
 
-def _check_plausible_size(mesh: trimesh.Trimesh, name: str, unit: str) -> None:
-    size = float(np.max(mesh.extents))
+def _check_plausible_size(part: Part, unit: str) -> None:
+    size = float(np.max(part.extents))
     lo, hi = PLAUSIBLE_SIZE_MM
     if lo <= size <= hi:
         return
@@ -351,7 +360,7 @@ def _check_plausible_size(mesh: trimesh.Trimesh, name: str, unit: str) -> None:
     # Prefer the unit that makes the part closest to a typical 100 mm part (log scale).
     fits.sort(key=lambda u: abs(np.log10(raw * UNITS_MM[u] / 100.0)))
     hint = f": did you mean units={fits[0]!r}?" if fits else ""
-    raise PartError(f"part {name!r} is {size:.6g} mm across read in {unit}, "
+    raise PartError(f"part {part.name!r} is {size:.6g} mm across read in {unit}, "
                     f"{'smaller' if size < lo else 'larger'} than a part the scanner can take "
                     f"({lo:g} to {hi:g} mm){hint}")
 
@@ -360,13 +369,13 @@ def _check_plausible_size(mesh: trimesh.Trimesh, name: str, unit: str) -> None:
 # Grasp and fit
 # --------------------------------------------------------------------------------------------
 
-def centred_grasp(mesh: trimesh.Trimesh) -> np.ndarray:
+def centred_grasp(mesh) -> np.ndarray:
     """The nominal grasp that centres the part under the TCP and hangs it along +z_T.
 
     Parameters
     ----------
-    mesh : trimesh.Trimesh
-        Part mesh in {P}, mm.
+    mesh : trimesh.Trimesh or (V, 3) array_like
+        Part mesh in {P}, mm, or its vertices.
 
     Returns
     -------
@@ -374,7 +383,8 @@ def centred_grasp(mesh: trimesh.Trimesh) -> np.ndarray:
         ^T X_P, a pure translation: the centre of the bounding box in x, y goes to the TCP and
         the minimum z to z_T = 0, so the part occupies z_T in [0, height].
     """
-    lo, hi = np.asarray(mesh.bounds, dtype=np.float64)
+    vertices = np.asarray(getattr(mesh, "vertices", mesh), dtype=np.float64)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     x = np.eye(4)
     x[:2, 3] = -(lo[:2] + hi[:2]) / 2.0
     x[2, 3] = -lo[2]
@@ -441,8 +451,8 @@ def _check_grasp(grasp) -> np.ndarray:
 def _bounds_t(part: "Part", pose: np.ndarray) -> np.ndarray:
     """(2, 3) float64, mm: the part's bounding box in {T} under ^T X_P = `pose`."""
     if np.allclose(pose[:3, :3], np.eye(3)):
-        return np.asarray(part.mesh.bounds) + pose[:3, 3]
-    v = apply_transform(pose, part.hull_vertices)  # the hull decides the extent
+        return part.bounds + pose[:3, 3]
+    v = apply_transform(pose, part.vertices)
     return np.stack([v.min(axis=0), v.max(axis=0)])
 
 
@@ -506,6 +516,7 @@ def block_with_holes_and_steps(size=(60.0, 40.0, 20.0), *, hole_radius: float = 
     if not (0 < step_length < length / 2 and 0 < step_depth < height):
         raise ValueError(f"step {step_length} x {step_depth} mm does not fit the block {size!r}")
     _require_boolean_engine()
+    import trimesh
 
     block = trimesh.creation.box(extents=(length, width, height))
     block.apply_translation((0.0, 0.0, height / 2.0))

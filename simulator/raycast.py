@@ -7,14 +7,9 @@ the part is. Build one per part and keep it (`Part.intersector` does); batch the
 from __future__ import annotations
 
 from functools import cached_property
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from simulator.embree import PacketScene
-
-if TYPE_CHECKING:  # the mesh is only read here: no need to import trimesh (and scipy)
-    import trimesh
 
 #: Embree works in float32: about 3e-5 mm at 500 mm. A point counts as unoccluded when
 #: nothing lies more than this in front of it (a blocker closer is the same surface).
@@ -26,14 +21,17 @@ class Intersector:
 
     Parameters
     ----------
-    mesh : trimesh.Trimesh
-        Vertices in mm. Open meshes are fine; degenerate faces are never hit.
+    vertices : (V, 3) array_like of float
+        The mesh's vertices, mm.
+    faces : (F, 3) array_like of int
+        Its triangles. Open meshes are fine; degenerate faces are never hit.
     """
 
-    def __init__(self, mesh: trimesh.Trimesh):
-        self.centre = np.asarray(mesh.bounds.mean(axis=0), dtype=np.float64)
-        self._vertices = np.asarray(mesh.vertices, dtype=np.float64) - self.centre
-        self._faces = np.asarray(mesh.faces, dtype=np.int64)
+    def __init__(self, vertices, faces):
+        vertices = np.asarray(vertices, dtype=np.float64)
+        self.centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2.0
+        self._vertices = vertices - self.centre
+        self._faces = np.asarray(faces, dtype=np.int64)
         self._scene = PacketScene(self._vertices, self._faces)
 
     @cached_property

@@ -75,11 +75,11 @@ class PartScene:
 
     @cached_property
     def _vertices(self) -> np.ndarray:
-        return np.asarray(self.part.mesh.vertices, dtype=np.float64)
+        return self.part.vertices
 
     @cached_property
     def _faces(self) -> np.ndarray:
-        return np.asarray(self.part.mesh.faces, dtype=np.int64)
+        return self.part.faces
 
     @cached_property
     def _face_normals(self) -> np.ndarray:

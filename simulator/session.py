@@ -134,7 +134,7 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
         "nominal_grasp": part.grasp.tolist(),
         "misplacement": (np.eye(4) if misplacement is None else np.asarray(misplacement)).tolist(),
         "part": {"name": part.name, "source": part.source, "units": part.units,
-                 "faces": int(len(part.mesh.faces))},
+                 "faces": int(len(part.faces))},
         "cell": cell.to_dict(),
     }
     if result is not None:

@@ -105,8 +105,8 @@ def simplify_part(part: Part, face_count: int) -> Part:
         raise ImportError("mesh simplification needs pymeshlab: pip install 'flyscan[simplify]'"
                           ) from exc
     meshes = pymeshlab.MeshSet()
-    meshes.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(part.mesh.vertices, np.float64),
-                                   face_matrix=np.asarray(part.mesh.faces, np.int32)))
+    meshes.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(part.vertices, np.float64),
+                                   face_matrix=np.asarray(part.faces, np.int32)))
     meshes.meshing_decimation_quadric_edge_collapse(
         targetfacenum=int(face_count), preservenormal=True, preservetopology=True,
         preserveboundary=True, planarquadric=True, optimalplacement=True)
@@ -182,7 +182,7 @@ def coarsest_simplification(part: Part, setup: VirtualSetup, *, pose=None,
     pose = part.grasp if pose is None else np.asarray(pose, dtype=np.float64)
     full_build, full = _timed_sweep(part, setup, pose, repeats)
     setup = setup.with_fan(full.fan)  # every level swept with the full mesh's very rays
-    full_faces = len(part.mesh.faces)
+    full_faces = len(part.faces)
     levels: dict[int, SimplificationLevel] = {}
 
     def level(faces: int) -> SimplificationLevel:
@@ -190,7 +190,7 @@ def coarsest_simplification(part: Part, setup: VirtualSetup, *, pose=None,
         coarse = simplify_part(part, faces)
         simplify_s = time.perf_counter() - t0
         build_s, cloud = _timed_sweep(coarse, setup, pose, repeats)
-        lv = SimplificationLevel(len(coarse.mesh.faces), simplify_s, build_s,
+        lv = SimplificationLevel(len(coarse.faces), simplify_s, build_s,
                                  cloud.elapsed_s, len(cloud), cloud_deviation(full, cloud))
         levels[lv.faces] = lv
         if progress is not None:

@@ -450,9 +450,7 @@ def plan_sweep(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = Non
         pose = part.grasp if pose is None else check_rigid(pose)
     except ValueError as exc:
         raise SetupError(f"`pose`: {exc}") from None
-    # The fan and the steps depend only on the part's extremes: its hull will do (built once
-    # per part, it keeps each plan to a fraction of a millisecond).
-    vertices = apply_transform(pose, part.hull_vertices)
+    vertices = apply_transform(pose, part.vertices)  # the fan and the steps need its extremes
     first, last = _step_range(setup, vertices)
     lines = max(last - first + 1, 0)
     if lines * setup.rays_per_line > max_rays:
@@ -479,11 +477,10 @@ def plan_sweep(part: Part, setup: VirtualSetup, *, pose: np.ndarray | None = Non
 
 
 def prepare(part: Part) -> float:
-    """Build what a part's sweeps share (its intersector, face planes and hull) now; returns
-    the seconds it took (nothing the second time)."""
+    """Build what a part's sweeps share (its intersector and face planes) now; returns the
+    seconds it took (nothing the second time)."""
     t0 = time.perf_counter()
     part.intersector.face_planes  # noqa: B018 - cached properties: computed once, kept
-    part.hull_vertices  # noqa: B018
     return time.perf_counter() - t0
 
 
@@ -495,13 +492,10 @@ def warm_up() -> None:
     without extra views and one with two (the mirrors), the cloud's arrays and its PLY rows.
     Most of its time is numba's own start-up, paid once by the first kernel of a process.
     """
-    import trimesh
-
-    tetra = trimesh.Trimesh([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [0.0, 5.0, 0.0],
-                             [0.0, 0.0, 8.0]], [[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]],
-                            process=False)
-    part = Part(name="warm-up", mesh=tetra, source="procedural:tetrahedron", units="mm",
-                grasp=np.eye(4))
+    part = Part(name="warm-up", source="procedural:tetrahedron", units="mm", grasp=np.eye(4),
+                vertices=np.array([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [0.0, 5.0, 0.0],
+                                   [0.0, 0.0, 8.0]]),
+                faces=np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]]))
     for views in ((), (("left", [-20.0, 40.0, 100.0]), ("right", [20.0, 40.0, 100.0]))):
         setup = VirtualSetup(laser=[0.0, -10.0, 100.0], camera=[0.0, 40.0, 100.0],
                              step_mm=2.0, rays_per_line=16, views=views)
@@ -688,14 +682,17 @@ def _check_paths(part: Part, ix: Intersector, plan: SweepPlan) -> None:
             raise SetupError(f"the {what} passes through the part during the sweep (steps "
                              f"{plan.first} to {plan.last}): move it away from the part")
         hit = probe_faces[i] >= 0
-        if np.count_nonzero(hit) < 2 or not part.mesh.is_watertight:
-            continue
-        # From inside a closed surface every ray leaves through a face that points the way
-        # the ray goes (outward normals; trimesh's volume is negative for an inward-wound mesh).
-        outward = 1.0 if part.mesh.volume >= 0 else -1.0
         normals, _ = ix.face_planes
-        leaving = outward * np.einsum("ij,ij->i", normals[probe_faces[i][hit]], _PROBES[hit]) > 0
-        if np.count_nonzero(leaving) >= 2:
+        along = np.einsum("ij,ij->i", normals[probe_faces[i][hit]], _PROBES[hit])
+        # From inside a closed surface every ray leaves through a face that points the way the
+        # ray goes (outward normals; trimesh's volume is negative for an inward-wound mesh).
+        # The mesh's closure (trimesh, built only now) is asked only when probes could say so.
+        if max(np.count_nonzero(along > 0), np.count_nonzero(along < 0)) < 2:
+            continue
+        if not part.mesh.is_watertight:
+            continue
+        outward = 1.0 if part.mesh.volume >= 0 else -1.0
+        if np.count_nonzero(outward * along > 0) >= 2:
             raise SetupError(f"the {what} is inside the part at step {plan.first}")
 
 

@@ -283,7 +283,7 @@ def _build_models(part: Part, cell: Cell) -> tuple[dict, SurfaceModel]:
                                          cloud.normals @ back[:3, :3].T)
     predicted.tree  # noqa: B018
     t3 = time.perf_counter()
-    return {"faces": int(len(part.mesh.faces)), "mesh_surface_points": int(len(surface.points)),
+    return {"faces": int(len(part.faces)), "mesh_surface_points": int(len(surface.points)),
             "mesh_surface_ms": (t1 - t0) * 1e3, "edge_points": int(len(edges.points)),
             "edge_model_ms": (t2 - t1) * 1e3, "predicted_points": int(len(predicted.points)),
             "predicted_ms": (t3 - t2) * 1e3,

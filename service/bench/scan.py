@@ -84,7 +84,7 @@ def _row(part: Part, method: str, report: dict) -> dict:
     accuracy = report["ground_truth"].get("accuracy", {})
     return {
         "part": part.name,
-        "faces": int(len(part.mesh.faces)),
+        "faces": int(len(part.faces)),
         "method": method,
         "frames": frames,
         "frames_dropped": int(report["frames_dropped"]),

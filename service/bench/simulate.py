@@ -20,7 +20,7 @@ turn on a part of about 100 k triangles (idler_riser split three times: 100 608)
 optional, benchmark-only dependency (``pip install 'flyscan[bench]'``); without it the
 comparison is skipped with a note.
 
-Times exclude what a part's sweeps share, its intersector and hull (`prepare`, reported
+Times exclude what a part's sweeps share, its intersector and face planes (`prepare`, reported
 apart), and the numba compile (an untimed warm-up). A configuration's time is the fastest of
 at least ``repeats`` sweeps (more for short ones, about 0.3 s of sweeping in all), for the
 fast path and the reference loop alike.
@@ -88,7 +88,7 @@ def subdivided_copy(part: Part, levels: int) -> Part:
     (no T-junctions), so its predicted cloud is the original's: only the ray casting and the
     simplification have more to do.
     """
-    v, f = part.mesh.vertices, part.mesh.faces
+    v, f = part.vertices, part.faces
     for _ in range(levels):
         v, f = trimesh.remesh.subdivide(v, f)
     return part_from_mesh(trimesh.Trimesh(v, f, process=False),
@@ -145,8 +145,8 @@ def _embreex_scene(part: Part):
 
     t0 = time.perf_counter()
     scene = rtcore_scene.EmbreeScene()
-    vertices = (part.mesh.vertices - part.intersector.centre).astype(np.float32)
-    TriangleMesh(scene, vertices, np.ascontiguousarray(part.mesh.faces, dtype=np.int32))
+    vertices = (part.vertices - part.intersector.centre).astype(np.float32)
+    TriangleMesh(scene, vertices, np.ascontiguousarray(part.faces, dtype=np.int32))
     scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # commits the BVH
     return scene, time.perf_counter() - t0
 
@@ -189,7 +189,7 @@ def run(out_dir: pathlib.Path, *, quick: bool = False, repeats: int = 3, progres
         parts = _parts(quick)
         rows, builds = [], {}
         for part in parts:
-            builds[part.name] = {"faces": len(part.mesh.faces),
+            builds[part.name] = {"faces": len(part.faces),
                                  "prepare_s": round(prepare(part), 4)}
             scene, builds[part.name]["embreex_scene_s"] = _embreex_scene(part)
             for step in steps_mm:
@@ -230,7 +230,7 @@ def _row(part: Part, setup, scene, repeats: int) -> dict:
     ref_points, ref_s = min((reference_loop(part, setup, scene) for _ in range(runs)),
                             key=lambda r: r[1])
     return {
-        "part": part.name, "faces": len(part.mesh.faces), "step_mm": setup.step_mm,
+        "part": part.name, "faces": len(part.faces), "step_mm": setup.step_mm,
         "rays_per_line": setup.rays_per_line, "rays_cast": best.rays_cast,
         "first_hits": best.first_hits, "points": len(best), "seconds": round(best.elapsed_s, 6),
         "mrays_per_s": round(best.rays_per_second / 1e6, 3),
@@ -288,7 +288,7 @@ def side_by_side(part: Part, cell, *, rays: int = SIDE_RAYS, runs: int = SIDE_RU
 
     with tempfile.TemporaryDirectory(prefix="flyscan-side-") as tmp:
         mesh = pathlib.Path(tmp) / f"{part.name}-T.stl"
-        trimesh.Trimesh(vertices, part.mesh.faces, process=False).export(mesh)
+        trimesh.Trimesh(vertices, part.faces, process=False).export(mesh)
         common = ["--part", str(mesh), f"--laser={xyz(setup.laser)}",
                   f"--camera={xyz(setup.camera)}", "--step", repr(step),
                   "--rays", str(SIDE_RAYS_PER_LINE)]
@@ -342,7 +342,7 @@ def _side_summary(part: Part, setup, step: float, commands: dict[str, str],
     fly, o3d = runs_of["flyscan"], runs_of["open3d"]
     whole = median("flyscan", "wall_s") / median("open3d", "wall_s")
     return {
-        "part": part.name, "faces": len(part.mesh.faces), "step_mm": step,
+        "part": part.name, "faces": len(part.faces), "step_mm": step,
         "rays_per_line": setup.rays_per_line, "rays_cast": fly[0]["report"]["rays_cast"],
         "open3d_rays_cast": o3d[0]["report"]["rays_cast"],
         "points": fly[0]["report"]["points"], "open3d_points": o3d[0]["report"]["points"],
@@ -396,14 +396,14 @@ def _simplification_studies(parts, cell, quick, say) -> list[dict]:
                                                      ("cycloidal", "featuretype")]
     studies = []
     for part in chosen:
-        say(f"simplifying {part.name} ({len(part.mesh.faces)} faces) at {step} mm x {rays} rays")
+        say(f"simplifying {part.name} ({len(part.faces)} faces) at {step} mm x {rays} rays")
         studies.append(coarsest_simplification(part, setup, progress=say))
     return studies
 
 
 def _summary(result: dict, parts: list[Part]) -> dict:
     rows, fits = result["rows"], result["fits"]
-    big, small = parts[-1].name, min(parts, key=lambda p: len(p.mesh.faces)).name
+    big, small = parts[-1].name, min(parts, key=lambda p: len(p.faces)).name
     # Compare the two parts at the largest number of points both reach, on their fitted lines.
     n_equal = min(max(r["points"] for r in rows if r["part"] == name) for name in (big, small))
 

@@ -145,8 +145,12 @@ def test_parts_uploaded_with_their_unit_are_scanned(service, tmp_path):
         scan = client.wait(client.arm(part="plate"), timeout=30)
         cloud = client.cloud(scan["scan_id"])
     assert scan["state"] == "done" and scan["part"] == "plate"
-    # The plate's underside (10 mm below the TCP) is flat and 40 x 30 mm.
-    assert np.abs(cloud[:, 2] - 10.0).max() < 0.05
+    # The plate's underside (10 mm below the TCP) is flat and 40 x 30 mm. Within a millimetre
+    # of its outline the stripe only partly covers the pixels, and the peak moves a little.
+    inside = (np.abs(cloud[:, 0]) < 19.0) & (np.abs(cloud[:, 1]) < 14.0)
+    assert inside.mean() > 0.5
+    assert np.abs(cloud[inside, 2] - 10.0).max() < 0.05
+    assert np.abs(cloud[:, 2] - 10.0).max() < 0.1
     assert np.ptp(cloud[:, 0]) == pytest.approx(40.0, abs=1.0)
 
 

@@ -310,8 +310,7 @@ def test_degenerate_faces_change_nothing(cube):
     v = np.vstack([mesh.vertices, [[5.0, 5.0, 40.0], [5.0, 5.0, 40.0]]])
     n = len(mesh.vertices)
     extra = np.array([[n, n + 1, n], [0, 0, 1], [n, n + 1, 0]])  # zero-area triangles
-    dirty = Part(name="dirty", mesh=trimesh.Trimesh(v, np.vstack([mesh.faces, extra]),
-                                                    process=False),
+    dirty = Part(name="dirty", vertices=v, faces=np.vstack([mesh.faces, extra]),
                  source="test", units="mm", grasp=np.eye(4))
     setup = _setup(step=0.5, rays=150)
     clean_cloud, dirty_cloud = predict_cloud(cube, setup), predict_cloud(dirty, setup)
