@@ -5,6 +5,16 @@ reports its TCP on its own clock. The offset between the clocks is estimated fro
 itself (the track must move: along the pass, one millisecond is a fifth of a millimetre at
 200 mm/s), then the deviation between the two tracks at the same instants is reported and
 flagged above a tolerance.
+
+The LED's offset from the TCP (``Calibration.marker_offset_t``) is measured by hand in a real
+cell; what it misses shows as a constant difference between the tracks, fixed in {T}. That
+difference is estimated from a pass (``mean_difference_t_mm``) and, once learned, subtracted
+(``led_correction_t_mm``): learned from every pass it would also absorb the very
+inconsistencies the check is there to flag, so the service learns it once (its first
+cross-checked pass) and keeps it. For the same reason the clock offset, once estimated, may
+move by at most ``MAX_DRIFT_STEP_S`` from one pass to the next (real clocks drift by
+microseconds per second): along a straight pass at constant speed a clock offset and a shift
+along the track look alike.
 """
 from __future__ import annotations
 
@@ -21,6 +31,10 @@ VELOCITY_STEP_S = 0.004
 #: straight stretch a clock offset and a position error along the track look alike, so a
 #: larger move would hide an error the check is there to flag.
 MAX_OFFSET_STEP_S = 0.05
+#: How far the clock offset may move from one pass's estimate to the next, s, once estimated:
+#: 100 ppm of drift over 10 s between passes. A larger jump (0.2 mm along a 200 mm/s track) is
+#: an inconsistency, not a clock.
+MAX_DRIFT_STEP_S = 0.001
 #: Gauss-Newton iterations, and the step below which the estimate has converged, s.
 OFFSET_ITERATIONS = 8
 OFFSET_CONVERGED_S = 1e-6
@@ -41,7 +55,9 @@ def _robot_positions(robot: Robot, times: np.ndarray) -> tuple[np.ndarray, np.nd
     return out, np.isfinite(out).all(axis=1)
 
 
-def estimate_clock_offset(times, positions_b, robot: Robot, *, initial_s: float = 0.0) -> float | None:
+def estimate_clock_offset(times, positions_b, robot: Robot, *, initial_s: float = 0.0,
+                          max_step_s: float = MAX_OFFSET_STEP_S,
+                          difference_b=None) -> float | None:
     """Robot clock minus camera clock, s, from one pass's track (Gauss-Newton on the offset).
 
     Parameters
@@ -53,16 +69,23 @@ def estimate_clock_offset(times, positions_b, robot: Robot, *, initial_s: float 
     robot : Robot
     initial_s : float
         Start of the search (the previous pass's estimate).
+    max_step_s : float
+        The estimate may move at most this far from ``initial_s``.
+    difference_b : (N, 3) float64, optional
+        Known constant differences marker minus robot, {B}, mm (the learned LED correction),
+        taken off the marker's positions first.
 
     Returns
     -------
     float or None
         None when the track is too short or too slow to tell, the robot has no history, the
-        estimate does not converge, or it would move more than ``MAX_OFFSET_STEP_S`` from
+        estimate does not converge, or it would move more than ``max_step_s`` from
         ``initial_s``.
     """
     times = np.asarray(times, dtype=np.float64)
     positions = np.asarray(positions_b, dtype=np.float64).reshape(-1, 3)
+    if difference_b is not None:
+        positions = positions - np.asarray(difference_b, dtype=np.float64).reshape(-1, 3)
     if len(times) < 3:
         return None
     pick = np.unique(np.linspace(0, len(times) - 1, min(len(times), MAX_OFFSET_SAMPLES)).astype(int))
@@ -82,7 +105,7 @@ def estimate_clock_offset(times, positions_b, robot: Robot, *, initial_s: float 
         # Minimise sum |m_i - r(t_i + d)|^2: linearise r around the current d.
         step = np.einsum("ij,ij->", positions[ok] - p[ok], velocity) / speed2.sum()
         offset += float(step)
-        if abs(offset - initial_s) > MAX_OFFSET_STEP_S:
+        if abs(offset - initial_s) > max_step_s:
             return None  # not a clock offset: the check measures the deviation instead
         if abs(step) < OFFSET_CONVERGED_S:
             return offset
@@ -90,7 +113,8 @@ def estimate_clock_offset(times, positions_b, robot: Robot, *, initial_s: float 
 
 
 def cross_check(times, positions_b, robot: Robot, *, clock_offset_s: float = 0.0,
-                estimate_offset: bool = True, tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> dict:
+                estimate_offset: bool = True, max_offset_step_s: float = MAX_OFFSET_STEP_S,
+                led_correction_t_mm=None, tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> dict:
     """Marker-derived TCP positions against the robot's at the same instants.
 
     Parameters
@@ -103,6 +127,12 @@ def cross_check(times, positions_b, robot: Robot, *, clock_offset_s: float = 0.0
     clock_offset_s : float
         Robot minus camera clock, s: used as is, or as the start of the estimate.
     estimate_offset : bool
+    max_offset_step_s : float
+        How far the estimate may move from ``clock_offset_s`` (``MAX_DRIFT_STEP_S`` once a
+        previous pass has estimated it).
+    led_correction_t_mm : (3,) array_like, optional
+        The learned constant difference marker minus robot in {T}, mm (a correction of the
+        calibration's LED offset), taken off before the deviation is measured.
     tolerance_mm : float
         Deviations above this flag the check.
 
@@ -110,23 +140,57 @@ def cross_check(times, positions_b, robot: Robot, *, clock_offset_s: float = 0.0
     -------
     dict
         ``samples``, ``rms_mm``, ``max_mm``, ``clock_offset_s``, ``offset_estimated``,
-        ``tolerance_mm``, ``flagged`` and ``robot_connected``; ``samples`` 0 (and a
-        ``reason``) when the robot had no pose for any frame.
+        ``mean_difference_t_mm`` (the mean difference marker minus robot in {T} before any
+        correction: what the LED offset misses, plus any inconsistency), ``led_correction_t_mm``,
+        ``tolerance_mm``, ``flagged`` and ``robot_connected``; ``samples`` 0 (and a ``reason``)
+        when the robot had no pose for any frame.
     """
     times = np.asarray(times, dtype=np.float64)
     positions = np.asarray(positions_b, dtype=np.float64).reshape(-1, 3)
+    correction = (np.zeros(3) if led_correction_t_mm is None
+                  else np.asarray(led_correction_t_mm, dtype=np.float64).reshape(3))
     connected = bool(robot.connected)
     offset, estimated = float(clock_offset_s), False
-    if estimate_offset and connected:
-        found = estimate_clock_offset(times, positions, robot, initial_s=offset)
+    result = {"samples": 0, "clock_offset_s": offset, "offset_estimated": False,
+              "tolerance_mm": tolerance_mm, "robot_connected": connected,
+              "led_correction_t_mm": correction.tolist(), "mean_difference_t_mm": None}
+    rotations = _robot_rotations(robot, times + offset) if connected and len(times) else None
+    if rotations is not None and estimate_offset:
+        found = estimate_clock_offset(times, positions, robot, initial_s=offset,
+                                      max_step_s=max_offset_step_s,
+                                      difference_b=rotations @ correction)
         if found is not None:
             offset, estimated = found, True
     robot_p, ok = _robot_positions(robot, times + offset) if len(times) else (np.zeros((0, 3)), np.zeros(0, bool))
-    result = {"samples": int(ok.sum()), "clock_offset_s": offset, "offset_estimated": estimated,
-              "tolerance_mm": tolerance_mm, "robot_connected": connected}
-    if not ok.any():
+    result |= {"samples": int(ok.sum()), "clock_offset_s": offset, "offset_estimated": estimated}
+    if not ok.any() or rotations is None:
         reason = "robot not connected" if not connected else "no robot pose for the pass's times"
-        return result | {"rms_mm": None, "max_mm": None, "flagged": True, "reason": reason}
-    d = np.linalg.norm(positions[ok] - robot_p[ok], axis=1)
+        return result | {"samples": 0, "rms_mm": None, "max_mm": None, "flagged": True,
+                         "reason": reason}
+    difference_b = positions[ok] - robot_p[ok]
+    difference_t = np.einsum("nji,nj->ni", rotations[ok], difference_b)  # R^T d
+    d = np.linalg.norm(difference_t - correction, axis=1)
     rms, worst = float(np.sqrt(np.mean(d**2))), float(d.max())
-    return result | {"rms_mm": rms, "max_mm": worst, "flagged": bool(worst > tolerance_mm)}
+    return result | {"rms_mm": rms, "max_mm": worst, "flagged": bool(worst > tolerance_mm),
+                     "mean_difference_t_mm": difference_t.mean(axis=0).tolist()}
+
+
+def _robot_rotations(robot: Robot, times: np.ndarray) -> np.ndarray | None:
+    """(N, 3, 3) rotations of {T} in {B} at the robot times (the newest known where the history
+    has none); None when the robot has given none."""
+    out = np.full((len(times), 3, 3), np.nan)
+    last = None
+    for i, t in enumerate(times):
+        try:
+            last = np.asarray(robot.pose_at(float(t)).rotation, dtype=np.float64)
+        except (LookupError, RuntimeError):
+            pass
+        if last is not None:
+            out[i] = last
+    if last is None:
+        try:
+            last = np.asarray(robot.latest().rotation, dtype=np.float64)
+        except RuntimeError:
+            return None
+    out[~np.isfinite(out).all(axis=(1, 2))] = last
+    return out

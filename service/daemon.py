@@ -105,7 +105,8 @@ class Service:
                              workers=settings.workers, queue_frames=settings.queue_frames,
                              camera_timeout_s=settings.camera_timeout_s,
                              clock_offset_s=settings.clock_offset_s,
-                             cross_check_tolerance_mm=settings.cross_check_tolerance_mm)
+                             cross_check_tolerance_mm=settings.cross_check_tolerance_mm,
+                             led_correction_t_mm=settings.led_correction_t_mm)
         self._jobs: OrderedDict[str, ScanJob] = OrderedDict()  # the recent ones, by arming
         self._jobs_lock = threading.Lock()
         self.started = time.time()
@@ -195,7 +196,7 @@ class Service:
             self.publisher.publish("cloud", {**header, **outcome}, scan.cloud, on_sent=on_sent)
             self.publisher.publish("edges", {**header, **outcome}, scan.edges)
             sent.wait(PUBLISH_WAIT_S)
-        check = cross_check(scan) if placed else None
+        check = cross_check(scan, job.scan_id) if placed else None
         report = self.engine.report(job, scan, check)
         if job.state == "done":
             report["pose"] = self._pose(job, scan)

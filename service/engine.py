@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 
 from scanner_core.calibration import Calibration
-from scanner_core.crosscheck import cross_check
+from scanner_core.crosscheck import MAX_DRIFT_STEP_S, MAX_OFFSET_STEP_S, cross_check
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_in_view,
                                    process_frame, warm_up)
@@ -101,12 +101,17 @@ class Engine:
         Called after arming (the simulated cell sends its robot through the sheet).
     workers, queue_frames, camera_timeout_s, clock_offset_s, cross_check_tolerance_mm
         See ``service.settings.Settings``.
+    led_correction_t_mm : (3,) sequence of float, optional
+        The constant difference between the marker's and the robot's tracks in {T}, mm (what
+        the calibration's LED offset misses); None: learned from the first cross-checked pass
+        and kept (``scanner_core.crosscheck``).
     """
 
     def __init__(self, camera: Camera, robot: Robot, calibration: Calibration,
                  params: PipelineParams, *, on_scan, on_pass_armed=None, workers: int = 2,
                  queue_frames: int = 64, camera_timeout_s: float = 1.0,
-                 clock_offset_s: float = 0.0, cross_check_tolerance_mm: float = 0.1):
+                 clock_offset_s: float = 0.0, cross_check_tolerance_mm: float = 0.1,
+                 led_correction_t_mm=None):
         self.camera, self.robot = camera, robot
         self.calibration, self.params = calibration, params
         self.on_scan, self.on_pass_armed = on_scan, on_pass_armed
@@ -114,6 +119,10 @@ class Engine:
         self.camera_timeout_s = camera_timeout_s
         self.clock_offset_s = clock_offset_s
         self.cross_check_tolerance_mm = cross_check_tolerance_mm
+        self.clock_offset_estimated = False  # once it is, it may only drift
+        self.led_correction_t_mm = (None if led_correction_t_mm is None
+                                    else [float(v) for v in led_correction_t_mm])
+        self.led_correction_from: str | None = None if led_correction_t_mm is None else "settings"
         self.trigger = Trigger(params.trigger)
         self._lock = threading.RLock()
         self._frames: queue.Queue = queue.Queue(maxsize=int(queue_frames))
@@ -226,6 +235,8 @@ class Engine:
                 "scans_done": self.scans_done,
                 "scans_failed": self.scans_failed,
                 "clock_offset_s": self.clock_offset_s,
+                "led_correction_t_mm": self.led_correction_t_mm,
+                "led_correction_from": self.led_correction_from,
             }
 
     # -- threads ----------------------------------------------------------------------------
@@ -399,13 +410,26 @@ class Engine:
         job.reason = failure if failure else job.reason
         self.on_scan(job, scan, self._cross_check)
 
-    def _cross_check(self, scan: Scan) -> dict:
-        check = cross_check(scan.tcp_times, scan.tcp_positions_b, self.robot,
-                            clock_offset_s=self.clock_offset_s,
-                            tolerance_mm=self.cross_check_tolerance_mm)
-        if check.get("offset_estimated") and not check.get("flagged"):
-            self.clock_offset_s = check["clock_offset_s"]  # the next pass starts from it
-        return check
+    def _cross_check(self, scan: Scan, scan_id: str | None = None) -> dict:
+        def check(correction, offset_s, max_step_s):
+            return cross_check(scan.tcp_times, scan.tcp_positions_b, self.robot,
+                               clock_offset_s=offset_s, max_offset_step_s=max_step_s,
+                               led_correction_t_mm=correction,
+                               tolerance_mm=self.cross_check_tolerance_mm)
+
+        max_step_s = MAX_DRIFT_STEP_S if self.clock_offset_estimated else MAX_OFFSET_STEP_S
+        result = check(self.led_correction_t_mm, self.clock_offset_s, max_step_s)
+        if self.led_correction_t_mm is None and result["samples"] and result["offset_estimated"]:
+            # The first pass the robot reports: its constant difference is the LED offset's
+            # error, learned once (learned every pass it would hide inconsistencies).
+            learned = result["mean_difference_t_mm"]
+            result = check(learned, result["clock_offset_s"], MAX_DRIFT_STEP_S)
+            self.led_correction_t_mm, self.led_correction_from = learned, scan_id or "a scan"
+            result["led_correction_learned"] = True
+        if result.get("offset_estimated") and not result.get("flagged"):
+            self.clock_offset_s = result["clock_offset_s"]  # the next pass starts from it
+            self.clock_offset_estimated = True
+        return result
 
     def report(self, job: ScanJob, scan: Scan, check: dict | None) -> dict:
         """``report.json`` of a finished job."""

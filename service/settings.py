@@ -50,6 +50,9 @@ class Settings(BaseSettings):
     default_part: str | None = Field(None, description="part used when a scan names none")
     clock_offset_s: float = Field(0.0, description="robot minus camera clock, s, until estimated")
     cross_check_tolerance_mm: float = Field(0.1, gt=0)
+    led_correction_t_mm: tuple[float, float, float] | None = Field(
+        None, description="marker minus robot track in {T}, mm, what the calibration's LED "
+                          "offset misses; unset: learned from the first cross-checked pass")
     sim_seed: int = Field(0, ge=0)
     sim_speed_mm_s: float | None = Field(None, gt=0, le=5000)
     sim_fps: float | None = Field(None, gt=0, le=2000)
