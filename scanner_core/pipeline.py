@@ -277,8 +277,10 @@ class PassAccumulator:
     at the frame's time on the robot clock (camera time + ``clock_offset_s``), or its newest
     if the frame is newer by at most ``MAX_POSE_AGE_S``; when the robot
     has no pose for that time (disconnected, history too short), the last rotation it gave
-    this pass is used and the frame counted in ``frames_held_rotation``; before any, the frame
-    cannot be placed. Thread-safe: worker threads call :meth:`add` concurrently.
+    this pass, or else ``fallback_rotation``, is used and the frame counted in
+    ``frames_held_rotation`` (the pass's rotation is fixed: a lost robot connection costs the
+    cross-check, not the scan); without either, the frame cannot be placed. Thread-safe:
+    worker threads call :meth:`add` concurrently.
 
     Parameters
     ----------
@@ -286,9 +288,13 @@ class PassAccumulator:
     robot : Robot
     clock_offset_s : float
         Robot clock minus camera clock, s.
+    fallback_rotation : (3, 3) float64, optional
+        {T}'s rotation in {B} to hold when the robot gives none (the service passes the last
+        one the robot reported).
     """
 
-    def __init__(self, calibration: Calibration, robot: Robot, clock_offset_s: float = 0.0):
+    def __init__(self, calibration: Calibration, robot: Robot, clock_offset_s: float = 0.0,
+                 fallback_rotation: np.ndarray | None = None):
         self.calibration = calibration
         self.robot = robot
         self.clock_offset_s = float(clock_offset_s)
@@ -299,7 +305,8 @@ class PassAccumulator:
         self._unplaced = 0
         self._held_rotation = 0
         self._no_rotation = 0
-        self._rotation: np.ndarray | None = None
+        self._rotation: np.ndarray | None = (None if fallback_rotation is None
+                                             else np.asarray(fallback_rotation, np.float64))
         self._rotation_t = -np.inf
 
     def rotation_at(self, t_camera: float) -> tuple[np.ndarray | None, bool]:

@@ -18,6 +18,7 @@ import time
 import uuid
 from dataclasses import dataclass, field
 
+import numpy as np
 
 from scanner_core.calibration import Calibration
 from scanner_core.crosscheck import MAX_DRIFT_STEP_S, MAX_OFFSET_STEP_S, cross_check
@@ -120,6 +121,7 @@ class Engine:
         self.clock_offset_s = clock_offset_s
         self.cross_check_tolerance_mm = cross_check_tolerance_mm
         self.clock_offset_estimated = False  # once it is, it may only drift
+        self.last_rotation_b: np.ndarray | None = None  # held when the robot is lost
         self.led_correction_t_mm = (None if led_correction_t_mm is None
                                     else [float(v) for v in led_correction_t_mm])
         self.led_correction_from: str | None = None if led_correction_t_mm is None else "settings"
@@ -195,7 +197,8 @@ class Engine:
                 raise EngineBusy(f"a scan is in progress ({self.job.scan_id if self.job else '?'}: "
                                  f"{self.trigger.state.value})") from exc
             job = ScanJob(scan_id=new_scan_id(), part=part, created=time.time(), context=context,
-                          accumulator=PassAccumulator(self.calibration, self.robot, self.clock_offset_s))
+                          accumulator=PassAccumulator(self.calibration, self.robot, self.clock_offset_s,
+                                                      fallback_rotation=self.last_rotation_b))
             self.job = job
         if self.on_pass_armed is not None:
             self.on_pass_armed(job)
@@ -225,7 +228,7 @@ class Engine:
                 "camera": {"state": self.camera_state, "error": self.camera_error,
                            "fps": round(self.fps, 2), "frames": self.frames_total,
                            "frames_dropped": self.frames_dropped},
-                "robot": {"connected": bool(self.robot.connected)},
+                "robot": _robot_status(self.robot),
                 "fps": round(self.fps, 2),
                 "frames_dropped": self.frames_dropped,
                 "queue": {"depth": self._frames.qsize(), "capacity": self._frames.maxsize,
@@ -408,6 +411,8 @@ class Engine:
         failure = _failure(job, reason, scan)
         job.state = "failed" if failure else "done"
         job.reason = failure if failure else job.reason
+        if scan.frames > scan.frames_held_rotation:  # the robot gave this pass's rotation
+            self.last_rotation_b = scan.tcp_rotations_b[-1].copy()
         self.on_scan(job, scan, self._cross_check)
 
     def _cross_check(self, scan: Scan, scan_id: str | None = None) -> dict:
@@ -457,6 +462,12 @@ def _failure(job: ScanJob, reason: EndReason, scan: Scan) -> str | None:
     if job.worker_errors:
         return f"{len(job.worker_errors)} frames failed to process: {job.worker_errors[0]}"
     return None
+
+
+def _robot_status(robot: Robot) -> dict:
+    """``connected``, and what a real robot backend tells of its link (``URRobot.status``)."""
+    details = getattr(robot, "status", None)
+    return {**(details() if callable(details) else {}), "connected": bool(robot.connected)}
 
 
 def new_scan_id() -> str:

@@ -36,6 +36,11 @@ class QueueStatus(BaseModel):
 
 class RobotStatus(BaseModel):
     connected: bool
+    host: str | None = Field(None, description="the UR robot's address (ur://HOST); none when simulated")
+    samples: int | None = Field(None, description="poses received since the service started")
+    reconnects: int | None = None
+    last_sample_age_s: float | None = Field(None, description="how old the newest pose is, s")
+    last_error: str | None = None
 
 
 class ZmqStatus(BaseModel):
@@ -58,6 +63,9 @@ class Status(BaseModel):
     scans_done: int
     scans_failed: int
     clock_offset_s: float
+    led_correction_t_mm: list[float] | None = Field(
+        None, description="marker minus robot track in {T}, mm, subtracted by the cross-check")
+    led_correction_from: str | None = Field(None, description="the scan it was learned from, or 'settings'")
     simulated: bool
 
 

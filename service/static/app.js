@@ -62,6 +62,7 @@ function applyStatus(s) {
   $("zmq-dropped").classList.toggle("nonzero", z.dropped > 0);
   const robot = s.robot || {};
   pill($("robot"), robot.connected ? "connected" : "not connected", robot.connected ? "ok" : "bad");
+  setText($("robot-detail"), robotDetail(robot, s));
   setText($("scans-done"), fmtInt(s.scans_done));
   setText($("scans-failed"), fmtInt(s.scans_failed));
   setText($("current-scan"), s.current_scan_id || "\u2013");
@@ -185,7 +186,8 @@ function renderScans(scans) {
     cell(tr, fmtInt(s.frames_dropped), "num");
     cell(tr, cc ? fmtNum(cc.rms_mm, 3) + " / " + fmtNum(cc.max_mm, 3) : "\u2013", "num");
     const flagged = cc && typeof cc.flagged === "boolean" ? cc.flagged : null;
-    cell(tr, flagged === null ? "\u2013" : flagged ? "yes" : "no", flagged ? "flag-yes" : "");
+    const flagCell = cell(tr, flagged === null ? "\u2013" : flagged ? "yes" : "no", flagged ? "flag-yes" : "");
+    if (cc && cc.reason) flagCell.title = cc.reason;
     const poseCell = cell(tr, pose ? fmtPose(pose) : "\u2013", "mono misplacement");
     if (pose && (pose.refused || (pose.flags && pose.flags.length))) poseCell.classList.add("flag-yes");
     cell(tr, fmtNum(latency, 1), "num");
@@ -318,3 +320,14 @@ setupArm();
 setupFrame();
 connectEvents();
 refreshScans();
+
+// One line on the robot: where it is, how fresh its poses are, and the clocks' offset.
+function robotDetail(robot, s) {
+  const parts = [];
+  if (robot.host) parts.push(robot.host);
+  if (typeof robot.last_sample_age_s === "number") parts.push("last pose " + fmtNum(robot.last_sample_age_s, 2) + " s ago");
+  if (robot.reconnects) parts.push(fmtInt(robot.reconnects) + " reconnects");
+  if (!robot.connected && robot.last_error) parts.push(robot.last_error);
+  if (typeof s.clock_offset_s === "number") parts.push("clock offset " + fmtNum(s.clock_offset_s * 1e3, 2) + " ms");
+  return parts.join(", ");
+}
