@@ -31,7 +31,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -45,7 +45,7 @@ from simulator.parts import Part
 from simulator.render import FrameTruth, PartScene
 
 __all__ = ["LiveSimCell", "LiveSimCamera", "LiveSimRobot", "LivePass", "PreparedPass",
-           "PassInProgress", "frame_image", "pass_frame_count",
+           "PassInProgress", "TrackSegment", "tcp_on_track", "frame_image", "pass_frame_count",
            "CAMERA_BUFFER_FRAMES", "BACKGROUND_RING_FRAMES", "PASS_CACHE_SIZE"]
 
 #: Frames the camera's on-board buffer holds for a late reader (a few frames, as in the
@@ -108,6 +108,70 @@ def pass_frame_count(profile: PassProfile) -> int:
 # --------------------------------------------------------------------------------------------
 # Passes: prepared (geometry) and scheduled (on the live clock)
 # --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TrackSegment:
+    """The robot's motion through one pass, on the camera clock: pure and picklable.
+
+    The simulated robot of the cell and the RTDE emulator (``service.rtde_emulator``, in
+    another process) both compute the TCP from these, so that the two agree to the bit.
+
+    Attributes
+    ----------
+    robot_start_t : float
+        Camera clock, s, from which the robot follows this segment.
+    t_zero : float
+        Camera clock, s, of the pass's t = 0 (the end of its lead-in).
+    t_last : float
+        Camera clock, s, at which the robot stops (held there afterwards).
+    profile : PassProfile
+    """
+
+    robot_start_t: float
+    t_zero: float
+    t_last: float
+    profile: PassProfile
+    # Built once: tcp_position runs for every robot sample.
+    _motion: PassMotion = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "_motion", PassMotion(self.profile))
+
+    def __getstate__(self):
+        return (self.robot_start_t, self.t_zero, self.t_last, self.profile)
+
+    def __setstate__(self, state):
+        for name, value in zip(("robot_start_t", "t_zero", "t_last", "profile"), state):
+            object.__setattr__(self, name, value)
+        self.__post_init__()
+
+    def tcp_position(self, t_cam: float) -> np.ndarray:
+        """(3,) float64, mm in {B}: the TCP at camera clock ``t_cam``, s, held after ``t_last``."""
+        return self._motion.tcp_position(min(t_cam, self.t_last) - self.t_zero)
+
+
+def tcp_on_track(segments, idle_tcp_b: np.ndarray, t_cam: float) -> np.ndarray:
+    """The TCP at camera clock ``t_cam`` given a schedule of segments.
+
+    Parameters
+    ----------
+    segments : sequence of TrackSegment
+        In time order (increasing ``robot_start_t``).
+    idle_tcp_b : (3,) float64
+        Where the robot waits before the first segment, mm in {B}.
+    t_cam : float
+        Camera clock, s.
+
+    Returns
+    -------
+    (3,) float64
+        TCP position in {B}, mm: that of the last segment started at ``t_cam``, else idle.
+    """
+    for seg in reversed(segments):
+        if t_cam >= seg.robot_start_t:
+            return seg.tcp_position(t_cam)
+    return idle_tcp_b
+
 
 @dataclass(frozen=True, eq=False)
 class PreparedPass:
@@ -202,9 +266,18 @@ class LivePass:
         """Camera frame id -> FrameTruth, every frame of the pass (for evaluation only)."""
         return {self.first_frame_id + j: truth for j, truth in enumerate(self.prepared.truths)}
 
+    @property
+    def segment(self) -> TrackSegment:
+        """The robot's motion through this pass (what an emulated robot needs of it)."""
+        return self._segment
+
+    def __post_init__(self):
+        object.__setattr__(self, "_segment", TrackSegment(
+            self.robot_start_t, self.t_zero, self.t_last, self.prepared.profile))
+
     def tcp_position(self, t_cam: float) -> np.ndarray:
         """(3,) float64, mm in {B}: the TCP at camera clock ``t_cam``, held after the pass."""
-        return self.prepared.motion.tcp_position(min(t_cam, self.t_last) - self.t_zero)
+        return self._segment.tcp_position(t_cam)
 
 
 # --------------------------------------------------------------------------------------------
@@ -408,12 +481,14 @@ class LiveSimCell:
         with self._lock:
             return self._now_locked(), tuple(self._passes)
 
+    @property
+    def idle_tcp_b(self) -> np.ndarray:
+        """(3,) float64: where the robot waits before the first pass, mm in {B}."""
+        return self._idle_tcp_b.copy()
+
     def _tcp_at(self, passes: tuple, t_cam: float) -> np.ndarray:
         """(3,) float64: TCP in {B}, mm, at camera clock ``t_cam`` given the schedule."""
-        for p in reversed(passes):
-            if t_cam >= p.robot_start_t:
-                return p.tcp_position(t_cam)
-        return self._idle_tcp_b
+        return tcp_on_track([p.segment for p in passes], self._idle_tcp_b, t_cam)
 
 
 def _check_misplacement(misplacement) -> np.ndarray:
