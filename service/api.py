@@ -120,7 +120,8 @@ def arm_scan(service: ServiceDep, request: ScanRequest | None = None) -> ScanAcc
     if request.misplace is not None and service.driver is None:
         raise HTTPException(422, "misplace is for simulated mode only")
     try:
-        job = service.arm(request.part, request.timeout_s, request.misplace)
+        job = service.arm(request.part, request.timeout_s, request.misplace,
+                          record=request.record)
     except KeyError:
         raise HTTPException(404, f"unknown part {request.part!r}: see GET /parts") from None
     except PartError as exc:  # a misplacement out of the inspection volume
@@ -129,6 +130,8 @@ def arm_scan(service: ServiceDep, request: ScanRequest | None = None) -> ScanAcc
         raise HTTPException(409, str(exc)) from None
     except EngineFault as exc:
         raise HTTPException(503, str(exc)) from None
+    except OSError as exc:  # the recording's folder cannot be made
+        raise HTTPException(503, f"cannot record the pass: {exc}") from None
     return ScanAccepted(scan_id=job.scan_id, state=job.state)
 
 

@@ -170,7 +170,12 @@ def _parse_args(argv):
     serve.add_argument("--host", default=None, help="REST bind address (default 127.0.0.1)")
     serve.add_argument("--port", type=int, default=None, help="REST port (default 8000)")
     serve.add_argument("--zmq", default=None, help="ZeroMQ PUB endpoint (default tcp://127.0.0.1:5556)")
-    serve.add_argument("--robot", default=None, help="ur://HOST: the UR robot (ur-rtde)")
+    serve.add_argument("--robot", default=None,
+                       help="ur://HOST: the UR robot (ur-rtde); with --sim an RTDE emulator "
+                            "is started at HOST and serves the simulated robot")
+    serve.add_argument("--camera", default=None,
+                       help="opencv:0, opencv:/dev/videoN, video:FILE, gstreamer:PIPELINE, "
+                            "genicam:PRODUCER.cti[#SERIAL] or replay:FOLDER (not with --sim)")
     serve.add_argument("--data", type=Path, default=None, help="folder for scans and parts "
                                                                "(default ./flyscan-data)")
     serve.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
@@ -407,7 +412,8 @@ def _cmd_serve(args) -> int:
 
     try:
         settings = load_settings(args.config, sim=args.sim, host=args.host, port=args.port,
-                                 zmq=args.zmq, robot=args.robot, data=args.data)
+                                 zmq=args.zmq, robot=args.robot, camera=args.camera,
+                                 data=args.data)
         service = Service(settings)
     except FileNotFoundError as exc:
         raise UsageError(str(exc)) from None

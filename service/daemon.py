@@ -8,9 +8,11 @@ through the sheet (``SimPassDriver``), as a cell controller's robot program woul
 from __future__ import annotations
 
 import logging
+import shutil
 import threading
 import time
 from collections import OrderedDict
+from pathlib import Path
 
 import numpy as np
 
@@ -41,10 +43,26 @@ RECENT_JOBS = 32
 
 
 class SimPassDriver:
-    """Sends the simulated robot through the sheet when a scan is armed."""
+    """Sends the simulated robot through the sheet when a scan is armed; with an RTDE
+    emulator (``--sim --robot ur://HOST``) the emulator serves the same track to the real
+    ur-rtde client."""
 
-    def __init__(self, sim):
+    def __init__(self, sim, emulator=None):
         self.sim = sim
+        self.emulator = emulator
+
+    def start(self) -> None:
+        """Start the emulator (its own process) on the cell's clock, before the robot connects."""
+        if self.emulator is None:
+            return
+        self.emulator.start()
+        try:
+            cell = self.sim.cell
+            self.emulator.set_track(self.sim.start_clock(), self.sim.robot.clock_offset_s,
+                                    cell.gripper_rotation_b, self.sim.idle_tcp_b)
+        except BaseException:
+            self.emulator.stop()
+            raise
 
     def prepare(self, part) -> None:
         self.sim.prepare_pass(part)
@@ -55,22 +73,60 @@ class SimPassDriver:
         deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
         while True:
             try:
-                self.sim.start_pass(part, misplacement)
-                return
+                live = self.sim.start_pass(part, misplacement)
+                break
             except PassInProgress:
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.01)
+        if self.emulator is not None:
+            self.emulator.add_segment(live.segment)
+
+    def close(self) -> None:
+        if self.emulator is not None:
+            self.emulator.stop()
+
+
+class NoRobot:
+    """The robot of a cell without one: never connected (scans hold the last rotation they
+    were given; without one they cannot be placed, and say so)."""
+
+    connected = False
+
+    def connect(self) -> None:
+        pass
+
+    def disconnect(self) -> None:
+        pass
+
+    def latest(self):
+        raise RuntimeError("no robot is configured (--robot ur://HOST)")
+
+    def pose_at(self, t: float):
+        raise RuntimeError("no robot is configured (--robot ur://HOST)")
 
 
 def build_devices(settings: Settings):
-    """(camera, robot, driver, calibration) for the settings."""
-    if settings.robot is not None:
-        raise ValueError(f"--robot {settings.robot}: UR robots through ur-rtde are not supported "
-                         "yet; run without --robot (simulated mode has its own robot)")
+    """(camera, robot, driver, calibration) for the settings.
+
+    Simulated mode: the reference cell's camera, and its robot, or, with ``--robot
+    ur://HOST``, an RTDE emulator started at HOST (its own process) serving the simulated
+    track to the real ur-rtde client. Otherwise ``settings.camera`` (``service.cameras``) and
+    the UR robot, or none.
+    """
+    from service.ur_robot import URRobot, parse_robot_url
+
+    host = parse_robot_url(settings.robot) if settings.robot is not None else None
     if not settings.sim:
-        raise ValueError("no camera backend is configured: run with --sim (the simulated cell); "
-                         "real cameras are not supported yet")
+        if settings.camera is None:
+            raise ValueError("no camera: give --camera SPEC (opencv:0, video:FILE, "
+                             "genicam:PRODUCER.cti, replay:FOLDER) or run with --sim")
+        from service.cameras import open_camera
+
+        camera = open_camera(settings.camera)
+        return camera, URRobot(host) if host else NoRobot(), None, None
+    if settings.camera is not None:
+        raise ValueError(f"--camera {settings.camera}: the simulated cell has its own camera")
     from simulator.cell import load_cell
     from simulator.live import LiveSimCell
 
@@ -79,8 +135,12 @@ def build_devices(settings: Settings):
                if v is not None}
     if changes:
         cell = cell.with_pass(**changes)
-    sim = LiveSimCell(cell, seed=settings.sim_seed)
-    return sim.camera, sim.robot, SimPassDriver(sim), cell.calibration
+    sim = LiveSimCell(cell, seed=settings.sim_seed, clock_offset_s=settings.sim_clock_offset_s)
+    if host is None:
+        return sim.camera, sim.robot, SimPassDriver(sim), cell.calibration
+    from service.rtde_emulator import RtdeEmulator
+
+    return sim.camera, URRobot(host), SimPassDriver(sim, RtdeEmulator(host)), cell.calibration
 
 
 class Service:
@@ -102,6 +162,7 @@ class Service:
                                                       arm_timeout_s=settings.arm_timeout_s))
         self.engine = Engine(camera, robot, self._initial_calibration(), params,
                              on_scan=self._on_scan, on_pass_armed=self._on_pass_armed,
+                             on_recorded=self._on_recorded,
                              workers=settings.workers, queue_frames=settings.queue_frames,
                              camera_timeout_s=settings.camera_timeout_s,
                              clock_offset_s=settings.clock_offset_s,
@@ -131,6 +192,8 @@ class Service:
         default.surface_model, default.edge_model  # built now, not at the first scan's pose
         self.publisher.start()
         try:
+            if self.driver is not None:
+                self.driver.start()
             self.engine.start()
             if self.driver is not None:
                 # The default part's pass is rendered (and the simulator's kernels compiled)
@@ -143,6 +206,8 @@ class Service:
     def stop(self) -> None:
         self.engine.stop()
         self.publisher.stop()
+        if self.driver is not None:
+            self.driver.close()
 
     @property
     def default_part(self) -> str:
@@ -150,20 +215,51 @@ class Service:
 
     # -- scans ------------------------------------------------------------------------------
 
-    def arm(self, part: str | None, timeout_s: float | None, misplace=None) -> ScanJob:
+    def arm(self, part: str | None, timeout_s: float | None, misplace=None, *,
+            record: bool = False) -> ScanJob:
         """Arm a scan of ``part``; KeyError for an unknown part, PartError for a misplacement
-        that leaves the inspection volume, EngineBusy, EngineFault."""
+        that leaves the inspection volume, EngineBusy, EngineFault. With ``record`` the pass
+        is also recorded into ``recordings/<scan_id>`` of the data folder."""
         name = part or self.default_part
         held = self.parts.get(name)  # KeyError before anything is armed
         misplacement = misplacement_matrix(misplace)
         if misplacement is not None:
             check_fits(held, pose=misplacement @ held.grasp)
-        job = self.engine.arm(name, timeout_s, context=misplacement)
+        if record:
+            self._prune_recordings(keep=self.settings.recordings_kept - 1)
+        job = self.engine.arm(name, timeout_s, context=misplacement,
+                              record_to=self.recordings_dir if record else None)
+        if record:
+            job.info_extra = {"recording": {"path": None, "state": "recording"}}
         with self._jobs_lock:
             self._jobs[job.scan_id] = job
             while len(self._jobs) > RECENT_JOBS:
                 self._jobs.popitem(last=False)
         return job
+
+    @property
+    def recordings_dir(self) -> Path:
+        return self.settings.data / "recordings"
+
+    def _prune_recordings(self, keep: int) -> None:
+        """Recordings are large (2.3 MB a frame): only the newest ``keep`` stay."""
+        if not self.recordings_dir.is_dir():
+            return
+        done = sorted(p for p in self.recordings_dir.iterdir()
+                      if p.is_dir() and not p.name.startswith("."))
+        for old in done[:max(len(done) - keep, 0)]:
+            shutil.rmtree(old, ignore_errors=True)
+
+    def _on_recorded(self, job: ScanJob, recording: dict) -> None:
+        """The recording is in place (or failed): the scan's info says where."""
+        recording = {**recording, "state": "failed" if recording.get("error") else "done"}
+        job.info_extra = {"recording": recording}
+        if job.info:
+            job.info = {**job.info, "recording": recording}
+            try:
+                self.store.update_info(job.scan_id, job.info)
+            except (KeyError, OSError) as exc:
+                log.error("scan %s: the recording's place not stored: %s", job.scan_id, exc)
 
     def _on_pass_armed(self, job: ScanJob) -> None:
         if self.driver is None:
@@ -235,7 +331,7 @@ class Service:
                 "frames_held_rotation", "marker_residual_px")
         return {"scan_id": job.scan_id, "state": job.state, "reason": job.reason, "part": job.part,
                 "created": job.created, "finished": time.time(),
-                **{k: report.get(k) for k in keys}}
+                **{k: report.get(k) for k in keys}, **job.info_extra}
 
     @staticmethod
     def _live_info(job: ScanJob) -> dict:
@@ -246,7 +342,8 @@ class Service:
         return {"scan_id": job.scan_id, "state": state, "reason": job.reason, "part": job.part,
                 "created": job.created,
                 "frames": job.accumulator.frames_seen if job.accumulator is not None else 0,
-                "frames_dropped": job.frames_dropped, "queue_overflows": job.queue_overflows}
+                "frames_dropped": job.frames_dropped, "queue_overflows": job.queue_overflows,
+                **job.info_extra}
 
     def scan_info(self, scan_id: str) -> dict:
         """A recent scan (in progress or finished) or a stored one; KeyError when unknown."""

@@ -11,12 +11,14 @@ robot, and stores it. The same ``scanner_core`` functions run ``flyscan scan`` o
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import threading
 import time
 import uuid
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -28,6 +30,7 @@ from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParam
 from scanner_core.report import scan_report
 from scanner_core.trigger import EndReason, Trigger, TriggerError, TriggerState
 from scanner_core.types import Frame, MarkerObservation, Scan
+from service.live_recording import LiveRecording
 
 log = logging.getLogger("flyscan.engine")
 
@@ -67,6 +70,8 @@ class ScanJob:
     marker_ms: float = 0.0
     profiles_ms: float = 0.0
     info: dict = field(default_factory=dict)
+    recording: LiveRecording | None = None
+    info_extra: dict = field(default_factory=dict)
     _in_flight: int = 0
     _idle: threading.Condition = field(default_factory=threading.Condition)
 
@@ -100,6 +105,9 @@ class Engine:
         (empty when no frame was placed) and the function that cross-checks it.
     on_pass_armed : callable(job), optional
         Called after arming (the simulated cell sends its robot through the sheet).
+    on_recorded : callable(job, info), optional
+        Called on the finisher thread when a recorded pass's recording is in place (or has
+        failed: ``info["error"]``), after ``on_scan``.
     workers, queue_frames, camera_timeout_s, clock_offset_s, cross_check_tolerance_mm
         See ``service.settings.Settings``.
     led_correction_t_mm : (3,) sequence of float, optional
@@ -109,19 +117,22 @@ class Engine:
     """
 
     def __init__(self, camera: Camera, robot: Robot, calibration: Calibration,
-                 params: PipelineParams, *, on_scan, on_pass_armed=None, workers: int = 2,
+                 params: PipelineParams, *, on_scan, on_pass_armed=None, on_recorded=None,
+                 workers: int = 2,
                  queue_frames: int = 64, camera_timeout_s: float = 1.0,
                  clock_offset_s: float = 0.0, cross_check_tolerance_mm: float = 0.1,
                  led_correction_t_mm=None):
         self.camera, self.robot = camera, robot
         self.calibration, self.params = calibration, params
         self.on_scan, self.on_pass_armed = on_scan, on_pass_armed
+        self.on_recorded = on_recorded
         self.n_workers = int(workers)
         self.camera_timeout_s = camera_timeout_s
         self.clock_offset_s = clock_offset_s
         self.cross_check_tolerance_mm = cross_check_tolerance_mm
         self.clock_offset_estimated = False  # once it is, it may only drift
         self.last_rotation_b: np.ndarray | None = None  # held when the robot is lost
+        self._newest_frame_clock: tuple[float, float] | None = None  # (camera t, monotonic)
         self.led_correction_t_mm = (None if led_correction_t_mm is None
                                     else [float(v) for v in led_correction_t_mm])
         self.led_correction_from: str | None = None if led_correction_t_mm is None else "settings"
@@ -182,26 +193,64 @@ class Engine:
 
     # -- commands ---------------------------------------------------------------------------
 
-    def arm(self, part: str | None = None, timeout_s: float | None = None, context=None) -> ScanJob:
+    def arm(self, part: str | None = None, timeout_s: float | None = None, context=None,
+            record_to: Path | None = None) -> ScanJob:
         """Arm the trigger for the next pass; raises EngineBusy or EngineFault. ``context``
-        rides on the job to ``on_pass_armed`` (the simulated pass's misplacement)."""
+        rides on the job to ``on_pass_armed`` (the simulated pass's misplacement). With
+        ``record_to`` (a folder that must not exist: RecordingError), every frame from arming
+        to the pass's end is recorded with the robot's samples (``service.recording``)."""
+        if not self.clock_offset_estimated:
+            self._coarse_clock_offset()
         with self._lock:
-            if self.camera_state != "streaming":
-                raise EngineFault(f"the camera is {self.camera_state}"
-                                  + (f": {self.camera_error}" if self.camera_error else ""))
-            if self.trigger.state is TriggerState.FAULT:
-                self.trigger.reset()
-            try:
-                self.trigger.arm(timeout_s)
-            except TriggerError as exc:
-                raise EngineBusy(f"a scan is in progress ({self.job.scan_id if self.job else '?'}: "
-                                 f"{self.trigger.state.value})") from exc
-            job = ScanJob(scan_id=new_scan_id(), part=part, created=time.time(), context=context,
-                          accumulator=PassAccumulator(self.calibration, self.robot, self.clock_offset_s,
-                                                      fallback_rotation=self.last_rotation_b))
-            self.job = job
+            job = self._arm_locked(part, timeout_s, context, record_to)
         if self.on_pass_armed is not None:
             self.on_pass_armed(job)
+        return job
+
+    def _coarse_clock_offset(self) -> None:
+        """Robot minus camera clock from the newest pose and the newest frame, to a few ms
+        (the age of each): enough to look the robot's poses up during the first pass, whose
+        track then estimates the offset properly (``scanner_core.crosscheck``). A real robot's
+        clock counts from its controller's start, a camera's from its own: without this the
+        first pass would find no pose at all."""
+        newest_frame = self._newest_frame_clock
+        if newest_frame is None or not self.robot.connected:
+            return
+        try:
+            robot_t = self.robot.latest().t
+        except RuntimeError:
+            return
+        frame_t, received = newest_frame
+        self.clock_offset_s = robot_t - (frame_t + time.monotonic() - received)
+
+    def _arm_locked(self, part, timeout_s, context, record_to) -> ScanJob:
+        """Under ``self._lock``."""
+        if self.camera_state != "streaming":
+            raise EngineFault(f"the camera is {self.camera_state}"
+                              + (f": {self.camera_error}" if self.camera_error else ""))
+        if self.trigger.state is TriggerState.FAULT:
+            self.trigger.reset()
+        try:
+            self.trigger.arm(timeout_s)
+        except TriggerError as exc:
+            raise EngineBusy(f"a scan is in progress ({self.job.scan_id if self.job else '?'}: "
+                             f"{self.trigger.state.value})") from exc
+        job = ScanJob(scan_id=new_scan_id(), part=part, created=time.time(), context=context,
+                      accumulator=PassAccumulator(self.calibration, self.robot, self.clock_offset_s,
+                                                  fallback_rotation=self.last_rotation_b))
+        if record_to is not None:
+            try:
+                job.recording = LiveRecording(
+                    Path(record_to) / job.scan_id, camera=self.camera,
+                    calibration=self.calibration,
+                    settings={"scan_id": job.scan_id, "part": part,
+                              "clock_offset_s": self.clock_offset_s,
+                              "stripe_method": self.params.stripe_method,
+                              "trigger": dataclasses.asdict(self.params.trigger)})
+            except BaseException:
+                self.trigger.reset()
+                raise
+        self.job = job
         return job
 
     def check_calibration(self, calibration: Calibration) -> None:
@@ -292,6 +341,7 @@ class Engine:
                 period = (frame.t - last_t) / (gap + 1)
                 self.fps = 1.0 / period if self.fps == 0 else 0.95 * self.fps + 0.05 / period
             last_id, last_t = frame.frame_id, frame.t
+            self._newest_frame_clock = (frame.t, received)
             try:
                 self._on_frame(frame, gap, received, tracker)
             except Exception as exc:  # a frame the pipeline refuses (its size, its type)
@@ -314,6 +364,9 @@ class Engine:
         else:
             tracker.reset()
         self.latest = (frame, marker)
+        if job is not None and job.recording is not None and state in (TriggerState.ARMED,
+                                                                      TriggerState.SCANNING):
+            job.recording.add(frame)
         with self._lock:
             step = self.trigger.feed((frame, marker), frame.t, present, frame.frame_id)
             job = self.job
@@ -387,6 +440,8 @@ class Engine:
                 log.exception("scan %s could not be finished", job.scan_id)
                 job.state, job.reason = "failed", f"could not be finished: {exc!r}"
             finally:
+                if job.recording is not None:  # after the scan is out: it never waits for it
+                    self._finish_recording(job)
                 with self._lock:
                     if self._processing_job is job:
                         self.trigger.finish()
@@ -396,6 +451,16 @@ class Engine:
                     self.scans_failed += job.state == "failed"
                 job.finished = time.time()
                 job.accumulator = None  # the scan is out: its profiles are not kept in memory
+
+    def _finish_recording(self, job: ScanJob) -> None:
+        try:
+            info = job.recording.finish(self.robot, job.accumulator.clock_offset_s)
+        except Exception as exc:  # a recording that fails never fails the scan
+            log.exception("recording of %s failed", job.scan_id)
+            info = {"path": None, "error": repr(exc)}
+        job.recording = None
+        if self.on_recorded is not None:
+            self.on_recorded(job, info)
 
     def _finish(self, job: ScanJob, reason: EndReason) -> None:
         t0 = time.perf_counter()

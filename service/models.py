@@ -79,6 +79,8 @@ class ScanRequest(BaseModel):
         None, min_length=6, max_length=6,
         description="simulated mode only: the part's misplacement in the gripper, "
                     "[tx, ty, tz (mm), rx, ry, rz (rotation vector, degrees)]")
+    record: bool = Field(False, description="also record the pass (every frame, the robot's "
+                                            "samples) for replay: see the scan's `recording`")
 
 
 class ScanAccepted(BaseModel):

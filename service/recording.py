@@ -575,3 +575,45 @@ class ReplayRobot:
 
 __all__ = ["FORMAT_VERSION", "PassRecorder", "Recording", "RecordingError", "ReplayCamera",
            "ReplayRobot", "load_recording"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Replay
+
+
+def replay_recording(recording: Recording, params=None):
+    """Run a recorded pass through the offline pipeline as it ran live.
+
+    Parameters
+    ----------
+    recording : Recording
+    params : scanner_core.pipeline.PipelineParams, optional
+        Default: the stripe method and trigger settings the recording was made with
+        (``settings["stripe_method"]``, ``settings["trigger"]``), with no arming timeout (the
+        recording ends by itself).
+
+    Returns
+    -------
+    scanner_core.types.Scan
+        The scan of the recording's pass (``run_pass`` on the replayed camera and robot, with
+        the clock offset the pass ran with, ``settings["clock_offset_s"]``).
+    """
+    from dataclasses import replace
+
+    from scanner_core.pipeline import PipelineParams, camera_frames, run_pass
+    from scanner_core.trigger import TriggerParams
+
+    settings = recording.settings
+    if params is None:
+        trigger = TriggerParams(**{**settings.get("trigger", {}), "arm_timeout_s": math.inf})
+        params = replace(PipelineParams(), trigger=trigger,
+                         stripe_method=settings.get("stripe_method", "cog"))
+    camera, robot = recording.camera(), recording.robot()
+    camera.open()
+    robot.connect()
+    try:
+        return run_pass(camera_frames(camera), recording.calibration, robot, params,
+                        clock_offset_s=float(settings.get("clock_offset_s", 0.0)))
+    finally:
+        camera.close()
+        robot.disconnect()

@@ -35,7 +35,10 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535)
     zmq: str = "tcp://127.0.0.1:5556"
     zmq_hwm: int = Field(100, ge=1, description="ZeroMQ send high-water mark, messages")
-    robot: str | None = Field(None, description="ur://HOST for a UR robot (ur-rtde)")
+    robot: str | None = Field(None, description="ur://HOST for a UR robot (ur-rtde); with --sim "
+                                                "an RTDE emulator is started at HOST")
+    camera: str | None = Field(None, description="opencv:0, video:FILE, gstreamer:PIPELINE, "
+                                                 "genicam:PRODUCER.cti[#SERIAL], replay:FOLDER")
     data: Path = Path("flyscan-data")
     token: SecretStr | None = None
     calibration: Path | None = Field(None, description="calibration JSON; default the reference cell's")
@@ -46,6 +49,7 @@ class Settings(BaseSettings):
     gap_frames: int = Field(3, ge=1, description="frames without the marker that end a pass")
     camera_timeout_s: float = Field(1.0, gt=0, description="no frame this long: the camera stopped")
     retention: int = Field(200, ge=1, description="scans kept on disk; the oldest go first")
+    recordings_kept: int = Field(5, ge=1, description="recorded passes kept (2.3 MB a frame)")
     stripe_method: Literal["cog", "gaussian3", "parabola", "blais_rioux", "lsq_gauss"] = "cog"
     default_part: str | None = Field(None, description="part used when a scan names none")
     clock_offset_s: float = Field(0.0, description="robot minus camera clock, s, until estimated")
@@ -54,6 +58,8 @@ class Settings(BaseSettings):
         None, description="marker minus robot track in {T}, mm, what the calibration's LED "
                           "offset misses; unset: learned from the first cross-checked pass")
     sim_seed: int = Field(0, ge=0)
+    sim_clock_offset_s: float = Field(0.0, ge=-1e6, le=1e6,
+                                      description="the simulated robot's clock minus the camera's, s")
     sim_speed_mm_s: float | None = Field(None, gt=0, le=5000)
     sim_fps: float | None = Field(None, gt=0, le=2000)
 

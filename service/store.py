@@ -67,6 +67,13 @@ class ScanStore:
         self._enforce_retention()
         return final
 
+    def update_info(self, scan_id: str, info: dict) -> None:
+        """Replace a stored scan's info (atomically); KeyError when there is no such scan."""
+        folder = self.path(scan_id)
+        if not (folder / "info.json").is_file():
+            raise KeyError(scan_id)
+        save_json_atomic(folder / "info.json", info)
+
     def info(self, scan_id: str) -> dict:
         """The stored info of a scan; KeyError when there is none."""
         try:

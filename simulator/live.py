@@ -349,6 +349,13 @@ class LiveSimCell:
         with self._lock:
             return self._now_locked()
 
+    def start_clock(self) -> float:
+        """Start the cell's clock now if it has not started; returns its epoch, the
+        ``time.monotonic()`` of camera clock 0 (system-wide: another process may use it)."""
+        with self._lock:
+            self._start_clock_locked()
+            return self._epoch
+
     def _now_locked(self) -> float:
         if self._epoch is None:
             raise RuntimeError("the simulated cell's clock starts when the camera is opened "

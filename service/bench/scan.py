@@ -63,6 +63,8 @@ def _finite_or_none(x):
         return None
     if isinstance(x, (int, np.integer)):
         return int(x)
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [_finite_or_none(v) for v in x]
     x = float(x)
     return x if math.isfinite(x) else None
 

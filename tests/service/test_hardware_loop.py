@@ -1,0 +1,124 @@
+"""The service with the real ur-rtde client against the RTDE emulator (its own process), as
+``flyscan serve --sim --robot ur://HOST`` runs it; and a recorded pass replayed offline."""
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from clients.ply import parse_ply, xyz_array
+from scanner_core.crosscheck import DEFAULT_TOLERANCE_MM
+from service.api import create_app
+from service.daemon import Service
+from service.recording import load_recording, replay_recording
+from service.settings import Settings
+from running import free_port, serve_in_thread
+
+#: The simulated robot's clock runs ahead of the camera's by this much, s.
+CLOCK_OFFSET_S = 7.25
+
+
+def wait_for(predicate, timeout=30.0, poll=0.05):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(poll)
+    raise TimeoutError("condition not met in time")
+
+
+def _free_rtde_host() -> str:
+    """A loopback address whose RTDE port (fixed at 30004 in ur-rtde) is free."""
+    for n in range(60, 120):
+        host = f"127.0.0.{n}"
+        with socket.socket() as probe:
+            try:
+                probe.bind((host, 30004))
+                return host
+            except OSError:
+                continue
+    raise RuntimeError("no free loopback address for the RTDE emulator")
+
+
+def _scan(client, **request):
+    scan_id = client.post("/scans", json=request).json()["scan_id"]
+    return wait_for(lambda: (lambda i: i if i["state"] in ("done", "failed") else None)(
+        client.get(f"/scans/{scan_id}").json()))
+
+
+@pytest.fixture(scope="module")
+def robot_service(tmp_path_factory):
+    settings = Settings(sim=True, robot=f"ur://{_free_rtde_host()}",
+                        data=tmp_path_factory.mktemp("hil") / "data",
+                        zmq=f"tcp://127.0.0.1:{free_port()}", sim_speed_mm_s=1000.0,
+                        sim_clock_offset_s=CLOCK_OFFSET_S)
+    service = Service(settings)
+    with serve_in_thread(create_app(service=service)) as client:
+        wait_for(lambda: client.get("/status").json()["robot"]["connected"], timeout=10)
+        yield client, service
+
+
+def test_the_real_client_cross_checks_a_consistent_pass(robot_service):
+    client, service = robot_service
+    first = _scan(client)
+    assert first["state"] == "done", first["reason"]
+    check = first["cross_check"]
+    assert check["robot_connected"] and check["samples"] > 20
+    assert check["clock_offset_s"] == pytest.approx(CLOCK_OFFSET_S, abs=2e-4)
+    assert check["max_mm"] < DEFAULT_TOLERANCE_MM and not check["flagged"]
+    second = _scan(client)["cross_check"]
+    assert second["max_mm"] < DEFAULT_TOLERANCE_MM and not second["flagged"]
+    status = client.get("/status").json()
+    assert status["robot"]["host"] == service.settings.robot.removeprefix("ur://")
+    assert status["robot"]["samples"] > 100 and status["led_correction_t_mm"] is not None
+
+
+@pytest.mark.parametrize("bias_mm", [[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]],
+                         ids=["across the pass", "along the pass"])
+def test_an_inconsistent_robot_is_flagged(robot_service, bias_mm):
+    client, service = robot_service
+    if service.engine.led_correction_t_mm is None:
+        _scan(client)  # the first pass teaches the LED correction
+    service.driver.emulator.set_bias(bias_mm)
+    try:
+        info = _scan(client)
+    finally:
+        service.driver.emulator.set_bias([0.0, 0.0, 0.0])
+    assert info["state"] == "done"
+    # Along the pass part of the shift goes into the clock offset's allowed drift (1 ms: 1 mm
+    # at this test's 1 m/s); what is left still exceeds the tolerance.
+    assert info["cross_check"]["flagged"]
+    assert info["cross_check"]["max_mm"] > (0.3 if bias_mm[1] == 0 else DEFAULT_TOLERANCE_MM)
+
+
+def test_a_dropped_robot_degrades_the_cross_check_never_the_scan(robot_service):
+    client, service = robot_service
+    _scan(client)  # the robot has given the pass's rotation once
+    emulator = service.driver.emulator
+    emulator.drop()
+    dropped = time.monotonic()
+    wait_for(lambda: not client.get("/status").json()["robot"]["connected"], timeout=3.0)
+    assert time.monotonic() - dropped < 3.0
+    info = _scan(client)
+    assert info["state"] == "done" and info["points"] > 1000
+    assert info["cross_check"]["flagged"] and not info["cross_check"]["robot_connected"]
+    assert info["frames_held_rotation"] == info["frames"]
+    emulator.restore()
+    back = time.monotonic()
+    wait_for(lambda: client.get("/status").json()["robot"]["connected"], timeout=5.0)
+    assert time.monotonic() - back < 5.0
+    after = _scan(client)["cross_check"]
+    assert after["robot_connected"] and not after["flagged"]
+
+
+def test_a_recorded_pass_replays_to_the_same_cloud(robot_service):
+    client, service = robot_service
+    info = _scan(client, record=True)
+    assert info["state"] == "done"
+    recording = wait_for(lambda: client.get(f"/scans/{info['scan_id']}").json()
+                         .get("recording", {}).get("path"))
+    live = xyz_array(parse_ply(client.get(f"/scans/{info['scan_id']}/cloud.ply").content))
+    replayed = replay_recording(load_recording(recording))
+    np.testing.assert_array_equal(replayed.cloud, live)
+    assert replayed.frames == info["frames"]
