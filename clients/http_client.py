@@ -168,16 +168,19 @@ class FlyscanClient:
 
     # -- scans --------------------------------------------------------------------------------
     def arm(self, part: str | None = None, timeout_s: float | None = None,
-            misplace=None) -> str:
+            misplace=None, record: bool = False) -> str:
         """``POST /scans``: arm the trigger for the next pass; return the new scan id.
 
         ``misplace`` ([tx, ty, tz, rx, ry, rz], mm and degrees) moves the part in the gripper
-        for the pass: honoured by a simulated cell only.
+        for the pass: honoured by a simulated cell only. ``record`` also records the pass on
+        the service's side (its ScanInfo's ``recording.path``, once written).
 
         Raises Conflict (409) when a scan is in progress, NotFound (404) for an unknown part,
         ServiceUnavailable (503) when the camera is not streaming.
         """
         request = {"part": part, "timeout_s": timeout_s}
+        if record:
+            request["record"] = True
         if misplace is not None:
             request["misplace"] = [float(v) for v in misplace]
         body = self._json("POST", "/scans", json=request)

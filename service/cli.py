@@ -180,6 +180,20 @@ def _parse_args(argv):
                                                                "(default ./flyscan-data)")
     serve.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
 
+    record = command("record", help="record the next pass of a running service (every frame "
+                                    "and the robot's poses) for replay")
+    record.add_argument("--url", default="http://127.0.0.1:8000", help="the service")
+    record.add_argument("--part", default=None, help="part to scan (default the service's)")
+    record.add_argument("--token", default=os.environ.get("FLYSCAN_TOKEN"),
+                        help="bearer token, if the service has one (default $FLYSCAN_TOKEN)")
+    record.add_argument("--timeout", type=float, default=60.0,
+                        help="seconds to wait for the pass and its recording")
+
+    replay = command("replay", help="run a recorded pass through the pipeline offline")
+    replay.add_argument("recording", type=Path, help="a folder `flyscan record` made")
+    replay.add_argument("--out", type=Path, required=True,
+                        help="folder for cloud.ply, edges.ply and report.json")
+
     bench = command("bench", help="benchmarks: JSON figures and PNG charts")
     bench.add_argument("what", choices=["stripe", "scan", "simulate", "service", "pose"],
                        help="pose: registration accuracy, time, basin, sigma calibration and "
@@ -400,6 +414,67 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _cmd_record(args) -> int:
+    from clients.http_client import FlyscanClient, FlyscanError, ScanFailed as PassFailed
+
+    deadline = time.monotonic() + args.timeout
+    try:
+        with FlyscanClient(args.url, token=args.token) as client:
+            scan_id = client.arm(part=args.part, record=True)
+            print(f"armed {scan_id}: waiting for the pass", file=sys.stderr, flush=True)
+            try:
+                info = client.wait(scan_id, timeout=args.timeout)
+            except PassFailed as exc:
+                info = exc.info  # a failed pass is recorded too: that is when it is wanted
+            while (info.get("recording") or {}).get("state") == "recording":
+                if time.monotonic() > deadline:
+                    raise ScanError(f"the recording of {scan_id} was not written within "
+                                    f"{args.timeout:g} s")
+                time.sleep(0.2)
+                info = client.scan(scan_id)
+    except (FlyscanError, TimeoutError, OSError) as exc:
+        raise ScanError(f"{args.url}: {exc}") from None
+    recording = info.get("recording") or {}
+    if not recording.get("path"):
+        raise ScanError(f"scan {scan_id} ({info['state']}) was not recorded: "
+                        f"{recording.get('error', 'the service gave no recording')}")
+    print(f"recorded {scan_id} ({info['state']}): {recording['frames']} frames, "
+          f"{recording['robot_samples']} robot samples, {recording['bytes'] / 1e6:.0f} MB in "
+          f"{recording['path']} (on the service's machine)")
+    return 0
+
+
+def _cmd_replay(args) -> int:
+    from scanner_core.report import scan_report
+    from scanner_core.scanio import save_scan
+    from service.recording import RecordingError, load_recording, replay_recording
+
+    _check_out_dir(args.out)
+    try:
+        recording = load_recording(args.recording)
+    except RecordingError as exc:
+        raise UsageError(str(exc)) from None
+    t0 = time.perf_counter()
+    scan = replay_recording(recording)
+    wall_s = time.perf_counter() - t0
+    recorded_s = recording.frame_count / recording.fps
+    report = scan_report(scan, None, replay={
+        "recording": str(args.recording), "frames": recording.frame_count, "wall_s": round(wall_s, 3),
+        "times_real_time": round(recorded_s / wall_s, 2) if wall_s > 0 else None})
+    failure = _scan_failure(scan)
+    if failure is not None:
+        report.update(status="failed", failure=failure)
+    paths = save_scan(args.out, scan, report)
+    print(f"replayed {recording.frame_count} frames ({recorded_s:.2f} s of camera time) in "
+          f"{wall_s:.2f} s, {recorded_s / wall_s:.1f} x real time: {scan.frames} profiles, "
+          f"{len(scan.cloud)} points")
+    for key, path in paths.items():
+        print(f"{key}: {path}")
+    if failure is not None:
+        raise ScanFailed(failure)
+    return 0
+
+
 def _cmd_serve(args) -> int:
     import logging
 
@@ -517,6 +592,7 @@ def _run(args) -> int:
     with threadpool_limits(limits=1, user_api="blas"):
         try:
             return {"scan": _cmd_scan, "simulate": _cmd_simulate, "serve": _cmd_serve,
+                    "record": _cmd_record, "replay": _cmd_replay,
                     "bench": _cmd_bench}[args.command](args)
         except (UsageError, PartError, CalibrationError, ScanError, SetupError,
                 EmbreeError) as exc:
