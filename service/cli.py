@@ -195,10 +195,12 @@ def _parse_args(argv):
                         help="folder for cloud.ply, edges.ply and report.json")
 
     bench = command("bench", help="benchmarks: JSON figures and PNG charts")
-    bench.add_argument("what", choices=["stripe", "scan", "simulate", "service", "pose"],
+    bench.add_argument("what", choices=["stripe", "scan", "simulate", "service", "pose",
+                                        "hardware"],
                        help="pose: registration accuracy, time, basin, sigma calibration and "
                             "the side-by-side with Open3D and small_gicp, then where pose and "
-                            "edges break")
+                            "edges break; hardware: the UR cross-check through ur-rtde, the "
+                            "robot link's loss and recovery, replay against real time")
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
     bench.add_argument("--meshes", type=Path, default=None,
@@ -548,6 +550,8 @@ def _cmd_bench(args) -> int:
         from service.bench import simulate as bench
     elif args.what == "service":
         from service.bench import service as bench
+    elif args.what == "hardware":
+        from service.bench import hardware as bench
     elif args.what == "pose":
         from service.bench import pose as bench
         from service.bench import pose_limits
@@ -570,8 +574,8 @@ def main(argv=None) -> int:
     gc.disable()
     try:
         args = _parse_args(argv)
-        if args.command == "serve":
-            gc.enable()
+        if args.command == "serve" or getattr(args, "what", None) == "hardware":
+            gc.enable()  # long-lived: the service runs inside
         else:
             atexit.unregister(gc.freeze)
             atexit.register(gc.freeze)
