@@ -93,6 +93,12 @@ def test_the_page_shows_the_live_status_and_a_scan_armed_from_it(page, service):
     expect(state_cell).to_have_text(re.compile("^(done|failed)$"), timeout=SCAN_TIMEOUT_MS)
     info = httpx.get(f"{service.url}/scans/{scan_id}").json()
     assert state_cell.inner_text() == "done", info
+    # The robot's link and the scan's cross-check, as the service reports them.
+    expect(page.locator("#robot")).to_have_text("connected")
+    expect(page.locator("#robot-detail")).to_contain_text("clock offset")
+    check = info["cross_check"]
+    expect(row.locator("td").nth(6)).to_have_text(f"{check['rms_mm']:.3f} / {check['max_mm']:.3f}")
+    expect(row.locator("td").nth(7)).to_have_text("yes" if check["flagged"] else "no")
     points = int(row.locator("td.points").inner_text().replace(",", ""))
     assert points > 0 and points == info["points"]
     # The pose's misplacement as the service reports it, to the digits shown.
