@@ -109,6 +109,21 @@ _CONSTANTS = {"robot_mode": (7,), "safety_mode": (1,), "safety_status": (1,),
               "actual_main_voltage": (48.0,), "actual_robot_voltage": (48.0,)}
 
 
+def free_loopback_host(first: int = 2, count: int = 60, port: int = RTDE_PORT) -> str:
+    """A loopback address (127.0.0.FIRST, ...) whose ``port`` is free: ur-rtde's port is fixed,
+    so emulators side by side need addresses of their own."""
+    for n in range(first, first + count):
+        host = f"127.0.0.{n}"
+        with socket.socket() as probe:
+            try:
+                probe.bind((host, port))
+                return host
+            except OSError:
+                continue
+    raise RuntimeError(f"no loopback address 127.0.0.{first}..{first + count - 1} has port "
+                       f"{port} free")
+
+
 def output_type(name: str) -> str | None:
     """The RTDE type of output variable ``name`` (``"VECTOR6D"``, ...), None if unknown."""
     if name in _OUTPUT_TYPES:

@@ -24,6 +24,7 @@ import time
 import numpy as np
 
 from service.bench.machine import machine_info
+from service.rtde_emulator import free_loopback_host
 
 #: Passes of each kind (consistent, shifted across, shifted along); fewer with --quick.
 PASSES, QUICK_PASSES = 8, 3
@@ -36,18 +37,6 @@ INCONSISTENCY_MM = 0.5
 TARGET_DEVIATION_MM = 0.1
 TARGET_DETECT_S, TARGET_RECOVER_S = 3.0, 5.0
 TARGET_REPLAY_X = 5.0
-
-
-def _free_rtde_host(start: int) -> str:
-    for n in range(start, start + 60):
-        host = f"127.0.0.{n}"
-        with socket.socket() as probe:
-            try:
-                probe.bind((host, 30004))
-                return host
-            except OSError:
-                continue
-    raise RuntimeError("no free loopback address for the RTDE emulator")
 
 
 def _free_port() -> int:
@@ -83,7 +72,7 @@ def cross_checks(passes: int, data: pathlib.Path) -> dict:
     from service.recording import load_recording, replay_recording
     from service.settings import Settings
 
-    settings = Settings(sim=True, robot=f"ur://{_free_rtde_host(130)}", data=data,
+    settings = Settings(sim=True, robot=f"ur://{free_loopback_host(130)}", data=data,
                         zmq=f"tcp://127.0.0.1:{_free_port()}", sim_clock_offset_s=3.5)
     service = Service(settings)
     service.start()
@@ -129,7 +118,7 @@ def link_trials(trials: int) -> list[dict]:
     from service.ur_robot import URRobot
 
     rows = []
-    with RtdeEmulator(_free_rtde_host(200)).start() as emulator:
+    with RtdeEmulator(free_loopback_host(200)).start() as emulator:
         emulator.set_track(time.monotonic(), 0.0, np.eye(3), [0.0, 0.0, 500.0])
         robot = URRobot(emulator.host)
         robot.connect()

@@ -16,6 +16,17 @@ import uvicorn
 START_TIMEOUT_S = 60.0
 
 
+def wait_for(predicate, timeout=30.0, poll=0.02):
+    """The predicate's first truthy value within ``timeout`` s; TimeoutError otherwise."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(poll)
+    raise TimeoutError("condition not met in time")
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -20,21 +20,12 @@ from service.daemon import Service, SimPassDriver
 from service.engine import Engine
 from service.settings import Settings
 from service.store import ScanStore
-from running import serve_in_thread
+from running import serve_in_thread, wait_for
 from simulator.live import LiveSimCell
 
 #: The engine's camera timeout in these tests, s: short, so that a stop is noticed quickly.
 CAMERA_TIMEOUT_S = 0.3
 
-
-def wait_for(predicate, timeout=30.0, poll=0.02):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(poll)
-    raise TimeoutError("condition not met in time")
 
 
 @pytest.fixture

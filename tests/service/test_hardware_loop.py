@@ -1,6 +1,5 @@
 """The service with the real ur-rtde client against the RTDE emulator (its own process), as
 ``flyscan serve --sim --robot ur://HOST`` runs it; and a recorded pass replayed offline."""
-import socket
 import time
 
 import numpy as np
@@ -11,34 +10,13 @@ from scanner_core.crosscheck import DEFAULT_TOLERANCE_MM
 from service.api import create_app
 from service.daemon import Service
 from service.recording import load_recording, replay_recording
+from service.rtde_emulator import free_loopback_host
 from service.settings import Settings
-from running import free_port, serve_in_thread
+from running import free_port, serve_in_thread, wait_for
 
 #: The simulated robot's clock runs ahead of the camera's by this much, s.
 CLOCK_OFFSET_S = 7.25
 
-
-def wait_for(predicate, timeout=30.0, poll=0.05):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(poll)
-    raise TimeoutError("condition not met in time")
-
-
-def _free_rtde_host() -> str:
-    """A loopback address whose RTDE port (fixed at 30004 in ur-rtde) is free."""
-    for n in range(60, 120):
-        host = f"127.0.0.{n}"
-        with socket.socket() as probe:
-            try:
-                probe.bind((host, 30004))
-                return host
-            except OSError:
-                continue
-    raise RuntimeError("no free loopback address for the RTDE emulator")
 
 
 def _scan(client, **request):
@@ -49,7 +27,7 @@ def _scan(client, **request):
 
 @pytest.fixture(scope="module")
 def robot_service(tmp_path_factory):
-    settings = Settings(sim=True, robot=f"ur://{_free_rtde_host()}",
+    settings = Settings(sim=True, robot=f"ur://{free_loopback_host(60)}",
                         data=tmp_path_factory.mktemp("hil") / "data",
                         zmq=f"tcp://127.0.0.1:{free_port()}", sim_speed_mm_s=1000.0,
                         sim_clock_offset_s=CLOCK_OFFSET_S)
