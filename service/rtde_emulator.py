@@ -28,6 +28,7 @@ import math
 import multiprocessing
 import re
 import selectors
+import signal
 import socket
 import struct
 import sys
@@ -543,6 +544,9 @@ class _Server:
 
 def _serve(host: str, port: int, control) -> None:
     """The emulator process: listen, report, serve until told to stop or orphaned."""
+    # Ctrl-C in a terminal reaches the whole process group: the parent decides when the
+    # emulator stops (it says so, or its end of the control pipe closes).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     server = _Server(host, port, control)
     try:
         server.listen()

@@ -13,6 +13,11 @@ What ur-rtde (1.6.5) imposes, and how this module copes (see NOTES.md):
   socket and a short timeout, which runs the RTDE handshake up to the first data package;
 * after a disconnect its getters keep returning stale values: a sample is new only when its
   timestamp advances, and no new sample for ``stale_s`` means the link is lost;
+* each getter returns one variable: a timestamp and a pose are read by separate calls, and a
+  new data package may be applied between them; the package itself is applied whole (its
+  receive thread holds the state's mutex over all of a package's variables, and every getter
+  takes that mutex), so reading the timestamp again after the pose tells a consistent pair
+  (see :meth:`URRobot._follow`);
 * ``disconnect()`` sleeps 0.5 s (with the GIL released) and the destructor does the same with
   the GIL held: one client object is made per URRobot and re-used through ``reconnect()``,
   which releases the GIL; ``reconnect()`` uses the controller's default rate (500 Hz on an
@@ -401,7 +406,16 @@ class URRobot:
                 pose = client.getActualTCPPose()
                 t_b = client.getTimestamp()
                 now = time.monotonic()
-                # Equal timestamps around the pose: all three are of one data package.
+                # Equal timestamps around the pose: all three are of one data package, so the
+                # pair is never torn. This rests on ur-rtde applying a package whole: in 1.6.5
+                # RTDE::receiveData holds RobotState's update_state_mutex_ from the package's
+                # first variable to its last, and getStateData (behind every getter) locks the
+                # same mutex; timestamps strictly increase within a link. A reader therefore
+                # never sees a new timestamp beside the previous package's pose, and a package
+                # applied between two of these calls changes t_b: the read is dropped, the next
+                # poll gets the package whole. (A check on the values instead, "a pose equal to
+                # the previous one while moving is stale", would drop true samples: a robot that
+                # stops, or the emulator's track that halts at full speed, repeats its pose.)
                 if t_a == t_b and self._keep(t_a, pose, now, fresh):
                     if fresh:
                         fresh = False
