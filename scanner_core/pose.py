@@ -11,7 +11,12 @@ is registered against the CAD model in {P}, starting from the nominal grasp ^T X
   observable subspace of the information matrix only.
 - **coarse**: used when the fine stage from the nominal grasp does not settle on a good fit; a
   grid of orientations around the nominal grasp, each with its translation seeded from the
-  scan's extent, is refined briefly on a subsample and the best fit goes on to the fine stage.
+  scan's extent, is refined briefly on a subsample; around the best few, a finer sweep about
+  the rotation their fit pins down least (a flat part's turn in its plane, held by its edges
+  alone) finds the basin a many-lobed outline leaves a degree or two wide. Candidates are
+  ranked by their agreement at fixed tolerances (`_agreement`), not by their own robust
+  scale, which favours a loose, unsettled fit. The same sweep checks a fit from the nominal
+  grasp that looks good: one a lobe off matches every edge point but a keyway's.
 - **uncertainty**: the covariance of the six motion parameters is the cluster-robust
   sandwich ``H^-1 (sum_f g_f g_f^T) H^-1`` over the frames f (Liang and Zeger 1986): the
   points of one profile share that frame's placement error (the marker's triangulation), so
@@ -95,6 +100,9 @@ class PoseParams:
         Scan points used to score each coarse candidate.
     coarse_iterations : int
         Iterations refining each coarse candidate.
+    coarse_sweep_deg : float
+        Step of the finer sweep about the weakest rotation of the best coarse candidates
+        (across one step of the grid); the seeds it finds are refined like the grid's.
     seed : int
         Seed of the subsampling.
     """
@@ -117,6 +125,7 @@ class PoseParams:
     coarse_extent_deg: float = 15.0
     coarse_points: int = 800
     coarse_iterations: int = 8
+    coarse_sweep_deg: float = 1.0
     seed: int = 0
 
 
@@ -370,11 +379,13 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
     fit = _fine(surface, edges, nominal, params)
     coarse = False
     if (fit.inlier_fraction < params.good_inlier_fraction
-            or fit.edge_fraction < params.good_edge_fraction):
-        start = _coarse(surface, edges, nominal, params, rng)
-        candidate = _fine(surface, edges, start, params)
+            or fit.edge_fraction < params.good_edge_fraction
+            or _better_turn(surface, edges, fit.pose, params)):
+        starts = _coarse(surface, edges, nominal, params, rng)
+        candidate = _fine(surface, edges, starts[0], params)
         coarse = True
-        if _score(candidate) > _score(fit):
+        if _final_score(surface, edges, candidate, params) > _final_score(surface, edges, fit,
+                                                                            params):
             fit = candidate
     covariance, std, free_axes = _uncertainty(fit, params)
     return PoseResult(
@@ -383,6 +394,12 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
         covariance=covariance, iterations=fit.iterations, coarse=coarse,
         time_ms=(time.perf_counter() - t0) * 1e3,
         flags=_flags(fit, free_axes, edges is not None, params))
+
+
+def _final_score(surface, edges, fit: _Fit, params) -> float:
+    """A converged fit's agreement at five times the expected scatter."""
+    return _agreement(surface, edges, fit.pose, 5.0 * params.surface_noise_mm,
+                      5.0 * params.edge_noise_mm)
 
 
 def _flags(fit: _Fit, free_axes, with_edges: bool, params: PoseParams) -> list[str]:
@@ -723,8 +740,55 @@ def _score(fit: _Fit) -> float:
     return fit.inlier_fraction + fit.edge_fraction - 0.01 * min(fit.rms, 10.0)
 
 
-def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> np.ndarray:
-    """The best start among a grid of orientations around the nominal grasp."""
+def _agreement(surface: _Terms, edges: _Terms | None, pose, tol_surface: float,
+               tol_edge: float) -> float:
+    """How well `pose` explains the scan at fixed tolerances: the fraction of the surface
+    points within `tol_surface` mm of the model's plane (normals agreeing) plus the fraction
+    of the edge points within `tol_edge` mm of a model edge (in the (x_T, y_T) plane).
+
+    Unlike the inlier fractions of a fit (`_score`), which count within a multiple of the
+    fit's own robust scale, this does not reward a loose, unsettled fit: it ranks the
+    candidates of the coarse search, which are refined only briefly.
+    """
+    rotation, translation = pose[:3, :3], pose[:3, 3]
+    idx, nearest = _match(surface, pose, tol_surface + 2.0 * _spacing(surface.model))
+    n_t = surface.model.normals[nearest] @ rotation.T
+    q_t = surface.model.points[nearest] @ rotation.T + translation
+    res = np.abs(np.einsum("ij,ij->i", n_t, surface.points[idx] - q_t))
+    if surface.normals is not None:
+        scan_n = surface.normals[idx]
+        agree = np.einsum("ij,ij->i", n_t, np.nan_to_num(scan_n, nan=0.0))
+        res[(agree < surface.agreement) & np.isfinite(scan_n[:, 0])] = np.inf
+    score = np.count_nonzero(res <= tol_surface) / max(len(surface.points), 1)
+    if edges is None or not len(edges.points):
+        return score + 1.0
+    idx, nearest = _match(edges, pose, tol_edge + _spacing(edges.model) + _EDGE_SEARCH_MM)
+    d_t = edges.model.directions[nearest] @ rotation.T
+    m = np.stack([d_t[:, 1], -d_t[:, 0], np.zeros(len(d_t))], axis=1)
+    length = np.linalg.norm(m, axis=1)
+    ok = length > _MIN_EDGE_LEVEL
+    q_t = edges.model.points[nearest[ok]] @ rotation.T + translation
+    res = np.abs(np.einsum("ij,ij->i", m[ok] / length[ok, None], edges.points[idx[ok]] - q_t))
+    return score + np.count_nonzero(res <= tol_edge) / len(edges.points)
+
+
+# The coarse candidates are ranked at these tolerances (mm, surface and edges): wide enough
+# for a fit refined only briefly, narrow enough that a wrong turn (a feature a lobe off)
+# does not pass.
+_COARSE_TOL_MM = (0.1, 0.25)
+# Distinct coarse candidates kept from the grid, each swept about its weakest rotation.
+_COARSE_KEEP = 3
+# Seeds from the sweeps refined and compared.
+_SWEEP_SEEDS = 4
+# Two candidates closer than this (degrees, and mm) are the same.
+_SAME_DEG, _SAME_MM = 1.0, 0.5
+
+
+def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> list[np.ndarray]:
+    """Starts for the fine stage, best first, from a grid of orientations around the nominal
+    grasp and, around the best of them, a finer sweep about the rotation their fit pins down
+    least (a flat part's turn in its plane: the edges alone hold it, and the basin of a part
+    with a many-lobed outline is a degree or two wide)."""
     few = surface.subset(_subsample(len(surface.points), params.coarse_points, rng))
     few_edges = None if edges is None else edges.subset(
         _subsample(len(edges.points), params.coarse_points, rng))
@@ -732,17 +796,93 @@ def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> np.n
                        params.coarse_step_deg)
     grid = np.array(np.meshgrid(angles, angles, angles, indexing="ij")).reshape(3, -1).T
     grid = grid[np.argsort(np.linalg.norm(grid, axis=1))]
-    best, best_score = nominal, -np.inf
+
+    def refine(start):
+        fit = _fine(few, few_edges, start, params, iterations=params.coarse_iterations,
+                    gate_mm=params.gate_mm * 2)
+        return fit.pose, _agreement(few, few_edges, fit.pose, *_COARSE_TOL_MM)
+
+    candidates = []
     for rotvec in grid:
         turn = np.eye(4)
         turn[:3, :3] = Rotation.from_rotvec(np.radians(rotvec)).as_matrix()
-        start = _seed_translation(few.points, surface.model, turn @ nominal)
-        fit = _fine(few, few_edges, start, params, iterations=params.coarse_iterations,
-                    gate_mm=params.gate_mm * 2)
-        score = _score(fit)
-        if score > best_score:
-            best, best_score = fit.pose, score
-    return best
+        candidates.append(refine(_seed_translation(few.points, surface.model, turn @ nominal)))
+    kept = _distinct(candidates, _COARSE_KEEP)
+    # The sweep: about the weakest rotation of the best candidate's fit, through the scan's
+    # centre, across the grid's step, without refinement (cheap); the best distinct seeds
+    # are then refined like the grid's candidates.
+    step = max(params.coarse_sweep_deg, 1e-3)
+    half = params.coarse_step_deg / 2.0 + step
+    offsets = np.arange(-half, half + 1e-9, step)
+    centre = few.points.mean(axis=0)
+    seeds = []
+    for pose, _ in kept:
+        axis = _weakest_rotation(few, few_edges, pose, centre, params)
+        for angle in offsets:
+            turn = _apply(np.concatenate([np.zeros(3), np.radians(angle) * axis]), centre)
+            moved = turn @ pose
+            seeds.append((moved, _agreement(few, few_edges, moved, *_COARSE_TOL_MM)))
+    refined = [refine(pose) for pose, _ in _distinct(seeds, _SWEEP_SEEDS, same_deg=step * 1.5)]
+    return [pose for pose, _ in _distinct(refined + kept, _SWEEP_SEEDS)]
+
+
+# A turn whose agreement beats the fit's by this much (fractions of the surface points plus
+# of the edge points) sends a fit that looked good to the coarse search.
+_BETTER_TURN = 0.02
+
+
+def _better_turn(surface: _Terms, edges: _Terms | None, pose, params) -> bool:
+    """Whether a turn of `pose` about its weakest rotation, within one step of the coarse
+    grid, fits the scan better than `pose` itself: a fit that matches most of its points
+    can still sit a lobe or a tooth off (every edge but a keyway's matches), the many-lobed
+    outline then pins the wrong turn as tightly as the right one."""
+    rng = np.random.default_rng(params.seed + 1)
+    few = surface.subset(_subsample(len(surface.points), params.coarse_points, rng))
+    few_edges = None if edges is None else edges.subset(
+        _subsample(len(edges.points), params.coarse_points, rng))
+    centre = few.points.mean(axis=0)
+    axis = _weakest_rotation(few, few_edges, pose, centre, params)
+    own = _agreement(few, few_edges, pose, *_COARSE_TOL_MM)
+    step = max(params.coarse_sweep_deg, 1e-3)
+    for angle in np.arange(step, params.coarse_step_deg + 1e-9, step):
+        for sign in (-1.0, 1.0):
+            turn = _apply(np.concatenate([np.zeros(3), np.radians(sign * angle) * axis]), centre)
+            if _agreement(few, few_edges, turn @ pose, *_COARSE_TOL_MM) > own + _BETTER_TURN:
+                return True
+    return False
+
+
+def _distinct(candidates, count, *, same_deg=_SAME_DEG, same_mm=_SAME_MM):
+    """Up to `count` of `(pose, score)` pairs, best first, no two closer than `same_deg`
+    and `same_mm` (one basin's candidates count once)."""
+    chosen = []
+    for pose, score in sorted(candidates, key=lambda c: -c[1]):
+        if all(not _same(pose, other, same_deg, same_mm) for other, _ in chosen):
+            chosen.append((pose, score))
+            if len(chosen) == count:
+                break
+    return chosen
+
+
+def _same(a, b, same_deg=_SAME_DEG, same_mm=_SAME_MM) -> bool:
+    d = a @ np.linalg.inv(b)
+    angle = np.degrees(np.linalg.norm(Rotation.from_matrix(d[:3, :3]).as_rotvec()))
+    return angle < same_deg and np.linalg.norm(a[:3, 3] - b[:3, 3]) < same_mm
+
+
+def _weakest_rotation(surface, edges, pose, centre, params) -> np.ndarray:
+    """Unit axis in {T} of the rotation the fit at `pose` pins down least (translations
+    free to follow: the Schur complement of the information); z_T when it cannot tell."""
+    (jac, _, w, _, _), _ = _linearise(surface, edges, pose, centre,
+                                      [params.gate_mm * 2] * 2, params)
+    if len(w) < 6:
+        return np.array([0.0, 0.0, 1.0])
+    info = _information(jac, w, 1.0)
+    tt, tr, rr = info[:3, :3], info[:3, 3:], info[3:, 3:]
+    reduced = rr - tr.T @ np.linalg.pinv(tt) @ tr
+    values, vectors = np.linalg.eigh(reduced)
+    axis = vectors[:, 0]
+    return axis * np.sign(axis[np.argmax(np.abs(axis))])
 
 
 def _seed_translation(pts, model, pose) -> np.ndarray:

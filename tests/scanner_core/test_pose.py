@@ -216,3 +216,51 @@ def test_bad_input_is_refused(block):
         register(np.zeros((10, 2)), None, model, nominal)
     with pytest.raises(ValueError, match="at least 6 finite points"):
         register(np.full((10, 3), np.nan), None, model, nominal)
+
+
+def lobed_disc(lobes=38, radius=24.0, amplitude=0.4, key_deg=25.0, key_depth=3.0, height=6.0,
+               n=1520):
+    """A cycloidal disc's outline: `lobes` lobes of `amplitude` mm around `radius`, and one
+    keyway (`key_deg` wide, `key_depth` deep) that tells the lobes apart; a prism."""
+    theta = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    r = radius + amplitude * np.cos(lobes * theta)
+    r[np.degrees(theta) <= key_deg] = radius - key_depth
+    ring = np.stack([r * np.cos(theta), r * np.sin(theta)], axis=1)
+    vertices = np.vstack([np.column_stack([ring, np.zeros(n)]),
+                          np.column_stack([ring, np.full(n, height)]),
+                          [[0.0, 0.0, 0.0], [0.0, 0.0, height]]])
+    i = np.arange(n)
+    j = (i + 1) % n
+    faces = np.vstack([np.column_stack([i, j, n + j]), np.column_stack([i, n + j, n + i]),
+                       np.column_stack([np.full(n, 2 * n + 1), n + i, n + j]),
+                       np.column_stack([np.full(n, 2 * n), j, i])])
+    return trimesh.Trimesh(vertices, faces, process=True)
+
+
+@pytest.fixture(scope="module")
+def disc():
+    mesh = lobed_disc()
+    assert mesh.is_watertight and mesh.volume > 0
+    return mesh, centred_grasp(mesh), SurfaceModel.from_mesh(mesh), EdgeModel.from_mesh(mesh)
+
+
+@pytest.mark.parametrize("offset", [
+    (1.0, 0.5, -0.5, 2.0, 1.0, -7.0),   # the fine fit settles a lobe (9.5 degrees) off
+    (0.5, -0.3, 0.2, 1.0, -1.0, 5.0),
+    (1.0, 0.5, -0.5, 2.0, 1.0, 12.0),   # between the coarse grid's turns
+])
+@pytest.mark.parametrize("force_coarse", [False, True])
+def test_a_many_lobed_disc_is_not_left_a_lobe_off(disc, offset, force_coarse):
+    """A 38-lobed disc with a keyway, turned in its plane: the lobes hold the fit from the
+    nominal grasp a lobe off, matching every edge point but the keyway's (a fit that looks
+    good). A finer turn about the axis the fit pins down least finds the keyway: the coarse
+    search runs, and its sweep between the grid's turns finds the right lobe."""
+    mesh, nominal, model, edge_model = disc
+    truth = misplacement(*offset) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=1)
+    params = PoseParams(good_inlier_fraction=1.01 if force_coarse else 0.8)
+    result = register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
+                      edge_frame_ids=edge_frames, edge_model=edge_model, params=params)
+    dt, dr = pose_error(result.matrix, truth)
+    assert result.coarse
+    assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr)
