@@ -59,7 +59,38 @@ class PipelineParams:
     stripe_threshold_dn : float
     min_peak_dn : float
         Columns whose stripe peaks lower are dropped: on grazing surfaces the stripe fades
-        into the noise and its centre errs by tenths of a pixel.
+        into the noise and its centre errs by tenths of a pixel.  Used with
+        ``stripe_floor="fixed"`` only.
+    stripe_floor : str
+        ``"fixed"``: the threshold and the minimum peak are ``stripe_threshold_dn`` and
+        ``min_peak_dn``.  ``"auto"``: both follow the frame's noise (``scanner_core.stripe``,
+        ``threshold="auto"``: 20 DN on the reference model) and a column is kept when its
+        peak SNR reaches ``min_peak_snr``, so that a dark part's stripe (30 DN over 3 DN of
+        noise) still counts.
+    min_peak_snr : float
+        With ``stripe_floor="auto"``: smallest peak SNR kept, ``(peak - background) / noise``.
+        6 keeps a 30 DN stripe over 3 DN of noise (SNR ~10; its centre to ~0.15 px RMS) and drops
+        what barely clears the extraction's own 5-sigma floor (~0.25 px).  Why "fixed" stays the
+        default: on ``flyscan bench scan --quick`` (block, cog; measured with the policy
+        "continuity" and saturation "fit") "auto" with 6 gave 10.80 um RMS
+        and 1 unmatched point against 10.36 um and 0 with the fixed floors (grazing columns of
+        30-40 DN come back, with their tenths of a pixel); with 10 (40 DN on the reference model)
+        10.32 um and 0, but then a 30 DN stripe loses half its columns again.
+    stripe_policy : str
+        Which peak is the stripe where a column holds two (``scanner_core.stripe.POLICIES``).
+        "reject" (a column with two peaks is dropped) stays the pipeline's default for now:
+        with the fixed floors, noise peaks count as second peaks at high read noise, and
+        ``flyscan bench pose_limits`` (and its test) expects the pass at 25 DN of noise to give
+        < 50 points; with "continuity" it gave 500.  (On a synthetic frame at 25 DN of noise
+        "continuity" keeps 99.9 % of the columns on the true stripe, "reject" 0.7 %; with
+        ``stripe_floor="auto"``, threshold ~93 DN there, a frame of noise alone gives none.)
+    stripe_saturation : str
+        ``"fit"``: clipped peaks are measured from their flanks (``scanner_core.stripe``: up to
+        10x full scale to ~0.02 px RMS); ``"reject"``: dropped.  "reject" stays the pipeline's
+        default for now: the saturation factor of ``flyscan bench pose_limits`` (and its test)
+        expects the pose to break by 400 DN because saturated columns were dropped; with "fit"
+        it no longer breaks there, and that bench's levels have to reach past 10x full scale
+        before the default can change.
     marker : scanner_core.marker.MarkerParams
     marker_mask_px : float
         Stripe columns closer than this to the marker in the direct view are dropped: the LED
@@ -74,6 +105,10 @@ class PipelineParams:
     stripe_method: str = "cog"
     stripe_threshold_dn: float = 20.0
     min_peak_dn: float = 40.0
+    stripe_floor: str = "fixed"
+    min_peak_snr: float = 6.0
+    stripe_policy: str = "reject"
+    stripe_saturation: str = "reject"
     marker: marker_mod.MarkerParams = field(default_factory=marker_mod.MarkerParams)
     marker_mask_px: float = 12.0
     max_marker_residual_px: float = 1.0
@@ -168,10 +203,17 @@ def frame_stripe(image: np.ndarray, calibration: Calibration, params: PipelinePa
         The columns within ``marker_mask_px`` of the marker in the direct view (None when it
         is not there): where a missing stripe says nothing.
     """
+    auto = params.stripe_floor == "auto"
+    if not auto and params.stripe_floor != "fixed":
+        raise ValueError(f"`stripe_floor` must be 'fixed' or 'auto', got {params.stripe_floor!r}")
     result = stripe_mod.extract(image, method=params.stripe_method,
-                                threshold=params.stripe_threshold_dn,
-                                columns=calibration.direct_columns)
-    valid = result.valid & (result.peak >= params.min_peak_dn)
+                                threshold="auto" if auto else params.stripe_threshold_dn,
+                                columns=calibration.direct_columns, policy=params.stripe_policy,
+                                saturation=params.stripe_saturation)
+    if auto:
+        valid = result.valid & (result.snr >= params.min_peak_snr)
+    else:
+        valid = result.valid & (result.peak >= params.min_peak_dn)
     direct_px = marker.pixels[0]
     if not np.all(np.isfinite(direct_px)) and marker.valid:
         # Seen only in the mirrors (cut off at the image edge, or hidden): mask where the

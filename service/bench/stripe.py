@@ -7,6 +7,13 @@ several read-noise levels, next to the Cramer-Rao bound.  Frames come from the r
 model (``simulator.imaging``): speckle off for the noise sweep (the bound ignores speckle), and the
 reference model with speckle on as a separate figure.
 
+Real surfaces (issue 12): the valid fraction and RMS error of every estimator against the stripe's
+peak from 5 DN to 10 times full scale (dark parts to clipped specular ones), with the fixed and the
+noise-derived ("auto") floors and the historical handling of saturation (rejected) for reference,
+the break points of each method marked (valid fraction below 90 % or RMS above 0.1 px); and the
+fraction of columns on the true stripe under a reflection at half its brightness 20-40 rows away,
+per selection policy.
+
 ``run(out_dir)`` writes ``stripe.json`` and ``stripe.png`` into ``out_dir`` and returns the dict.
 """
 
@@ -39,6 +46,33 @@ TIMING_PASSES = 3
 TARGET_COG_COPY_RATIO = 3.0
 TARGET_CRB_FACTOR = 1.3
 TARGET_MAX_ABS_BIAS_PX = 0.01
+# Dynamic range sweep: stripe peak above the background, DN (5 DN to 10x full scale).
+PEAKS_DN = (5.0, 8.0, 12.0, 18.0, 25.0, 30.0, 40.0, 60.0, 100.0, 150.0, 200.0, 245.0, 300.0,
+            450.0, 700.0, 1000.0, 1530.0, 2000.0, 2550.0)
+# Frames of the sweep and of the reflection panel: short (the stripe stays within
+# SWEEP_ROW_RANGE), full width; rows drawn per column at random (uniform sub-pixel phase).
+SWEEP_HEIGHT = 256
+SWEEP_ROW_RANGE = (40.0, 216.0)
+# Where a method breaks: valid fraction below this or RMS error above that.
+BREAK_MIN_VALID = 0.9
+BREAK_MAX_RMS_PX = 0.1
+# Issue 12 targets on the sweep.
+TARGET_SAT_PEAK_DN = 1530.0  # 6x full scale
+TARGET_SAT_MIN_VALID = 0.98
+TARGET_SAT_MAX_RMS_PX = 0.08
+TARGET_DIM_PEAK_DN = 30.0
+TARGET_DIM_MIN_VALID = 0.9
+TARGET_DIM_MAX_RMS_PX = 0.15
+# Reflection panel: a second stripe at REFLECTION_RATIO of the stripe's brightness,
+# REFLECTION_OFFSETS_PX rows above or below it; glints: every GLINT_PERIOD-th column the
+# reflection is GLINT_RATIO times the stripe.
+REFLECTION_RATIO = 0.5
+REFLECTION_OFFSETS_PX = (20.0, 40.0)
+GLINT_PERIOD = 5
+GLINT_RATIO = 1.5
+TARGET_REFLECTION_ON_STRIPE = 0.98
+# A column is on the true stripe when its row is within this of the truth, px.
+ON_STRIPE_PX = 1.0
 
 
 def _stripe_rows(rng: np.random.Generator, width: int) -> np.ndarray:
@@ -86,6 +120,97 @@ def _median_ms(fn, frames) -> float:
             fn(img)
             times.append(time.perf_counter_ns() - t0)
     return float(np.median(times)) * 1e-6
+
+
+def _sweep_frame(peak_dn: float, rng: np.random.Generator):
+    """A SWEEP_HEIGHT x FRAME_WIDTH reference-model frame with a stripe of ``peak_dn``."""
+    model = ImageModel(read_noise_dn=REFERENCE_NOISE_DN)
+    rows = rng.uniform(*SWEEP_ROW_RANGE, FRAME_WIDTH)
+    img = render_image(SWEEP_HEIGHT, FRAME_WIDTH, model, rng, stripe_cols=np.arange(FRAME_WIDTH),
+                       stripe_rows=rows,
+                       stripe_gain=np.full(FRAME_WIDTH, peak_dn / model.stripe_peak_dn))
+    return img, rows
+
+
+def _breaks(peaks, valid, rms) -> dict:
+    """Working range of one series: the lowest working peak and the first failing one above it."""
+    ok = [v >= BREAK_MIN_VALID and r is not None and r <= BREAK_MAX_RMS_PX
+          for v, r in zip(valid, rms)]
+    if not any(ok):
+        return {"low_dn": None, "high_dn": None}
+    i0 = ok.index(True)
+    i1 = next((i for i in range(i0, len(ok)) if not ok[i]), None)
+    return {"low_dn": peaks[i0], "high_dn": None if i1 is None else peaks[i1]}
+
+
+# series of the dynamic-range sweep: name -> (method, extract options)
+def _sweep_series() -> dict:
+    series = {m: (m, {}) for m in stripe.METHODS}
+    series.update({f"{m} auto": (m, {"threshold": "auto"}) for m in stripe.METHODS})
+    series["cog, saturation rejected (before issue 12)"] = ("cog", {"saturation": "reject"})
+    return series
+
+
+def _dynamic_range(n_frames: int, rng: np.random.Generator) -> dict:
+    frames = {p: [_sweep_frame(p, rng) for _ in range(n_frames)] for p in PEAKS_DN}
+    out = {}
+    for name, (method, opts) in _sweep_series().items():
+        valid, rms, sat = [], [], []
+        for p in PEAKS_DN:
+            errs, nv, ns = [], 0, 0
+            for img, rows in frames[p]:
+                res = stripe.extract(img, method=method, **opts)
+                errs.append(res.row[res.valid].astype(float) - rows[res.valid])
+                nv += int(res.valid.sum())
+                ns += int(res.saturated[res.valid].sum())
+            e = np.concatenate(errs)
+            valid.append(nv / (n_frames * FRAME_WIDTH))
+            rms.append(float(np.sqrt(np.mean(e**2))) if e.size else None)
+            sat.append(ns / max(nv, 1))
+        out[name] = {"method": method, "options": opts, "valid_fraction": valid, "rms_px": rms,
+                     "saturated_fraction": sat, "breaks": _breaks(PEAKS_DN, valid, rms)}
+    return out
+
+
+def _reflection_frame(kind: str, rng: np.random.Generator):
+    """Stripe + reflection: ``kind`` "smooth" (continuous stripe and reflection), "random"
+    (rows and offsets at random per column) or "glints" (smooth, every GLINT_PERIOD-th column
+    the reflection outshines the stripe)."""
+    model = ImageModel(read_noise_dn=REFERENCE_NOISE_DN)
+    c = np.arange(FRAME_WIDTH)
+    lo, hi = SWEEP_ROW_RANGE
+    if kind == "random":
+        rows = rng.uniform(lo + 45.0, hi - 45.0, FRAME_WIDTH)
+        off = (rng.uniform(*REFLECTION_OFFSETS_PX, FRAME_WIDTH)
+               * rng.choice([-1.0, 1.0], FRAME_WIDTH))
+    else:
+        mid = 0.5 * (lo + hi)
+        phase = rng.uniform(0, 2 * np.pi)
+        rows = mid + 25.0 * np.sin(2 * np.pi * c / rng.uniform(500, 900) + phase)
+        a, b = REFLECTION_OFFSETS_PX
+        off = ((0.5 * (a + b) + 0.5 * (b - a) * np.sin(2 * np.pi * c / 1100.0))
+               * rng.choice([-1.0, 1.0]))
+    ratio = np.full(FRAME_WIDTH, REFLECTION_RATIO)
+    if kind == "glints":
+        ratio[c % GLINT_PERIOD == 0] = GLINT_RATIO
+    img = render_image(SWEEP_HEIGHT, FRAME_WIDTH, model, rng, stripe_cols=np.concatenate([c, c]),
+                       stripe_rows=np.concatenate([rows, rows + off]),
+                       stripe_gain=np.concatenate([np.ones(FRAME_WIDTH), ratio]))
+    return img, rows
+
+
+def _reflections(n_frames: int, rng: np.random.Generator) -> dict:
+    out = {}
+    for kind in ("smooth", "random", "glints"):
+        frames = [_reflection_frame(kind, rng) for _ in range(n_frames)]
+        out[kind] = {}
+        for policy in stripe.POLICIES:
+            on = 0
+            for img, rows in frames:
+                res = stripe.extract(img, policy=policy)
+                on += int((res.valid & (np.abs(res.row - rows) < ON_STRIPE_PX)).sum())
+            out[kind][policy] = on / (n_frames * FRAME_WIDTH)
+    return out
 
 
 def run(out_dir: pathlib.Path, *, frames: int = 20, seed: int = 0, quick: bool = False) -> dict:
@@ -148,7 +273,30 @@ def run(out_dir: pathlib.Path, *, frames: int = 20, seed: int = 0, quick: bool =
         print(f"bench stripe: {method:12s} {t_ms:7.3f} ms/frame ({t_ms / copy_ms:5.1f} x copy)  "
               f"RMS {ref['rms_px']:.4f} px  bias {ref['bias_px']:+.4f} px  @ {REFERENCE_NOISE_DN:g} DN",
               file=sys.stderr)
+    # options of issue 12 that cost time (the defaults are timed above)
+    bounds = (np.full(FRAME_WIDTH, ROW_RANGE[0] - 20.0), np.full(FRAME_WIDTH, ROW_RANGE[1] + 20.0))
+    variants = {
+        "cog, threshold auto": lambda img: stripe.extract(img, threshold="auto"),
+        "cog, geometric window": lambda img: stripe.extract(img, row_min=bounds[0],
+                                                            row_max=bounds[1]),
+        "cog, policy strongest": lambda img: stripe.extract(img, policy="strongest"),
+    }
+    variants_ms = {}
+    for name, fn in variants.items():
+        variants_ms[name] = _median_ms(fn, ref_frames)
+        print(f"bench stripe: {name:22s} {variants_ms[name]:7.3f} ms/frame "
+              f"({variants_ms[name] / copy_ms:5.1f} x copy)", file=sys.stderr)
     copy_ms_after = _median_ms(lambda img: img.copy(), ref_frames)  # drift check
+
+    sweep_frames = 1 if quick else 3
+    dynamic = _dynamic_range(sweep_frames, rng)
+    reflections = _reflections(sweep_frames, rng)
+    for name, d in dynamic.items():
+        print(f"bench stripe: {name:44s} works from {d['breaks']['low_dn']} DN "
+              f"to below {d['breaks']['high_dn']} DN", file=sys.stderr)
+    for kind, d in reflections.items():
+        print(f"bench stripe: reflection ({kind}) on the stripe: "
+              + ", ".join(f"{p} {v:.3f}" for p, v in d.items()), file=sys.stderr)
 
     best = min(methods, key=lambda m: methods[m]["at_reference_noise"]["rms_px"])
     max_bias = max(abs(e["bias_px"]) for m in methods.values()
@@ -168,6 +316,15 @@ def run(out_dir: pathlib.Path, *, frames: int = 20, seed: int = 0, quick: bool =
         "copy_ms": copy_ms,
         "copy_ms_after": copy_ms_after,
         "methods": methods,
+        "variants_ms": variants_ms,
+        "dynamic_range": {"peaks_dn": list(PEAKS_DN), "frames_per_peak": sweep_frames,
+                          "frame": {"height": SWEEP_HEIGHT, "width": FRAME_WIDTH},
+                          "break_rule": {"min_valid": BREAK_MIN_VALID,
+                                         "max_rms_px": BREAK_MAX_RMS_PX},
+                          "series": dynamic},
+        "reflection": {"ratio": REFLECTION_RATIO, "offsets_px": list(REFLECTION_OFFSETS_PX),
+                       "glint": {"period": GLINT_PERIOD, "ratio": GLINT_RATIO},
+                       "on_stripe_fraction": reflections},
         "targets": {
             "cog_ratio_to_copy": {"value": cog_ratio, "target_max": TARGET_COG_COPY_RATIO,
                                   "met": cog_ratio <= TARGET_COG_COPY_RATIO},
@@ -176,6 +333,7 @@ def run(out_dir: pathlib.Path, *, frames: int = 20, seed: int = 0, quick: bool =
                                   "met": best_over_crb <= TARGET_CRB_FACTOR},
             "max_abs_bias_px": {"value": max_bias, "target_max": TARGET_MAX_ABS_BIAS_PX,
                                 "met": max_bias <= TARGET_MAX_ABS_BIAS_PX},
+            **_surface_targets(dynamic, reflections),
         },
         "machine": machine_info(),
     }
@@ -185,6 +343,32 @@ def run(out_dir: pathlib.Path, *, frames: int = 20, seed: int = 0, quick: bool =
     return result
 
 
+def _surface_targets(dynamic: dict, reflections: dict) -> dict:
+    def at(name, peak):
+        i = PEAKS_DN.index(peak)
+        d = dynamic[name]
+        return d["valid_fraction"][i], d["rms_px"][i]
+
+    out = {}
+    v, r = at("cog", TARGET_SAT_PEAK_DN)
+    out["saturated_6x_cog"] = {
+        "valid_fraction": v, "rms_px": r, "target_min_valid": TARGET_SAT_MIN_VALID,
+        "target_max_rms_px": TARGET_SAT_MAX_RMS_PX,
+        "met": v >= TARGET_SAT_MIN_VALID and r is not None and r <= TARGET_SAT_MAX_RMS_PX}
+    for method in stripe.METHODS:
+        v, r = at(f"{method} auto", TARGET_DIM_PEAK_DN)
+        out[f"dim_30dn_{method}_auto"] = {
+            "valid_fraction": v, "rms_px": r, "target_min_valid": TARGET_DIM_MIN_VALID,
+            "target_max_rms_px": TARGET_DIM_MAX_RMS_PX,
+            "met": v >= TARGET_DIM_MIN_VALID and r is not None and r <= TARGET_DIM_MAX_RMS_PX}
+    default = "continuity"
+    worst = min(reflections[k][default] for k in ("smooth", "random"))
+    out["reflection_half_default_policy"] = {"policy": default, "value": worst,
+                                             "target_min": TARGET_REFLECTION_ON_STRIPE,
+                                             "met": worst >= TARGET_REFLECTION_ON_STRIPE}
+    return out
+
+
 def _plot(result: dict, path: pathlib.Path) -> None:
     import matplotlib
 
@@ -192,7 +376,10 @@ def _plot(result: dict, path: pathlib.Path) -> None:
     import matplotlib.pyplot as plt
     import matplotlib.ticker
 
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 5))
+    fig, axes = plt.subplots(2, 3, figsize=(18, 10))
+    ax0, ax1 = axes[0, 0], axes[0, 1]
+    _plot_reflection(result, axes[0, 2])
+    _plot_dynamic_range(result, axes[1, 0], axes[1, 1], axes[1, 2])
     noise = np.array(result["noise_levels_dn"])
     crb = np.array([result["crb_px"][str(n)] for n in noise])
     for i, (name, m) in enumerate(result["methods"].items()):
@@ -223,3 +410,75 @@ def _plot(result: dict, path: pathlib.Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _plot_dynamic_range(result: dict, ax_valid, ax_rms, ax_cog) -> None:
+    """Valid fraction and RMS error against the stripe's peak, break points marked."""
+    import matplotlib.ticker
+
+    dr = result["dynamic_range"]
+    peaks = np.array(dr["peaks_dn"])
+    rule = dr["break_rule"]
+    series = dr["series"]
+
+    def draw(ax_v, ax_r, name, color, ls, label):
+        d = series[name]
+        rms = np.array([np.nan if r is None else r for r in d["rms_px"]])
+        ax_v.plot(peaks, d["valid_fraction"], ls, color=color, label=label, marker=".")
+        if ax_r is not None:
+            ax_r.plot(peaks, rms, ls, color=color, label=label, marker=".")
+        for key, mk in (("low_dn", ">"), ("high_dn", "<")):
+            b = d["breaks"][key]
+            if b is None:
+                continue
+            # the break drawn on both panels at the first working (>) / first failing (<) peak
+            ax_v.plot([b], [rule["min_valid"]], mk, color=color, ms=9, mec="k")
+            if ax_r is not None:
+                ax_r.plot([b], [rule["max_rms_px"]], mk, color=color, ms=9, mec="k")
+
+    for i, m in enumerate(m for m in series if series[m]["options"] == {}):
+        draw(ax_valid, ax_rms, m, f"C{i}", "-", m)
+    draw(ax_cog, None, "cog", "C0", "-", "cog, threshold 20 DN")
+    draw(ax_cog, None, "cog auto", "C1", "--", "cog, threshold auto")
+    draw(ax_cog, None, "cog, saturation rejected (before issue 12)", "gray", ":",
+         "cog, saturation rejected (before)")
+    for ax in (ax_valid, ax_rms, ax_cog):
+        ax.set_xscale("log")
+        ax.axvline(255.0 - result["reference_model"]["background_dn"], color="k", lw=0.8, ls="--")
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+        ax.set_xlabel("stripe peak above background, DN "
+                      "(sigma 1.5 px, noise 3 DN; dashed: full scale)")
+    ax_valid.axhline(rule["min_valid"], color="gray", ls=":")
+    ax_valid.set_ylabel("valid fraction")
+    ax_valid.set_title("valid fraction vs peak (> first working, < first failing)")
+    ax_valid.legend(fontsize=7)
+    ax_rms.axhline(rule["max_rms_px"], color="gray", ls=":")
+    ax_rms.set_yscale("log")
+    ax_rms.set_ylabel("RMS error, px")
+    ax_rms.set_title("sub-pixel error vs peak (break: valid < 90 % or RMS > 0.1 px)")
+    ax_rms.legend(fontsize=7)
+    ax_cog.axhline(rule["min_valid"], color="gray", ls=":")
+    ax_cog.set_ylabel("valid fraction")
+    ax_cog.set_title("cog valid fraction: fixed vs auto floors, and before issue 12")
+    ax_cog.legend(fontsize=7)
+
+
+def _plot_reflection(result: dict, ax) -> None:
+    """Fraction of the columns on the true stripe per policy, for each reflection scene."""
+    on = result["reflection"]["on_stripe_fraction"]
+    kinds = list(on)
+    policies = list(next(iter(on.values())))
+    width = 0.8 / len(policies)
+    for i, policy in enumerate(policies):
+        x = np.arange(len(kinds)) + (i - (len(policies) - 1) / 2) * width
+        ax.bar(x, [on[k][policy] for k in kinds], width, label=policy, color=f"C{i}")
+    ax.axhline(TARGET_REFLECTION_ON_STRIPE, color="k", ls=":", label="target 98 %")
+    ax.set_xticks(np.arange(len(kinds)))
+    ax.set_xticklabels([f"{k}" for k in kinds])
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("fraction of columns on the true stripe")
+    r = result["reflection"]
+    ax.set_title(f"reflection at {r['ratio']:g}x, {r['offsets_px'][0]:g}-{r['offsets_px'][1]:g} "
+                 f"rows away (glints: every {r['glint']['period']}th column "
+                 f"{r['glint']['ratio']:g}x)", fontsize=9)
+    ax.legend(fontsize=7)
