@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import pathlib
-import socket
 import sys
 import tempfile
 import time
@@ -24,6 +23,7 @@ import time
 import numpy as np
 
 from service.bench.machine import machine_info
+from service.bench.service import free_port
 from service.rtde_emulator import free_loopback_host
 
 #: Passes of each kind (consistent, shifted across, shifted along); fewer with --quick.
@@ -37,12 +37,6 @@ INCONSISTENCY_MM = 0.5
 TARGET_DEVIATION_MM = 0.1
 TARGET_DETECT_S, TARGET_RECOVER_S = 3.0, 5.0
 TARGET_REPLAY_X = 5.0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _wait(predicate, timeout: float, poll: float = 0.01):
@@ -73,7 +67,7 @@ def cross_checks(passes: int, data: pathlib.Path) -> dict:
     from service.settings import Settings
 
     settings = Settings(sim=True, robot=f"ur://{free_loopback_host(130)}", data=data,
-                        zmq=f"tcp://127.0.0.1:{_free_port()}", sim_clock_offset_s=3.5)
+                        zmq=f"tcp://127.0.0.1:{free_port()}", sim_clock_offset_s=3.5)
     service = Service(settings)
     service.start()
     rows, replays = [], []

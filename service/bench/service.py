@@ -93,7 +93,7 @@ def per_frame(repeats: int) -> dict:
     }
 
 
-def _free_port() -> int:
+def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -132,7 +132,7 @@ def passes(count: int, *, speed_mm_s: float | None = None) -> dict:
     from service.settings import Settings
 
     with tempfile.TemporaryDirectory() as tmp:
-        zmq = f"tcp://127.0.0.1:{_free_port()}"
+        zmq = f"tcp://127.0.0.1:{free_port()}"
         settings = Settings(sim=True, data=pathlib.Path(tmp), zmq=zmq, retention=10,
                             sim_speed_mm_s=speed_mm_s)
         service = Service(settings)
