@@ -37,6 +37,21 @@ class Camera(Protocol):
         ...
 
 
+@runtime_checkable
+class ExposureControl(Protocol):
+    """A camera whose exposure the scanner sets (``scanner_core.exposure``).
+
+    ``exposure_range_us`` and ``gain_range`` are the limits the camera accepts;
+    ``set_exposure`` applies from the next frame grabbed, and every frame reports the
+    exposure and gain it was taken with (``Frame.exposure_us``, ``Frame.gain``).
+    """
+
+    exposure_range_us: tuple[float, float]
+    gain_range: tuple[float, float]
+
+    def set_exposure(self, exposure_us: float, gain: float = 1.0) -> None: ...
+
+
 @dataclass(frozen=True)
 class TcpPose:
     """A TCP pose reported by the robot.

@@ -20,6 +20,7 @@ References
 """
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Iterable, Iterator
@@ -31,11 +32,13 @@ from scanner_core import marker as marker_mod
 from scanner_core import stripe as stripe_mod
 from scanner_core.calibration import Calibration
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
+from scanner_core.exposure import ExposureController, ExposureParams, merge_exposure_pairs
 from scanner_core.edges import EdgeKind, EdgeParams, EdgePoints, find_edges, occluded_dropouts
 from scanner_core.geometry import (base_to_tcp, reproject_marker, triangulate_marker,
                                    triangulate_stripe)
 from scanner_core.trigger import EndReason, Trigger, TriggerParams, TriggerStep
 from scanner_core.types import Frame, MarkerObservation, Profile, Scan
+from scanner_core.window import volume_rows
 
 
 #: A frame newer than the robot's newest pose by at most this, s, takes that pose's rotation:
@@ -46,6 +49,10 @@ MAX_POSE_AGE_S = 0.02
 #: The marker's mask spans this many times ``marker_mask_px`` along the columns: the blob's
 #: halo reaches farther along a column than the stripe's rows vary across a few columns.
 MASK_ROW_FACTOR = 4
+
+#: Stripe reasons of a column that holds no stripe at all (for exposure control).
+_NO_STRIPE = (stripe_mod.Reason.NO_PEAK, stripe_mod.Reason.NOT_PROCESSED,
+              stripe_mod.Reason.OUTSIDE_WINDOW)
 
 
 @dataclass(frozen=True)
@@ -58,45 +65,47 @@ class PipelineParams:
         One of ``scanner_core.stripe.METHODS``.
     stripe_threshold_dn : float
     min_peak_dn : float
-        Columns whose stripe peaks lower are dropped: on grazing surfaces the stripe fades
-        into the noise and its centre errs by tenths of a pixel.  Used with
-        ``stripe_floor="fixed"`` only.
+        With ``stripe_floor="fixed"``: columns whose stripe peaks lower are dropped (on grazing
+        surfaces the stripe fades into the noise and its centre errs by tenths of a pixel).
     stripe_floor : str
-        ``"fixed"``: the threshold and the minimum peak are ``stripe_threshold_dn`` and
-        ``min_peak_dn``.  ``"auto"``: both follow the frame's noise (``scanner_core.stripe``,
-        ``threshold="auto"``: 20 DN on the reference model) and a column is kept when its
-        peak SNR reaches ``min_peak_snr``, so that a dark part's stripe (30 DN over 3 DN of
-        noise) still counts.
+        ``"auto"`` (default): the threshold and the minimum peak follow the frame's noise
+        (``scanner_core.stripe``, ``threshold="auto"``: 20 DN on the reference model) and a
+        column is kept when its peak SNR reaches ``min_peak_snr``, so that a dark part's stripe
+        (30 DN over 3 DN of noise) still counts, its ``quality`` (the peak) saying how much to
+        trust it.  ``"fixed"``: ``stripe_threshold_dn`` and ``min_peak_dn`` (before issue 12).
+        On ``flyscan bench scan --quick`` (block, cog) "auto" gave 10.80 um RMS and 1 unmatched
+        point against 10.36 um and 0 with the fixed floors: the grazing columns of 30-40 DN come
+        back, with their tenths of a pixel.
     min_peak_snr : float
         With ``stripe_floor="auto"``: smallest peak SNR kept, ``(peak - background) / noise``.
         6 keeps a 30 DN stripe over 3 DN of noise (SNR ~10; its centre to ~0.15 px RMS) and drops
-        what barely clears the extraction's own 5-sigma floor (~0.25 px).  Why "fixed" stays the
-        default: on ``flyscan bench scan --quick`` (block, cog; measured with the policy
-        "continuity" and saturation "fit") "auto" with 6 gave 10.80 um RMS
-        and 1 unmatched point against 10.36 um and 0 with the fixed floors (grazing columns of
-        30-40 DN come back, with their tenths of a pixel); with 10 (40 DN on the reference model)
-        10.32 um and 0, but then a 30 DN stripe loses half its columns again.
+        what barely clears the extraction's own 5-sigma floor (~0.25 px).
     stripe_policy : str
-        Which peak is the stripe where a column holds two (``scanner_core.stripe.POLICIES``).
-        "reject" (a column with two peaks is dropped) stays the pipeline's default for now:
-        with the fixed floors, noise peaks count as second peaks at high read noise, and
-        ``flyscan bench pose_limits`` (and its test) expects the pass at 25 DN of noise to give
-        < 50 points; with "continuity" it gave 500.  (On a synthetic frame at 25 DN of noise
-        "continuity" keeps 99.9 % of the columns on the true stripe, "reject" 0.7 %; with
-        ``stripe_floor="auto"``, threshold ~93 DN there, a frame of noise alone gives none.)
+        Which peak is the stripe where a column holds two (``scanner_core.stripe.POLICIES``);
+        default "continuity": under a reflection at half the stripe's brightness it keeps the
+        true stripe in every column.  "reject" drops such columns (before issue 12).
     stripe_saturation : str
-        ``"fit"``: clipped peaks are measured from their flanks (``scanner_core.stripe``: up to
-        10x full scale to ~0.02 px RMS); ``"reject"``: dropped.  "reject" stays the pipeline's
-        default for now: the saturation factor of ``flyscan bench pose_limits`` (and its test)
-        expects the pose to break by 400 DN because saturated columns were dropped; with "fit"
-        it no longer breaks there, and that bench's levels have to reach past 10x full scale
-        before the default can change.
+        ``"fit"`` (default): clipped peaks are measured from their flanks
+        (``scanner_core.stripe``: up to 10x full scale to ~0.02 px RMS) and flagged
+        ``saturated``; ``"reject"``: dropped (before issue 12).
     marker : scanner_core.marker.MarkerParams
     marker_mask_px : float
         Stripe columns closer than this to the marker in the direct view are dropped: the LED
         is bright enough to pass for the stripe there.
     max_marker_residual_px : float
         A marker whose views disagree by more than this (RMS reprojection) is rejected.
+    geometric_window : bool
+        Look for the stripe only in the rows the inspection volume's section of the sheet can
+        reach in each column (``scanner_core.window``), for frames whose TCP pose is known
+        (the marker, and the robot's rotation).  A reflection outside them (onto the cell, the
+        gripper's fingers) is never taken for the stripe.
+    inspection_volume_mm : (3,) float
+        Its size along x_T, y_T, z_T below the TCP, mm.
+    window_margin_mm : float
+        The volume grown by this on every side for the window (a misplaced part may reach out
+        of it by the gripper's tolerance).
+    exposure : scanner_core.exposure.ExposureParams
+        Exposure control (fixed, dynamic or multiple).
     trigger : TriggerParams
     edges : scanner_core.edges.EdgeParams
         Drop-out and step detection along each profile.
@@ -105,13 +114,17 @@ class PipelineParams:
     stripe_method: str = "cog"
     stripe_threshold_dn: float = 20.0
     min_peak_dn: float = 40.0
-    stripe_floor: str = "fixed"
+    stripe_floor: str = "auto"
     min_peak_snr: float = 6.0
-    stripe_policy: str = "reject"
-    stripe_saturation: str = "reject"
+    stripe_policy: str = "continuity"
+    stripe_saturation: str = "fit"
     marker: marker_mod.MarkerParams = field(default_factory=marker_mod.MarkerParams)
     marker_mask_px: float = 12.0
     max_marker_residual_px: float = 1.0
+    geometric_window: bool = True
+    inspection_volume_mm: tuple[float, float, float] = (150.0, 150.0, 100.0)
+    window_margin_mm: float = 5.0
+    exposure: ExposureParams = field(default_factory=ExposureParams)
     trigger: TriggerParams = field(default_factory=TriggerParams)
     edges: EdgeParams = field(default_factory=EdgeParams)
 
@@ -191,8 +204,11 @@ def marker_in_view(marker: MarkerObservation) -> bool:
 
 
 def frame_stripe(image: np.ndarray, calibration: Calibration, params: PipelineParams,
-                 marker: MarkerObservation):
+                 marker: MarkerObservation, rotation_b: np.ndarray | None = None):
     """The stripe of one frame, the columns kept, and the columns beside the marker.
+
+    With ``rotation_b`` ({T}'s rotation in {B} at the frame) and a placed marker, and
+    ``params.geometric_window``, only the rows the inspection volume can reach are searched.
 
     Returns
     -------
@@ -206,10 +222,17 @@ def frame_stripe(image: np.ndarray, calibration: Calibration, params: PipelinePa
     auto = params.stripe_floor == "auto"
     if not auto and params.stripe_floor != "fixed":
         raise ValueError(f"`stripe_floor` must be 'fixed' or 'auto', got {params.stripe_floor!r}")
+    row_min = row_max = None
+    if params.geometric_window and rotation_b is not None and marker.valid:
+        tcp_b = marker.position_b - rotation_b @ calibration.marker_offset_t
+        row_min, row_max = volume_rows(calibration, tcp_b, rotation_b,
+                                       params.inspection_volume_mm,
+                                       margin_mm=params.window_margin_mm)
     result = stripe_mod.extract(image, method=params.stripe_method,
                                 threshold="auto" if auto else params.stripe_threshold_dn,
                                 columns=calibration.direct_columns, policy=params.stripe_policy,
-                                saturation=params.stripe_saturation)
+                                saturation=params.stripe_saturation, row_min=row_min,
+                                row_max=row_max)
     if auto:
         valid = result.valid & (result.snr >= params.min_peak_snr)
     else:
@@ -227,7 +250,8 @@ def frame_stripe(image: np.ndarray, calibration: Calibration, params: PipelinePa
 
 
 def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams = PipelineParams(),
-                  marker: MarkerObservation | None = None) -> Profile:
+                  marker: MarkerObservation | None = None,
+                  rotation_b: np.ndarray | None = None) -> Profile:
     """One frame -> one profile (stripe points in {B}) and the marker position.
 
     Parameters
@@ -238,6 +262,8 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
     params : PipelineParams
     marker : MarkerObservation, optional
         The frame's marker, when the trigger has already found it; searched otherwise.
+    rotation_b : (3, 3) float64, optional
+        {T}'s rotation in {B} at the frame (the robot's): enables the geometric window.
 
     Returns
     -------
@@ -246,7 +272,7 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
     image = frame.image
     if marker is None:
         marker = observe_marker(image, calibration, params)
-    result, valid, near = frame_stripe(image, calibration, params, marker)
+    result, valid, near = frame_stripe(image, calibration, params, marker, rotation_b)
     # Columns by the marker say nothing of the stripe: no drop-out there.
     edges = find_edges(result, valid, calibration.camera, calibration.light_plane_c,
                        params=params.edges, masked=near)
@@ -255,8 +281,14 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
     points_b = triangulate_stripe(pixels, calibration.camera, calibration.light_plane_c)
     finite = np.isfinite(points_b).all(axis=1)  # rays parallel to the sheet, or behind the camera
     columns, points_b = columns[finite], points_b[finite]
+    stripe_cols = ~np.isin(result.reason, _NO_STRIPE)
+    if near is not None:
+        stripe_cols &= ~near
     return Profile(frame.frame_id, frame.t, points_b, columns,
-                   result.peak[columns].astype(np.float32), marker, edges)
+                   result.peak[columns].astype(np.float32), marker, edges,
+                   saturated=result.saturated[columns], exposure_us=frame.exposure_us,
+                   gain=frame.gain, background_dn=result.background_dn,
+                   stripe_peaks=result.peak[stripe_cols])
 
 
 def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams()) -> float:
@@ -285,6 +317,9 @@ def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams())
         marker = tracker.observe(frame)
         tracker.observe(frame)
         process_frame(frame, calibration, params, marker)
+        if params.geometric_window:  # the windowed kernel compiles apart
+            stripe_mod.extract(pixels, columns=calibration.direct_columns, row_min=0.0,
+                               row_max=cam.height / 2.0)
         blank = np.full_like(writable, 10)  # no marker anywhere
         blank.setflags(write=pixels.flags.writeable)
         tracker.observe(Frame(blank, -1, 0.0))
@@ -309,6 +344,9 @@ class PlacedProfile:
     edges_t: np.ndarray | None = None      # (M, 3) float32
     edge_across_t: np.ndarray | None = None  # (M, 3) float64, unit, into the gap
     edges: EdgePoints | None = None
+    columns: np.ndarray | None = None       # (N,) int32
+    saturated: np.ndarray | None = None     # (N,) bool
+    brightness: float = float("nan")        # exposure_us * gain
 
 
 class PassAccumulator:
@@ -385,7 +423,9 @@ class PassAccumulator:
                                        profile.quality, tcp, profile.marker.residual_px,
                                        rotation,
                                        base_to_tcp(edges.point_b, tcp, rotation).astype(np.float32),
-                                       edges.across_b @ rotation, edges)
+                                       edges.across_b @ rotation, edges, profile.columns,
+                                       profile.saturated,
+                                       profile.exposure_us * profile.gain)
         with self._lock:
             self._frame_ids.append(profile.frame_id)
             if np.isfinite(profile.marker.residual_px):
@@ -413,7 +453,7 @@ class PassAccumulator:
         ``stopped_because``.
         """
         with self._lock:
-            placed = sorted(self._placed, key=lambda p: p.frame_id)
+            placed = _best_exposed(sorted(self._placed, key=lambda p: p.frame_id))
             ids = sorted(self._frame_ids)
             residuals = list(self._residuals)
             unplaced, held, no_rotation = self._unplaced, self._held_rotation, self._no_rotation
@@ -450,6 +490,24 @@ class PassAccumulator:
         return scan
 
 
+def _best_exposed(placed: list[PlacedProfile]) -> list[PlacedProfile]:
+    """Multiple exposure: of each pair of consecutive frames taken at different exposures,
+    only the better exposed measurement of each column (``merge_exposure_pairs``)."""
+    levels = np.array([p.brightness for p in placed])
+    finite = levels[np.isfinite(levels)]
+    if len(finite) < 2 or np.all(finite == finite[0]) or any(p.columns is None for p in placed):
+        return placed
+    keep = merge_exposure_pairs(
+        [p.frame_id for p in placed], levels, [p.columns for p in placed],
+        [p.quality for p in placed],
+        [p.saturated if p.saturated is not None else np.zeros(len(p.columns), bool)
+         for p in placed])
+    return [p if k.all() else dataclasses.replace(
+                p, cloud_t=p.cloud_t[k], quality=p.quality[k], columns=p.columns[k],
+                saturated=None if p.saturated is None else p.saturated[k])
+            for p, k in zip(placed, keep)]
+
+
 def _stitch_edges(scan: Scan, placed: list[PlacedProfile]) -> None:
     """The profiles' edge points in {T}, less the drop-outs that bound an occlusion (which a
     single profile cannot tell from a rim: ``scanner_core.edges.occluded_dropouts``)."""
@@ -483,18 +541,34 @@ def camera_frames(camera: Camera, timeout: float = 1.0) -> Iterator[Frame]:
             return
 
 
+def measure_frame(frame: Frame, marker: MarkerObservation, accumulator: PassAccumulator,
+                  params: PipelineParams, exposure: ExposureController | None = None) -> bool:
+    """One triggered frame: its profile (in the geometric window of the robot's rotation at
+    its time), placed; exposure control learns from its stripe. Returns whether it was
+    placed. Thread-safe (the service's workers)."""
+    rotation = accumulator.rotation_at(frame.t)[0] if marker.valid else None
+    profile = process_frame(frame, accumulator.calibration, params, marker, rotation)
+    if exposure is not None:
+        exposure.profile_measured(profile.exposure_us, profile.gain, profile.stripe_peaks,
+                                  profile.background_dn)
+    return accumulator.add(profile)
+
+
 def feed_frame(frame: Frame, tracker: MarkerTracker, trigger: Trigger,
                accumulator: PassAccumulator, params: PipelineParams,
-               timings: dict | None = None) -> TriggerStep:
+               timings: dict | None = None,
+               exposure: ExposureController | None = None) -> TriggerStep:
     """One frame through the single-threaded core: the tracked marker, the trigger, and the
     profiles of the frames it releases, placed. Adds seconds to ``timings["marker"]`` and
     ``timings["profiles"]`` when given. (The service runs the same steps on two threads.)"""
+    if exposure is not None:
+        exposure.frame_grabbed(frame.exposure_us, frame.gain)
     t0 = time.perf_counter()
     marker = tracker.observe(frame)
     t1 = time.perf_counter()
     step = trigger.feed((frame, marker), frame.t, marker_in_view(marker), frame.frame_id)
     for held_frame, held_marker in step.emit:
-        accumulator.add(process_frame(held_frame, accumulator.calibration, params, held_marker))
+        measure_frame(held_frame, held_marker, accumulator, params, exposure)
     if timings is not None:
         timings["marker"] += t1 - t0
         timings["profiles"] += time.perf_counter() - t1
@@ -502,7 +576,8 @@ def feed_frame(frame: Frame, tracker: MarkerTracker, trigger: Trigger,
 
 
 def run_pass(frames: Iterable[Frame], calibration: Calibration, robot: Robot,
-             params: PipelineParams = PipelineParams(), *, clock_offset_s: float = 0.0) -> Scan:
+             params: PipelineParams = PipelineParams(), *, clock_offset_s: float = 0.0,
+             exposure: ExposureController | None = None) -> Scan:
     """A stream of frames -> the scan of the first pass it contains, on one thread.
 
     The trigger is armed at the first frame. Wall time per stage lands in
@@ -510,7 +585,8 @@ def run_pass(frames: Iterable[Frame], calibration: Calibration, robot: Robot,
     search, which is also the trigger's presence test), ``profiles`` (stripe, triangulation,
     placement) and ``scan`` (assembling the sorted cloud). A camera that stops mid-pass (it
     raises ``CameraTimeout``, or its stream ends) ends the pass: what was acquired is kept and
-    ``Scan.end_reason`` says why.
+    ``Scan.end_reason`` says why. ``exposure`` drives the camera's exposure during the pass
+    (``scanner_core.exposure``).
     """
     timings = dict.fromkeys(("acquire", "marker", "profiles", "scan"), 0.0)
     trigger = Trigger(params.trigger)
@@ -531,7 +607,7 @@ def run_pass(frames: Iterable[Frame], calibration: Calibration, robot: Robot,
             trigger.camera_stopped()
             break
         timings["acquire"] += time.perf_counter() - t0
-        feed_frame(frame, tracker, trigger, accumulator, params, timings)
+        feed_frame(frame, tracker, trigger, accumulator, params, timings, exposure)
     t0 = time.perf_counter()
     scan = accumulator.scan(end_reason=trigger.end_reason,
                             stopped_because=camera_error or "camera stream ended")

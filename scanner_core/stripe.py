@@ -500,17 +500,27 @@ def _column_max2(img, c0, c1, sep, mx, am, sec, a2):
 
 @njit(nogil=True, cache=True)
 def _column_max_window(img, c0, c1, sep, rmin, rmax, mx, am, sec, a2, out):
-    """``_column_max`` over the rows ``rmin[c] <= r <= rmax[c]`` of each column only; ``out``
-    keeps the maximum outside them (to tell "no peak" from "a peak outside the window")."""
+    """``_column_max2`` over the rows ``rmin[c] <= r <= rmax[c]`` of each column only; ``out``
+    keeps the maximum outside them (to tell "no peak" from "a peak outside the window").  Rows
+    that lie outside every column's window (most of the frame: the inspection volume's section
+    spans ~30 % of the rows in the reference cell) only update ``out``."""
     h = img.shape[0]
     n = c1 - c0
+    if n == 0:
+        return
     zero = np.uint8(0)
+    lo_b = rmin[c0:c1]
+    hi_b = rmax[c0:c1]
+    r_first = int(lo_b.min())
+    r_last = int(hi_b.max())
     for r in range(h):
+        row = img[r, c0:c1]
+        if r < r_first or r > r_last:
+            for j in range(n):
+                out[j] = max(out[j], row[j])
+            continue
         r16 = np.uint16(r)
         lim16 = np.uint16(max(r - sep, 0))
-        row = img[r, c0:c1]
-        lo_b = rmin[c0:c1]
-        hi_b = rmax[c0:c1]
         for j in range(n):
             v0 = row[j]
             inside = (r16 >= lo_b[j]) & (r16 <= hi_b[j])

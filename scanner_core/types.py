@@ -22,11 +22,18 @@ class Frame:
         Camera frame counter; a gap between consecutive ids is a dropped frame.
     t : float
         Camera clock at exposure, seconds.
+    exposure_us : float
+        Exposure time this frame was taken with, microseconds; NaN when the camera does not
+        say (then exposure control has nothing to work with).
+    gain : float
+        Analogue gain it was taken with (1: none).
     """
 
     image: np.ndarray
     frame_id: int
     t: float
+    exposure_us: float = float("nan")
+    gain: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -75,6 +82,15 @@ class Profile:
     marker : MarkerObservation
     edges : scanner_core.edges.EdgePoints or None
         Drop-out and step edge points of the profile, {B}.
+    saturated : (N,) bool or None
+        The stripe clipped at full scale there (its centre measured from the flanks).
+    exposure_us, gain : float
+        The frame's exposure (``Frame``).
+    background_dn : float
+        The frame's background level, DN (``scanner_core.stripe.estimate_noise``).
+    stripe_peaks : (M,) float32 or None
+        Peak of the stripe in every column that holds one, valid or not (clipped ones at full
+        scale, the marker's columns excluded), DN: what exposure control steers by.
     """
 
     frame_id: int
@@ -84,6 +100,11 @@ class Profile:
     quality: np.ndarray
     marker: MarkerObservation
     edges: object = None
+    saturated: np.ndarray | None = None
+    exposure_us: float = float("nan")
+    gain: float = 1.0
+    background_dn: float = float("nan")
+    stripe_peaks: np.ndarray | None = None
 
 
 @dataclass

@@ -101,6 +101,7 @@ def _version() -> str:
 
 
 def _parse_args(argv):
+    from scanner_core.exposure import EXPOSURE_MODES
     from scanner_core.stripe import METHODS
 
     argv = _join_number_lists(list(sys.argv[1:] if argv is None else argv))
@@ -135,6 +136,9 @@ def _parse_args(argv):
                       help="nominal grasp: the part centred under the TCP (default), or the CAD "
                            "origin at the TCP")
     scan.add_argument("--method", default="cog", choices=METHODS, help="sub-pixel stripe estimator")
+    scan.add_argument("--exposure", choices=list(EXPOSURE_MODES), default="fixed",
+                      help="exposure control: fixed, dynamic (from the previous frames' stripe "
+                           "peaks) or multiple (two exposures alternating)")
     scan.add_argument("--drop-rate", type=float, default=0.0, help="fraction of frames lost")
     scan.add_argument("--no-eval", action="store_true", help="skip the ground-truth accuracy")
     scan.add_argument("--out", type=Path, required=True,
@@ -196,7 +200,7 @@ def _parse_args(argv):
 
     bench = command("bench", help="benchmarks: JSON figures and PNG charts")
     bench.add_argument("what", choices=["stripe", "scan", "simulate", "service", "pose",
-                                        "hardware"],
+                                        "hardware", "surfaces"],
                        help="pose: registration accuracy, time, basin, sigma calibration and "
                             "the side-by-side with Open3D and small_gicp, then where pose and "
                             "edges break; hardware: the UR cross-check through ur-rtde, the "
@@ -211,6 +215,7 @@ def _parse_args(argv):
 
 def _cmd_scan(args) -> int:
     from scanner_core.calibration import load_calibration
+    from scanner_core.exposure import ExposureParams
     from scanner_core.pipeline import PipelineParams
     from scanner_core.scanio import save_scan
     from scanner_core.fileio import save_json_atomic
@@ -238,7 +243,8 @@ def _cmd_scan(args) -> int:
     cell = cell.with_pass(speed_mm_s=args.speed or preset.speed_mm_s, fps=args.fps or preset.fps)
     _check_frame_spacing(part, cell.pass_profile.speed_mm_s, cell.pass_profile.fps)
     calibration = load_calibration(args.calibration) if args.calibration else None
-    params = PipelineParams(stripe_method=args.method)
+    params = PipelineParams(stripe_method=args.method,
+                            exposure=ExposureParams(mode=args.exposure))
     t0 = time.perf_counter()
     scan, report = run_simulated_scan(part, cell, calibration=calibration,
                                       misplacement=misplacement, seed=args.seed,
@@ -552,6 +558,8 @@ def _cmd_bench(args) -> int:
         from service.bench import service as bench
     elif args.what == "hardware":
         from service.bench import hardware as bench
+    elif args.what == "surfaces":
+        from service.bench import surfaces as bench
     elif args.what == "pose":
         from service.bench import pose as bench
         from service.bench import pose_limits

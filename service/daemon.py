@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from scanner_core.calibration import Calibration, load_calibration, save_calibration
+from scanner_core.exposure import ExposureParams
 from scanner_core.pipeline import PipelineParams
 from scanner_core.pose import PoseParams, scan_pose
 from scanner_core.trigger import TriggerParams
@@ -157,6 +158,9 @@ class Service:
         self.metrics = Metrics()
         self.pose_params = PoseParams()
         params = PipelineParams(stripe_method=settings.stripe_method,
+                                exposure=ExposureParams(mode=settings.exposure_mode,
+                                                        target_peak_dn=settings.exposure_target_dn,
+                                                        multiple_ratio=settings.exposure_ratio),
                                 trigger=TriggerParams(gap_frames=settings.gap_frames,
                                                       max_pass_s=settings.max_pass_s,
                                                       arm_timeout_s=settings.arm_timeout_s))

@@ -25,8 +25,9 @@ import numpy as np
 from scanner_core.calibration import Calibration
 from scanner_core.crosscheck import MAX_DRIFT_STEP_S, MAX_OFFSET_STEP_S, cross_check
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
+from scanner_core.exposure import ExposureController
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_in_view,
-                                   process_frame, warm_up)
+                                   measure_frame, warm_up)
 from scanner_core.report import scan_report
 from scanner_core.trigger import EndReason, Trigger, TriggerError, TriggerState
 from scanner_core.types import Frame, MarkerObservation, Scan
@@ -155,6 +156,9 @@ class Engine:
         self.scans_done = 0
         self.scans_failed = 0
         self.warmup_ms: float | None = None
+        self.exposure = ExposureController(camera, params.exposure,
+                                           getattr(camera, "fps", 0.0) or 0.0)
+        self.exposure_seen: tuple[float, float] = (float("nan"), 1.0)  # newest frame's
 
     # -- life cycle -------------------------------------------------------------------------
 
@@ -276,7 +280,12 @@ class Engine:
                 "fault_reason": self.trigger.fault_reason,
                 "camera": {"state": self.camera_state, "error": self.camera_error,
                            "fps": round(self.fps, 2), "frames": self.frames_total,
-                           "frames_dropped": self.frames_dropped},
+                           "frames_dropped": self.frames_dropped,
+                           "exposure_mode": (self.params.exposure.mode if self.exposure.active
+                                             else "fixed"),
+                           "exposure_us": _finite_or_none(self.exposure_seen[0]),
+                           "gain": self.exposure_seen[1],
+                           "exposure_updates": self.exposure.updates},
                 "robot": _robot_status(self.robot),
                 "fps": round(self.fps, 2),
                 "frames_dropped": self.frames_dropped,
@@ -342,6 +351,8 @@ class Engine:
                 self.fps = 1.0 / period if self.fps == 0 else 0.95 * self.fps + 0.05 / period
             last_id, last_t = frame.frame_id, frame.t
             self._newest_frame_clock = (frame.t, received)
+            self.exposure_seen = (frame.exposure_us, frame.gain)
+            self.exposure.frame_grabbed(frame.exposure_us, frame.gain)
             try:
                 self._on_frame(frame, gap, received, tracker)
             except Exception as exc:  # a frame the pipeline refuses (its size, its type)
@@ -420,8 +431,7 @@ class Engine:
             job, frame, marker = item
             t0 = time.perf_counter()
             try:
-                calibration = job.accumulator.calibration  # the pass's, whatever came since
-                job.accumulator.add(process_frame(frame, calibration, self.params, marker))
+                measure_frame(frame, marker, job.accumulator, self.params, self.exposure)
             except Exception as exc:  # a frame that cannot be processed: recorded, never fatal
                 log.exception("frame %s not processed", frame.frame_id)
                 job.worker_errors.append(f"frame {frame.frame_id}: {exc!r}")
@@ -538,3 +548,7 @@ def _robot_status(robot: Robot) -> dict:
 def new_scan_id() -> str:
     """Time-ordered, unique, safe as a folder name."""
     return time.strftime("%Y%m%dT%H%M%S", time.gmtime()) + "-" + uuid.uuid4().hex[:8]
+
+
+def _finite_or_none(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None

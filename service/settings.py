@@ -51,6 +51,15 @@ class Settings(BaseSettings):
     retention: int = Field(200, ge=1, description="scans kept on disk; the oldest go first")
     recordings_kept: int = Field(5, ge=1, description="recorded passes kept (2.3 MB a frame)")
     stripe_method: Literal["cog", "gaussian3", "parabola", "blais_rioux", "lsq_gauss"] = "cog"
+    exposure_mode: Literal["fixed", "dynamic", "multiple"] = Field(
+        "fixed", description="fixed; dynamic: steered from the previous frames' stripe peaks; "
+                             "multiple: two exposures alternating, the better exposed column "
+                             "of each pair kept (a camera without exposure control: fixed)")
+    exposure_target_dn: float = Field(180.0, gt=0, lt=255,
+                                      description="dynamic: the stripe peak aimed at, DN above "
+                                                  "the background")
+    exposure_ratio: float = Field(8.0, gt=1, le=1000,
+                                  description="multiple: the long exposure over the short one")
     default_part: str | None = Field(None, description="part used when a scan names none")
     clock_offset_s: float = Field(0.0, description="robot minus camera clock, s, until estimated")
     cross_check_tolerance_mm: float = Field(0.1, gt=0)

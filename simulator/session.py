@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from scanner_core.calibration import Calibration
 from scanner_core.crosscheck import cross_check
+from scanner_core.exposure import ExposureController
 from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
 from scanner_core.pose import PoseParams, PoseResult, scan_pose
 from scanner_core.report import scan_report
@@ -109,7 +110,9 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
     sim.camera.open()
     sim.robot.connect()
     try:
-        scan = run_pass(camera_frames(sim.camera), calibration, sim.robot, params)
+        exposure = ExposureController(sim.camera, params.exposure, cell.pass_profile.fps)
+        scan = run_pass(camera_frames(sim.camera), calibration, sim.robot, params,
+                        exposure=exposure)
         check = cross_check(scan.tcp_times, scan.tcp_positions_b, sim.robot)
     finally:
         sim.camera.close()

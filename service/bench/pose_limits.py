@@ -8,7 +8,8 @@ Five factors, each grown from the reference cell until the method breaks, one si
   mm (each row records their spacing, how many fall on the part, and whether ``flyscan scan``
   would refuse the pass for too few);
 - **saturation**: the stripe's peak (``ImageModel.stripe_peak_dn``) past the sensor's full
-  scale: saturated columns are dropped by the stripe extraction, so the profiles thin out;
+  scale: saturated columns are measured from their flanks (the stripe's saturation fit) until
+  the flanks clip too;
 - **marker hidden**: the LED hidden in the right mirror for a growing fraction of the part's
   passage (0 to 1), then in the left mirror too (1 to 2: at 2 only the direct view is left).
   The simulated cell's mirror strip is narrowed (the truth only: the scanner keeps its
@@ -146,7 +147,7 @@ FACTORS = (
     Factor("speed", "pass speed at 162 fps (reference 200 mm/s)", "mm/s",
            (200, 400, 700, 1000, 1500, 2500, 4000), (200, 1000, 2500)),
     Factor("saturation", "stripe peak (full scale 255 DN, reference 200 DN)", "DN",
-           (200, 220, 240, 260, 300, 400), (200, 240, 400)),
+           (200, 400, 1000, 2000, 3000, 5000, 10000, 20000, 50000), (200, 1000, 50000)),
     Factor("marker", "marker hidden: fraction of the pass (0-1 right mirror, 1-2 both)", "",
            (0.0, 0.5, 1.0, 1.25, 1.5, 1.75, 2.0), (0.0, 1.0, 2.0)),
     Factor("symmetry", "off-centre hole's offset from the cylinder axis", "mm",

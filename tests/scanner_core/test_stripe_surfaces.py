@@ -272,19 +272,19 @@ def test_frame_stripe_floors(cell):
                        stripe_rows=truth[c0:c1], stripe_gain=np.full(cols.size, 30.0 / 200.0))
     no_marker = MarkerObservation(np.full((3, 2), np.nan), np.full(3, np.nan), float("nan"))
     # fixed floors: a 30 DN stripe over a 10 DN background falls under the 40 DN minimum peak
-    _, fixed, _ = frame_stripe(img, cal, PipelineParams(), no_marker)
+    _, fixed, _ = frame_stripe(img, cal, PipelineParams(stripe_floor="fixed"), no_marker)
     assert fixed[c0:c1].mean() < 0.6
-    # floors from the noise: it counts
-    res, auto, _ = frame_stripe(img, cal, PipelineParams(stripe_floor="auto"), no_marker)
+    # floors from the noise (the default): it counts
+    res, auto, _ = frame_stripe(img, cal, PipelineParams(), no_marker)
     assert auto[c0:c1].mean() >= DIM_MIN_VALID
     assert np.all(res.snr[auto] >= PipelineParams().min_peak_snr)
     with pytest.raises(ValueError, match="`stripe_floor`"):
         frame_stripe(img, cal, PipelineParams(stripe_floor="dark"), no_marker)
-    # saturation: dropped by the pipeline's default (historical), measured on request
+    # saturation: measured by the pipeline's default, dropped on request (before issue 12)
     img = render_image(h, w, REFERENCE, np.random.default_rng(123), stripe_cols=cols,
                        stripe_rows=truth[c0:c1], stripe_gain=np.full(cols.size, 1530.0 / 200.0))
-    _, kept, _ = frame_stripe(img, cal, PipelineParams(), no_marker)
+    _, kept, _ = frame_stripe(img, cal, PipelineParams(stripe_saturation="reject"), no_marker)
     assert not kept.any()
-    res, kept, _ = frame_stripe(img, cal, PipelineParams(stripe_saturation="fit"), no_marker)
+    res, kept, _ = frame_stripe(img, cal, PipelineParams(), no_marker)
     assert kept[c0:c1].mean() >= SAT_MIN_VALID
     assert res.saturated[kept].all()

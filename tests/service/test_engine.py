@@ -194,13 +194,13 @@ def test_a_stalled_consumer_never_stalls_acquisition(tmp_path, cell, monkeypatch
     loses; the acquisition thread never waits, so the camera loses none."""
     import service.engine as engine_mod
 
-    real = engine_mod.process_frame
+    real = engine_mod.measure_frame
 
     def slow(*args, **kwargs):
         time.sleep(0.05)  # 8 frame periods at 162 fps
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(engine_mod, "process_frame", slow)
+    monkeypatch.setattr(engine_mod, "measure_frame", slow)
     sim = LiveSimCell(cell.with_pass(speed_mm_s=1000.0), seed=5)
     settings = Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0", workers=1,
                         queue_frames=4)

@@ -99,13 +99,14 @@ def test_the_last_level_of_each_factor_is_refused_or_flagged(bench):
 # Noise
 # --------------------------------------------------------------------------------------------
 
-def test_extreme_noise_refuses_the_pose(bench):
+def test_extreme_noise_refuses_or_flags_the_pose(bench):
     _, result = bench
     worst = row(result, "noise", 25)
-    # The marker drowns: the pass hardly triggers, and no pose is made of what is left.
-    assert worst["points"] < 50
-    assert worst["pose"]["refused"] is not None and "points" in worst["pose"]["refused"]
-    assert worst["verdict"] == "refused"
+    # The marker drowns: the pass hardly triggers (the stripe's floors follow the noise, so
+    # what frames are placed keep their stripe), and what pose is made of it says not to act
+    # on it (measured: 343 points against 10k, flagged).
+    assert worst["points"] < 0.1 * row(result, "noise", 3)["points"]
+    assert worst["verdict"] in ("refused", "flagged"), worst["pose"]
 
 
 def test_noisy_pose_is_flagged_or_bounded_by_its_sigma(bench):
@@ -167,16 +168,17 @@ def test_sparse_profiles_never_give_a_confidently_wrong_pose(cell, demo):
 # Saturation
 # --------------------------------------------------------------------------------------------
 
-def test_saturated_stripe_keeps_an_honest_pose_or_refuses(bench):
+def test_saturated_stripe_keeps_an_honest_pose(bench):
+    """Clipped stripes are measured from their flanks (issue 12), so a stripe at 4x full scale
+    keeps its points and its pose; at 200x (measured: 40 points) the plateau is wider than
+    any stripe and the pose is refused."""
     _, result = bench
-    bright = row(result, "saturation", 240)
-    # Saturated columns are dropped (their centre is not measurable): fewer points, same pose.
-    assert bright["points"] < row(result, "saturation", 200)["points"]
-    assert bright["verdict"] in pl.GRACEFUL, bright["pose"]
-    clipped = row(result, "saturation", 400)
-    # Clipped almost everywhere: too few points for a pose, or a pose that says why not to
-    # act on it.
-    assert clipped["verdict"] in ("refused", "flagged"), clipped["pose"]
+    reference = row(result, "saturation", 200)
+    bright = row(result, "saturation", 1000)
+    assert bright["points"] >= 0.95 * reference["points"]
+    assert bright["verdict"] in pl.USABLE, bright["pose"]
+    clipped = row(result, "saturation", 50000)
+    assert clipped["verdict"] == "refused", clipped["pose"]
 
 
 def test_saturated_stripe_gives_no_edge_outliers(bench):
@@ -184,7 +186,7 @@ def test_saturated_stripe_gives_no_edge_outliers(bench):
     0.5 mm of any CAD edge (edge RMS 277 um), before steps were placed where the near side's
     stripe falls to half its level."""
     _, result = bench
-    bright = row(result, "saturation", 240)
+    bright = row(result, "saturation", 1000)
     assert bright["edges"]["outlier_fraction"] <= pl.TARGET_EDGE_OUTLIERS
 
 
