@@ -26,6 +26,11 @@ class CameraStatus(BaseModel):
     fps: float
     frames: int
     frames_dropped: int
+    exposure_mode: Literal["fixed", "dynamic", "multiple"] = Field(
+        "fixed", description="exposure control in effect (fixed when the camera has none)")
+    exposure_us: float | None = Field(None, description="the newest frame's exposure, us")
+    gain: float = Field(1.0, description="the newest frame's analogue gain")
+    exposure_updates: int = Field(0, description="exposure changes made by the control")
 
 
 class QueueStatus(BaseModel):

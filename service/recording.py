@@ -25,9 +25,11 @@ A folder with four files:
     The images, raw uint8, shape (N, H, W), C order (frame after frame, row after row), no
     header: exactly N * H * W bytes.
 ``frames.csv``
-    A header line ``frame_id,t`` then N lines, one per frame in the order of ``frames.u8``:
-    the camera's frame id (integer; a gap is a dropped frame) and its time on the camera
-    clock, s (written with Python's ``repr``, which reads back to the same float64).
+    A header line ``frame_id,t,exposure_us,gain`` then N lines, one per frame in the order of
+    ``frames.u8``: the camera's frame id (integer; a gap is a dropped frame), its time on the
+    camera clock, s (written with Python's ``repr``, which reads back to the same float64), and
+    the exposure and gain it was taken with (``nan`` when the camera does not say). Recordings
+    whose header is ``frame_id,t`` (before exposure control) read as taken at unknown exposure.
 ``robot.npy``
     NumPy ``.npy`` (no pickle), float64, shape (M, 13), one row per robot sample in strictly
     increasing time: ``t`` (robot clock, s), ``x, y, z`` (TCP position in {B}, mm), then the
@@ -64,6 +66,7 @@ FORMAT_VERSION = 1
 METADATA_FILE = "recording.json"
 FRAMES_FILE = "frames.u8"
 FRAME_INDEX_FILE = "frames.csv"
+INDEX_COLUMNS = ("frame_id", "t", "exposure_us", "gain")
 ROBOT_FILE = "robot.npy"
 #: Columns of robot.npy: t, x, y, z, then the rotation matrix row-major.
 ROBOT_COLUMNS = 13
@@ -130,7 +133,7 @@ class PassRecorder:
                                           suffix=".partial"))
         self._frames = open(self._tmp / FRAMES_FILE, "wb")
         self._index = open(self._tmp / FRAME_INDEX_FILE, "w", newline="")
-        self._index.write("frame_id,t\n")
+        self._index.write(",".join(INDEX_COLUMNS) + "\n")
         self._count = 0
         self._robot: list[np.ndarray] = []
         self._last_robot_t = -math.inf
@@ -164,7 +167,8 @@ class PassRecorder:
         if not math.isfinite(t):
             raise ValueError(f"frame {frame.frame_id}: time {t} is not finite")
         self._frames.write(memoryview(np.ascontiguousarray(image)).cast("B"))
-        self._index.write(f"{int(frame.frame_id)},{t!r}\n")
+        self._index.write(f"{int(frame.frame_id)},{t!r},{float(frame.exposure_us)!r},"
+                          f"{float(frame.gain)!r}\n")
         self._count += 1
 
     def add_robot_poses(self, poses) -> int:
@@ -268,6 +272,8 @@ class Recording:
     frame_ids : (N,) int64
     times : (N,) float64
         Camera clock, s.
+    exposures : (N, 2) float64
+        Exposure (us; NaN: unknown) and gain of each frame.
     robot_samples : (M, 13) float64
         t (robot clock, s), x, y, z (mm, {B}), rotation row-major.
     calibration : Calibration
@@ -289,6 +295,7 @@ class Recording:
     notes: str = ""
     created_utc: str = ""
     version: int = FORMAT_VERSION
+    exposures: np.ndarray | None = None
 
     @property
     def frame_count(self) -> int:
@@ -337,7 +344,7 @@ def _get(meta: dict, folder: Path, path: str, kind):
     return value
 
 
-def _read_index(folder: Path, count: int) -> tuple[np.ndarray, np.ndarray]:
+def _read_index(folder: Path, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     path = folder / FRAME_INDEX_FILE
     try:
         with open(path, newline="") as fh:
@@ -346,22 +353,27 @@ def _read_index(folder: Path, count: int) -> tuple[np.ndarray, np.ndarray]:
         _fail(folder, f"missing {FRAME_INDEX_FILE}")
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         _fail(folder, f"cannot read {FRAME_INDEX_FILE}: {exc}")
-    if not rows or rows[0] != ["frame_id", "t"]:
-        _fail(folder, f"{FRAME_INDEX_FILE} must start with the header `frame_id,t`")
+    if not rows or rows[0] not in (list(INDEX_COLUMNS), list(INDEX_COLUMNS[:2])):
+        _fail(folder, f"{FRAME_INDEX_FILE} must start with the header `{','.join(INDEX_COLUMNS)}`")
+    columns = len(rows[0])
     if len(rows) - 1 != count:
         _fail(folder, f"{FRAME_INDEX_FILE} lists {len(rows) - 1} frames, {METADATA_FILE} says {count}")
     ids = np.empty(count, np.int64)
     times = np.empty(count, np.float64)
+    exposures = np.tile([np.nan, 1.0], (count, 1))
     for i, row in enumerate(rows[1:]):
         try:
-            if len(row) != 2:
+            if len(row) != columns:
                 raise ValueError
             ids[i], times[i] = int(row[0]), float(row[1])
+            if columns == 4:
+                exposures[i] = float(row[2]), float(row[3])
         except (ValueError, OverflowError):
-            _fail(folder, f"{FRAME_INDEX_FILE} line {i + 2} is not `frame_id,t`: {','.join(row)[:80]!r}")
+            _fail(folder, f"{FRAME_INDEX_FILE} line {i + 2} is not `{','.join(rows[0])}`: "
+                          f"{','.join(row)[:80]!r}")
         if not math.isfinite(times[i]):
             _fail(folder, f"{FRAME_INDEX_FILE} line {i + 2}: time is not finite")
-    return ids, times
+    return ids, times, exposures
 
 
 def _read_robot(folder: Path, count: int) -> np.ndarray:
@@ -438,10 +450,10 @@ def load_recording(folder) -> Recording:
     if size != expected:
         _fail(folder, f"{FRAMES_FILE} holds {size} bytes, expected N*H*W = {count}*{height}*{width} "
                       f"= {expected} (truncated or not this recording's)")
-    ids, times = _read_index(folder, count)
+    ids, times, exposures = _read_index(folder, count)
     robot = _read_robot(folder, robot_count)
     return Recording(folder, width, height, fps, ids, times, robot, calibration,
-                     settings, notes, created, version)
+                     settings, notes, created, version, exposures)
 
 
 class ReplayCamera:
@@ -494,7 +506,10 @@ class ReplayCamera:
                 time.sleep(wait)
         self._next = i + 1
         # np.asarray: a plain read-only ndarray view (the memmap subclass buys nothing here).
-        return Frame(np.asarray(images[i]), int(self.recording.frame_ids[i]), float(times[i]))
+        exposure = self.recording.exposures
+        exposure_us, gain = (math.nan, 1.0) if exposure is None else exposure[i]
+        return Frame(np.asarray(images[i]), int(self.recording.frame_ids[i]), float(times[i]),
+                     float(exposure_us), float(gain))
 
 
 class ReplayRobot:

@@ -51,6 +51,9 @@ function applyStatus(s) {
   setText($("camera-error"), cam.error || "");
   setText($("fps"), fmtNum(s.fps, 1));
   setText($("frames-dropped"), fmtInt(s.frames_dropped));
+  setText($("exposure-us"), fmtNum(cam.exposure_us, 0));
+  setText($("exposure-gain"), fmtNum(cam.gain, 2));
+  setText($("exposure-mode"), cam.exposure_mode || "fixed");
   const q = s.queue || {};
   setText($("queue-depth"), fmtInt(q.depth));
   setText($("queue-capacity"), fmtInt(q.capacity));

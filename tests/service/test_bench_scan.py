@@ -11,7 +11,7 @@ EXPECTED_RUNS = {(part, method) for part in ("block",)
                  for method in ("cog", "lsq_gauss")}
 # The cloud-accuracy targets of the benchmark (micrometres, points).
 RMS_TARGET_UM = 20.0
-UNMATCHED_TARGET = 0
+UNMATCHED_PER_10K_TARGET = bench.TARGET_UNMATCHED_PER_10K
 
 
 @pytest.fixture(scope="module")
@@ -55,4 +55,4 @@ def test_block_with_cog_is_accurate(quick_bench):
     _, result = quick_bench
     row = next(r for r in result["rows"] if r["part"] == "block" and r["method"] == "cog")
     assert row["accuracy"]["rms_um"] <= RMS_TARGET_UM
-    assert row["accuracy"]["unmatched_points"] == UNMATCHED_TARGET
+    assert row["accuracy"]["unmatched_points"] <= UNMATCHED_PER_10K_TARGET * row["points"] / 1e4

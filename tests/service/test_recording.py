@@ -153,6 +153,23 @@ def test_tiny_recording_round_trips(cell, tmp_path):
     assert [camera.grab(1.0).image[0, 0] for _ in range(3)] == [0, 1, 2]
 
 
+def test_exposures_round_trip_and_old_indexes_still_read(cell, tmp_path):
+    """Each frame's exposure and gain are recorded (multiple exposure replays as it ran); an
+    index written before exposure control (`frame_id,t`) reads as unknown exposure."""
+    folder = tmp_path / "r"
+    with PassRecorder(folder, width=6, height=4, fps=20.0, calibration=cell.calibration) as rec:
+        for i, (exposure, gain) in enumerate([(1000.0, 1.0), (125.0, 2.5), (float("nan"), 1.0)]):
+            rec.add_frame(Frame(np.full((4, 6), i, np.uint8), i, 0.05 * i, exposure, gain))
+    camera = load_recording(folder).camera()
+    camera.open()
+    taken = [(f.exposure_us, f.gain) for f in (camera.grab(1.0) for _ in range(3))]
+    assert taken[:2] == [(1000.0, 1.0), (125.0, 2.5)]
+    assert np.isnan(taken[2][0]) and taken[2][1] == 1.0
+    (folder / "frames.csv").write_text("frame_id,t\n0,0.0\n1,0.05\n2,0.1\n")
+    old = load_recording(folder)
+    assert np.isnan(old.exposures[:, 0]).all() and (old.exposures[:, 1] == 1.0).all()
+
+
 def test_realtime_replay_paces_frames_by_their_times(cell, tmp_path):
     recording = load_recording(tiny_recording(tmp_path / "r", cell.calibration))
     camera = recording.camera(realtime=True)
