@@ -50,6 +50,10 @@ MAX_POSE_AGE_S = 0.02
 #: halo reaches farther along a column than the stripe's rows vary across a few columns.
 MASK_ROW_FACTOR = 4
 
+#: The previous profile guides a frame's stripe (``follow_previous_profile``) when it is at most
+#: this many frames older: the stripe moves by a few px per frame on a smooth surface.
+PREVIOUS_PROFILE_FRAMES = 3
+
 #: Stripe reasons of a column that holds no stripe at all (for exposure control).
 _NO_STRIPE = (stripe_mod.Reason.NO_PEAK, stripe_mod.Reason.NOT_PROCESSED,
               stripe_mod.Reason.OUTSIDE_WINDOW)
@@ -96,6 +100,11 @@ class PipelineParams:
         is bright enough to pass for the stripe there.
     max_marker_residual_px : float
         A marker whose views disagree by more than this (RMS reprojection) is rejected.
+    follow_previous_profile : bool
+        With ``stripe_policy="continuity"``: prefer, where a column holds two peaks, the one
+        nearer to the stripe's row in the newest profile of the last ``PREVIOUS_PROFILE_FRAMES``
+        frames (``scanner_core.stripe``, ``expected_row``): a glint longer than the neighbouring
+        columns can bridge is not taken for the stripe.
     geometric_window : bool
         Look for the stripe only in the rows the inspection volume's section of the sheet can
         reach in each column (``scanner_core.window``), for frames whose TCP pose is known
@@ -123,6 +132,7 @@ class PipelineParams:
     marker: marker_mod.MarkerParams = field(default_factory=marker_mod.MarkerParams)
     marker_mask_px: float = 12.0
     max_marker_residual_px: float = 1.0
+    follow_previous_profile: bool = True
     geometric_window: bool = True
     inspection_volume_mm: tuple[float, float, float] = (150.0, 150.0, 100.0)
     window_margin_mm: float = 5.0
@@ -206,11 +216,14 @@ def marker_in_view(marker: MarkerObservation) -> bool:
 
 
 def frame_stripe(image: np.ndarray, calibration: Calibration, params: PipelineParams,
-                 marker: MarkerObservation, rotation_b: np.ndarray | None = None):
+                 marker: MarkerObservation, rotation_b: np.ndarray | None = None,
+                 expected_row: np.ndarray | None = None):
     """The stripe of one frame, the columns kept, and the columns beside the marker.
 
     With ``rotation_b`` ({T}'s rotation in {B} at the frame) and a placed marker, and
     ``params.geometric_window``, only the rows the inspection volume can reach are searched.
+    ``expected_row`` (W,) (NaN: none), e.g. the previous profile's rows, guides the choice
+    between two peaks (``follow_previous_profile``).
 
     Returns
     -------
@@ -234,7 +247,9 @@ def frame_stripe(image: np.ndarray, calibration: Calibration, params: PipelinePa
                                 threshold="auto" if auto else params.stripe_threshold_dn,
                                 columns=calibration.direct_columns, policy=params.stripe_policy,
                                 saturation=params.stripe_saturation, row_min=row_min,
-                                row_max=row_max)
+                                row_max=row_max,
+                                expected_row=(expected_row if params.follow_previous_profile
+                                              else None))
     if auto:
         valid = result.valid & (result.snr >= params.min_peak_snr)
     else:
@@ -253,7 +268,8 @@ def frame_stripe(image: np.ndarray, calibration: Calibration, params: PipelinePa
 
 def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams = PipelineParams(),
                   marker: MarkerObservation | None = None,
-                  rotation_b: np.ndarray | None = None) -> Profile:
+                  rotation_b: np.ndarray | None = None,
+                  expected_row: np.ndarray | None = None) -> Profile:
     """One frame -> one profile (stripe points in {B}) and the marker position.
 
     Parameters
@@ -266,6 +282,8 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
         The frame's marker, when the trigger has already found it; searched otherwise.
     rotation_b : (3, 3) float64, optional
         {T}'s rotation in {B} at the frame (the robot's): enables the geometric window.
+    expected_row : (W,) float, optional
+        Where the stripe was in the previous profile, px (NaN: nowhere).
 
     Returns
     -------
@@ -274,7 +292,8 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
     image = frame.image
     if marker is None:
         marker = observe_marker(image, calibration, params)
-    result, valid, near = frame_stripe(image, calibration, params, marker, rotation_b)
+    result, valid, near = frame_stripe(image, calibration, params, marker, rotation_b,
+                                       expected_row)
     # Columns by the marker say nothing of the stripe: no drop-out there.
     edges = find_edges(result, valid, calibration.camera, calibration.light_plane_c,
                        params=params.edges, masked=near)
@@ -282,7 +301,7 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
     pixels = np.stack([columns.astype(np.float64), result.row[columns].astype(np.float64)], axis=1)
     points_b = triangulate_stripe(pixels, calibration.camera, calibration.light_plane_c)
     finite = np.isfinite(points_b).all(axis=1)  # rays parallel to the sheet, or behind the camera
-    columns, points_b = columns[finite], points_b[finite]
+    columns, points_b, rows = columns[finite], points_b[finite], pixels[finite, 1]
     stripe_cols = ~np.isin(result.reason, _NO_STRIPE)
     if near is not None:
         stripe_cols &= ~near
@@ -290,7 +309,7 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
                    result.peak[columns].astype(np.float32), marker, edges,
                    saturated=result.saturated[columns], exposure_us=frame.exposure_us,
                    gain=frame.gain, background_dn=result.background_dn,
-                   stripe_peaks=result.peak[stripe_cols])
+                   stripe_peaks=result.peak[stripe_cols], rows=rows.astype(np.float32))
 
 
 def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams()) -> float:
@@ -390,6 +409,18 @@ class PassAccumulator:
         self._rotation: np.ndarray | None = (None if fallback_rotation is None
                                              else np.asarray(fallback_rotation, np.float64))
         self._rotation_t = -np.inf
+        self._newest: tuple[int, np.ndarray, np.ndarray] | None = None  # id, columns, rows
+
+    def expected_rows(self, frame_id: int) -> np.ndarray | None:
+        """(W,) float64: the stripe's rows in the newest profile placed at most
+        ``PREVIOUS_PROFILE_FRAMES`` frames before ``frame_id`` (NaN where it had none), or None."""
+        with self._lock:
+            newest = self._newest
+        if newest is None or not 0 < frame_id - newest[0] <= PREVIOUS_PROFILE_FRAMES:
+            return None
+        out = np.full(self.calibration.camera.width, np.nan)
+        out[newest[1]] = newest[2]
+        return out
 
     def rotation_at(self, t_camera: float) -> tuple[np.ndarray | None, bool]:
         """{T}'s rotation in {B} at a camera time, and whether the robot gave it."""
@@ -438,6 +469,9 @@ class PassAccumulator:
             else:
                 self._placed.append(placed)
                 self._held_rotation += not from_robot
+                if profile.rows is not None and (self._newest is None
+                                                 or profile.frame_id > self._newest[0]):
+                    self._newest = (profile.frame_id, profile.columns, profile.rows)
         return placed is not None
 
     @property
@@ -549,7 +583,8 @@ def measure_frame(frame: Frame, marker: MarkerObservation, accumulator: PassAccu
     its time), placed; exposure control learns from its stripe. Returns whether it was
     placed. Thread-safe (the service's workers)."""
     rotation = accumulator.rotation_at(frame.t)[0] if marker.valid else None
-    profile = process_frame(frame, accumulator.calibration, params, marker, rotation)
+    profile = process_frame(frame, accumulator.calibration, params, marker, rotation,
+                            accumulator.expected_rows(frame.frame_id))
     if exposure is not None:
         exposure.profile_measured(profile.exposure_us, profile.gain, profile.stripe_peaks,
                                   profile.background_dn)

@@ -88,6 +88,8 @@ class Profile:
         The frame's exposure (``Frame``).
     background_dn : float
         The frame's background level, DN (``scanner_core.stripe.estimate_noise``).
+    rows : (N,) float32 or None
+        The stripe's image row at each of ``columns``, px.
     stripe_peaks : (M,) float32 or None
         Peak of the stripe in every column that holds one, valid or not (clipped ones at full
         scale, the marker's columns excluded), DN: what exposure control steers by.
@@ -105,6 +107,7 @@ class Profile:
     gain: float = 1.0
     background_dn: float = float("nan")
     stripe_peaks: np.ndarray | None = None
+    rows: np.ndarray | None = None
 
 
 @dataclass

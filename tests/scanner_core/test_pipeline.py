@@ -196,3 +196,40 @@ def test_warm_up_frame_finds_the_marker_everywhere(cell, monkeypatch):
     profile = seen["profile"]
     assert profile.marker.views == 3
     assert len(profile.columns) > 500
+
+
+def test_the_previous_profile_guides_the_next_frames_stripe(cell):
+    """A glint brighter than the stripe over 60 columns (longer than continuity bridges): the
+    frame alone takes it there; with the previous profile's rows (what the accumulator hands
+    the next frames, for at most PREVIOUS_PROFILE_FRAMES of them) the stripe is kept."""
+    from scanner_core.pipeline import PREVIOUS_PROFILE_FRAMES, frame_stripe
+    from simulator.imaging import ImageModel, render_image
+
+    cal = cell.calibration
+    w, h = cal.camera.width, cal.camera.height
+    c0, c1 = cal.direct_columns
+    cols = np.arange(c0 + 100, c0 + 500)
+    rows = 600.0 + 20.0 * np.sin(cols / 80.0)
+    glint = (cols >= c0 + 250) & (cols < c0 + 310)
+    image = render_image(h, w, ImageModel(), np.random.default_rng(5),
+                         stripe_cols=np.concatenate([cols, cols[glint]]),
+                         stripe_rows=np.concatenate([rows, rows[glint] + 25.0]),
+                         stripe_gain=np.concatenate([np.ones(len(cols)),
+                                                     np.full(glint.sum(), 1.2)]))
+    no_marker = MarkerObservation(np.full((3, 2), np.nan), np.full(3, np.nan), float("nan"))
+    acc = PassAccumulator(cal, FixedRobot(cell.gripper_rotation_b))
+    obs = MarkerObservation(np.zeros((3, 2)), np.array([0.0, 0.0, 50.0]), 0.1)
+    acc.add(Profile(10, 0.1, np.zeros((len(cols), 3)), cols.astype(np.int32),
+                    np.full(len(cols), 200.0, np.float32), obs, rows=rows.astype(np.float32)))
+    assert acc.expected_rows(10) is None  # not for its own frame
+    assert acc.expected_rows(10 + PREVIOUS_PROFILE_FRAMES + 1) is None  # too old
+    expected = acc.expected_rows(11)
+    assert_allclose(expected[cols], rows, atol=1e-4)
+    assert np.isnan(expected[:c0]).all()
+    g = cols[glint]
+    alone, valid_alone, _ = frame_stripe(image, cal, PipelineParams(), no_marker)
+    guided, valid, _ = frame_stripe(image, cal, PipelineParams(), no_marker, expected_row=expected)
+    on_alone = valid_alone[g] & (np.abs(alone.row[g] - rows[glint]) < 1.0)
+    on_guided = valid[g] & (np.abs(guided.row[g] - rows[glint]) < 1.0)
+    assert on_alone.mean() < 0.5
+    assert on_guided.mean() >= 0.98
