@@ -11,10 +11,12 @@ answer with exposure control (LMI Gocator: single, dynamic and multiple exposure
   exposure of *that* frame (a deadbeat step on a surface of constant brightness, whatever the
   delay between the frame and its processing); exposure time first, up to the frame period
   (``max_duty``), then gain.
-- ``"multiple"``: frames alternate between the camera's exposure and ``1 / multiple_ratio``
-  of it; :func:`merge_exposure_pairs` keeps, in each column of each pair of consecutive
+- ``"multiple"``: frames alternate between a long exposure and one ``multiple_ratio`` times
+  shorter; :func:`merge_exposure_pairs` keeps, in each column of each pair of consecutive
   frames, the measurement of the better exposed one (the brightest that is not clipped; the
-  shorter exposure where both clip).
+  shorter exposure where both clip). The long exposure starts at the camera's and is steered
+  like the dynamic one, from the long frames, but on a lower percentile
+  (``multiple_percentile``): the short frames take care of what clips.
 
 The brightness the controller works with is the product ``exposure_us * gain``
 (``Frame.exposure_us``, ``Frame.gain``); a camera that implements
@@ -39,6 +41,9 @@ EXPOSURE_MODES = ("fixed", "dynamic", "multiple")
 
 #: A stripe over fewer valid columns than this says too little of the surface to steer by.
 MIN_STRIPE_COLUMNS = 20
+#: A steered peak this far above the background is taken as clipped (full scale 255 less a
+#: background of ~10 DN and its noise).
+CLIPPED_DN = 240.0
 
 
 @dataclass(frozen=True)
@@ -65,6 +70,10 @@ class ExposureParams:
         gain rises.
     multiple_ratio : float
         Multiple: the second exposure is this many times shorter than the first.
+    multiple_percentile : float
+        Multiple: the long exposure brings this percentile of the column peaks to
+        ``target_peak_dn``. 25: three quarters of the stripe may clip in the long frame (the
+        short one measures them) and the darkest quarter still gets the long exposure's SNR.
     """
 
     mode: str = "fixed"
@@ -74,14 +83,16 @@ class ExposureParams:
     deadband: float = 0.1
     max_duty: float = 0.9
     multiple_ratio: float = 8.0
+    multiple_percentile: float = 25.0
 
     def __post_init__(self):
         if self.mode not in EXPOSURE_MODES:
             raise ValueError(f"exposure mode must be one of {EXPOSURE_MODES}, got {self.mode!r}")
         if not 0 < self.target_peak_dn < 255:
             raise ValueError(f"`target_peak_dn` must be in (0, 255), got {self.target_peak_dn}")
-        if not 0 < self.percentile <= 100:
-            raise ValueError(f"`percentile` must be in (0, 100], got {self.percentile}")
+        for name in ("percentile", "multiple_percentile"):
+            if not 0 < getattr(self, name) <= 100:
+                raise ValueError(f"`{name}` must be in (0, 100], got {getattr(self, name)}")
         if not self.max_step > 1:
             raise ValueError(f"`max_step` must be > 1, got {self.max_step}")
         if not 0 < self.max_duty <= 1:
@@ -129,6 +140,9 @@ def next_brightness(level: float, brightness_dn: float, params: ExposureParams) 
     """
     if not (math.isfinite(level) and math.isfinite(brightness_dn)) or level <= 0:
         return None
+    if brightness_dn >= CLIPPED_DN:
+        # the steered peak clips: how far over is unknown, so step down as far as allowed
+        return level / params.max_step
     factor = params.target_peak_dn / max(brightness_dn, 1.0)
     if abs(factor - 1.0) <= params.deadband:
         return None
@@ -205,15 +219,29 @@ class ExposureController:
 
     def profile_measured(self, exposure_us: float, gain: float, peaks_dn,
                          background_dn: float) -> None:
-        """Dynamic: steer from one measured frame (the peaks of the columns holding the
-        stripe, clipped ones included, DN)."""
-        if not self.active or self.params.mode != "dynamic":
+        """Steer from one measured frame (the peaks of the columns holding the stripe,
+        clipped ones included, DN): dynamic, every frame; multiple, the long ones."""
+        if not self.active or self.params.mode == "fixed":
             return
-        brightness = stripe_brightness(peaks_dn, background_dn, self.params.percentile)
-        level = next_brightness(exposure_us * gain, brightness, self.params)
-        if level is not None:
-            with self._lock:
-                self._set(level)
+        measured = exposure_us * gain
+        if self.params.mode == "dynamic":
+            brightness = stripe_brightness(peaks_dn, background_dn, self.params.percentile)
+            level = next_brightness(measured, brightness, self.params)
+            if level is not None:
+                with self._lock:
+                    self._set(level)
+            return
+        with self._lock:
+            if self._long is None or not math.isclose(measured, self._long[0] * self._long[1],
+                                                      rel_tol=1e-6):
+                return  # a short frame, or a long one from before the last change
+            brightness = stripe_brightness(peaks_dn, background_dn,
+                                           self.params.multiple_percentile)
+            level = next_brightness(measured, brightness, self.params)
+            if level is not None:
+                cam = self.camera
+                self._long = split_brightness(level, cam.exposure_range_us, cam.gain_range,
+                                              self._max_exposure_us)
 
 
 def merge_exposure_pairs(frame_ids, levels, columns, peaks, saturated) -> list[np.ndarray]:

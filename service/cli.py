@@ -136,6 +136,10 @@ def _parse_args(argv):
                       help="nominal grasp: the part centred under the TCP (default), or the CAD "
                            "origin at the TCP")
     scan.add_argument("--method", default="cog", choices=METHODS, help="sub-pixel stripe estimator")
+    scan.add_argument("--surface", choices=["default", "matte", "dark", "shiny"],
+                      default="default",
+                      help="the simulated part's surface: the reference matte white, a matte cast, "
+                           "a dark anodised or a shiny machined part (simulator.surfaces)")
     scan.add_argument("--exposure", choices=list(EXPOSURE_MODES), default="fixed",
                       help="exposure control: fixed, dynamic (from the previous frames' stripe "
                            "peaks) or multiple (two exposures alternating)")
@@ -222,6 +226,7 @@ def _cmd_scan(args) -> int:
     from simulator.cell import PASS_PRESETS, load_cell
     from simulator.parts import check_fits
     from simulator.session import parse_misplacement, run_simulated_scan
+    from simulator.surfaces import with_surface
 
     # Everything is checked before the pass is simulated: a bad input writes nothing.
     _check_part_args(args)
@@ -236,7 +241,7 @@ def _cmd_scan(args) -> int:
         misplacement = parse_misplacement(args.misplace)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    part = _load_part(args)
+    part = with_surface(_load_part(args), args.surface)
     check_fits(part, pose=misplacement @ part.grasp)
     cell = load_cell(perturb_seed=args.perturb_seed)
     preset = PASS_PRESETS[args.preset]

@@ -46,11 +46,25 @@ RECENT_JOBS = 32
 class SimPassDriver:
     """Sends the simulated robot through the sheet when a scan is armed; with an RTDE
     emulator (``--sim --robot ur://HOST``) the emulator serves the same track to the real
-    ur-rtde client."""
+    ur-rtde client. Every part is simulated with ``surface`` (``simulator.surfaces``)."""
 
-    def __init__(self, sim, emulator=None):
+    def __init__(self, sim, emulator=None, surface: str = "default"):
         self.sim = sim
         self.emulator = emulator
+        self.surface = surface
+        self._dressed: dict[int, tuple] = {}  # id -> (the library's part, the simulated one)
+
+    def _simulated(self, part):
+        """The part as the simulator shows it (the same object every time, so that its
+        rendered pass is reused)."""
+        if self.surface == "default":
+            return part
+        from simulator.surfaces import with_surface
+
+        key = id(part)
+        if key not in self._dressed or self._dressed[key][0] is not part:
+            self._dressed[key] = (part, with_surface(part, self.surface))
+        return self._dressed[key][1]
 
     def start(self) -> None:
         """Start the emulator (its own process) on the cell's clock, before the robot connects."""
@@ -66,7 +80,7 @@ class SimPassDriver:
             raise
 
     def prepare(self, part) -> None:
-        self.sim.prepare_pass(part)
+        self.sim.prepare_pass(self._simulated(part))
 
     def start_pass(self, part, misplacement: np.ndarray | None) -> None:
         """Start the pass once the robot has finished the previous one (its lead-out goes on
@@ -74,7 +88,7 @@ class SimPassDriver:
         deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
         while True:
             try:
-                live = self.sim.start_pass(part, misplacement)
+                live = self.sim.start_pass(self._simulated(part), misplacement)
                 break
             except PassInProgress:
                 if time.monotonic() > deadline:
@@ -138,10 +152,11 @@ def build_devices(settings: Settings):
         cell = cell.with_pass(**changes)
     sim = LiveSimCell(cell, seed=settings.sim_seed, clock_offset_s=settings.sim_clock_offset_s)
     if host is None:
-        return sim.camera, sim.robot, SimPassDriver(sim), cell.calibration
+        return sim.camera, sim.robot, SimPassDriver(sim, surface=settings.sim_surface), cell.calibration
     from service.rtde_emulator import RtdeEmulator
 
-    return sim.camera, URRobot(host), SimPassDriver(sim, RtdeEmulator(host)), cell.calibration
+    return (sim.camera, URRobot(host), SimPassDriver(sim, RtdeEmulator(host), settings.sim_surface),
+            cell.calibration)
 
 
 class Service:

@@ -69,6 +69,8 @@ class Settings(BaseSettings):
     sim_seed: int = Field(0, ge=0)
     sim_clock_offset_s: float = Field(0.0, ge=-1e6, le=1e6,
                                       description="the simulated robot's clock minus the camera's, s")
+    sim_surface: Literal["default", "matte", "dark", "shiny"] = Field(
+        "default", description="the simulated parts' surface (simulator.surfaces)")
     sim_speed_mm_s: float | None = Field(None, gt=0, le=5000)
     sim_fps: float | None = Field(None, gt=0, le=2000)
 

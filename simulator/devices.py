@@ -12,6 +12,8 @@ import numpy as np
 
 from scanner_core.devices import CameraClosed, TcpPose
 from scanner_core.types import Frame
+from simulator.imaging import (EXPOSURE_RANGE_US, GAIN_RANGE, NOMINAL_EXPOSURE_US,
+                               check_exposure, exposed_model)
 from simulator.motion import PassMotion
 from simulator.render import PartScene
 
@@ -43,6 +45,9 @@ class SimCamera:
     drop_rate : float
         Probability that a frame is lost between camera and host (its id is skipped).
     clock : SimClock
+    exposure_us, gain : float
+        The exposure the next frame is taken with (``scanner_core.devices.ExposureControl``):
+        ``simulator.imaging.exposed_model`` scales the image model by it.
     """
 
     scene: PartScene
@@ -52,6 +57,14 @@ class SimCamera:
     drop_rate: float = 0.0
     clock: SimClock = field(default_factory=SimClock)
     truths: dict = field(default_factory=dict, repr=False)
+    exposure_us: float = NOMINAL_EXPOSURE_US
+    gain: float = 1.0
+    exposure_range_us = EXPOSURE_RANGE_US
+    gain_range = GAIN_RANGE
+
+    def set_exposure(self, exposure_us: float, gain: float = 1.0) -> None:
+        """From the next frame on; ValueError outside ``exposure_range_us``/``gain_range``."""
+        self.exposure_us, self.gain = check_exposure(exposure_us, gain)
 
     def __post_init__(self):
         cam = self.scene.cell.calibration.camera
@@ -91,9 +104,12 @@ class SimCamera:
                 break
         t = self.time_of(frame_id)
         self.clock.now = t
-        image, truth = self.scene.render(self.motion.tcp_position(t), self.grasp, self._rng)
+        exposure_us, gain = self.exposure_us, self.gain
+        model = exposed_model(self.scene.cell.image_model, exposure_us, gain)
+        image, truth = self.scene.render(self.motion.tcp_position(t), self.grasp, self._rng,
+                                         image_model=model)
         self.truths[frame_id] = truth
-        return Frame(image, frame_id, t)
+        return Frame(image, frame_id, t, exposure_us, gain)
 
 
 @dataclass

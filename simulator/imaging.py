@@ -34,12 +34,19 @@ normals), so a given generator state always yields the same image.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
 
-__all__ = ["ImageModel", "render_image", "cramer_rao_bound_px", "speckle_factors"]
+__all__ = ["ImageModel", "render_image", "cramer_rao_bound_px", "speckle_factors",
+           "exposed_model", "NOMINAL_EXPOSURE_US", "EXPOSURE_RANGE_US", "GAIN_RANGE"]
+
+#: The exposure at which an ``ImageModel``'s amplitudes hold, us.
+NOMINAL_EXPOSURE_US = 1000.0
+#: What the simulated camera accepts (a machine-vision CMOS camera's usual limits).
+EXPOSURE_RANGE_US = (20.0, 20000.0)
+GAIN_RANGE = (1.0, 16.0)
 
 # Half-width, in sigmas, of the exactly rendered support of a stripe sample or marker blob.
 # exp(-5**2 / 2) = 3.7e-6: contributions beyond it are below 0.001 DN.
@@ -92,6 +99,38 @@ class ImageModel:
     saturation_dn: float = 255.0
     marker_sigma_px: float = 2.5
     marker_peak_dn: float = 230.0
+
+
+def exposed_model(model: ImageModel, exposure_us: float, gain: float,
+                  nominal_us: float = NOMINAL_EXPOSURE_US) -> ImageModel:
+    """The image model of a frame taken at ``exposure_us`` and ``gain``.
+
+    The light collected grows with the exposure and the signal with the gain: the stripe's and
+    the ambient light's amplitudes scale with ``exposure_us * gain / nominal_us``; the read noise
+    with the gain; the black level not at all. The LED marker is strobed with a fixed pulse
+    inside every exposure, so only the gain scales it (a pulsed LED is how a marker stays sharp
+    and equally bright whatever the exposure). At the nominal exposure and unit gain the model
+    itself is returned.
+    """
+    if exposure_us == nominal_us and gain == 1.0:
+        return model
+    light = exposure_us * gain / nominal_us
+    return replace(model, stripe_peak_dn=model.stripe_peak_dn * light,
+                   ambient_dn=model.ambient_dn * light,
+                   read_noise_dn=model.read_noise_dn * gain,
+                   marker_peak_dn=model.marker_peak_dn * gain)
+
+
+def check_exposure(exposure_us, gain) -> tuple[float, float]:
+    """``(exposure_us, gain)`` as floats, or ValueError naming the limit a value breaks."""
+    exposure_us, gain = float(exposure_us), float(gain)
+    lo, hi = EXPOSURE_RANGE_US
+    if not lo <= exposure_us <= hi:
+        raise ValueError(f"exposure {exposure_us!r} us is outside the camera's {lo:g}-{hi:g} us")
+    lo, hi = GAIN_RANGE
+    if not lo <= gain <= hi:
+        raise ValueError(f"gain {gain!r} is outside the camera's {lo:g}-{hi:g}")
+    return exposure_us, gain
 
 
 def cramer_rao_bound_px(model: ImageModel) -> float:

@@ -39,10 +39,11 @@ from scanner_core.devices import CameraClosed, CameraTimeout, TcpPose
 from scanner_core.types import Frame
 from simulator.cell import Cell, PassProfile
 from simulator.devices import ROBOT_HISTORY_S, ROBOT_RATE_HZ
-from simulator.imaging import render_image
+from simulator.imaging import (EXPOSURE_RANGE_US, GAIN_RANGE, NOMINAL_EXPOSURE_US,
+                               check_exposure, exposed_model, render_image)
 from simulator.motion import PassMotion
 from simulator.parts import Part
-from simulator.render import FrameTruth, PartScene
+from simulator.render import FrameTruth, PartScene, frame_image
 
 __all__ = ["LiveSimCell", "LiveSimCamera", "LiveSimRobot", "LivePass", "PreparedPass",
            "PassInProgress", "TrackSegment", "tcp_on_track", "frame_image", "pass_frame_count",
@@ -74,30 +75,6 @@ class PassInProgress(RuntimeError):
 # --------------------------------------------------------------------------------------------
 # Geometry of a frame, without the image model
 # --------------------------------------------------------------------------------------------
-
-def frame_image(cell: Cell, truth: FrameTruth | None, rng: np.random.Generator) -> np.ndarray:
-    """The image model applied to a frame's geometry, with noise from ``rng``.
-
-    Parameters
-    ----------
-    cell : Cell
-        Gives the image size and model.
-    truth : FrameTruth or None
-        The frame's geometry; None renders background only (no stripe, no marker).
-    rng : numpy.random.Generator
-
-    Returns
-    -------
-    (H, W) uint8
-        The frame, DN.
-    """
-    cam = cell.calibration.camera
-    if truth is None:
-        return render_image(cam.height, cam.width, cell.image_model, rng)
-    return render_image(cam.height, cam.width, cell.image_model, rng,
-                        stripe_cols=truth.stripe_columns, stripe_rows=truth.stripe_rows,
-                        stripe_gain=truth.stripe_gain, marker_xy=truth.marker_pixels)
-
 
 def pass_frame_count(profile: PassProfile) -> int:
     """Frames a pass spans from lead-in to lead-out (as ``SimCamera.frame_count``)."""
@@ -536,8 +513,12 @@ class LiveSimCamera:
     read, waiting for its exposure. Only the newest ``buffer_frames`` exposed frames are kept:
     a reader late by more loses the older ones (their ids are skipped, ``frames_lost`` counts
     them). Frame ids keep increasing for the life of the cell, across passes and re-opens.
-    Made by :class:`LiveSimCell`.
+    Its exposure and gain (``scanner_core.devices.ExposureControl``) apply from the next frame
+    delivered. Made by :class:`LiveSimCell`.
     """
+
+    exposure_range_us = EXPOSURE_RANGE_US
+    gain_range = GAIN_RANGE
 
     def __init__(self, sim: LiveSimCell, *, seed: int, buffer_frames: int,
                  background_frames: int):
@@ -556,6 +537,13 @@ class LiveSimCamera:
         self._rng: np.random.Generator | None = None
         self._ring: tuple[np.ndarray, ...] = ()
         self._render_lock = threading.Lock()  # the generator is not thread-safe
+        self.exposure_us, self.gain = NOMINAL_EXPOSURE_US, 1.0
+
+    def set_exposure(self, exposure_us: float, gain: float = 1.0) -> None:
+        """From the next frame delivered; ValueError outside the camera's ranges."""
+        exposure_us, gain = check_exposure(exposure_us, gain)
+        with self._sim._lock:  # a grab on another thread reads both under it
+            self.exposure_us, self.gain = exposure_us, gain
 
     @property
     def is_open(self) -> bool:
@@ -665,12 +653,14 @@ class LiveSimCamera:
             self._delivered += 1
             truth = sim._frame_source(frame_id)
             rng, ring = self._rng, self._ring
-        if truth is None:
+            exposure_us, gain = self.exposure_us, self.gain
+        model = exposed_model(sim.cell.image_model, exposure_us, gain)
+        if truth is None and model is sim.cell.image_model:
             image = ring[frame_id % len(ring)]
         else:
             with self._render_lock:
-                image = frame_image(sim.cell, truth, rng)
-        return Frame(image, frame_id, frame_id / self.fps)
+                image = frame_image(sim.cell, truth, rng, model)
+        return Frame(image, frame_id, frame_id / self.fps, exposure_us, gain)
 
 
 class LiveSimRobot:

@@ -25,6 +25,7 @@ import numpy as np
 from scanner_core.geometry import apply_transform, check_rigid
 from simulator.meshfile import clean_triangles, is_binary_stl, read_mesh
 from simulator.raycast import Intersector
+from simulator.surfaces import Surface
 
 if TYPE_CHECKING:  # imported where used: ray casting alone needs neither trimesh nor scipy
     import trimesh
@@ -82,6 +83,9 @@ class Part:
         The unit of the source file, one of `UNITS_MM`.
     grasp : (4, 4) float64
         Nominal ^T X_P, mm: X_T = R X_P + t. Read-only.
+    surface : simulator.surfaces.Surface
+        How the surface returns the laser (the simulator's only; default the reference matte
+        white). ``simulator.surfaces.with_surface`` gives a part another.
     """
 
     name: str
@@ -90,6 +94,7 @@ class Part:
     source: str
     units: str
     grasp: np.ndarray = field(repr=False)
+    surface: Surface = Surface()
 
     @cached_property
     def mesh(self) -> trimesh.Trimesh:

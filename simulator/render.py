@@ -14,7 +14,8 @@ paper's section III: moving the virtual setup is cheaper than moving the CAD mod
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -24,6 +25,10 @@ from simulator.cell import Cell
 from simulator.imaging import render_image
 from simulator.parts import Part
 from simulator.raycast import Intersector
+from simulator.surfaces import mirror_directions, surface_gain
+
+#: A bounced ray starts this far along its way, clear of the surface it leaves (mm).
+BOUNCE_OFFSET_MM = 1e-3
 
 
 @dataclass(frozen=True)
@@ -44,12 +49,16 @@ class FrameTruth:
     stripe_points_b : (N, 3) float64
         The 3-D point of each sample, {B}, mm.
     stripe_gain : (N,) float64
-        Relative brightness: the cosine of the laser's incidence times the share of the pixel
-        column the sample covers.
+        Relative brightness: the part's surface return (``simulator.surfaces.surface_gain``:
+        the cosine of the laser's incidence for the reference surface) times the share of the
+        pixel column the sample covers.
     marker_b : (3,) float64
         LED centre, {B}, mm.
     marker_pixels : (3, 2) float64
         LED centre in the direct, left and right views; NaN where hidden or outside its strip.
+    reflection_columns, reflection_rows, reflection_gain : (K,) int32, float64, float64
+        Where the laser mirrored by a shiny surface lights the part again (one bounce), as
+        seen in the direct view: not the stripe (the light is off the sheet), but drawn like it.
     """
 
     tcp_b: np.ndarray
@@ -60,6 +69,9 @@ class FrameTruth:
     stripe_gain: np.ndarray
     marker_b: np.ndarray
     marker_pixels: np.ndarray
+    reflection_columns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    reflection_rows: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    reflection_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 class PartScene:
@@ -100,8 +112,10 @@ class PartScene:
         offset_p = plane.offset - plane.normal @ t
         return slice_mesh(self._vertices, self._faces, normal_p, offset_p)
 
-    def render(self, tcp_b, grasp: np.ndarray, rng: np.random.Generator, *, with_marker=True):
-        """Render one frame: :meth:`geometry`, then the image model.
+    def render(self, tcp_b, grasp: np.ndarray, rng: np.random.Generator, *, with_marker=True,
+               image_model=None):
+        """Render one frame: :meth:`geometry`, then the image model (the cell's, or
+        ``image_model``: the camera's exposure applied, ``simulator.imaging.exposed_model``).
 
         Returns
         -------
@@ -109,11 +123,7 @@ class PartScene:
         truth : FrameTruth
         """
         truth = self.geometry(tcp_b, grasp, with_marker=with_marker)
-        cam = self.cell.calibration.camera
-        image = render_image(cam.height, cam.width, self.cell.image_model, rng,
-                             stripe_cols=truth.stripe_columns, stripe_rows=truth.stripe_rows,
-                             stripe_gain=truth.stripe_gain, marker_xy=truth.marker_pixels)
-        return image, truth
+        return frame_image(self.cell, truth, rng, image_model), truth
 
     def geometry(self, tcp_b, grasp: np.ndarray, *, with_marker=True) -> FrameTruth:
         """What one frame shows, without the image model: its stripe samples and marker
@@ -138,11 +148,48 @@ class PartScene:
         cols, rows, points_p, points_b = cols[keep], rows[keep], points_p[keep], points_b[keep]
         incidence = points_p - laser_p
         incidence /= np.linalg.norm(incidence, axis=1, keepdims=True)
-        cosine = np.abs(np.einsum("ij,ij->i", incidence, self._face_normals[faces[keep]]))
-        gain = cosine * coverage[keep]  # the pixel integrates over the part the sample covers
+        normals = self._face_normals[faces[keep]]
+        coverage = coverage[keep]
+        surface = self.part.surface
+        if surface.specular > 0:
+            to_camera = camera_p - points_p
+            to_camera /= np.linalg.norm(to_camera, axis=1, keepdims=True)
+            gain = surface_gain(surface, incidence, normals, to_camera)
+        else:
+            gain = surface.albedo * np.abs(np.einsum("ij,ij->i", incidence, normals))
+        gain = gain * coverage  # the pixel integrates over the part the sample covers
         marker_b = tcp_b + self.cell.gripper_rotation_b @ cal.marker_offset_t
         marker_px = self.marker_pixels(marker_b, inv) if with_marker else np.full((3, 2), np.nan)
-        return FrameTruth(tcp_b, pose, cols.astype(np.int32), rows, points_b, gain, marker_b, marker_px)
+        truth = FrameTruth(tcp_b, pose, cols.astype(np.int32), rows, points_b, gain, marker_b,
+                           marker_px)
+        if surface.mirror > 0 and len(points_p):
+            truth = dataclasses.replace(truth, **self._bounce(points_p, incidence, normals,
+                                                              coverage, pose, camera_p))
+        return truth
+
+    def _bounce(self, points_p, incidence, normals, coverage, pose_b, camera_p) -> dict:
+        """One bounce: the laser mirrored at each lit sample goes on to the first surface it
+        meets, which returns ``mirror x albedo x |cos|`` of it diffusely; the samples the direct
+        view sees of those spots (``FrameTruth.reflection_*``)."""
+        surface = self.part.surface
+        cal = self.cell.calibration
+        cam = cal.camera
+        onward = mirror_directions(incidence, normals)
+        start = points_p + BOUNCE_OFFSET_MM * onward
+        distance, face = self.intersector.first_hit(start, onward)
+        hit = np.isfinite(distance) & (face >= 0)
+        spots = start[hit] + distance[hit, None] * onward[hit]
+        cosine = np.abs(np.einsum("ij,ij->i", onward[hit], self._face_normals[face[hit]]))
+        gain = surface.mirror * surface.albedo * cosine * coverage[hit]
+        seen = self.intersector.visible(np.broadcast_to(camera_p, spots.shape), spots)
+        spots, gain = spots[seen], gain[seen]
+        pixels = cam.project(apply_transform(pose_b, spots))
+        c0, c1 = cal.direct_columns
+        cols = np.rint(pixels[:, 0])
+        inside = ((cols >= c0) & (cols < c1) & (pixels[:, 1] >= 0)
+                  & (pixels[:, 1] <= cam.height - 1) & (gain > 0))
+        return {"reflection_columns": cols[inside].astype(np.int32),
+                "reflection_rows": pixels[inside, 1], "reflection_gain": gain[inside]}
 
     def _in_fan(self, points_b: np.ndarray) -> np.ndarray:
         """Inside the laser's fan (its axis points from the source at the sheet's centre)."""
@@ -174,6 +221,39 @@ class PartScene:
             if np.all(self.intersector.visible(starts, ends)):
                 out[k] = px
         return out
+
+
+def frame_image(cell: Cell, truth: FrameTruth | None, rng: np.random.Generator,
+                image_model=None) -> np.ndarray:
+    """The image model applied to a frame's geometry, with noise from ``rng``.
+
+    Parameters
+    ----------
+    cell : Cell
+        Gives the image size and model.
+    truth : FrameTruth or None
+        The frame's geometry (stripe, one-bounce reflections, marker); None renders
+        background only.
+    rng : numpy.random.Generator
+    image_model : simulator.imaging.ImageModel, optional
+        Instead of the cell's (a camera's exposure and gain applied to it).
+
+    Returns
+    -------
+    (H, W) uint8
+        The frame, DN.
+    """
+    cam = cell.calibration.camera
+    model = cell.image_model if image_model is None else image_model
+    if truth is None:
+        return render_image(cam.height, cam.width, model, rng)
+    cols, rows, gain = truth.stripe_columns, truth.stripe_rows, truth.stripe_gain
+    if len(truth.reflection_columns):
+        cols = np.concatenate([cols, truth.reflection_columns])
+        rows = np.concatenate([rows, truth.reflection_rows])
+        gain = np.concatenate([gain, truth.reflection_gain])
+    return render_image(cam.height, cam.width, model, rng, stripe_cols=cols, stripe_rows=rows,
+                        stripe_gain=gain, marker_xy=truth.marker_pixels)
 
 
 def slice_mesh(vertices, faces, normal, offset) -> tuple[np.ndarray, np.ndarray]:

@@ -58,8 +58,9 @@ def test_dynamic_step_is_deadbeat_and_bounded():
     assert next_brightness(1000.0, 45.0, params) == pytest.approx(4000.0)
     # far too dark: at most max_step per update
     assert next_brightness(1000.0, 5.0, params) == pytest.approx(4000.0)
-    # clipped: at least 1 / max_step
-    assert next_brightness(1000.0, 245.0, params) == pytest.approx(1000.0 * 180.0 / 245.0)
+    # near full scale: by as much as allowed (how far it clips is unknown)
+    assert next_brightness(1000.0, 235.0, params) == pytest.approx(1000.0 * 180.0 / 235.0)
+    assert next_brightness(1000.0, 245.0, params) == pytest.approx(1000.0 / 4.0)
     # within the dead band, and without a stripe: left alone
     assert next_brightness(1000.0, 175.0, params) is None
     assert next_brightness(1000.0, float("nan"), params) is None
