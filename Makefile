@@ -31,6 +31,7 @@ bench: $(BIN)/flyscan
 	$(BIN)/flyscan bench service --out $(OUT)/bench/service
 	$(BIN)/flyscan bench pose --out $(OUT)/bench/pose
 	$(BIN)/flyscan bench hardware --out $(OUT)/bench/hardware
+	$(BIN)/flyscan bench surfaces --out $(OUT)/bench/surfaces
 
 clean:
 	rm -rf $(VENV) $(OUT) *.egg-info

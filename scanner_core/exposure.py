@@ -41,6 +41,8 @@ EXPOSURE_MODES = ("fixed", "dynamic", "multiple")
 
 #: A stripe over fewer valid columns than this says too little of the surface to steer by.
 MIN_STRIPE_COLUMNS = 20
+#: Multiple exposure: what a clipped column scores against an unclipped one's peak, DN.
+CLIPPED_SCORE_DN = 128.0
 #: A steered peak this far above the background is taken as clipped (full scale 255 less a
 #: background of ~10 DN and its noise).
 CLIPPED_DN = 240.0
@@ -250,8 +252,11 @@ def merge_exposure_pairs(frame_ids, levels, columns, peaks, saturated) -> list[n
 
     Frames pair up in order of ``frame_ids`` when their ids follow each other and their levels
     differ (a dropped frame leaves its partner alone, kept whole). In a column measured in both
-    frames of a pair, the unclipped one wins over a clipped one; among two unclipped, the
-    brighter (the better SNR); among two clipped, the shorter exposure (the narrower plateau).
+    frames of a pair, the brighter wins, a clipped peak counting as ``CLIPPED_SCORE_DN`` (its
+    centre comes from the flanks, ~0.02 px up to 10x full scale: as good as an unclipped stripe
+    of about half full scale); between two clipped ones, the shorter exposure (the narrower
+    plateau). Measured on idler_riser (matte preset): preferring any unclipped peak gave
+    23.8 um RMS, this rule 15.8 um, the fixed exposure 13.5 um.
 
     Parameters
     ----------
@@ -289,7 +294,8 @@ def _resolve_pair(a, b, levels, columns, peaks, saturated, keep) -> None:
         return
     sat_a, sat_b = saturated[a][ia], saturated[b][ib]
     shorter_a = levels[a] < levels[b]
-    a_wins = np.where(sat_a != sat_b, ~sat_a,
-                      np.where(sat_a, shorter_a, peaks[a][ia] >= peaks[b][ib]))
+    score_a = np.where(sat_a, CLIPPED_SCORE_DN, peaks[a][ia])
+    score_b = np.where(sat_b, CLIPPED_SCORE_DN, peaks[b][ib])
+    a_wins = np.where(sat_a & sat_b, shorter_a, score_a >= score_b)
     keep[a][ia[~a_wins]] = False
     keep[b][ib[a_wins]] = False

@@ -100,6 +100,10 @@ class PipelineParams:
         is bright enough to pass for the stripe there.
     max_marker_residual_px : float
         A marker whose views disagree by more than this (RMS reprojection) is rejected.
+    min_stripe_run : int
+        A stretch of fewer stripe columns than this, contradicted by a longer stretch beside it,
+        is dropped (``scanner_core.stripe.isolated_runs``: a reflection that wins the columns
+        where the true stripe is too dim); 1 keeps everything.
     follow_previous_profile : bool
         With ``stripe_policy="continuity"``: prefer, where a column holds two peaks, the one
         nearer to the stripe's row in the newest profile of the last ``PREVIOUS_PROFILE_FRAMES``
@@ -132,6 +136,7 @@ class PipelineParams:
     marker: marker_mod.MarkerParams = field(default_factory=marker_mod.MarkerParams)
     marker_mask_px: float = 12.0
     max_marker_residual_px: float = 1.0
+    min_stripe_run: int = 5
     follow_previous_profile: bool = True
     geometric_window: bool = True
     inspection_volume_mm: tuple[float, float, float] = (150.0, 150.0, 100.0)
@@ -254,6 +259,8 @@ def frame_stripe(image: np.ndarray, calibration: Calibration, params: PipelinePa
         valid = result.valid & (result.snr >= params.min_peak_snr)
     else:
         valid = result.valid & (result.peak >= params.min_peak_dn)
+    if params.min_stripe_run > 1:
+        valid &= ~stripe_mod.isolated_runs(result.row, valid, min_run=params.min_stripe_run)
     direct_px = marker.pixels[0]
     if not np.all(np.isfinite(direct_px)) and marker.valid:
         # Seen only in the mirrors (cut off at the image edge, or hidden): mask where the
@@ -392,11 +399,16 @@ class PassAccumulator:
     fallback_rotation : (3, 3) float64, optional
         {T}'s rotation in {B} to hold when the robot gives none (the service passes the last
         one the robot reported).
+    merge_exposure_pairs : bool
+        Multiple exposure: the scan keeps, per pair of frames, the better exposed measurement
+        of each column (``scanner_core.exposure.merge_exposure_pairs``).
     """
 
     def __init__(self, calibration: Calibration, robot: Robot, clock_offset_s: float = 0.0,
-                 fallback_rotation: np.ndarray | None = None):
+                 fallback_rotation: np.ndarray | None = None, *,
+                 merge_exposure_pairs: bool = False):
         self.calibration = calibration
+        self.merge_exposure_pairs = merge_exposure_pairs
         self.robot = robot
         self.clock_offset_s = float(clock_offset_s)
         self._lock = threading.Lock()
@@ -489,7 +501,9 @@ class PassAccumulator:
         ``stopped_because``.
         """
         with self._lock:
-            placed = _best_exposed(sorted(self._placed, key=lambda p: p.frame_id))
+            placed = sorted(self._placed, key=lambda p: p.frame_id)
+            if self.merge_exposure_pairs:
+                placed = _best_exposed(placed)
             ids = sorted(self._frame_ids)
             residuals = list(self._residuals)
             unplaced, held, no_rotation = self._unplaced, self._held_rotation, self._no_rotation
@@ -629,7 +643,8 @@ def run_pass(frames: Iterable[Frame], calibration: Calibration, robot: Robot,
     trigger = Trigger(params.trigger)
     trigger.arm()
     tracker = MarkerTracker(calibration, params)
-    accumulator = PassAccumulator(calibration, robot, clock_offset_s)
+    accumulator = PassAccumulator(calibration, robot, clock_offset_s,
+                                  merge_exposure_pairs=params.exposure.mode == "multiple")
     source = iter(frames)
     camera_error = None
     while trigger.state.value in ("armed", "scanning"):

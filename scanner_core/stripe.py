@@ -192,6 +192,60 @@ def _per_column(name, value, width, default):
     return np.ascontiguousarray(arr)
 
 
+def isolated_runs(row, valid, *, max_jump_px=20.0, min_run=3, max_gap=2) -> np.ndarray:
+    """Columns whose stripe is a short run contradicted by a longer stripe beside it.
+
+    A run is a stretch of valid columns, each within ``max_jump_px`` rows of the previous.
+    A run of fewer than ``min_run`` columns is isolated when a valid column at most ``max_gap``
+    columns away on either side belongs to a run of at least ``min_run`` columns: the surface
+    cannot be in two places that close, so the short run is a reflection or a glint that won
+    its column where the true stripe is too dim to compete (on a shiny part, the laser
+    mirrored onto another face: measured 64 mm off in the cloud). A short run with no long
+    run beside it (a thin rib between drop-outs) is kept.
+
+    Parameters
+    ----------
+    row : (W,) float
+        Stripe row per column, px.
+    valid : (W,) bool
+    max_jump_px : float
+        Largest row step within a run: 20 px passes surfaces up to ~87 degrees from facing
+        the camera in the reference cell, while a reflection lands tens to hundreds of rows away.
+    min_run : int
+    max_gap : int
+
+    Returns
+    -------
+    (W,) bool
+        True for the columns to drop.
+    """
+    row = np.asarray(row, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool)
+    cols = np.flatnonzero(valid)
+    out = np.zeros(len(valid), dtype=bool)
+    if len(cols) == 0 or min_run <= 1:
+        return out
+    r = row[cols]
+    breaks = (np.diff(cols) > 1) | (np.abs(np.diff(r)) > max_jump_px)
+    run_id = np.concatenate([[0], np.cumsum(breaks)])
+    length = np.bincount(run_id)[run_id]
+    short = length < min_run
+    if not short.any():
+        return out
+    # For each valid column, is its predecessor / successor (in valid order) close enough in
+    # columns and in a long run? A short run is judged by its ends.
+    prev_long = np.zeros(len(cols), dtype=bool)
+    next_long = np.zeros(len(cols), dtype=bool)
+    near = np.diff(cols) <= max_gap + 1
+    other = run_id[1:] != run_id[:-1]
+    prev_long[1:] = near & other & ~short[:-1]
+    next_long[:-1] = near & other & ~short[1:]
+    contradicted = np.zeros(run_id[-1] + 1, dtype=bool)
+    np.logical_or.at(contradicted, run_id, (prev_long | next_long) & short)
+    out[cols[contradicted[run_id] & short]] = True
+    return out
+
+
 def estimate_noise(image) -> tuple[float, float]:
     """Robust background level and noise of a frame from a sparse subsample of its pixels.
 

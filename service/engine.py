@@ -240,8 +240,10 @@ class Engine:
             raise EngineBusy(f"a scan is in progress ({self.job.scan_id if self.job else '?'}: "
                              f"{self.trigger.state.value})") from exc
         job = ScanJob(scan_id=new_scan_id(), part=part, created=time.time(), context=context,
-                      accumulator=PassAccumulator(self.calibration, self.robot, self.clock_offset_s,
-                                                  fallback_rotation=self.last_rotation_b))
+                      accumulator=PassAccumulator(
+                          self.calibration, self.robot, self.clock_offset_s,
+                          fallback_rotation=self.last_rotation_b,
+                          merge_exposure_pairs=self.params.exposure.mode == "multiple"))
         if record_to is not None:
             try:
                 job.recording = LiveRecording(
@@ -250,6 +252,7 @@ class Engine:
                     settings={"scan_id": job.scan_id, "part": part,
                               "clock_offset_s": self.clock_offset_s,
                               "stripe_method": self.params.stripe_method,
+                              "exposure_mode": self.params.exposure.mode,
                               "trigger": dataclasses.asdict(self.params.trigger)})
             except BaseException:
                 self.trigger.reset()

@@ -615,6 +615,7 @@ def replay_recording(recording: Recording, params=None):
     """
     from dataclasses import replace
 
+    from scanner_core.exposure import ExposureParams
     from scanner_core.pipeline import PipelineParams, camera_frames, run_pass
     from scanner_core.trigger import TriggerParams
 
@@ -622,7 +623,8 @@ def replay_recording(recording: Recording, params=None):
     if params is None:
         trigger = TriggerParams(**{**settings.get("trigger", {}), "arm_timeout_s": math.inf})
         params = replace(PipelineParams(), trigger=trigger,
-                         stripe_method=settings.get("stripe_method", "cog"))
+                         stripe_method=settings.get("stripe_method", "cog"),
+                         exposure=ExposureParams(mode=settings.get("exposure_mode", "fixed")))
     camera, robot = recording.camera(), recording.robot()
     camera.open()
     robot.connect()

@@ -158,11 +158,20 @@ def test_merge_keeps_the_better_exposed_column():
     saturated = [np.array([False, True, True, False]), np.array([False, False, True, False]),
                  np.array([True, True])]
     keep = merge_exposure_pairs(frame_ids, levels, columns, peaks, saturated)
-    # col 1 and 5: one frame only, kept; col 2: the long one clips, the short one does not;
-    # col 3: both clip, the shorter wins; col 4: both unclipped, the brighter (long) wins
-    assert keep[0].tolist() == [True, False, False, True]
-    assert keep[1].tolist() == [True, True, False, True]
+    # col 1 and 5: one frame only, kept; col 2: the long one clips (scores 128 DN), the short
+    # one is dim (40 DN): the clipped one; col 3: clipped against 180 DN unclipped: the
+    # unclipped; col 4: 60 DN unclipped against a clipped one: the clipped
+    assert keep[0].tolist() == [True, True, False, False]
+    assert keep[1].tolist() == [False, True, True, True]
     assert keep[2].tolist() == [True, True]
+
+
+def test_a_clipped_peak_beats_a_dim_unclipped_one():
+    """The flanks of a clipped stripe measure it better than a stripe at 40 DN does."""
+    keep = merge_exposure_pairs([0, 1], [1000.0, 125.0], [np.array([7]), np.array([7])],
+                                [np.array([255.0]), np.array([40.0])],
+                                [np.array([True]), np.array([False])])
+    assert [k.tolist() for k in keep] == [[True], [False]]
 
 
 def test_merge_leaves_equal_exposures_alone():

@@ -288,3 +288,21 @@ def test_frame_stripe_floors(cell):
     res, kept, _ = frame_stripe(img, cal, PipelineParams(), no_marker)
     assert kept[c0:c1].mean() >= SAT_MIN_VALID
     assert res.saturated[kept].all()
+
+
+def test_isolated_runs_drop_a_reflection_beside_the_stripe():
+    """A three-column reflection 200 rows off beside a long stripe (what a shiny part shows
+    where its own stripe is too dim) goes; a short run between drop-outs (a thin rib) and a
+    steep slope (15 px per column) stay."""
+    from scanner_core.stripe import isolated_runs
+
+    row = np.full(100, 100.0)
+    valid = np.ones(100, bool)
+    row[40:43] = 300.0  # the reflection, inside the stripe's stretch
+    valid[60:70] = False
+    row[64:66] = 150.0  # a rib seen between two drop-outs
+    valid[64:66] = True
+    row[80:] = 100.0 + 15.0 * np.arange(20)  # steep
+    drop = isolated_runs(row, valid, min_run=5)
+    assert np.flatnonzero(drop).tolist() == [40, 41, 42]
+    assert not isolated_runs(row, valid, min_run=1).any()
