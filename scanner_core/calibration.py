@@ -1,23 +1,32 @@
 """What the scanner must know about its cell: the result of calibration.
 
-The camera (intrinsics and the paper's T and O), the light plane in {C} (Eq. 2), the two
-mirrors, which image columns hold which view, and where the LED marker sits on the gripper.
-Saved as JSON (mm, unit vectors, row-major matrices).
+The camera (intrinsics, lens distortion and the paper's T and O), the light plane in {C}
+(Eq. 2), the two mirrors, which image columns hold which view, where the LED marker sits on the
+gripper and the robot's clock against the camera's. Saved as one versioned JSON file (mm, unit
+vectors, row-major matrices) that also records where it came from (``provenance``: the date,
+the cell, the models fitted, their residuals and the number of observations), as
+``flyscan calibrate`` writes it.
+
+File versions: 1 (no ``version`` field: the camera an ideal pinhole, no clock offset) and 2.
 """
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
 from scanner_core.fileio import save_json_atomic
-from scanner_core.geometry import MarkerViews, Mirror, PinholeCamera, Plane, marker_views
+from scanner_core.geometry import (NO_DISTORTION, MarkerViews, Mirror, PinholeCamera, Plane,
+                                   marker_views)
 
 #: Rotation matrices read from files must be orthonormal to this tolerance.
 ROTATION_TOL = 1e-6
+#: The version this code writes, and the versions it reads.
+CALIBRATION_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 
 
 class CalibrationError(ValueError):
@@ -39,6 +48,11 @@ class Calibration:
         Columns [c0, c1) of the direct view.
     marker_offset_t : (3,) float64
         LED marker position in {T}, mm.
+    clock_offset_s : float
+        The robot's clock minus the camera's, s: where the cross-check starts its estimate.
+    provenance : dict
+        How the calibration was made (``flyscan calibrate``): ``date``, ``cell``,
+        ``observations``, ``models`` and their ``residuals``. Empty for a hand-made one.
     """
 
     camera: PinholeCamera
@@ -46,6 +60,8 @@ class Calibration:
     mirrors: tuple[Mirror, ...]
     direct_columns: tuple[int, int]
     marker_offset_t: np.ndarray
+    clock_offset_s: float = 0.0
+    provenance: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def strips(self) -> tuple[tuple[int, int], ...]:
@@ -63,13 +79,22 @@ class Calibration:
         cam = self.camera
         return self.light_plane_c.transformed(cam.rotation.T, cam.origin)
 
+    def check_image_size(self, width: int, height: int) -> None:
+        """CalibrationError when the calibration was made for images of another size."""
+        cam = self.camera
+        if (cam.width, cam.height) != (int(width), int(height)):
+            raise CalibrationError(f"the calibration is for {cam.width} x {cam.height} images, "
+                                   f"the camera gives {int(width)} x {int(height)}")
+
     def to_dict(self) -> dict:
         cam = self.camera
         return {
+            "version": CALIBRATION_VERSION,
             "camera": {
                 "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
                 "width": cam.width, "height": cam.height,
                 "rotation": cam.rotation.tolist(), "origin_mm": cam.origin.tolist(),
+                "distortion": list(cam.distortion),
             },
             "light_plane_c": {"normal": self.light_plane_c.normal.tolist(),
                               "offset_mm": self.light_plane_c.offset},
@@ -77,18 +102,30 @@ class Calibration:
                          "columns": list(m.columns)} for m in self.mirrors],
             "direct_columns": list(self.direct_columns),
             "marker_offset_t_mm": self.marker_offset_t.tolist(),
+            "clock_offset_s": self.clock_offset_s,
+            "provenance": self.provenance,
         }
 
     @classmethod
     def from_dict(cls, data: dict) -> "Calibration":
         """Build from the JSON form (`to_dict`); a missing or malformed field is named."""
+        if not isinstance(data, dict):
+            raise CalibrationError(f"a calibration must be a JSON object, got {_short(data)}")
+        version = data.get("version", 1)
+        if isinstance(version, bool) or version not in READABLE_VERSIONS:
+            raise CalibrationError(f"calibration file version {_short(version)} is not one this "
+                                   f"flyscan reads ({', '.join(map(str, READABLE_VERSIONS))})")
         c = _field(data, "camera")
+        distortion = NO_DISTORTION
+        if version >= 2:
+            distortion = tuple(float(v) for v in _array(c, "camera", "distortion", (5,)))
         camera = PinholeCamera(
             fx=_number(c, "camera", "fx"), fy=_number(c, "camera", "fy"),
             cx=_number(c, "camera", "cx"), cy=_number(c, "camera", "cy"),
             width=_number(c, "camera", "width", int), height=_number(c, "camera", "height", int),
             rotation=_array(c, "camera", "rotation", (3, 3)),
             origin=_array(c, "camera", "origin_mm", (3,)),
+            distortion=distortion,
         )
         lp = _field(data, "light_plane_c")
         plane = Plane(_array(lp, "light_plane_c", "normal", (3,)),
@@ -104,8 +141,15 @@ class Calibration:
                 _columns(m, where)))
         direct = _columns(data, "", "direct_columns")
         marker = _array(data, "", "marker_offset_t_mm", (3,))
+        clock = _number(data, "", "clock_offset_s") if version >= 2 else 0.0
+        provenance = data.get("provenance", {}) if version >= 2 else {}
+        if not isinstance(provenance, dict):
+            raise CalibrationError(f"calibration field `provenance` must be a JSON object, "
+                                   f"got {_short(provenance)}")
         _check(camera, plane, tuple(mirrors), direct, marker)
-        return cls(camera, plane, tuple(mirrors), direct, marker)
+        if not np.isfinite(clock):
+            raise CalibrationError(f"`clock_offset_s` must be finite, got {clock}")
+        return cls(camera, plane, tuple(mirrors), direct, marker, clock, provenance)
 
 
 def _columns(obj, where: str, key: str = "columns") -> tuple[int, int]:
@@ -163,7 +207,8 @@ def _array(obj, where: str, key: str, shape: tuple[int, ...]) -> np.ndarray:
 def _check(camera, plane, mirrors, direct, marker) -> None:
     numbers = {"camera.fx": camera.fx, "camera.fy": camera.fy, "camera.cx": camera.cx,
                "camera.cy": camera.cy, "camera.rotation": camera.rotation,
-               "camera.origin_mm": camera.origin, "light_plane_c.normal": plane.normal,
+               "camera.origin_mm": camera.origin, "camera.distortion": np.array(camera.distortion),
+               "light_plane_c.normal": plane.normal,
                "light_plane_c.offset_mm": plane.offset, "marker_offset_t_mm": marker}
     for i, m in enumerate(mirrors):
         numbers[f"mirrors[{i}].normal"] = m.plane.normal

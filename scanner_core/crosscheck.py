@@ -194,3 +194,66 @@ def _robot_rotations(robot: Robot, times: np.ndarray) -> np.ndarray | None:
             return None
     out[~np.isfinite(out).all(axis=(1, 2))] = last
     return out
+
+
+def estimate_led_and_clock(times, marker_b, robot: Robot, *, initial_offset_s: float = 0.0,
+                           iterations: int = OFFSET_ITERATIONS) -> tuple[np.ndarray, float, float]:
+    """The LED's offset from the TCP in {T} and the clock offset, from one pass (issue 9).
+
+    Solves ``M_i = p(t_i + d) + R(t_i + d) m`` for ``m`` (the LED in {T}, mm) and ``d`` (robot
+    minus camera clock, s) by Gauss-Newton: ``M_i`` the marker's triangulated positions, ``p``
+    and ``R`` the robot's reports. A clock offset moves the robot's track along its velocity and
+    the LED offset by a constant: a pass whose speed changes (every real one) tells them apart.
+
+    Parameters
+    ----------
+    times : (N,) float64
+        Camera times, s.
+    marker_b : (N, 3) float64
+        The LED's positions in {B}, mm.
+    robot : Robot
+        Reports ``pose_at`` on its own clock.
+    initial_offset_s : float
+
+    Returns
+    -------
+    led_t_mm : (3,) float64
+    clock_offset_s : float
+    rms_mm : float
+        RMS residual of the fit.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 10 frames with a robot pose, or a pass too slow or too uniform to tell
+        the clock from the offset.
+    """
+    times = np.asarray(times, dtype=np.float64)
+    marker = np.asarray(marker_b, dtype=np.float64).reshape(-1, 3)
+    offset = float(initial_offset_s)
+    led = np.zeros(3)
+    for _ in range(iterations):
+        p, ok = _robot_positions(robot, times + offset)
+        ahead, ok_a = _robot_positions(robot, times + offset + VELOCITY_STEP_S)
+        behind, ok_b = _robot_positions(robot, times + offset - VELOCITY_STEP_S)
+        ok &= ok_a & ok_b
+        if ok.sum() < 10:
+            raise ValueError(f"only {int(ok.sum())} frames have a robot pose: no LED offset")
+        rot = _robot_rotations(robot, times[ok] + offset)
+        velocity = (ahead[ok] - behind[ok]) / (2 * VELOCITY_STEP_S)
+        n = int(ok.sum())
+        # Unknowns (d_step, m): residual M - p - R m ~ v d_step + R dm.
+        a = np.zeros((3 * n, 4))
+        a[:, 0] = velocity.ravel()
+        a[:, 1:] = rot.reshape(3 * n, 3)
+        r = (marker[ok] - p[ok]).ravel()
+        sol, *_ = np.linalg.lstsq(a, r, rcond=None)
+        if np.linalg.cond(a) > 1e6:
+            raise ValueError("the pass does not tell the clock offset from the LED offset "
+                             "(too slow, or too uniform a speed)")
+        step, led = float(sol[0]), sol[1:]
+        offset += step
+        if abs(step) < OFFSET_CONVERGED_S:
+            break
+    res = (r - a @ sol).reshape(-1, 3)
+    return led, offset, float(np.sqrt(np.mean(np.sum(res**2, axis=1))))

@@ -60,7 +60,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from scanner_core.geometry import PARALLEL_COS, PinholeCamera, Plane
+from scanner_core.geometry import PARALLEL_COS, PinholeCamera, Plane, triangulate_stripe
 from scanner_core.stripe import Reason
 
 __all__ = ["EdgeKind", "EdgeParams", "EdgePoints", "find_edges", "occluded_dropouts",
@@ -326,6 +326,10 @@ def find_edges(result, valid, camera: PinholeCamera, light_plane_c: Plane, *,
         int(p.max_bridge_px), int(p.min_run_px), int(p.side_px), float(p.min_step_mm),
         float(p.noise_factor), int(p.max_ramp_px), bool(p.keep_far_side))
     point_b = np.einsum("ij,jk->ik", point_c, camera.rotation) + camera.origin  # Eq. (3), no BLAS
+    if camera.distorted and len(pixel):
+        # The kernel's rays are the ideal pinhole's: a lens bends them by up to a few pixels at
+        # the border, which moves the edge's position but not the steps it found.
+        point_b = triangulate_stripe(pixel, camera, light_plane_c)
     return EdgePoints(pixel, point_b, kind, size, pk.astype(np.float32), direction, along_b,
                       float(noise))
 

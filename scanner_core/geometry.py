@@ -3,7 +3,8 @@
 Conventions
 -----------
 - Pixel coordinates ``(u, v)`` = (column, row), pixel centres at integers.
-- {C}: x along image columns, y along image rows, z the optical axis (pinhole, no distortion).
+- {C}: x along image columns, y along image rows, z the optical axis: a pinhole, with the
+  lens's radial and tangential distortion (OpenCV's k1, k2, p1, p2, k3) when it has one.
 - Eq. (1): ``P_C = T (P_B - O)``; Eq. (3): ``P_B = T^-1 (P_C + T O) = T^T P_C + O``.
 - A plane is ``n . x = d`` with a unit normal ``n``; Eq. (2) writes the light plane as
   ``n . (P_C - P_0) = 0``, so ``d = n . P_0``.
@@ -14,13 +15,17 @@ References
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
 
 #: Rays nearly parallel to a plane (|cos| below this) have no usable intersection.
 PARALLEL_COS = 1e-9
+#: Fixed-point iterations that invert the lens distortion, and the step (normalised image
+#: units, 1e-12 is about 3e-9 px) at which they stop.
+UNDISTORT_ITERATIONS = 50
+UNDISTORT_TOL = 1e-12
 #: Rays this ill-conditioned (about 0.01 degrees apart at unit weight) leave the marker's
 #: depth unobservable.
 MAX_RAY_CONDITION = 1e8
@@ -76,9 +81,69 @@ def apply_transform(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.einsum("ij,...j->...i", matrix[:3, :3], points) + matrix[:3, 3]
 
 
+def distort_normalized(xy, distortion) -> np.ndarray:
+    """Brown-Conrady lens distortion of normalised image points, as OpenCV models it.
+
+    Parameters
+    ----------
+    xy : (N, 2) float
+        Ideal normalised coordinates ``(X/Z, Y/Z)``.
+    distortion : (5,) float
+        ``(k1, k2, p1, p2, k3)``.
+
+    Returns
+    -------
+    (N, 2) float64
+        Distorted normalised coordinates.
+
+    References
+    ----------
+    .. [1] OpenCV, "Camera Calibration and 3D Reconstruction" (calib3d), the distortion model.
+    """
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    k1, k2, p1, p2, k3 = (float(v) for v in distortion)
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return np.stack([x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                     y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y], axis=1)
+
+
+def undistort_normalized(xy, distortion) -> np.ndarray:
+    """The inverse of :func:`distort_normalized`, by fixed-point iteration.
+
+    Converges for the distortion of machine-vision lenses (a few percent at the corners);
+    points that have not converged after ``UNDISTORT_ITERATIONS`` come back NaN rather than
+    wrong.
+    """
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    k1, k2, p1, p2, k3 = (float(v) for v in distortion)
+    xd, yd = xy[:, 0], xy[:, 1]
+    x, y = xd.copy(), yd.copy()
+    with np.errstate(invalid="ignore", over="ignore"):
+        for _ in range(UNDISTORT_ITERATIONS):
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            nx = (xd - 2.0 * p1 * x * y - p2 * (r2 + 2.0 * x * x)) / radial
+            ny = (yd - p1 * (r2 + 2.0 * y * y) - 2.0 * p2 * x * y) / radial
+            step = np.nanmax(np.abs(nx - x) + np.abs(ny - y), initial=0.0)
+            x, y = nx, ny
+            if step < UNDISTORT_TOL:
+                break
+        # A point whose iteration has not settled is not trusted.
+        back = distort_normalized(np.stack([x, y], 1), distortion)
+        bad = ~(np.abs(back - xy).max(axis=1) < 1e3 * UNDISTORT_TOL)
+    out = np.stack([x, y], axis=1)
+    out[bad & np.isfinite(xy).all(axis=1)] = np.nan
+    return out
+
+
+NO_DISTORTION = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
-    """A pinhole camera posed in {B}.
+    """A pinhole camera posed in {B}, with its lens's distortion.
 
     Attributes
     ----------
@@ -90,6 +155,8 @@ class PinholeCamera:
         The paper's transfer matrix T: rows are the {C} axes expressed in {B}.
     origin : (3,) float64
         The paper's O: the camera centre in {B}, mm.
+    distortion : (5,) tuple of float
+        ``(k1, k2, p1, p2, k3)`` (OpenCV's order); all zero for an ideal pinhole.
     """
 
     fx: float
@@ -100,6 +167,16 @@ class PinholeCamera:
     height: int
     rotation: np.ndarray
     origin: np.ndarray
+    distortion: tuple = NO_DISTORTION
+
+    @property
+    def distorted(self) -> bool:
+        return any(v != 0.0 for v in self.distortion)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 3x3 intrinsic matrix K."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     def to_camera(self, points_b) -> np.ndarray:
         """Eq. (1): {B} -> {C}. (N, 3) mm -> (N, 3) mm."""
@@ -112,22 +189,40 @@ class PinholeCamera:
         return p @ self.rotation + self.origin
 
     def project_camera(self, points_c) -> np.ndarray:
-        """(N, 3) points in {C} -> (N, 2) pixels (u, v); NaN behind the camera."""
+        """(N, 3) points in {C} -> (N, 2) pixels (u, v), through the lens; NaN behind the
+        camera."""
         p = _as_points(points_c, "points_c")
         with np.errstate(divide="ignore", invalid="ignore"):
             z = np.where(p[:, 2] > 0, p[:, 2], np.nan)
-            return np.stack([self.fx * p[:, 0] / z + self.cx, self.fy * p[:, 1] / z + self.cy], 1)
+            xy = np.stack([p[:, 0] / z, p[:, 1] / z], 1)
+        if self.distorted:
+            xy = distort_normalized(xy, self.distortion)
+        return np.stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy], 1)
 
     def project(self, points_b) -> np.ndarray:
         """(N, 3) points in {B} -> (N, 2) pixels (u, v); NaN behind the camera."""
         return self.project_camera(self.to_camera(points_b))
 
     def rays_camera(self, pixels) -> np.ndarray:
-        """(N, 2) pixels (u, v) -> (N, 3) ray directions in {C} with z = 1 (not unit)."""
+        """(N, 2) pixels (u, v) -> (N, 3) ray directions in {C} with z = 1 (not unit), the
+        lens's distortion undone."""
         px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-        return np.stack(
-            [(px[:, 0] - self.cx) / self.fx, (px[:, 1] - self.cy) / self.fy, np.ones(len(px))], 1
-        )
+        xy = np.stack([(px[:, 0] - self.cx) / self.fx, (px[:, 1] - self.cy) / self.fy], 1)
+        if self.distorted:
+            xy = undistort_normalized(xy, self.distortion)
+        return np.concatenate([xy, np.ones((len(px), 1))], axis=1)
+
+    def ideal_pixels(self, pixels) -> np.ndarray:
+        """(N, 2) measured pixels -> where an ideal pinhole with the same intrinsics would
+        have seen them (the pixels themselves when the lens has no distortion)."""
+        px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+        if not self.distorted:
+            return px
+        xy = self.rays_camera(px)
+        return np.stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy], 1)
+
+    def without_distortion(self) -> "PinholeCamera":
+        return replace(self, distortion=NO_DISTORTION)
 
     def rays(self, pixels) -> np.ndarray:
         """(N, 2) pixels -> (N, 3) unit ray directions in {B}."""
@@ -300,7 +395,8 @@ def triangulate_marker(pixels, camera: PinholeCamera, mirrors, *,
     position_b : (3,) float64
         mm in {B}; NaN when fewer than two views saw the marker.
     residual_px : float
-        RMS reprojection error over the views used, pixels.
+        RMS reprojection error over the views used, pixels (of the ideal pinhole, after the
+        lens's distortion is undone).
 
     Raises
     ------
@@ -308,6 +404,7 @@ def triangulate_marker(pixels, camera: PinholeCamera, mirrors, *,
         The views' rays are (nearly) parallel: the depth is unobservable.
     """
     pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    pixels = camera.ideal_pixels(pixels)  # the views below are ideal pinholes
     views = marker_views(camera, mirrors) if views is None else views
     if len(pixels) != len(views.origins):
         raise ValueError(f"`pixels` must be ({len(views.origins)}, 2), got {pixels.shape}")

@@ -114,6 +114,27 @@ def _parse_args(argv):
         return sub.add_parser(name, formatter_class=_HelpFormatter,
                               description=kwargs.get("help"), **kwargs)
 
+    cal = command("calibrate", help="calibrate the views, the light plane, the clocks and the "
+                                    "LED offset from a session (simulated, or a folder)")
+    where = cal.add_mutually_exclusive_group(required=True)
+    where.add_argument("--sim", action="store_true",
+                       help="a simulated session in the simulated cell (see --effects)")
+    where.add_argument("--session", type=Path, help="a session folder (service.calibrate)")
+    cal.add_argument("--seed", type=_non_negative_int, default=0,
+                     help="positions, stage errors and image noise of the simulated session")
+    cal.add_argument("--perturb-seed", type=_non_negative_int, default=None,
+                     help="perturb the simulated cell's geometry and effects (repeatably)")
+    cal.add_argument("--effects", default="all",
+                     help="the simulated cell's real-cell effects: 'all' (default), 'none' or a "
+                          "comma-separated choice of lens, exposure, clocks, robot, led")
+    cal.add_argument("--led-positions", type=_non_negative_int, default=200,
+                     help="stage positions of the LED (simulated session)")
+    cal.add_argument("--sphere-positions", type=_non_negative_int, default=40,
+                     help="stage positions of the sphere (simulated session)")
+    cal.add_argument("--write-session", type=Path, default=None,
+                     help="also write the simulated session as a folder (PNG frames, CSV)")
+    cal.add_argument("--out", type=Path, required=True, help="the calibration JSON to write")
+
     scan = command("scan", help="scan a CAD part in the simulated cell")
     src = scan.add_mutually_exclusive_group(required=True)
     src.add_argument("--part", type=Path, help="mesh file (STL, OBJ, PLY)")
@@ -143,6 +164,10 @@ def _parse_args(argv):
     scan.add_argument("--exposure", choices=list(EXPOSURE_MODES), default="fixed",
                       help="exposure control: fixed, dynamic (from the previous frames' stripe "
                            "peaks) or multiple (two exposures alternating)")
+    scan.add_argument("--effects", default="none",
+                      help="what a real cell does that the scanner is not told: 'all', 'none' or "
+                           "a comma-separated choice of lens, exposure, clocks, robot, led "
+                           "(simulator.effects)")
     scan.add_argument("--drop-rate", type=float, default=0.0, help="fraction of frames lost")
     scan.add_argument("--no-eval", action="store_true", help="skip the ground-truth accuracy")
     scan.add_argument("--out", type=Path, required=True,
@@ -204,7 +229,7 @@ def _parse_args(argv):
 
     bench = command("bench", help="benchmarks: JSON figures and PNG charts")
     bench.add_argument("what", choices=["stripe", "scan", "simulate", "service", "pose",
-                                        "hardware", "surfaces"],
+                                        "hardware", "surfaces", "calibrate"],
                        help="pose: registration accuracy, time, basin, sigma calibration and "
                             "the side-by-side with Open3D and small_gicp, then where pose and "
                             "edges break; hardware: the UR cross-check through ur-rtde, the "
@@ -215,6 +240,60 @@ def _parse_args(argv):
                        help="folder of the reference meshes and their manifest.json (default: "
                             "$FLYSCAN_MESHES, or ../shared/data/meshes beside a source checkout)")
     return parser.parse_args(argv)
+
+
+def _sim_cell(perturb_seed, effects_text):
+    """The simulated cell: the reference, perturbed and with a real cell's effects as asked."""
+    from simulator.cell import load_cell
+    from simulator.effects import parse_effects, realistic_cell
+
+    try:
+        effects = parse_effects(effects_text)
+    except ValueError as exc:
+        raise UsageError(f"--effects: {exc}") from None
+    cell = load_cell(perturb_seed=perturb_seed)
+    return realistic_cell(cell, effects, seed=perturb_seed) if effects else cell
+
+
+def _cmd_calibrate(args) -> int:
+    from scanner_core.calibration import save_calibration
+    from scanner_core.fileio import save_json_atomic
+    from service.calibrate import calibrate_session, load_session, write_session
+
+    if args.out.exists() and args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a folder; give the calibration file's path")
+    cell = None
+    if args.session is not None:
+        session = load_session(args.session)
+    else:
+        from simulator.calsession import simulate_session
+
+        for name in ("led_positions", "sphere_positions"):
+            if getattr(args, name) < 3:
+                raise UsageError(f"--{name.replace('_', '-')} must be at least 3")
+        cell = _sim_cell(args.perturb_seed, args.effects)
+        session = simulate_session(cell, seed=args.seed, led_count=args.led_positions,
+                                   sphere_count=args.sphere_positions)
+        if args.write_session is not None:
+            write_session(args.write_session, session)
+            print(f"session written to {args.write_session}")
+    t0 = time.perf_counter()
+    calibration, report = calibrate_session(session, progress=lambda m: print(m, flush=True),
+                                            seed=args.seed)
+    report["time_s"] = round(time.perf_counter() - t0, 2)
+    if cell is not None:
+        from simulator.calsession import evaluate_calibration
+
+        truth = evaluate_calibration(calibration, cell)
+        report["against_truth"] = truth
+        print("against the simulated truth: plane normal {plane_normal_deg:.4f} deg, offset "
+              "{plane_offset_um:.1f} um; LED offset {led_offset_um:.1f} um; clock "
+              "{clock_offset_ms:+.3f} ms".format(**truth))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    save_calibration(args.out, calibration)
+    save_json_atomic(args.out.with_suffix(".report.json"), report)
+    print(f"calibration written to {args.out} (report {args.out.with_suffix('.report.json')})")
+    return 0
 
 
 def _cmd_scan(args) -> int:
@@ -243,11 +322,14 @@ def _cmd_scan(args) -> int:
         raise UsageError(str(exc)) from None
     part = with_surface(_load_part(args), args.surface)
     check_fits(part, pose=misplacement @ part.grasp)
-    cell = load_cell(perturb_seed=args.perturb_seed)
+    cell = _sim_cell(args.perturb_seed, args.effects)
     preset = PASS_PRESETS[args.preset]
     cell = cell.with_pass(speed_mm_s=args.speed or preset.speed_mm_s, fps=args.fps or preset.fps)
     _check_frame_spacing(part, cell.pass_profile.speed_mm_s, cell.pass_profile.fps)
     calibration = load_calibration(args.calibration) if args.calibration else None
+    if calibration is not None:
+        calibration.check_image_size(cell.calibration.camera.width,
+                                     cell.calibration.camera.height)
     params = PipelineParams(stripe_method=args.method,
                             exposure=ExposureParams(mode=args.exposure))
     t0 = time.perf_counter()
@@ -565,6 +647,8 @@ def _cmd_bench(args) -> int:
         from service.bench import hardware as bench
     elif args.what == "surfaces":
         from service.bench import surfaces as bench
+    elif args.what == "calibrate":
+        from service.bench import calibrate as bench
     elif args.what == "pose":
         from service.bench import pose as bench
         from service.bench import pose_limits
@@ -602,6 +686,9 @@ def _run(args) -> int:
     # A real-time process keeps BLAS to one thread: OpenBLAS workers spin for ~100 ms after
     # each call and steal the other core (NOTES.md).
     from scanner_core.calibration import CalibrationError
+    from scanner_core.planecal import PlaneCalibrationError
+    from scanner_core.viewcal import ViewCalibrationError
+    from service.calibrate import SessionError
     from simulator.embree import EmbreeError
     from simulator.parts import PartError
     from simulator.virtual_setup import SetupError
@@ -609,10 +696,10 @@ def _run(args) -> int:
     with threadpool_limits(limits=1, user_api="blas"):
         try:
             return {"scan": _cmd_scan, "simulate": _cmd_simulate, "serve": _cmd_serve,
-                    "record": _cmd_record, "replay": _cmd_replay,
+                    "record": _cmd_record, "replay": _cmd_replay, "calibrate": _cmd_calibrate,
                     "bench": _cmd_bench}[args.command](args)
         except (UsageError, PartError, CalibrationError, ScanError, SetupError,
-                EmbreeError) as exc:
+                EmbreeError, SessionError, ViewCalibrationError, PlaneCalibrationError) as exc:
             print(f"flyscan {args.command}: error: {exc}", file=sys.stderr)
             return 2
         except ScanFailed as exc:

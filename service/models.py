@@ -145,6 +145,8 @@ class CameraModel(BaseModel):
     height: int
     rotation: list[Vector3] = Field(min_length=3, max_length=3, description="{C} axes in {B}, row-major")
     origin_mm: Vector3 = Field(min_length=3, max_length=3)
+    distortion: list[float] = Field(default=[0.0] * 5, min_length=5, max_length=5,
+                                    description="lens distortion k1, k2, p1, p2, k3 (OpenCV)")
 
 
 class PlaneModel(BaseModel):
@@ -164,3 +166,7 @@ class CalibrationModel(BaseModel):
     mirrors: list[MirrorModel]
     direct_columns: list[int] = Field(min_length=2, max_length=2)
     marker_offset_t_mm: Vector3 = Field(min_length=3, max_length=3)
+    version: int = Field(default=2, description="calibration file version (1 or 2)")
+    clock_offset_s: float = Field(default=0.0, description="robot clock minus camera clock, s")
+    provenance: dict = Field(default={}, description="how it was made: date, cell, models, "
+                                                     "residuals, observations")

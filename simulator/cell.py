@@ -21,6 +21,7 @@ from scanner_core.calibration import Calibration
 from scanner_core.fileio import save_json_atomic
 from scanner_core.geometry import (Mirror, PinholeCamera, Plane, apply_transform,
                                    reflection_matrix, reproject_marker, unit)
+from simulator.effects import CellEffects
 from simulator.imaging import ImageModel
 
 REFERENCE_CELL = Path(__file__).resolve().parent / "data" / "reference_cell.json"
@@ -79,6 +80,8 @@ class Cell:
     sphere_radius_mm : float
         Calibration sphere.
     stage_accuracy_mm : float
+    effects : CellEffects
+        What a real cell does besides (``simulator.effects``): all off in the reference cell.
     """
 
     calibration: Calibration
@@ -90,6 +93,7 @@ class Cell:
     pass_profile: PassProfile = field(default_factory=PassProfile)
     sphere_radius_mm: float = 28.625
     stage_accuracy_mm: float = 0.005
+    effects: CellEffects = field(default_factory=CellEffects)
 
     @cached_property
     def light_plane_b(self) -> Plane:
@@ -106,6 +110,7 @@ class Cell:
             "pass_profile": asdict(self.pass_profile),
             "sphere_radius_mm": self.sphere_radius_mm,
             "stage_accuracy_mm": self.stage_accuracy_mm,
+            "effects": self.effects.to_dict(),
         }
 
     @classmethod
@@ -120,6 +125,7 @@ class Cell:
             pass_profile=PassProfile(**data["pass_profile"]),
             sphere_radius_mm=float(data["sphere_radius_mm"]),
             stage_accuracy_mm=float(data["stage_accuracy_mm"]),
+            effects=CellEffects.from_dict(data.get("effects", {})),
         )
 
     def with_pass(self, **changes) -> "Cell":

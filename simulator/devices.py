@@ -12,6 +12,7 @@ import numpy as np
 
 from scanner_core.devices import CameraClosed, TcpPose
 from scanner_core.types import Frame
+from simulator.effects import BLUR_SAMPLES, CellEffects
 from simulator.imaging import (EXPOSURE_RANGE_US, GAIN_RANGE, NOMINAL_EXPOSURE_US,
                                check_exposure, exposed_model)
 from simulator.motion import PassMotion
@@ -106,22 +107,35 @@ class SimCamera:
         self.clock.now = t
         exposure_us, gain = self.exposure_us, self.gain
         model = exposed_model(self.scene.cell.image_model, exposure_us, gain)
-        image, truth = self.scene.render(self.motion.tcp_position(t), self.grasp, self._rng,
-                                         image_model=model)
+        if self.scene.cell.effects.exposure_blur:
+            # The frame's time stamp is the start of its exposure; it integrates what follows.
+            instants = t + (np.arange(BLUR_SAMPLES) + 0.5) / BLUR_SAMPLES * exposure_us * 1e-6
+            image, truth = self.scene.render_blurred(self.motion.tcp_position(instants),
+                                                     self.grasp, self._rng, image_model=model)
+        else:
+            image, truth = self.scene.render(self.motion.tcp_position(t), self.grasp, self._rng,
+                                             image_model=model)
         self.truths[frame_id] = truth
         return Frame(image, frame_id, t, exposure_us, gain)
 
 
 @dataclass
 class SimRobot:
-    """Reports the TCP pose of the pass at 500 Hz, up to the shared clock's "now"."""
+    """Reports the TCP pose of the pass at 500 Hz, up to the shared clock's "now".
+
+    With ``effects`` (``simulator.effects.CellEffects``) it reports as a real robot does: on
+    its own clock (offset and drifting from the camera's), its position with a little noise
+    per sample and its orientation a little off. The shared clock is the camera's.
+    """
 
     motion: PassMotion
     rotation: np.ndarray
     clock: SimClock = field(default_factory=SimClock)
+    effects: CellEffects = field(default_factory=CellEffects)
 
     def __post_init__(self):
         self._connected = False
+        self._reported_rotation = self.effects.robot_rotation_error @ self.rotation
 
     def connect(self) -> None:
         self._connected = True
@@ -133,14 +147,25 @@ class SimRobot:
     def connected(self) -> bool:
         return self._connected
 
+    def _position(self, t_robot: float) -> np.ndarray:
+        """The reported position at a sample time on the robot's clock."""
+        effects = self.effects
+        position = self.motion.tcp_position(float(effects.camera_time(t_robot)))
+        if effects.tcp_noise_mm > 0:
+            k = int(round(t_robot * ROBOT_RATE_HZ))
+            noise = np.random.default_rng([effects.seed, k & 0xFFFFFFFF]).standard_normal(3)
+            position = position + effects.tcp_noise_mm * noise
+        return position
+
     def _pose(self, t: float) -> TcpPose:
-        return TcpPose(float(t), self.motion.tcp_position(t), self.rotation.copy())
+        return TcpPose(float(t), self._position(t), self._reported_rotation.copy())
 
     def _sample_range(self) -> tuple[float, float]:
         """Indices (k_first, k_last) of the 500 Hz samples reported so far and still kept;
         k_last < k_first when there is none."""
-        now = self.clock.now
-        first = max(now - ROBOT_HISTORY_S, -self.motion.profile.lead_in_s)
+        now = float(self.effects.robot_time(self.clock.now))
+        start = float(self.effects.robot_time(-self.motion.profile.lead_in_s))
+        first = max(now - ROBOT_HISTORY_S, start)
         return np.ceil(first * ROBOT_RATE_HZ), np.floor(now * ROBOT_RATE_HZ)
 
     def latest(self) -> TcpPose:
@@ -162,5 +187,5 @@ class SimRobot:
         k0 = min(max(np.floor(t * ROBOT_RATE_HZ), k_first), max(k_last - 1, k_first))
         t0, t1 = k0 / ROBOT_RATE_HZ, min(k0 + 1, k_last) / ROBOT_RATE_HZ
         w = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
-        pos = (1 - w) * self.motion.tcp_position(t0) + w * self.motion.tcp_position(t1)
-        return TcpPose(float(t), pos, self.rotation.copy())
+        pos = (1 - w) * self._position(t0) + w * self._position(t1)
+        return TcpPose(float(t), pos, self._reported_rotation.copy())

@@ -213,6 +213,8 @@ def render_image(
     stripe_rows=None,
     stripe_gain=None,
     marker_xy=None,
+    marker_gain=None,
+    marker_sigma=None,
 ) -> np.ndarray:
     """Render one camera frame of the laser stripe and markers.
 
@@ -240,6 +242,12 @@ def render_image(
         Amplitude factor per sample (1 = ``stripe_peak_dn``).  Default all ones.
     marker_xy : (M, 2) float, optional
         Exact (column, row) centres of the marker blobs; rows with NaN are skipped.
+    marker_gain : (M,) float, optional
+        Amplitude factor per blob (1 = ``marker_peak_dn``): a blob smeared over an exposure is
+        drawn as several fainter ones.
+    marker_sigma : (M,) float, optional
+        Sigma per blob, px (an LED of finite size looks smaller from farther); default
+        ``model.marker_sigma_px``.
 
     Returns
     -------
@@ -266,6 +274,13 @@ def render_image(
         markers = np.zeros((0, 2))
     else:
         markers = np.asarray(marker_xy, dtype=np.float64).reshape(-1, 2)
+    m_amp = model.marker_peak_dn * (np.ones(len(markers)) if marker_gain is None else np.broadcast_to(
+        np.asarray(marker_gain, dtype=np.float64), (len(markers),)))
+    m_sigma = np.broadcast_to(np.asarray(model.marker_sigma_px if marker_sigma is None
+                                         else marker_sigma, dtype=np.float64),
+                              (len(markers),)).copy()
+    m_sigma[~(m_sigma > 0)] = model.marker_sigma_px
+    m_halves = np.ceil(RENDER_HALF_WIDTH_SIGMAS * m_sigma).astype(np.int64)
 
     # 1. random draws, in a fixed order
     speckle = speckle_factors(width, model, rng)
@@ -273,9 +288,8 @@ def render_image(
     n_px = height * width
     u = rng.bit_generator.random_raw((n_px + 7) // 8).view(np.uint8)[:n_px].reshape(height, width)
     s_half = int(math.ceil(RENDER_HALF_WIDTH_SIGMAS * model.stripe_sigma_px))
-    m_half = int(math.ceil(RENDER_HALF_WIDTH_SIGMAS * model.marker_sigma_px))
     # supports: rows floor(y) - half .. floor(y) + half + 1 (and the same along columns)
-    n_fg = cols.shape[0] * (2 * s_half + 2) + markers.shape[0] * (2 * m_half + 2) ** 2
+    n_fg = cols.shape[0] * (2 * s_half + 2) + int(np.sum((2 * m_halves + 2) ** 2))
     normals = rng.standard_normal(n_fg) * model.read_noise_dn
 
     # 2. background through the quantile tables
@@ -301,8 +315,8 @@ def render_image(
         acc = np.zeros((height, width), np.float32)
         mask = np.zeros((height, width), np.uint8)
         _foreground(out, acc, mask, cols, rows, gain * model.stripe_peak_dn * speckle[np.clip(cols, 0, width - 1)],
-                    model.stripe_sigma_px, s_half, markers, model.marker_peak_dn,
-                    model.marker_sigma_px, m_half, model.background_dn, model.ambient_dn,
+                    model.stripe_sigma_px, s_half, markers, m_amp, m_sigma, m_halves,
+                    model.background_dn, model.ambient_dn,
                     model.saturation_dn, normals)
     return out
 
@@ -340,8 +354,8 @@ def _lut_ambient(u, tables, background, ambient, sat, steps, out):
 
 
 @njit(nogil=True, cache=True)
-def _foreground(out, acc, mask, cols, rows, amps, s_sigma, s_half, markers, m_peak, m_sigma, m_half,
-                background, ambient, sat, normals):
+def _foreground(out, acc, mask, cols, rows, amps, s_sigma, s_half, markers, m_amps, m_sigmas,
+                m_halves, background, ambient, sat, normals):
     """Exact rendering of the pixels within the support of any stripe sample or marker.
 
     One sweep sums every contribution into ``acc`` and lists each pixel the first time it is
@@ -351,7 +365,6 @@ def _foreground(out, acc, mask, cols, rows, amps, s_sigma, s_half, markers, m_pe
     n = cols.shape[0]
     nm = markers.shape[0]
     inv_s = 1.0 / (2.0 * s_sigma * s_sigma)
-    inv_m = 1.0 / (2.0 * m_sigma * m_sigma)
     touched_r = np.empty(normals.shape[0], np.int64)
     touched_c = np.empty(normals.shape[0], np.int64)
     k = 0
@@ -375,6 +388,9 @@ def _foreground(out, acc, mask, cols, rows, amps, s_sigma, s_half, markers, m_pe
         y = markers[j, 1]
         if not (math.isfinite(x) and math.isfinite(y)):
             continue
+        m_half = m_halves[j]
+        m_peak = m_amps[j]
+        inv_m = 1.0 / (2.0 * m_sigmas[j] * m_sigmas[j])
         r0 = max(int(math.floor(y)) - m_half, 0)
         r1 = min(int(math.floor(y)) + m_half + 1, h - 1)
         c0 = max(int(math.floor(x)) - m_half, 0)

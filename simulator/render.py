@@ -59,6 +59,10 @@ class FrameTruth:
     reflection_columns, reflection_rows, reflection_gain : (K,) int32, float64, float64
         Where the laser mirrored by a shiny surface lights the part again (one bounce), as
         seen in the direct view: not the stripe (the light is off the sheet), but drawn like it.
+    marker_blobs : (M, 4) float64 or None
+        The LED blobs as drawn, ``(u, v, gain, sigma_px)``, when they are not simply one blob of
+        the image model's size per view in ``marker_pixels``: an LED of finite size, or a blob
+        smeared over the exposure.
     """
 
     tcp_b: np.ndarray
@@ -72,6 +76,7 @@ class FrameTruth:
     reflection_columns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     reflection_rows: np.ndarray = field(default_factory=lambda: np.zeros(0))
     reflection_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    marker_blobs: np.ndarray | None = None
 
 
 class PartScene:
@@ -160,12 +165,35 @@ class PartScene:
         gain = gain * coverage  # the pixel integrates over the part the sample covers
         marker_b = tcp_b + self.cell.gripper_rotation_b @ cal.marker_offset_t
         marker_px = self.marker_pixels(marker_b, inv) if with_marker else np.full((3, 2), np.nan)
+        blobs = None
+        if self.cell.effects.led_radius_mm > 0:
+            blobs = np.column_stack([marker_px, np.ones(len(marker_px)),
+                                     self.marker_sigmas(marker_b)])
         truth = FrameTruth(tcp_b, pose, cols.astype(np.int32), rows, points_b, gain, marker_b,
-                           marker_px)
+                           marker_px, marker_blobs=blobs)
         if surface.mirror > 0 and len(points_p):
             truth = dataclasses.replace(truth, **self._bounce(points_p, incidence, normals,
                                                               coverage, pose, camera_p))
         return truth
+
+    def render_blurred(self, tcp_b, grasp: np.ndarray, rng: np.random.Generator, *,
+                       image_model=None):
+        """A frame whose exposure spans several instants (``tcp_b``: (K, 3), one TCP position
+        per instant): every instant's stripe and LED drawn at 1/K of its brightness. The
+        truth is the middle instant's, with every sample's point moved with the gripper to it
+        (the part's points stay where they are in {T})."""
+        tcp_b = np.asarray(tcp_b, dtype=np.float64).reshape(-1, 3)
+        truth = blur_truths([self.geometry(p, grasp) for p in tcp_b])
+        return frame_image(self.cell, truth, rng, image_model), truth
+
+    def marker_sigmas(self, marker_b: np.ndarray) -> np.ndarray:
+        """(3,) px: the LED's blob size in each view (half its apparent radius: the sigma of a
+        Gaussian of the same spread as a uniform disc is its radius over 2)."""
+        cal = self.cell.calibration
+        cam = cal.camera
+        apparent = [marker_b] + [apply_transform(m.reflection, marker_b) for m in cal.mirrors]
+        distance = np.linalg.norm(np.array(apparent) - cam.origin, axis=1)
+        return 0.5 * cam.fx * self.cell.effects.led_radius_mm / distance
 
     def _bounce(self, points_p, incidence, normals, coverage, pose_b, camera_p) -> dict:
         """One bounce: the laser mirrored at each lit sample goes on to the first surface it
@@ -252,8 +280,36 @@ def frame_image(cell: Cell, truth: FrameTruth | None, rng: np.random.Generator,
         cols = np.concatenate([cols, truth.reflection_columns])
         rows = np.concatenate([rows, truth.reflection_rows])
         gain = np.concatenate([gain, truth.reflection_gain])
+    blobs = truth.marker_blobs
+    if blobs is None:
+        return render_image(cam.height, cam.width, model, rng, stripe_cols=cols,
+                            stripe_rows=rows, stripe_gain=gain, marker_xy=truth.marker_pixels)
     return render_image(cam.height, cam.width, model, rng, stripe_cols=cols, stripe_rows=rows,
-                        stripe_gain=gain, marker_xy=truth.marker_pixels)
+                        stripe_gain=gain, marker_xy=blobs[:, :2], marker_gain=blobs[:, 2],
+                        marker_sigma=blobs[:, 3])
+
+
+def blur_truths(truths: list[FrameTruth]) -> FrameTruth:
+    """One FrameTruth for several instants of one exposure (see ``PartScene.render_blurred``)."""
+    k = len(truths)
+    ref = truths[k // 2]
+    shift = [ref.tcp_b - t.tcp_b for t in truths]  # the gripper's rotation is fixed in a pass
+    blobs = []
+    for t in truths:
+        b = t.marker_blobs if t.marker_blobs is not None else np.column_stack(
+            [t.marker_pixels, np.ones(len(t.marker_pixels)), np.zeros(len(t.marker_pixels))])
+        blobs.append(b * np.array([1.0, 1.0, 1.0 / k, 1.0]))
+    cat = np.concatenate
+    return dataclasses.replace(
+        ref,
+        stripe_columns=cat([t.stripe_columns for t in truths]),
+        stripe_rows=cat([t.stripe_rows for t in truths]),
+        stripe_points_b=cat([t.stripe_points_b + d for t, d in zip(truths, shift)]),
+        stripe_gain=cat([t.stripe_gain for t in truths]) / k,
+        reflection_columns=cat([t.reflection_columns for t in truths]),
+        reflection_rows=cat([t.reflection_rows for t in truths]),
+        reflection_gain=cat([t.reflection_gain for t in truths]) / k,
+        marker_blobs=cat(blobs))
 
 
 def slice_mesh(vertices, faces, normal, offset) -> tuple[np.ndarray, np.ndarray]:
@@ -334,6 +390,8 @@ def column_hits(segments_p, pose_b, camera, columns):
     if len(segments_p) == 0:
         return (np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64),
                 np.zeros(0))
+    if camera.distorted:
+        return _column_hits_through_lens(segments_p, pose_b, camera, columns)
     seg_b = apply_transform(pose_b, segments_p.reshape(-1, 3))
     q = camera.to_camera(seg_b).reshape(-1, 2, 3)
     qa, qb = q[:, 0], q[:, 1]
@@ -368,3 +426,56 @@ def column_hits(segments_p, pose_b, camera, columns):
     rows = camera.fy * x[:, 1] / x[:, 2] + camera.cy
     points_p = segments_p[segment, 0] + t[:, None] * (segments_p[segment, 1] - segments_p[segment, 0])
     return cols, rows, points_p, segment, coverage
+
+
+#: Through a distorting lens, section segments are cut into pieces at most this long in the
+#: image (px) and each piece taken as straight there: the lens bends a 100 px stripe by pixels,
+#: a 0.5 px piece by less than 1e-4 px.
+LENS_PIECE_PX = 0.5
+
+
+def _column_hits_through_lens(segments_p, pose_b, camera, columns):
+    """:func:`column_hits` for a camera whose lens distorts: a pixel column is no longer a
+    plane through the camera centre, so the segments are cut into short pieces, each piece's
+    ends projected through the lens and the piece taken as straight in the image."""
+    seg_b = apply_transform(pose_b, segments_p.reshape(-1, 3)).reshape(-1, 2, 3)
+    ideal = camera.without_distortion()
+    ends = ideal.project(seg_b.reshape(-1, 3)).reshape(-1, 2, 2)
+    span = np.abs(ends[:, 1] - ends[:, 0]).max(axis=1)
+    ok = np.isfinite(span)
+    pieces = np.where(ok, np.ceil(np.where(ok, span, 0.0) / LENS_PIECE_PX), 0).astype(np.int64)
+    pieces = np.maximum(pieces, ok.astype(np.int64))
+    segment = np.repeat(np.arange(len(seg_b)), pieces)
+    k = np.arange(pieces.sum()) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+    t0 = k / pieces[segment]
+    t1 = (k + 1) / pieces[segment]
+    a, d = segments_p[segment, 0], segments_p[segment, 1] - segments_p[segment, 0]
+    pa, pb = a + t0[:, None] * d, a + t1[:, None] * d
+    px = camera.project(apply_transform(pose_b, np.concatenate([pa, pb]))).reshape(2, -1, 2)
+    ua, va, ub, vb = px[0, :, 0], px[0, :, 1], px[1, :, 0], px[1, :, 1]
+    umin = np.clip(np.minimum(ua, ub), columns[0] - 0.5, columns[1] - 0.5)
+    umax = np.clip(np.maximum(ua, ub), columns[0] - 0.5, columns[1] - 0.5)
+    first = np.floor(umin + 0.5)
+    last = np.ceil(umax + 0.5) - 1.0
+    spans = np.isfinite(ua) & np.isfinite(ub) & (umax > umin)
+    counts = np.where(spans, last - first + 1.0, 0.0).astype(np.int64)
+    piece = np.repeat(np.arange(len(ua)), counts)
+    starts = np.repeat(np.where(spans, first, 0.0).astype(np.int64), counts)
+    cols = starts + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    lo = np.maximum(umin[piece], cols - 0.5)
+    hi = np.minimum(umax[piece], cols + 0.5)
+    coverage = hi - lo
+    keep = coverage > 0.0
+    cols, piece, coverage = cols[keep], piece[keep], coverage[keep]
+    u = 0.5 * (lo[keep] + hi[keep])
+    t = np.clip((u - ua[piece]) / (ub[piece] - ua[piece]), 0.0, 1.0)
+    rows = va[piece] + t * (vb[piece] - va[piece])
+    points_p = pa[piece] + t[:, None] * (pb[piece] - pa[piece])
+    # One sample per segment and column, as without a lens: the pieces' coverage-weighted mean.
+    seg = segment[piece]
+    key, first, group = np.unique(seg * (int(columns[1]) + 1) + cols, return_index=True,
+                                  return_inverse=True)
+    weight = np.bincount(group, coverage)
+    rows = np.bincount(group, coverage * rows) / weight
+    points_p = np.stack([np.bincount(group, coverage * points_p[:, i]) for i in range(3)], 1)
+    return cols[first], rows, points_p / weight[:, None], seg[first], weight

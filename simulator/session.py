@@ -78,7 +78,7 @@ def simulated_cell(part: Part, cell: Cell, *, misplacement=None, seed: int = 0,
     motion = PassMotion(cell.pass_profile)
     clock = SimClock()
     camera = SimCamera(scene, motion, true_grasp, seed=seed, drop_rate=drop_rate, clock=clock)
-    robot = SimRobot(motion, cell.gripper_rotation_b, clock=clock)
+    robot = SimRobot(motion, cell.gripper_rotation_b, clock=clock, effects=cell.effects)
     return SimulatedCell(cell, part, scene, motion, camera, robot, true_grasp)
 
 
@@ -112,8 +112,9 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
     try:
         exposure = ExposureController(sim.camera, params.exposure, cell.pass_profile.fps)
         scan = run_pass(camera_frames(sim.camera), calibration, sim.robot, params,
-                        exposure=exposure)
-        check = cross_check(scan.tcp_times, scan.tcp_positions_b, sim.robot)
+                        exposure=exposure, clock_offset_s=calibration.clock_offset_s)
+        check = cross_check(scan.tcp_times, scan.tcp_positions_b, sim.robot,
+                            clock_offset_s=calibration.clock_offset_s)
     finally:
         sim.camera.close()
         sim.robot.disconnect()

@@ -161,6 +161,16 @@ def test_calibration_round_trip_and_a_bad_one_refused(service):
         broken = {**calibration, "light_plane_c": {"normal": [0.0, 0.0, 2.0], "offset_mm": 1.0}}
         with pytest.raises(Unprocessable, match="unit 3-vector"):
             client.put_calibration(broken)
+        with pytest.raises(Unprocessable, match="version 3"):
+            client.put_calibration({**calibration, "version": 3})
+        # A calibration file of issue 9 (a lens, a clock offset, its provenance) goes through.
+        lens = {**calibration, "camera": {**calibration["camera"],
+                                          "distortion": [-0.08, 0.12, 2e-4, -1e-4, 0.0]},
+                "clock_offset_s": 0.0125, "provenance": {"cell": "test"}}
+        back = client.put_calibration(lens)
+        assert back["camera"]["distortion"] == lens["camera"]["distortion"]
+        assert back["clock_offset_s"] == 0.0125 and back["provenance"] == {"cell": "test"}
+        client.put_calibration(calibration)
         assert client.calibration() == calibration
 
 

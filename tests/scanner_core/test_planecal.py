@@ -1,0 +1,67 @@
+"""The light plane from a sphere (issue 9): recovery, outliers, a sheet that misses the sphere."""
+import numpy as np
+import pytest
+
+from scanner_core.geometry import Plane, unit
+from scanner_core.planecal import PlaneCalibrationError, calibrate_plane
+from simulator.cell import load_cell
+
+RADIUS = 28.625
+
+
+def _stripe(camera, plane: Plane, centre, n=400):
+    """The sphere-plane circle's pixels, the part of it the camera sees from outside."""
+    c = np.asarray(centre, float)
+    h = plane.signed_distance(c)[0]
+    r = np.sqrt(max(RADIUS**2 - h**2, 0.0))
+    foot = c - h * plane.normal
+    e1 = unit(np.cross(plane.normal, [1.0, 0, 0]))
+    e2 = np.cross(plane.normal, e1)
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    pts = foot + r * (np.cos(t)[:, None] * e1 + np.sin(t)[:, None] * e2)
+    facing = np.einsum("ij,ij->i", pts - c, camera.origin - pts) > 0
+    return camera.project(pts[facing])
+
+
+def _frames(cell, rng, count=20, miss=False):
+    cam = cell.calibration.camera
+    plane = cell.light_plane_b
+    frames = []
+    for _ in range(count):
+        y = (RADIUS + 5 if miss else rng.uniform(8, 20)) * rng.choice([-1, 1])
+        centre = np.array([rng.uniform(-45, 45), y, rng.uniform(-25, 25)])
+        frames.append((_stripe(cam, plane, centre), centre))
+    return frames
+
+
+def test_noise_free_plane_to_numerical_precision():
+    cell = load_cell(perturb_seed=4)
+    fit = calibrate_plane(_frames(cell, np.random.default_rng(0)), cell.calibration.camera, RADIUS)
+    true = cell.light_plane_b
+    assert np.degrees(np.arccos(min(1.0, abs(fit.plane_b.normal @ true.normal)))) < 1e-6
+    assert abs(fit.plane_b.signed_distance(true.normal * true.offset)[0]) < 1e-6
+    assert fit.rms_mm < 1e-6
+    assert fit.centre_rms_mm < 1e-6
+
+
+def test_five_percent_stray_points_do_not_move_the_plane():
+    """A reflection of the stripe lights pixels off the circle: they are outvoted."""
+    cell = load_cell()
+    rng = np.random.default_rng(1)
+    frames = []
+    for px, centre in _frames(cell, rng):
+        px = px + rng.normal(0, 0.05, px.shape)
+        stray = rng.random(len(px)) < 0.05
+        px[stray, 1] += rng.uniform(5, 30, stray.sum())
+        frames.append((px, centre))
+    fit = calibrate_plane(frames, cell.calibration.camera, RADIUS)
+    true = cell.light_plane_b
+    assert np.degrees(np.arccos(min(1.0, abs(fit.plane_b.normal @ true.normal)))) < 0.005
+    assert abs(fit.plane_b.signed_distance(true.normal * true.offset)[0]) < 0.010
+
+
+def test_a_sheet_that_never_cuts_the_sphere_is_refused():
+    cell = load_cell()
+    frames = [(np.zeros((0, 2)), c) for _, c in _frames(cell, np.random.default_rng(2), miss=True)]
+    with pytest.raises(PlaneCalibrationError, match="does the sheet cut the sphere"):
+        calibrate_plane(frames, cell.calibration.camera, RADIUS)

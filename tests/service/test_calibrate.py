@@ -1,0 +1,111 @@
+"""flyscan calibrate (issue 9): a simulated session in a cell the scanner does not know."""
+import json
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from service.calibrate import SessionError, load_session, write_session
+from service.cli import main
+from simulator.calsession import simulate_session
+from simulator.cell import load_cell
+from simulator.effects import realistic_cell
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cal") / "cal.json"
+    assert main(["calibrate", "--sim", "--perturb-seed", "5", "--led-positions", "120",
+                 "--sphere-positions", "20", "--out", str(out)]) == 0
+    return out
+
+
+def test_calibration_finds_the_unknown_cell(calibrated):
+    report = json.loads(calibrated.with_suffix(".report.json").read_text())
+    truth = report["against_truth"]
+    assert truth["plane_normal_deg"] < 0.005
+    assert truth["plane_offset_um"] < 10
+    assert truth["led_offset_um"] < 50
+    assert abs(truth["clock_offset_ms"]) < 0.2
+    assert report["residuals"]["sphere_centre_rms_mm"] < 0.020
+    for view in report["models"]["ladder"]:
+        assert view["chosen"] == "pinhole+distortion"
+        assert view["heldout_rms_px"]["pinhole+distortion"] < 0.05
+    data = json.loads(calibrated.read_text())
+    assert data["version"] == 2 and data["provenance"]["observations"]["led_positions"] == 120
+
+
+def test_scan_on_the_calibration_is_as_good_as_on_the_truth(calibrated, tmp_path):
+    rms = {}
+    for name, extra in (("truth", []), ("calibrated", ["--calibration", str(calibrated)])):
+        out = tmp_path / name
+        assert main(["scan", "--demo", "--perturb-seed", "5", "--effects", "all",
+                     "--out", str(out)] + extra) == 0
+        rms[name] = json.loads((out / "report.json").read_text())["ground_truth"]["accuracy"]["rms_um"]
+    assert rms["calibrated"] <= 30.0
+    assert rms["calibrated"] <= 1.5 * rms["truth"]
+
+
+def test_the_ideal_calibration_is_far_off_in_the_real_cell(tmp_path):
+    """The lens alone, not calibrated, throws the cloud off by more than a millimetre: the
+    calibration above is doing the work."""
+    out = tmp_path / "ideal"
+    ideal = tmp_path / "ideal.json"
+    from scanner_core.calibration import save_calibration
+    save_calibration(ideal, load_cell(perturb_seed=5).calibration)
+    code = main(["scan", "--demo", "--perturb-seed", "5", "--effects", "lens", "--out", str(out),
+                 "--calibration", str(ideal)])
+    if code == 0:
+        rms = json.loads((out / "report.json").read_text())["ground_truth"]["accuracy"]["rms_um"]
+        assert rms > 200.0
+    else:
+        assert code != 0  # or the scan refuses: the marker's residuals give it away
+
+
+def test_the_scanner_never_reads_the_truth(tmp_path):
+    """From a session folder, with the simulator unimportable, the calibration still comes out
+    (and is not the truth exactly: it was measured)."""
+    cell = realistic_cell(load_cell(perturb_seed=6), ("lens",), seed=6)
+    session = simulate_session(cell, seed=1, led_count=60, sphere_count=8, with_pass=False)
+    write_session(tmp_path / "session", session)
+    script = textwrap.dedent(f"""
+        import sys, json
+        sys.modules["simulator"] = None  # any import of the simulator now fails
+        from service.calibrate import calibrate_session, load_session
+        cal, report = calibrate_session(load_session({str(tmp_path / 'session')!r}))
+        print(json.dumps(cal.to_dict()))
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    from scanner_core.calibration import Calibration
+    cal = Calibration.from_dict(json.loads(done.stdout.strip().splitlines()[-1]))
+    true = cell.calibration
+    angle = np.degrees(np.arccos(min(1.0, abs(cal.light_plane_b.normal @ true.light_plane_b.normal))))
+    assert 0.0 < angle < 0.02
+    assert 0.0 < np.linalg.norm(cal.camera.origin - true.camera.origin) < 1.0
+    # The lens as it bends pixels (its k2 and k3 trade off against each other over a session
+    # this short): across the direct view, within a fifth of a pixel.
+    u, v = np.meshgrid(np.linspace(400, 1500, 12), np.linspace(50, 1150, 12))
+    grid = np.column_stack([u.ravel(), v.ravel()])
+    bend = cal.camera.ideal_pixels(grid) - grid
+    true_bend = true.camera.ideal_pixels(grid) - grid
+    assert np.abs(true_bend).max() > 2.0
+    assert np.abs(bend - true_bend).max() < 0.2
+
+
+def test_a_broken_session_folder_is_named(tmp_path):
+    with pytest.raises(SessionError, match="session.json not found"):
+        load_session(tmp_path)
+    (tmp_path / "session.json").write_text(json.dumps({"format": "flyscan-calibration-session",
+                                                       "version": 9}))
+    with pytest.raises(SessionError, match="version 9"):
+        load_session(tmp_path)
+
+
+def test_calibrate_refuses_too_few_positions(tmp_path, capsys):
+    assert main(["calibrate", "--sim", "--led-positions", "2", "--out",
+                 str(tmp_path / "c.json")]) == 2
+    assert "--led-positions must be at least 3" in capsys.readouterr().err
