@@ -83,7 +83,7 @@ class LiveRecording:
             self._recorder.abort()
             return {"path": None, "error": self.error}
         try:
-            samples = _robot_samples(robot, min(self._times) + clock_offset_s - ROBOT_MARGIN_S,
+            samples = robot_samples(robot, min(self._times) + clock_offset_s - ROBOT_MARGIN_S,
                                      max(self._times) + clock_offset_s + ROBOT_MARGIN_S)
             self._recorder.add_robot_poses(samples)
             path = self._recorder.finish()
@@ -100,7 +100,7 @@ class LiveRecording:
         self._recorder.abort()
 
 
-def _robot_samples(robot: Robot, t0: float, t1: float) -> list:
+def robot_samples(robot: Robot, t0: float, t1: float) -> list:
     """The robot's poses on the sample grid between robot times t0 and t1 (what it has)."""
     poses = []
     for k in range(int(np.ceil(t0 * ROBOT_SAMPLE_HZ)), int(np.floor(t1 * ROBOT_SAMPLE_HZ)) + 1):

@@ -67,9 +67,13 @@ def test_the_ideal_calibration_is_far_off_in_the_real_cell(tmp_path):
 def test_the_scanner_never_reads_the_truth(tmp_path):
     """From a session folder, with the simulator unimportable, the calibration still comes out
     (and is not the truth exactly: it was measured)."""
-    cell = realistic_cell(load_cell(perturb_seed=6), ("lens",), seed=6)
-    session = simulate_session(cell, seed=1, led_count=60, sphere_count=8, with_pass=False)
+    cell = realistic_cell(load_cell(perturb_seed=6), ("lens", "clocks", "led"), seed=6)
+    # A short pass at 60 fps keeps the recording small (30 frames, 70 MB).
+    short = cell.with_pass(start_y_mm=-40.0, end_y_mm=40.0, lead_in_s=0.05, lead_out_s=0.05,
+                           fps=60.0)
+    session = simulate_session(short, seed=1, led_count=60, sphere_count=8)
     write_session(tmp_path / "session", session)
+    assert (tmp_path / "session" / "pass" / "recording.json").is_file()
     script = textwrap.dedent(f"""
         import sys, json
         sys.modules["simulator"] = None  # any import of the simulator now fails
@@ -94,6 +98,10 @@ def test_the_scanner_never_reads_the_truth(tmp_path):
     true_bend = true.camera.ideal_pixels(grid) - grid
     assert np.abs(true_bend).max() > 2.0
     assert np.abs(bend - true_bend).max() < 0.2
+    # The pass in the folder gave the LED's offset and the clocks.
+    assert np.linalg.norm(cal.marker_offset_t - true.marker_offset_t) < 0.05
+    assert np.linalg.norm(cal.marker_offset_t - load_cell().calibration.marker_offset_t) > 0.05
+    assert abs(cal.clock_offset_s - cell.effects.robot_time(0.0)) < 2e-4
 
 
 def test_a_broken_session_folder_is_named(tmp_path):
