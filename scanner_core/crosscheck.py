@@ -55,6 +55,15 @@ def _robot_positions(robot: Robot, times: np.ndarray) -> tuple[np.ndarray, np.nd
     return out, np.isfinite(out).all(axis=1)
 
 
+def _track_at(robot: Robot, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The robot's positions (N, 3) and central-difference velocities (N, 3) at robot times, and
+    (N,) bool: where its history covers both."""
+    p, ok = _robot_positions(robot, times)
+    ahead, ok_ahead = _robot_positions(robot, times + VELOCITY_STEP_S)
+    behind, ok_behind = _robot_positions(robot, times - VELOCITY_STEP_S)
+    return p, (ahead - behind) / (2 * VELOCITY_STEP_S), ok & ok_ahead & ok_behind
+
+
 def estimate_clock_offset(times, positions_b, robot: Robot, *, initial_s: float = 0.0,
                           max_step_s: float = MAX_OFFSET_STEP_S,
                           difference_b=None) -> float | None:
@@ -92,13 +101,10 @@ def estimate_clock_offset(times, positions_b, robot: Robot, *, initial_s: float 
     times, positions = times[pick], positions[pick]
     offset = float(initial_s)
     for _ in range(OFFSET_ITERATIONS):
-        p, ok = _robot_positions(robot, times + offset)
-        ahead, ok_ahead = _robot_positions(robot, times + offset + VELOCITY_STEP_S)
-        behind, ok_behind = _robot_positions(robot, times + offset - VELOCITY_STEP_S)
-        ok &= ok_ahead & ok_behind
+        p, velocity, ok = _track_at(robot, times + offset)
         if ok.sum() < 3:
             return None
-        velocity = (ahead[ok] - behind[ok]) / (2 * VELOCITY_STEP_S)
+        velocity = velocity[ok]
         speed2 = np.einsum("ij,ij->i", velocity, velocity)
         if np.sqrt(speed2.mean()) < MIN_SPEED_MM_S:
             return None
@@ -233,14 +239,11 @@ def estimate_led_and_clock(times, marker_b, robot: Robot, *, initial_offset_s: f
     offset = float(initial_offset_s)
     led = np.zeros(3)
     for _ in range(iterations):
-        p, ok = _robot_positions(robot, times + offset)
-        ahead, ok_a = _robot_positions(robot, times + offset + VELOCITY_STEP_S)
-        behind, ok_b = _robot_positions(robot, times + offset - VELOCITY_STEP_S)
-        ok &= ok_a & ok_b
+        p, velocity, ok = _track_at(robot, times + offset)
         if ok.sum() < 10:
             raise ValueError(f"only {int(ok.sum())} frames have a robot pose: no LED offset")
         rot = _robot_rotations(robot, times[ok] + offset)
-        velocity = (ahead[ok] - behind[ok]) / (2 * VELOCITY_STEP_S)
+        velocity = velocity[ok]
         n = int(ok.sum())
         # Unknowns (d_step, m): residual M - p - R m ~ v d_step + R dm.
         a = np.zeros((3 * n, 4))
