@@ -63,6 +63,9 @@ class FrameTruth:
         The LED blobs as drawn, ``(u, v, gain, sigma_px)``, when they are not simply one blob of
         the image model's size per view in ``marker_pixels``: an LED of finite size, or a blob
         smeared over the exposure.
+    stripe_surfaces : (N,) int64
+        The plane of the mesh each stripe sample lies on (``PartScene.surface_ids``: coplanar
+        faces share one); empty for a blurred frame's truth.
     """
 
     tcp_b: np.ndarray
@@ -77,6 +80,7 @@ class FrameTruth:
     reflection_rows: np.ndarray = field(default_factory=lambda: np.zeros(0))
     reflection_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))
     marker_blobs: np.ndarray | None = None
+    stripe_surfaces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 class PartScene:
@@ -89,6 +93,17 @@ class PartScene:
     @cached_property
     def intersector(self) -> Intersector:
         return self.part.intersector
+
+    @cached_property
+    def surface_ids(self) -> np.ndarray:
+        """(F,) int64: one id per flat face of the mesh (trimesh's facets: adjacent coplanar
+        triangles), each other triangle its own: a stripe sweeping across a flat face made of
+        several triangles stays on one surface."""
+        mesh = self.part.mesh
+        ids = np.arange(len(mesh.faces), dtype=np.int64)
+        for k, facet in enumerate(mesh.facets):
+            ids[facet] = len(mesh.faces) + k
+        return ids
 
     @cached_property
     def _vertices(self) -> np.ndarray:
@@ -153,7 +168,8 @@ class PartScene:
         cols, rows, points_p, points_b = cols[keep], rows[keep], points_p[keep], points_b[keep]
         incidence = points_p - laser_p
         incidence /= np.linalg.norm(incidence, axis=1, keepdims=True)
-        normals = self._face_normals[faces[keep]]
+        faces = faces[keep]
+        normals = self._face_normals[faces]
         coverage = coverage[keep]
         surface = self.part.surface
         if surface.specular > 0:
@@ -170,7 +186,7 @@ class PartScene:
             blobs = np.column_stack([marker_px, np.ones(len(marker_px)),
                                      self.marker_sigmas(marker_b)])
         truth = FrameTruth(tcp_b, pose, cols.astype(np.int32), rows, points_b, gain, marker_b,
-                           marker_px, marker_blobs=blobs)
+                           marker_px, marker_blobs=blobs, stripe_surfaces=self.surface_ids[faces])
         if surface.mirror > 0 and len(points_p):
             truth = dataclasses.replace(truth, **self._bounce(points_p, incidence, normals,
                                                               coverage, pose, camera_p))
@@ -289,11 +305,62 @@ def frame_image(cell: Cell, truth: FrameTruth | None, rng: np.random.Generator,
                         marker_sigma=blobs[:, 3])
 
 
+#: A stripe that moves across a column during the exposure is drawn as a smear of samples
+#: at most this far apart along it, px (below the stripe's sigma: a band, not separate lines).
+BLUR_ROW_STEP_PX = 0.5
+
+
+def _merged_by_surface(t: FrameTruth, shift: np.ndarray):
+    """A frame's stripe samples merged per column and surface (two triangles of one flat face
+    meeting inside a column give one sample: their gain-weighted row and point, summed gain):
+    (keys, columns, rows, points moved by ``shift``, gains), keys sorted and unique."""
+    key = t.stripe_columns.astype(np.int64) << 32 | t.stripe_surfaces
+    keys, group = np.unique(key, return_inverse=True)
+    group = group.ravel()
+    gain = np.bincount(group, t.stripe_gain, len(keys))
+    weight = np.maximum(gain, 1e-300)
+    rows = np.bincount(group, t.stripe_gain * t.stripe_rows, len(keys)) / weight
+    points = np.stack([np.bincount(group, t.stripe_gain * t.stripe_points_b[:, i], len(keys))
+                       for i in range(3)], 1) / weight[:, None] + shift
+    return keys, (keys >> 32).astype(np.int32), rows, points, gain
+
+
 def blur_truths(truths: list[FrameTruth]) -> FrameTruth:
-    """One FrameTruth for several instants of one exposure (see ``PartScene.render_blurred``)."""
+    """One FrameTruth for the instants of one exposure (see ``PartScene.render_blurred``).
+
+    The exposure is integrated over the intervals between the instants (trapezoid rule): a
+    sample seen at both ends of an interval (the same column and mesh face) is smeared between
+    its two rows, in steps of at most ``BLUR_ROW_STEP_PX``, so that a face the sheet sweeps
+    during the exposure (one nearly parallel to the sheet) shows the band a real camera would;
+    a sample at one end only (the stripe leaving or reaching the column) counts for half the
+    interval. Points are moved with the gripper to the middle instant (they keep their place
+    in {T}); reflections and the LED are drawn at each instant with 1/K of their brightness.
+    """
     k = len(truths)
     ref = truths[k // 2]
+    if k == 1:
+        return ref
     shift = [ref.tcp_b - t.tcp_b for t in truths]  # the gripper's rotation is fixed in a pass
+    share = 1.0 / (k - 1)
+    merged = [_merged_by_surface(t, d) for t, d in zip(truths, shift)]
+    cols, rows, points, gains = [], [], [], []
+    for i in range(k - 1):
+        (key_a, ca, ra, pa, ga), (key_b, _, rb, pb, gb) = merged[i], merged[i + 1]
+        _, ia, ib = np.intersect1d(key_a, key_b, assume_unique=True, return_indices=True)
+        steps = np.maximum(1, np.ceil(np.abs(rb[ib] - ra[ia]) / BLUR_ROW_STEP_PX)).astype(np.int64)
+        j = np.repeat(np.arange(len(ia)), steps)
+        f = (np.arange(steps.sum()) - np.repeat(np.cumsum(steps) - steps, steps) + 0.5) / steps[j]
+        ja, jb = ia[j], ib[j]
+        cols.append(ca[ja])
+        rows.append(ra[ja] + f * (rb[jb] - ra[ja]))
+        points.append(pa[ja] + f[:, None] * (pb[jb] - pa[ja]))
+        gains.append((ga[ja] + f * (gb[jb] - ga[ja])) * share / steps[j])
+        for (keys, c, r, p, g), matched in ((merged[i], ia), (merged[i + 1], ib)):
+            alone = np.setdiff1d(np.arange(len(keys)), matched)
+            cols.append(c[alone])
+            rows.append(r[alone])
+            points.append(p[alone])
+            gains.append(g[alone] * 0.5 * share)
     blobs = []
     for t in truths:
         b = t.marker_blobs if t.marker_blobs is not None else np.column_stack(
@@ -302,10 +369,11 @@ def blur_truths(truths: list[FrameTruth]) -> FrameTruth:
     cat = np.concatenate
     return dataclasses.replace(
         ref,
-        stripe_columns=cat([t.stripe_columns for t in truths]),
-        stripe_rows=cat([t.stripe_rows for t in truths]),
-        stripe_points_b=cat([t.stripe_points_b + d for t, d in zip(truths, shift)]),
-        stripe_gain=cat([t.stripe_gain for t in truths]) / k,
+        stripe_columns=cat(cols).astype(np.int32),
+        stripe_rows=cat(rows),
+        stripe_points_b=cat(points),
+        stripe_gain=cat(gains),
+        stripe_surfaces=np.zeros(0, np.int64),
         reflection_columns=cat([t.reflection_columns for t in truths]),
         reflection_rows=cat([t.reflection_rows for t in truths]),
         reflection_gain=cat([t.reflection_gain for t in truths]) / k,
