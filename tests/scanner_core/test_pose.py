@@ -264,3 +264,40 @@ def test_a_many_lobed_disc_is_not_left_a_lobe_off(disc, offset, force_coarse):
     dt, dr = pose_error(result.matrix, truth)
     assert result.coarse
     assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr)
+
+
+def test_a_pose_the_scan_cannot_tell_from_a_turned_one_is_flagged_not_confident():
+    """A disc of 90 identical lobes (4 degrees apart) and no keyway, turned half a lobe: the
+    fine fit settles between two lobes, each as good as the other. Probed about its weakest
+    rotation (forced here: ``probe_weakness``), the fit finds a lobe and the other one, flags
+    the pose ambiguous and reports a sigma about its axis that covers the lobe; never a
+    confident hundredth of a degree."""
+    mesh = lobed_disc(lobes=90, amplitude=0.4, key_deg=-1.0, n=2880)
+    nominal = centred_grasp(mesh)
+    model, edge_model = SurfaceModel.from_mesh(mesh), EdgeModel.from_mesh(mesh)
+    truth = misplacement(0.3, -0.2, 0.1, 0.3, -0.2, 2.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=3)
+    result = register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
+                      edge_frame_ids=edge_frames, edge_model=edge_model,
+                      params=PoseParams(probe_weakness=1.0))
+    assert any(f.startswith("ambiguous: a pose 4000 mdeg") for f in result.flags), result.flags
+    _, dr = pose_error(result.matrix, truth)
+    assert abs(dr[2]) <= 3.0 * result.std[5]
+    assert result.std[5] > 3.0
+
+
+def test_a_rival_minimum_widens_the_sigma_to_cover_it(block):
+    """The uncertainty adds each rival's difference: a rival 1 degree about z_T and 50 um
+    along x_T away puts at least that into the reported sigmas."""
+    from scanner_core.pose import _fine, _Terms, _uncertainty
+    mesh, nominal, model, edge_model = block
+    truth = misplacement(0.5, -0.5, 0.2, 1.0, -1.0, 2.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=4)
+    params = PoseParams()
+    fit = _fine(_Terms(pts, nrm, frames, model, np.cos(np.radians(params.normal_agreement_deg))),
+                _Terms(edges, None, edge_frames, edge_model), truth, params)
+    _, std, _ = _uncertainty(fit, params)
+    rival = misplacement(0.05, 0.0, 0.0, 0.0, 0.0, 1.0) @ fit.pose
+    _, wider, _ = _uncertainty(fit, params, [rival])
+    assert std[5] < 0.1 and wider[5] >= 1.0 - 1e-6
+    assert wider[0] >= 0.05 - 1e-9 and np.all(wider >= std - 1e-12)
