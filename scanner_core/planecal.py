@@ -34,6 +34,12 @@ REWEIGHT_ROUNDS = 6
 MIN_CAP_HEIGHT = 0.15
 
 
+#: A plane fit worse than this (RMS of its inliers, or share of the points that are) means the
+#: sphere's stated centres or radius do not match its frames (a good session: 5 um, 95 %).
+MAX_PLANE_RMS_MM = 0.05
+MIN_INLIER_SHARE = 0.7
+
+
 class PlaneCalibrationError(ValueError):
     """The sphere frames cannot determine the light plane."""
 
@@ -169,6 +175,11 @@ def calibrate_plane(frames, camera: PinholeCamera, radius_mm: float) -> PlaneCal
     plane, w = fit_plane(allpts)
     inlier = w >= 1.0
     rms = float(np.sqrt(np.mean(plane.signed_distance(allpts[inlier]) ** 2)))
+    if rms > MAX_PLANE_RMS_MM or inlier.mean() < MIN_INLIER_SHARE:
+        raise PlaneCalibrationError(
+            f"the stripe points on the spheres do not lie on one plane ({rms * 1e3:.0f} um RMS, "
+            f"{inlier.mean():.0%} of them near it): do the stage's sphere centres belong to "
+            f"these frames, and is the radius right?")
     plane_c = plane.transformed(camera.rotation, -camera.rotation @ camera.origin)
     errors = []
     for (pixels, centre) in frames:

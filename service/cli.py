@@ -278,8 +278,13 @@ def _cmd_calibrate(args) -> int:
             write_session(args.write_session, session)
             print(f"session written to {args.write_session}")
     t0 = time.perf_counter()
-    calibration, report = calibrate_session(session, progress=lambda m: print(m, flush=True),
-                                            seed=args.seed)
+    try:
+        calibration, report = calibrate_session(session, seed=args.seed,
+                                                progress=lambda m: print(m, flush=True))
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        # The session's own errors (too few positions, a plane the sheet never cut, a pass
+        # without the marker) say what to fix; nothing is written.
+        raise ScanError(f"calibration failed: {exc}") from None
     report["time_s"] = round(time.perf_counter() - t0, 2)
     if cell is not None:
         from simulator.calsession import evaluate_calibration

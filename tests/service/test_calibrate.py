@@ -117,3 +117,25 @@ def test_calibrate_refuses_too_few_positions(tmp_path, capsys):
     assert main(["calibrate", "--sim", "--led-positions", "2", "--out",
                  str(tmp_path / "c.json")]) == 2
     assert "--led-positions must be at least 3" in capsys.readouterr().err
+
+
+def test_a_session_whose_sphere_the_sheet_never_cuts_is_refused(tmp_path, capsys):
+    """The stage log puts the sphere 40 mm off the sheet: no stripe pixel meets it there, and
+    the calibration says so (exit 2, nothing written)."""
+    import csv
+
+    cell = load_cell()
+    session = simulate_session(cell, seed=2, led_count=60, sphere_count=5, with_pass=False)
+    folder = tmp_path / "session"
+    write_session(folder, session)
+    with open(folder / "sphere.csv", newline="") as f:
+        rows = list(csv.reader(f))
+    for row in rows[1:]:
+        row[2] = repr(float(row[2]) + 40.0)  # y: along the pass, off the sheet
+    with open(folder / "sphere.csv", "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    out = tmp_path / "c.json"
+    assert main(["calibrate", "--session", str(folder), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert ("does the sheet cut the sphere" in err or "do not lie on one plane" in err), err
+    assert not out.exists()
