@@ -244,15 +244,12 @@ def _parse_args(argv):
 
 def _sim_cell(perturb_seed, effects_text):
     """The simulated cell: the reference, perturbed and with a real cell's effects as asked."""
-    from simulator.cell import load_cell
-    from simulator.effects import parse_effects, realistic_cell
+    from simulator.effects import simulated_cell
 
     try:
-        effects = parse_effects(effects_text)
+        return simulated_cell(perturb_seed, effects_text)
     except ValueError as exc:
         raise UsageError(f"--effects: {exc}") from None
-    cell = load_cell(perturb_seed=perturb_seed)
-    return realistic_cell(cell, effects, seed=perturb_seed) if effects else cell
 
 
 def _cmd_calibrate(args) -> int:

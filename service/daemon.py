@@ -142,10 +142,10 @@ def build_devices(settings: Settings):
         return camera, URRobot(host) if host else NoRobot(), None, None
     if settings.camera is not None:
         raise ValueError(f"--camera {settings.camera}: the simulated cell has its own camera")
-    from simulator.cell import load_cell
+    from simulator.effects import simulated_cell
     from simulator.live import LiveSimCell
 
-    cell = load_cell()
+    cell = simulated_cell(settings.sim_perturb_seed, settings.sim_effects)
     changes = {k: v for k, v in (("speed_mm_s", settings.sim_speed_mm_s), ("fps", settings.sim_fps))
                if v is not None}
     if changes:

@@ -71,6 +71,14 @@ class Settings(BaseSettings):
                                       description="the simulated robot's clock minus the camera's, s")
     sim_surface: Literal["default", "matte", "dark", "shiny"] = Field(
         "default", description="the simulated parts' surface (simulator.surfaces)")
+    sim_perturb_seed: int | None = Field(
+        None, ge=0, description="the simulated cell's geometry (and effects) perturbed, as "
+                                "flyscan scan --perturb-seed")
+    sim_effects: str = Field(
+        "none", description="the simulated cell's real-cell effects: all, none or a comma-"
+                            "separated choice of lens, exposure, clocks, robot, led (the live "
+                            "cell draws the lens and the LED; it does not blur frames nor add "
+                            "robot report errors)")
     sim_speed_mm_s: float | None = Field(None, gt=0, le=5000)
     sim_fps: float | None = Field(None, gt=0, le=2000)
 
@@ -78,6 +86,14 @@ class Settings(BaseSettings):
     @classmethod
     def _empty_token_is_none(cls, value):
         return None if value == "" else value
+
+    @field_validator("sim_effects")
+    @classmethod
+    def _known_effects(cls, value: str) -> str:
+        from simulator.effects import parse_effects
+
+        parse_effects(value)  # ValueError naming the unknown ones
+        return value
 
     @field_validator("zmq")
     @classmethod

@@ -1,6 +1,7 @@
 """Settings from a TOML file, the environment and the command line, in rising priority."""
 from pathlib import Path
 
+import numpy as np
 import pytest
 from pydantic import ValidationError
 
@@ -37,3 +38,23 @@ def test_bad_settings_name_the_field(tmp_path, monkeypatch):
         load_settings(tmp_path / "missing.toml")
     monkeypatch.setenv("FLYSCAN_TOKEN", "")
     assert load_settings(None).token is None  # an empty token is no token
+
+
+def test_the_simulated_cell_can_be_a_realistic_one(monkeypatch):
+    """sim_perturb_seed and sim_effects build the service's simulated cell as ``flyscan scan
+    --perturb-seed --effects`` does: its default calibration is that cell's truth, lens and
+    all; an unknown effect is named."""
+    from service.daemon import build_devices
+    from simulator.effects import simulated_cell
+
+    settings = load_settings(None, sim=True, sim_perturb_seed=3, sim_effects="lens,led")
+    camera, robot, driver, calibration = build_devices(settings)
+    try:
+        truth = simulated_cell(3, "lens,led").calibration
+        assert calibration.camera.distorted
+        assert calibration.camera.distortion == truth.camera.distortion
+        np.testing.assert_allclose(calibration.marker_offset_t, truth.marker_offset_t)
+    finally:
+        camera.close()
+    with pytest.raises(ValidationError, match="sim_effects"):
+        load_settings(None, sim_effects="lens,fog")
