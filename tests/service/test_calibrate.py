@@ -139,3 +139,36 @@ def test_a_session_whose_sphere_the_sheet_never_cuts_is_refused(tmp_path, capsys
     err = capsys.readouterr().err
     assert ("does the sheet cut the sphere" in err or "do not lie on one plane" in err), err
     assert not out.exists()
+
+
+def test_the_service_runs_on_what_calibrate_learned(tmp_path):
+    """The service in the realistic simulated cell (a lens, an LED off its drawing) with the
+    calibration `flyscan calibrate --sim` made there: a plate's flat underside comes out flat
+    and where it is; with the ideal cell's calibration it does not."""
+    import trimesh
+    from clients import FlyscanClient
+    from running import FAST_PASS, RunningService
+    from scanner_core.calibration import save_calibration
+
+    learned, ideal = tmp_path / "learned.json", tmp_path / "ideal.json"
+    assert main(["calibrate", "--sim", "--perturb-seed", "7", "--effects", "lens,led",
+                 "--led-positions", "120", "--sphere-positions", "20", "--out", str(learned)]) == 0
+    save_calibration(ideal, load_cell(perturb_seed=7).calibration)
+    plate = tmp_path / "plate.stl"
+    trimesh.creation.box(extents=(40.0, 30.0, 10.0)).export(plate)
+    flatness = {}
+    for name, calibration in (("learned", learned), ("ideal", ideal)):
+        env = {**FAST_PASS, "FLYSCAN_SIM_PERTURB_SEED": "7", "FLYSCAN_SIM_EFFECTS": "lens,led",
+               "FLYSCAN_CALIBRATION": str(calibration)}
+        running = RunningService(tmp_path / f"data-{name}", env=env)
+        try:
+            with FlyscanClient(running.url) as client:
+                client.upload_part("plate", plate, "mm")
+                scan = client.wait(client.arm(part="plate"), timeout=60)
+                cloud = client.cloud(scan["scan_id"])
+        finally:
+            running.stop()
+        inside = (np.abs(cloud[:, 0]) < 19.0) & (np.abs(cloud[:, 1]) < 14.0)
+        flatness[name] = (np.abs(cloud[inside, 2] - 10.0).max(), inside.mean())
+    assert flatness["learned"][0] < 0.05 and flatness["learned"][1] > 0.5
+    assert flatness["ideal"][0] > 0.2
