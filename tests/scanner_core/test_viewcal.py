@@ -109,3 +109,28 @@ def test_affine_and_dlt_fit_their_own_models_exactly():
     p = np.array([[2000.0, 0, 960, 10], [0, 2000, 600, 20], [0, 0, 1, 500]])
     px = project_dlt(p, points)
     np.testing.assert_allclose(project_dlt(fit_dlt(points, px), points), px, atol=1e-8)
+
+
+def test_the_lens_model_is_opencvs():
+    """The camera projects as OpenCV's projectPoints does with the same (k1, k2, p1, p2, k3),
+    and OpenCV's calibrateCamera, started from the DLT (CALIB_USE_INTRINSIC_GUESS), finds the
+    same lens in the direct view's observations as the joint fit."""
+    import cv2
+
+    cal, points, px = _session()
+    cam = cal.camera
+    rvec, _ = cv2.Rodrigues(cam.rotation)
+    tvec = -cam.rotation @ cam.origin
+    cv_px, _ = cv2.projectPoints(points, rvec, tvec, cam.matrix, np.array(cam.distortion))
+    np.testing.assert_allclose(cv_px.reshape(-1, 2), cam.project(points), atol=1e-6)
+    seen = np.isfinite(px[:, 0, 0])
+    from scanner_core.viewcal import decompose_dlt
+    k, _, _ = decompose_dlt(fit_dlt(points[seen], px[seen, 0]))
+    k[0, 1] = 0.0
+    rms, k_cv, dist_cv, _, _ = cv2.calibrateCamera(
+        [points[seen].astype(np.float32)], [px[seen, 0].astype(np.float32)], (1920, 1200), k,
+        np.zeros(5), flags=cv2.CALIB_USE_INTRINSIC_GUESS)
+    assert rms < 0.01
+    views = calibrate_views(points, px, 1920, 1200)
+    assert abs(k_cv[0, 0] - views.camera.fx) < 1.0
+    np.testing.assert_allclose(dist_cv.ravel()[:2], views.camera.distortion[:2], atol=0.01)
