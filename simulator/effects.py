@@ -6,9 +6,9 @@ learns what it can from data (``flyscan calibrate``) and the evaluation alone re
 
 - ``lens``: radial and tangential distortion of a 16 mm machine-vision lens (about 10 px at
   the corners of the 1920 x 1200 sensor). Goes into the true camera.
-- ``exposure``: the part and the LED move during the exposure (0.2 mm at 200 mm/s and 1 ms):
-  each frame is the mean of ``BLUR_SAMPLES`` instants across it, the frame's time stamp at
-  its start.
+- ``exposure``: the part moves during the exposure (0.2 mm at 200 mm/s and 1 ms): each frame
+  integrates ``BLUR_SAMPLES`` instants across it (``simulator.render.blur_truths``), the
+  frame's time stamp at its start; the LED, strobed at the exposure's middle, stays sharp.
 - ``clocks``: the robot's clock runs ahead of the camera's by an offset and drifts.
 - ``robot``: the robot reports its TCP with a little noise, and its orientation a little off
   (a real arm's kinematics are calibrated to a few thousandths of a degree at best).

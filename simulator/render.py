@@ -334,7 +334,9 @@ def blur_truths(truths: list[FrameTruth]) -> FrameTruth:
     during the exposure (one nearly parallel to the sheet) shows the band a real camera would;
     a sample at one end only (the stripe leaving or reaching the column) counts for half the
     interval. Points are moved with the gripper to the middle instant (they keep their place
-    in {T}); reflections and the LED are drawn at each instant with 1/K of their brightness.
+    in {T}); reflections are drawn at each instant with 1/K of their brightness. The LED is
+    strobed (``simulator.imaging.exposed_model``) at the middle of the exposure: it is the
+    middle instant's, sharp.
     """
     k = len(truths)
     ref = truths[k // 2]
@@ -361,11 +363,6 @@ def blur_truths(truths: list[FrameTruth]) -> FrameTruth:
             rows.append(r[alone])
             points.append(p[alone])
             gains.append(g[alone] * 0.5 * share)
-    blobs = []
-    for t in truths:
-        b = t.marker_blobs if t.marker_blobs is not None else np.column_stack(
-            [t.marker_pixels, np.ones(len(t.marker_pixels)), np.zeros(len(t.marker_pixels))])
-        blobs.append(b * np.array([1.0, 1.0, 1.0 / k, 1.0]))
     cat = np.concatenate
     return dataclasses.replace(
         ref,
@@ -376,8 +373,7 @@ def blur_truths(truths: list[FrameTruth]) -> FrameTruth:
         stripe_surfaces=np.zeros(0, np.int64),
         reflection_columns=cat([t.reflection_columns for t in truths]),
         reflection_rows=cat([t.reflection_rows for t in truths]),
-        reflection_gain=cat([t.reflection_gain for t in truths]) / k,
-        marker_blobs=cat(blobs))
+        reflection_gain=cat([t.reflection_gain for t in truths]) / k)
 
 
 def slice_mesh(vertices, faces, normal, offset) -> tuple[np.ndarray, np.ndarray]:
