@@ -35,7 +35,7 @@ def stop(process: subprocess.Popen) -> None:
         process.send_signal(signal.SIGINT)
         try:
             process.wait(15)
-        except subprocess.TimeoutExpired:
+        except (subprocess.TimeoutExpired, KeyboardInterrupt):  # a second Ctrl-C: no waiting
             process.kill()
             process.wait()
 
