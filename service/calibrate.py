@@ -148,7 +148,22 @@ def calibrate_session(session: Session, params: PipelineParams = PipelineParams(
                       "sphere_centre_rms_mm": plane.centre_rms_mm,
                       "led_pass_rms_mm": None if clocks is None else clocks["rms_mm"]},
     }
+    report = _json_safe(report)
     return replace(calibration, provenance=report), report
+
+
+def _json_safe(value):
+    """The report as JSON holds it: numpy numbers as Python ones, a figure that could not be
+    measured (NaN: a view with no held-out position) as null."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
 
 
 def _led_and_clock(session: Session, calibration: Calibration,

@@ -172,3 +172,11 @@ def test_the_service_runs_on_what_calibrate_learned(tmp_path):
         flatness[name] = (np.abs(cloud[inside, 2] - 10.0).max(), inside.mean())
     assert flatness["learned"][0] < 0.05 and flatness["learned"][1] > 0.5
     assert flatness["ideal"][0] > 0.2
+
+
+def test_a_figure_that_could_not_be_measured_is_null_not_nan():
+    from service.calibrate import _json_safe
+
+    assert _json_safe({"a": [np.float64("nan"), np.int64(3), 1.5], "b": float("inf")}) == \
+        {"a": [None, 3, 1.5], "b": None}
+    json.dumps(_json_safe({"x": np.float32(2.0)}), allow_nan=False)
