@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import dataclasses
 import gc
 import json
 import os
@@ -164,10 +165,11 @@ def _parse_args(argv):
     scan.add_argument("--exposure", choices=list(EXPOSURE_MODES), default="fixed",
                       help="exposure control: fixed, dynamic (from the previous frames' stripe "
                            "peaks) or multiple (two exposures alternating)")
-    scan.add_argument("--effects", default="none",
+    scan.add_argument("--effects", default=None,
                       help="what a real cell does that the scanner is not told: 'all', 'none' or "
                            "a comma-separated choice of lens, exposure, clocks, robot, led "
-                           "(simulator.effects)")
+                           "(simulator.effects); default: those of the cell a --calibration "
+                           "made by 'calibrate --sim' was made in, else none")
     scan.add_argument("--drop-rate", type=float, default=0.0, help="fraction of frames lost")
     scan.add_argument("--no-eval", action="store_true", help="skip the ground-truth accuracy")
     scan.add_argument("--out", type=Path, required=True,
@@ -252,6 +254,25 @@ def _sim_cell(perturb_seed, effects_text):
         raise UsageError(f"--effects: {exc}") from None
 
 
+def _scan_effects(args, calibration) -> str:
+    """``--effects``, or else those of the simulated cell the calibration was made in (its
+    provenance says, when ``calibrate --sim`` made it), or else none: a calibration learned in
+    the realistic cell is scanned in that cell."""
+    if args.effects is not None:
+        return args.effects
+    made_in = (calibration.provenance.get("simulated_cell") if calibration is not None else None)
+    if not isinstance(made_in, dict):
+        return "none"
+    effects = ",".join(made_in.get("effects") or []) or "none"
+    if made_in.get("perturb_seed") != args.perturb_seed:
+        print(f"flyscan scan: note: the calibration was made in the simulated cell of "
+              f"--perturb-seed {made_in.get('perturb_seed')}, this scan's is "
+              f"{args.perturb_seed}: it will not fit", file=sys.stderr)
+    print(f"flyscan scan: the simulated cell's effects: {effects} (as where the calibration "
+          f"was made; --effects to choose)", file=sys.stderr)
+    return effects
+
+
 def _cmd_calibrate(args) -> int:
     from scanner_core.calibration import save_calibration
     from scanner_core.fileio import save_json_atomic
@@ -285,6 +306,13 @@ def _cmd_calibrate(args) -> int:
     report["time_s"] = round(time.perf_counter() - t0, 2)
     if cell is not None:
         from simulator.calsession import evaluate_calibration
+        from simulator.effects import parse_effects
+
+        # Which simulated cell it was made in: `flyscan scan --calibration` scans in the same.
+        made_in = {"perturb_seed": args.perturb_seed, "effects": list(parse_effects(args.effects))}
+        calibration = dataclasses.replace(
+            calibration, provenance={**calibration.provenance, "simulated_cell": made_in})
+        report["simulated_cell"] = made_in
 
         truth = evaluate_calibration(calibration, cell)
         report["against_truth"] = truth
@@ -324,11 +352,11 @@ def _cmd_scan(args) -> int:
         raise UsageError(str(exc)) from None
     part = with_surface(_load_part(args), args.surface)
     check_fits(part, pose=misplacement @ part.grasp)
-    cell = _sim_cell(args.perturb_seed, args.effects)
+    calibration = load_calibration(args.calibration) if args.calibration else None
+    cell = _sim_cell(args.perturb_seed, _scan_effects(args, calibration))
     preset = PASS_PRESETS[args.preset]
     cell = cell.with_pass(speed_mm_s=args.speed or preset.speed_mm_s, fps=args.fps or preset.fps)
     _check_frame_spacing(part, cell.pass_profile.speed_mm_s, cell.pass_profile.fps)
-    calibration = load_calibration(args.calibration) if args.calibration else None
     if calibration is not None:
         calibration.check_image_size(cell.calibration.camera.width,
                                      cell.calibration.camera.height)

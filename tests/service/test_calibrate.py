@@ -11,7 +11,7 @@ from service.calibrate import SessionError, load_session, write_session
 from service.cli import main
 from simulator.calsession import simulate_session
 from simulator.cell import load_cell
-from simulator.effects import realistic_cell
+from simulator.effects import EFFECTS, realistic_cell
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +46,21 @@ def test_scan_on_the_calibration_is_as_good_as_on_the_truth(calibrated, tmp_path
         rms[name] = json.loads((out / "report.json").read_text())["ground_truth"]["accuracy"]["rms_um"]
     assert rms["calibrated"] <= 30.0
     assert rms["calibrated"] <= 1.5 * rms["truth"]
+
+
+def test_scan_takes_the_cell_the_calibration_was_made_in(calibrated, tmp_path, capsys):
+    """The issue's command as written: `flyscan scan --perturb-seed M --calibration FILE` with
+    FILE from `flyscan calibrate --sim --perturb-seed M` scans in the cell FILE was made in
+    (its provenance says which), and is as good as the truth there."""
+    data = json.loads(calibrated.read_text())
+    assert data["provenance"]["simulated_cell"] == {"perturb_seed": 5, "effects": list(EFFECTS)}
+    out = tmp_path / "literal"
+    assert main(["scan", "--demo", "--perturb-seed", "5", "--calibration", str(calibrated),
+                 "--out", str(out)]) == 0
+    assert "effects: lens,exposure,clocks,robot,led" in capsys.readouterr().err
+    report = json.loads((out / "report.json").read_text())
+    assert report["ground_truth"]["cell"]["calibration"]["camera"]["distortion"] != [0.0] * 5
+    assert report["ground_truth"]["accuracy"]["rms_um"] <= 30.0
 
 
 def test_the_ideal_calibration_is_far_off_in_the_real_cell(tmp_path):
