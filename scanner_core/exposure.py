@@ -299,3 +299,73 @@ def _resolve_pair(a, b, levels, columns, peaks, saturated, keep) -> None:
     a_wins = np.where(sat_a & sat_b, shorter_a, score_a >= score_b)
     keep[a][ia[~a_wins]] = False
     keep[b][ib[a_wins]] = False
+
+
+#: Points of two consecutive profiles this close along x_T (mm: about a pixel's footprint) look
+#: at the same place of the part.
+PARTLY_LIT_MATCH_MM = 0.2
+
+
+def partly_lit(frame_ids, cloud_t, quality, brightness, ratio: float,
+               match_mm: float = PARTLY_LIT_MATCH_MM) -> np.ndarray:
+    """Points whose surface the sheet reached or left during the exposure.
+
+    The part moves during an exposure (0.2 mm in 1 ms at 200 mm/s): a surface that enters or
+    leaves the sheet meanwhile is lit for part of it, and placed where the gripper was at its
+    middle, up to half that travel off. Such a point is dimmer than the same place of the same
+    surface in the one neighbouring profile that sees it (the surface's other side lies
+    beyond the sheet): by more than ``ratio``, it is not kept.
+
+    Parameters
+    ----------
+    frame_ids : (N,) int
+        The profile of each point; consecutive ids are consecutive frames.
+    cloud_t : (N, 3) float
+        The points in {T}, mm.
+    quality : (N,) float
+        Each point's stripe peak, DN.
+    brightness : (N,) float
+        Its frame's exposure times gain (NaN: unknown, taken as 1): peaks are compared per
+        unit of light collected.
+    ratio : float
+        In (0, 1); 0 keeps every point.
+
+    Returns
+    -------
+    (N,) bool
+        The points lit for part of the exposure.
+    """
+    from scipy.spatial import cKDTree
+
+    frame_ids = np.asarray(frame_ids)
+    cloud = np.asarray(cloud_t, dtype=np.float64).reshape(-1, 3)
+    light = np.asarray(brightness, dtype=np.float64)
+    level = np.asarray(quality, dtype=np.float64) / np.where(np.isfinite(light) & (light > 0),
+                                                              light, 1.0)
+    out = np.zeros(len(cloud), bool)
+    if ratio <= 0 or len(cloud) == 0:
+        return out
+    ids, starts = np.unique(frame_ids, return_index=True)
+    order = np.argsort(frame_ids, kind="stable")
+    bounds = np.append(np.searchsorted(frame_ids[order], ids), len(order))
+    members = {f: order[bounds[i]:bounds[i + 1]] for i, f in enumerate(ids)}
+    trees = {f: cKDTree(cloud[m][:, :1]) for f, m in members.items()}
+    for f, idx in members.items():
+        seen, reference = [], []
+        for g in (f - 1, f + 1):
+            if g not in members:
+                seen.append(np.zeros(len(idx), bool))
+                reference.append(np.zeros(len(idx)))
+                continue
+            dist, j = trees[g].query(cloud[idx, :1], distance_upper_bound=match_mm)
+            found = np.isfinite(dist)
+            other = members[g][np.where(found, j, 0)]
+            # The same surface: no steeper than about 56 degrees between the two profiles.
+            dz = np.abs(cloud[other, 2] - cloud[idx, 2])
+            dy = np.abs(cloud[other, 1] - cloud[idx, 1])
+            same = found & (dz <= np.maximum(0.5, 1.5 * dy))
+            seen.append(same)
+            reference.append(np.where(same, level[other], 0.0))
+        one_side = seen[0] ^ seen[1]
+        out[idx] = one_side & (level[idx] < ratio * np.where(seen[0], reference[0], reference[1]))
+    return out

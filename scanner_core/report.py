@@ -37,6 +37,7 @@ def scan_report(scan: Scan, cross_check: dict | None = None, **extra) -> dict:
         "interrupted": scan.interrupted,
         "marker_residual_px": _finite(scan.marker_residual_px),
         "points": int(len(scan.cloud)),
+        "points_partly_lit": int(scan.points_partly_lit),
         "edge_points": int(len(scan.edges)),
         "timings_ms": {**scan.timings_ms, "processing": round(processing_ms, 3)},
         "pose": None,

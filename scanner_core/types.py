@@ -169,6 +169,9 @@ class Scan:
         height, mm.
     edge_quality : (M,) float32
         Stripe peak on the edge's side, DN.
+    points_partly_lit : int
+        Points not kept because their surface reached or left the sheet during the exposure
+        (``scanner_core.exposure.partly_lit``).
     edges_occluded : int
         Drop-outs dropped because the camera's view past them ran into the part (an
         occlusion's boundary, not an edge).
@@ -201,4 +204,5 @@ class Scan:
     edge_size_mm: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     edge_quality: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     edges_occluded: int = 0
+    points_partly_lit: int = 0
     normals: np.ndarray | None = None

@@ -243,7 +243,8 @@ class Engine:
                       accumulator=PassAccumulator(
                           self.calibration, self.robot, self.clock_offset_s,
                           fallback_rotation=self.last_rotation_b,
-                          merge_exposure_pairs=self.params.exposure.mode == "multiple"))
+                          merge_exposure_pairs=self.params.exposure.mode == "multiple",
+                          partly_lit_ratio=self.params.partly_lit_ratio))
         if record_to is not None:
             try:
                 job.recording = LiveRecording(

@@ -179,3 +179,38 @@ def test_merge_leaves_equal_exposures_alone():
                                 [np.array([100.0]), np.array([90.0])],
                                 [np.array([False]), np.array([False])])
     assert [k.tolist() for k in keep] == [[True], [True]]
+
+
+def test_a_surface_lit_for_part_of_the_exposure_is_not_kept():
+    """A flat face seen in six profiles 1.2 mm apart: its first profile, lit for a quarter of
+    the exposure (the face reached the sheet late in it), is dropped; a dim column in the middle
+    (its neighbours on both sides see it) and a profile taken at half the light with half the
+    peak are kept; so is a step's first profile when it is as bright as the next."""
+    from scanner_core.exposure import partly_lit
+
+    x = np.linspace(-10.0, 10.0, 101)
+    frames, cloud, quality, light = [], [], [], []
+    for k in range(6):
+        frames += [k] * len(x)
+        cloud += [np.column_stack([x, np.full_like(x, 1.2 * k), np.full_like(x, 5.0)])]
+        q = np.full(len(x), 200.0)
+        if k == 0:
+            q[:] = 50.0  # lit a quarter of the exposure
+        if k == 3:
+            q[40] = 30.0  # a dim column inside the face: not an end
+        if k == 2:
+            q /= 2.0
+        quality.append(q)
+        light += [0.5 if k == 2 else 1.0] * len(x)
+    # A step: a second face 3 mm higher seen from profile 4 on, as bright as its next profile.
+    for k in (4, 5):
+        frames += [k] * 10
+        cloud += [np.column_stack([np.linspace(20.5, 22.0, 10), np.full(10, 1.2 * k),
+                                   np.full(10, 8.0)])]
+        quality.append(np.full(10, 190.0))
+        light += [1.0] * 10
+    frames, cloud, quality = np.array(frames), np.vstack(cloud), np.concatenate(quality)
+    drop = partly_lit(frames, cloud, quality, np.array(light), 0.5)
+    assert drop[frames == 0].all()
+    assert not drop[frames != 0].any()
+    assert not partly_lit(frames, cloud, quality, np.array(light), 0.0).any()

@@ -121,7 +121,7 @@ def test_profiles_placed_in_any_order_give_the_same_scan(recorded, full_scan, ce
     cal = cell.calibration
     first, last = _frame_span(full_scan)
     profiles = [process_frame(f, cal) for f in frames if first <= f.frame_id <= last]
-    acc = PassAccumulator(cal, robot)
+    acc = PassAccumulator(cal, robot, partly_lit_ratio=PipelineParams().partly_lit_ratio)
     for k in np.random.default_rng(3).permutation(len(profiles)):
         acc.add(profiles[k])
     shuffled = acc.scan()

@@ -39,7 +39,10 @@ def test_arm_pass_and_the_same_cloud_over_rest_and_zeromq(service):
         # At 1 m/s profiles lie 6 mm apart: the pose says not to act on it as it stands, and
         # what it reports as known is still near the truth.
         pose_info = info["pose"]
-        assert any(flag.startswith("sparse: 6.") for flag in pose_info["flags"]), pose_info
+        # (6 mm or more: a busy machine may drop a frame of the pass.)
+        spacing = [float(flag.split()[1]) for flag in pose_info["flags"]
+                   if flag.startswith("sparse: ")]
+        assert spacing and spacing[0] >= 6.0, pose_info["flags"]
         found, std = pose_info["misplacement"], list(pose_info["std"].values())
         error = np.abs(np.subtract([*found["translation_mm"], *found["rotation_deg"]], misplace))
         known = np.array([v is not None for v in std])
