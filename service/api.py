@@ -26,7 +26,7 @@ from service.models import (CalibrationModel, Health, PartInfo, PartList, Proble
 from service.parts import MAX_MESH_BYTES, part_info
 from service.pictures import cloud_preview_png, frame_png
 from service.settings import Settings
-from simulator.parts import PartError
+from simulator.parts import GRASPS, PartError
 
 STATIC = Path(__file__).resolve().parent / "static"
 #: Server-sent events: how often the status page is told the service's status, s.
@@ -214,7 +214,7 @@ def list_parts(service: ServiceDep) -> dict:
 async def put_part(name: str, request: Request, service: ServiceDep,
                    units: Annotated[str, Query(description="unit of the mesh: mm, cm, m or inch")],
                    format: Annotated[str, Query(pattern="^(stl|obj|ply)$")] = "stl",
-                   grasp: Annotated[str, Query(pattern="^(centred|identity)$")] = "centred") -> dict:
+                   grasp: Annotated[str, Query(pattern=f"^({'|'.join(GRASPS)})$")] = "centred") -> dict:
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > MAX_MESH_BYTES:
         raise HTTPException(413, f"the mesh file is larger than {MAX_MESH_BYTES >> 20} MiB")

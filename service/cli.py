@@ -104,6 +104,7 @@ def _version() -> str:
 def _parse_args(argv):
     from scanner_core.exposure import EXPOSURE_MODES
     from scanner_core.stripe import METHODS
+    from simulator.parts import GRASPS
 
     argv = _join_number_lists(list(sys.argv[1:] if argv is None else argv))
     parser = argparse.ArgumentParser(prog="flyscan", description=__doc__.splitlines()[0],
@@ -154,9 +155,11 @@ def _parse_args(argv):
                       help="perturb the simulated cell's true geometry (repeatably)")
     scan.add_argument("--calibration", type=Path, default=None,
                       help="calibration JSON the scanner uses (default: the cell's truth)")
-    scan.add_argument("--grasp", choices=["centred", "identity"], default="centred",
-                      help="nominal grasp: the part centred under the TCP (default), or the CAD "
-                           "origin at the TCP")
+    scan.add_argument("--grasp", choices=GRASPS, default="centred",
+                      help="nominal grasp: the part centred under the TCP (default); 'flat': "
+                           "turned a quarter so its smallest extent hangs along z_T (held by its "
+                           "broadest side, as a suction cup holds it), then centred; 'identity': "
+                           "the CAD origin at the TCP")
     scan.add_argument("--method", default="cog", choices=METHODS, help="sub-pixel stripe estimator")
     scan.add_argument("--surface", choices=["default", "matte", "dark", "shiny"],
                       default="default",
@@ -190,7 +193,7 @@ def _parse_args(argv):
                           "(default 0.5)")
     sim.add_argument("--rays", type=int, default=None, help="rays per line (default 1000)")
     sim.add_argument("--misplace", default=None, help="'tx,ty,tz,rx,ry,rz': mm and degrees, in {T}")
-    sim.add_argument("--grasp", choices=["centred", "identity"], default="centred",
+    sim.add_argument("--grasp", choices=GRASPS, default="centred",
                      help="nominal grasp (as for scan)")
     sim.add_argument("--mirrors", action="store_true",
                      help="also record whether the camera sees each point through each mirror")
@@ -445,10 +448,9 @@ def _load_part(args):
     """The part of ``--part``/``--units`` or ``--demo``, with the ``--grasp`` asked for."""
     from simulator.parts import block_with_holes_and_steps, load_part, part_from_mesh
 
-    grasp = np.eye(4) if args.grasp == "identity" else None  # None: the centred grasp
     if args.demo:
-        return part_from_mesh(block_with_holes_and_steps(), name="demo-block", grasp=grasp)
-    return load_part(args.part, args.units, grasp=grasp)
+        return part_from_mesh(block_with_holes_and_steps(), name="demo-block", grasp=args.grasp)
+    return load_part(args.part, args.units, grasp=args.grasp)
 
 
 def _parse_point(text: str | None, option: str):

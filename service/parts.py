@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from simulator.parts import (Part, PartError, block_with_holes_and_steps,
+from simulator.parts import (GRASPS, Part, PartError, block_with_holes_and_steps,
                              check_fits, load_part, part_from_mesh)
 
 log = logging.getLogger("flyscan.parts")
@@ -113,9 +113,7 @@ class PartLibrary:
         return part
 
 
-def _grasp(kind: str):
-    if kind == "identity":
-        return np.eye(4)
-    if kind == "centred":
-        return None
-    raise ValueError(f"grasp must be 'centred' or 'identity', got {kind!r}")
+def _grasp(kind: str) -> str:
+    if kind not in GRASPS:
+        raise ValueError(f"grasp must be one of {', '.join(GRASPS)}, got {kind!r}")
+    return kind

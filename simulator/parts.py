@@ -32,7 +32,8 @@ if TYPE_CHECKING:  # imported where used: ray casting alone needs neither trimes
 
 __all__ = [
     "UNITS_MM", "PartError", "PLAUSIBLE_SIZE_MM", "Part", "load_part", "part_from_mesh",
-    "load_reference_part", "reference_meshes_dir", "centred_grasp", "check_fits",
+    "load_reference_part", "reference_meshes_dir", "centred_grasp", "flat_grasp", "GRASPS",
+    "named_grasp", "check_fits",
     "block_with_holes_and_steps", "INSPECTION_VOLUME_MM",
 ]
 
@@ -149,7 +150,7 @@ class Part:
 # --------------------------------------------------------------------------------------------
 
 def load_part(path, units: str, *, name: str | None = None,
-              grasp: np.ndarray | None = None) -> Part:
+              grasp: str | np.ndarray | None = None) -> Part:
     """Load a CAD part from an STL, OBJ or PLY file.
 
     Parameters
@@ -161,9 +162,9 @@ def load_part(path, units: str, *, name: str | None = None,
         ``in`` and similar spellings are accepted).
     name : str, optional
         Part name; default the file's stem.
-    grasp : (4, 4) array_like, optional
-        Nominal ^T X_P in mm; default `centred_grasp` of the mesh (real CAD origins are
-        arbitrary).
+    grasp : (4, 4) array_like or str, optional
+        Nominal ^T X_P in mm, or one of `GRASPS` by name (`named_grasp`); default
+        `centred_grasp` of the mesh (real CAD origins are arbitrary).
 
     Returns
     -------
@@ -232,7 +233,7 @@ def _is_text(p: Path) -> bool:
 
 
 def part_from_mesh(mesh: trimesh.Trimesh, *, name: str, units: str = "mm",
-                   source: str = "procedural", grasp: np.ndarray | None = None) -> Part:
+                   source: str = "procedural", grasp: str | np.ndarray | None = None) -> Part:
     """Make a Part from a mesh in memory (copied, converted to mm and cleaned).
 
     Parameters
@@ -245,8 +246,8 @@ def part_from_mesh(mesh: trimesh.Trimesh, *, name: str, units: str = "mm",
         Unit of `mesh`, as for `load_part`.
     source : str
         Where it came from, e.g. ``"procedural:block"``.
-    grasp : (4, 4) array_like, optional
-        Nominal ^T X_P in mm; default `centred_grasp`.
+    grasp : (4, 4) array_like or str, optional
+        Nominal ^T X_P in mm, or one of `GRASPS` by name; default `centred_grasp`.
 
     Returns
     -------
@@ -281,13 +282,15 @@ def reference_meshes_dir() -> Path | None:
     return None
 
 
-def load_reference_part(name: str) -> Part:
+def load_reference_part(name: str, grasp: str | np.ndarray | None = None) -> Part:
     """Load one of the reference parts, with the unit its manifest gives.
 
     Parameters
     ----------
     name : str
         File name (``"idler_riser.STL"``) or its stem, case-insensitive (``"idler_riser"``).
+    grasp : (4, 4) array_like or str, optional
+        As for `load_part`.
 
     Returns
     -------
@@ -314,7 +317,8 @@ def load_reference_part(name: str) -> Part:
     wanted = name.lower()
     for file_name, entry in manifest.items():
         if wanted in (file_name.lower(), Path(file_name).stem.lower()):
-            return load_part(folder / file_name, entry["units"], name=Path(file_name).stem)
+            return load_part(folder / file_name, entry["units"], name=Path(file_name).stem,
+                             grasp=grasp)
     raise PartError(f"no reference part {name!r} in {folder}; available: "
                     f"{', '.join(sorted(manifest))}")
 
@@ -348,7 +352,10 @@ def _make_part(vertices, faces, *, name: str, unit: str, source: str, grasp) -> 
     vertices, faces = clean_triangles(vertices * UNITS_MM[unit], faces)
     if len(faces) == 0:
         raise PartError(f"part {name!r} ({source}) has no non-degenerate triangles")
-    grasp = centred_grasp(vertices) if grasp is None else _check_grasp(grasp)
+    if grasp is None or isinstance(grasp, str):
+        grasp = named_grasp(grasp or "centred", vertices)
+    else:
+        grasp = _check_grasp(grasp)
     for array in (vertices, faces, grasp):
         array.setflags(write=False)
     return Part(name=name, vertices=vertices, faces=faces, source=source, units=unit,
@@ -394,6 +401,50 @@ def centred_grasp(mesh) -> np.ndarray:
     x[:2, 3] = -(lo[:2] + hi[:2]) / 2.0
     x[2, 3] = -lo[2]
     return x
+
+
+#: The nominal grasps that have a name: `centred_grasp`, `flat_grasp`, the CAD origin at the TCP.
+GRASPS = ("centred", "flat", "identity")
+
+
+def flat_grasp(mesh) -> np.ndarray:
+    """The nominal grasp of a part held by its broadest side, as a suction cup holds it.
+
+    The part turns a quarter about x or y (never more) so that its smallest bounding-box
+    extent lies along z_T, and is then centred as by `centred_grasp`. A part already flat
+    (smallest extent along z of {P}) keeps the centred grasp. The scanner then sees a broad
+    face: a part standing on a narrow one shows the sheet a strip, whose position along the
+    pass only the profiles' spacing fixes.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh or (V, 3) array_like
+        Part mesh in {P}, mm, or its vertices.
+
+    Returns
+    -------
+    (4, 4) float64
+        ^T X_P.
+    """
+    vertices = np.asarray(getattr(mesh, "vertices", mesh), dtype=np.float64)
+    turn = np.eye(4)
+    smallest = int(np.argmin(np.ptp(vertices, axis=0)))
+    if smallest == 1:    # a quarter turn about x takes y to z
+        turn[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
+    elif smallest == 0:  # a quarter turn about y takes x to z
+        turn[:3, :3] = [[0, 0, -1], [0, 1, 0], [1, 0, 0]]
+    return centred_grasp(vertices @ turn[:3, :3].T) @ turn
+
+
+def named_grasp(kind: str, mesh) -> np.ndarray:
+    """The nominal grasp ^T X_P (4, 4) named `kind`, one of `GRASPS`, for `mesh` (mm)."""
+    if kind == "centred":
+        return centred_grasp(mesh)
+    if kind == "flat":
+        return flat_grasp(mesh)
+    if kind == "identity":
+        return np.eye(4)
+    raise PartError(f"grasp must be one of {', '.join(GRASPS)}, got {kind!r}")
 
 
 def check_fits(part: Part, volume_mm=INSPECTION_VOLUME_MM, *, pose=None) -> None:

@@ -177,6 +177,29 @@ def test_centred_grasp(tmp_path):
     assert not g.flags.writeable
 
 
+@pytest.mark.parametrize("extents, hanging", [((14.0, 44.0, 47.0), 14.0),
+                                              ((44.0, 14.0, 47.0), 14.0),
+                                              ((44.0, 47.0, 14.0), 14.0)])
+def test_flat_grasp_hangs_the_smallest_extent_along_z(tmp_path, extents, hanging):
+    path = _box_file(tmp_path, extents, offset=(5.0, -3.0, 2.0))
+    part = load_part(path, "mm", grasp="flat")
+    g = part.grasp
+    assert_allclose(g[:3, :3] @ g[:3, :3].T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(g[:3, :3]) > 0
+    v = part.vertices_t()
+    assert_allclose(v.min(axis=0)[2], 0.0, atol=LENGTH_TOL_MM)
+    assert_allclose(v.max(axis=0)[2], hanging, atol=LENGTH_TOL_MM)
+    assert_allclose(v.min(axis=0)[:2], -v.max(axis=0)[:2], atol=LENGTH_TOL_MM)  # centred
+    assert sorted(np.ptp(v, axis=0)) == pytest.approx(sorted(extents))
+    if extents[2] == hanging:  # already flat: the centred grasp itself
+        assert_allclose(g, centred_grasp(part.vertices))
+
+
+def test_a_grasp_by_an_unknown_name_is_refused(tmp_path):
+    with pytest.raises(PartError, match="grasp must be one of centred, flat, identity"):
+        load_part(_box_file(tmp_path, (10.0, 10.0, 10.0)), "mm", grasp="upside-down")
+
+
 def test_check_fits(tmp_path):
     check_fits(load_part(_box_file(tmp_path, (150.0, 150.0, 100.0)), "mm"))
     big = load_part(_box_file(tmp_path, (160.0, 40.0, 20.0), name="big.stl"), "mm")
