@@ -301,3 +301,40 @@ def test_a_rival_minimum_widens_the_sigma_to_cover_it(block):
     _, wider, _ = _uncertainty(fit, params, [rival])
     assert std[5] < 0.1 and wider[5] >= 1.0 - 1e-6
     assert wider[0] >= 0.05 - 1e-9 and np.all(wider >= std - 1e-12)
+
+
+def _chamfered_box(half, chamfer):
+    """A box of half-sizes `half` (mm) with every edge chamfered by `chamfer` (mm, each way)."""
+    corners = []
+    for sign in np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).T.reshape(-1, 3):
+        corner = sign * np.asarray(half, dtype=float)
+        for axis in range(3):  # on the face normal to `axis`, pulled in along the others
+            inward = -sign * chamfer
+            inward[axis] = 0.0
+            corners.append(corner + inward)
+    return trimesh.convex.convex_hull(np.array(corners))
+
+
+@pytest.mark.parametrize("chamfer, lines", [(0.2, 1), (1.0, 2)])
+def test_a_chamfer_the_scanner_cannot_resolve_is_one_edge_along_its_middle(chamfer, lines):
+    """ADIS16480's outline is chamfered 0.2 mm: the scanner finds one edge between the two
+    CAD edges, and matched to the nearer of them the pose slid 50 um in x. A chamfer wider
+    than BEVEL_MM keeps its two edges."""
+    model = EdgeModel.from_mesh(_chamfered_box((20.0, 15.0, 5.0), chamfer))
+    # The edge along y at x = +20, z = +5 (away from the corners).
+    along = (np.abs(model.directions[:, 1]) > 0.99) & (np.abs(model.points[:, 1]) < 12.0)
+    near = along & (model.points[:, 0] > 18.0) & (model.points[:, 2] > 3.0)
+    found = np.unique(np.round(model.points[near][:, [0, 2]], 3), axis=0)
+    assert len(found) == lines, found
+    if lines == 1:
+        assert_allclose(found[0], [20.0 - chamfer / 2, 5.0 - chamfer / 2], atol=0.005)
+    else:
+        assert_allclose(found, [[19.0, 5.0], [20.0, 4.0]], atol=0.005)
+    # One sample per spacing along each line: a merged line is not sampled twice.
+    assert np.sum(near) <= lines * (24.0 / model.spacing_mm + 2)
+
+
+def test_merging_bevels_leaves_a_sharp_box_alone():
+    box = trimesh.creation.box(extents=(40.0, 30.0, 10.0))
+    merged, plain = EdgeModel.from_mesh(box), EdgeModel.from_mesh(box, bevel_mm=0.0)
+    assert_allclose(merged.points, plain.points)
