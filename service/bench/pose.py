@@ -839,6 +839,12 @@ def _summary(result: dict) -> dict:
                      for part in dict.fromkeys(r["part"] for r in sel)},
         "success_rate_on_good_scans": _fraction(
             [r["success"] for r in sel if r.get("scan_converged_from_nominal", True)]),
+        # Within 0.1 mm / 0.1 degree along the axes the pose reports a sigma for (a free
+        # axis, reported as free, keeps its start): not the target, what it adds up to.
+        "success_rate_known_axes": _fraction([_success_known_axes(r) for r in sel]),
+        "per_part_known_axes": {part: _fraction([_success_known_axes(r)
+                                                 for r in sel if r["part"] == part])
+                                for part in dict.fromkeys(r["part"] for r in sel)},
         "trials_on_good_scans": sum(1 for r in sel if r.get("scan_converged_from_nominal", True)),
         "per_level": [{"mm": lv["mm"], "deg": lv["deg"],
                        **{kind: lv[kind]["success_rate"] for kind in ("displaced start",
@@ -889,6 +895,18 @@ def _summary(result: dict) -> dict:
         summary["side_by_side"]["faster_than_each"]["met"] = bool(
             max(worst.values()) < TARGET_SPEED_RATIO)
     return summary
+
+
+def _success_known_axes(row: dict) -> bool:
+    """Within the success limits along the axes the pose reports a sigma for. A free axis
+    keeps its start, and the pose says so: what it claims to know, it should have found."""
+    if row.get("refused") or row.get("std_um_mdeg") is None:
+        return False
+    std = np.array([np.nan if v is None else v for v in row["std_um_mdeg"]], dtype=float)
+    error = np.array([*row["translation_um"], *row["rotation_mdeg"]], dtype=float)
+    known = np.isfinite(std)
+    return bool(np.linalg.norm(error[:3][known[:3]]) < SUCCESS_MM * 1e3
+                and np.linalg.norm(error[3:][known[3:]]) < SUCCESS_DEG * 1e3)
 
 
 def _recommend(configs: dict) -> dict:
