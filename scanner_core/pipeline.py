@@ -34,7 +34,8 @@ from scanner_core.calibration import Calibration
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
 from scanner_core.exposure import (ExposureController, ExposureParams, merge_exposure_pairs,
                                    partly_lit)
-from scanner_core.edges import EdgeKind, EdgeParams, EdgePoints, find_edges, occluded_dropouts
+from scanner_core.edges import (EdgeKind, EdgeParams, EdgePoints, find_edges, grazing_edges,
+                                occluded_dropouts)
 from scanner_core.geometry import (base_to_tcp, reproject_marker, triangulate_marker,
                                    triangulate_stripe)
 from scanner_core.trigger import EndReason, Trigger, TriggerParams, TriggerStep
@@ -544,7 +545,7 @@ class PassAccumulator:
         scan.sensor_positions_t = np.einsum(
             "fji,fj->fi", scan.tcp_rotations_b,
             self.calibration.camera.origin - scan.tcp_positions_b)
-        _stitch_edges(scan, placed)
+        _stitch_edges(scan, placed, self.calibration)
         scan.end_reason = end_reason.value if end_reason is not None else None
         if end_reason is EndReason.CAMERA_STOPPED and scan.frames:
             scan.interrupted = stopped_because
@@ -589,9 +590,10 @@ def _without_partly_lit(placed: list[PlacedProfile], ratio: float):
             for p, k in zip(placed, keep)], int(drop.sum())
 
 
-def _stitch_edges(scan: Scan, placed: list[PlacedProfile]) -> None:
+def _stitch_edges(scan: Scan, placed: list[PlacedProfile], calibration: Calibration) -> None:
     """The profiles' edge points in {T}, less the drop-outs that bound an occlusion (which a
-    single profile cannot tell from a rim: ``scanner_core.edges.occluded_dropouts``)."""
+    single profile cannot tell from a rim: ``scanner_core.edges.occluded_dropouts``) and the
+    points on a surface the sheet grazes (``scanner_core.edges.grazing_edges``)."""
     if not placed:
         return
     counts = [len(p.edges_t) for p in placed]
@@ -607,9 +609,18 @@ def _stitch_edges(scan: Scan, placed: list[PlacedProfile]) -> None:
     if len(dropout) and len(scan.cloud):
         keep[dropout[occluded_dropouts(points[dropout], across[dropout], sensors[dropout],
                                        scan.cloud)]] = False
+    scan.edges_occluded = int((~keep).sum())
+    # The sheet's normal in {T} per frame: R^T n_B.
+    sheet_b = calibration.light_plane_b.normal
+    sheets = np.repeat(np.array([p.rotation_b.T @ sheet_b for p in placed]), counts, axis=0)
+    track = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
+    spacing = (float(np.median(np.linalg.norm(np.diff(track, axis=0), axis=1)))
+               if len(track) > 1 else float("nan"))
+    grazed = grazing_edges(points, sheets, scan.cloud, scan.frame_ids, spacing) & keep
+    keep &= ~grazed
+    scan.edges_grazing = int(grazed.sum())
     scan.edges, scan.edge_frame_ids, scan.edge_kind = points[keep], frames[keep], kind[keep]
     scan.edge_size_mm, scan.edge_quality = size[keep], peak[keep]
-    scan.edges_occluded = int((~keep).sum())
 
 
 def camera_frames(camera: Camera, timeout: float = 1.0) -> Iterator[Frame]:

@@ -39,6 +39,8 @@ def scan_report(scan: Scan, cross_check: dict | None = None, **extra) -> dict:
         "points": int(len(scan.cloud)),
         "points_partly_lit": int(scan.points_partly_lit),
         "edge_points": int(len(scan.edges)),
+        "edges_occluded": int(scan.edges_occluded),
+        "edges_grazing": int(scan.edges_grazing),
         "timings_ms": {**scan.timings_ms, "processing": round(processing_ms, 3)},
         "pose": None,
         "cross_check": cross_check if cross_check is not None else {"samples": 0},

@@ -175,6 +175,9 @@ class Scan:
     edges_occluded : int
         Drop-outs dropped because the camera's view past them ran into the part (an
         occlusion's boundary, not an edge).
+    edges_grazing : int
+        Edge points dropped because the light sheet grazes the surface they lie on
+        (``scanner_core.edges.grazing_edges``).
     normals : (N, 3) float32 or None
         Unit normals of the cloud toward the camera; computed once, on first use, by
         ``scanner_core.scanio.scan_normals``.
@@ -204,5 +207,6 @@ class Scan:
     edge_size_mm: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     edge_quality: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     edges_occluded: int = 0
+    edges_grazing: int = 0
     points_partly_lit: int = 0
     normals: np.ndarray | None = None

@@ -12,7 +12,8 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.special import ndtr
 
-from scanner_core.edges import (EdgeKind, EdgeParams, EdgePoints, find_edges, occluded_dropouts,
+from scanner_core.edges import (EdgeKind, EdgeParams, EdgePoints, find_edges, grazing_edges,
+                                occluded_dropouts,
                                 profile_axes)
 from scanner_core.stripe import Reason
 
@@ -492,3 +493,38 @@ def test_speed_printout(geometry, capsys):
     with capsys.disabled():
         print(f"\nfind_edges: {per_frame_ms:.3f} ms per 1920-column frame "
               f"({int(p.valid.sum())} valid columns)")
+
+
+def _profiles_on_plane(normal, *, spacing_mm=1.2, profiles=7, seed=0):
+    """Points of `profiles` parallel profiles (the sheets y = k * spacing) on the plane
+    through the origin with `normal`, and their profile ids: what the scan holds around an
+    edge point there."""
+    rng = np.random.default_rng(seed)
+    normal = np.asarray(normal, float) / np.linalg.norm(normal)
+    out, ids = [], []
+    for k in range(-(profiles // 2), profiles // 2 + 1):
+        x = np.linspace(-5.0, 5.0, 60)
+        y = np.full_like(x, k * spacing_mm)
+        z = -(normal[0] * x + normal[1] * y) / normal[2]  # on the plane
+        out.append(np.c_[x, y, z])
+        ids.append(np.full(len(x), k))
+    cloud = np.concatenate(out)
+    return cloud + rng.normal(0.0, 0.01, cloud.shape), np.concatenate(ids)
+
+
+@pytest.mark.parametrize("tilt_deg, spacing_mm, grazed", [
+    (7.0, 1.2, True),     # the next profile lands 9.8 mm up the wall: out of reach
+    (20.0, 1.2, True),    # 3.3 mm up: out of reach too
+    (20.0, 0.3, True),    # a dense pass: the neighbours' plane is the wall's
+    (40.0, 1.2, False),   # steep, but the neighbours span it: its normal is 50 deg off
+    (90.0, 1.2, False),   # a level face
+    (7.0, 6.0, False),    # a sparse pass (1 m/s): a lone profile says nothing
+])
+def test_an_edge_on_a_wall_the_sheet_grazes_is_found(tilt_deg, spacing_mm, grazed):
+    """The sheet's normal is y; a wall turned `tilt_deg` from the sheet (90: a level face)."""
+    t = np.radians(tilt_deg)
+    normal = np.array([0.0, np.cos(t), np.sin(t)])
+    cloud, ids = _profiles_on_plane(normal, spacing_mm=spacing_mm)
+    edge = np.array([[1.0, 0.0, 0.0]])
+    found = grazing_edges(edge, [[0.0, 1.0, 0.0]], cloud, ids, spacing_mm)
+    assert found.tolist() == [grazed]

@@ -4,6 +4,7 @@ misplacements, the side by side's same start and target."""
 import json
 import math
 
+import numpy as np
 import pytest
 
 from service.bench import pose as bench
@@ -107,3 +108,19 @@ def test_side_by_side_has_every_method_or_a_note(quick_bench):
             assert case["ratios"][f"flyscan/{name}"] == pytest.approx(
                 methods["flyscan"]["total_ms"] / m["total_ms"], rel=1e-4)
     assert methods["flyscan"]["translation_um"] < BLOCK_TRANSLATION_UM
+
+
+def test_the_edge_cloud_is_scored_against_the_cad_edges(quick_bench):
+    """The demo block's edges (sharp, no chamfer): near their CAD edges, few strays, and the
+    summary's verdicts follow from the per-scan figures."""
+    _, result, _ = quick_bench
+    scored = [s["edges"] for s in result["scans"]]
+    assert len(scored) == bench.QUICK_SCANS_PER_PART and all(e["count"] > 20 for e in scored)
+    assert np.median([e["rms_inliers_um"] for e in scored]) < bench.TARGET_EDGE_RMS_UM
+    assert max(e["outlier_fraction"] for e in scored) < bench.TARGET_EDGE_OUTLIERS
+    edges = result["summary"]["edges"]
+    worst = max(e["rms_inliers_um"] for e in scored)
+    assert edges["rms_inliers_um_worst"]["value"] == pytest.approx(worst, rel=1e-3)
+    assert edges["rms_inliers_um_worst"]["met"] == (worst <= bench.TARGET_EDGE_RMS_UM)
+    assert edges["outlier_fraction_worst"]["met"] == (
+        max(e["outlier_fraction"] for e in scored) < bench.TARGET_EDGE_OUTLIERS)
