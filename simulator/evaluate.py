@@ -125,9 +125,15 @@ EDGE_PAIRS_PER_BLOCK = 1_000_000
 EDGE_DEGENERATE_MM = 1e-9
 #: ``EdgePoints.kind`` codes (``scanner_core.edges.EdgeKind``) and their report names.
 EDGE_KIND_NAMES = {0: "dropout", 1: "step"}
+STEP_KIND = 1
+#: A face is a wall (a step's riser) when its normal, in {T}, is within this of level.
+WALL_MAX_NZ = 0.5
+#: A step's half-height point lies at most this far up or down its wall from the edge, mm.
+WALL_REACH_MM = 15.0
 
 
-def sharp_edges(mesh: trimesh.Trimesh, feature_angle_deg: float = 30.0) -> np.ndarray:
+def sharp_edges(mesh: trimesh.Trimesh, feature_angle_deg: float = 30.0, *,
+                faces: bool = False):
     """The mesh's sharp edges: where its faces meet at more than ``feature_angle_deg``
     (``mesh.face_adjacency_angles``), plus its boundary edges (open meshes).
 
@@ -135,12 +141,22 @@ def sharp_edges(mesh: trimesh.Trimesh, feature_angle_deg: float = 30.0) -> np.nd
     -------
     (S, 2, 3) float64
         Segments in the mesh's frame, mm.
+    (S, 2) int64, with ``faces``
+        The two faces meeting at each segment (a boundary edge's one face twice).
     """
     angles = np.asarray(mesh.face_adjacency_angles)
-    sharp = np.asarray(mesh.face_adjacency_edges)[angles > np.radians(feature_angle_deg)]
-    boundary = mesh.edges_sorted[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
+    is_sharp = angles > np.radians(feature_angle_deg)
+    sharp = np.asarray(mesh.face_adjacency_edges)[is_sharp]
+    boundary_rows = trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)
+    boundary = mesh.edges_sorted[boundary_rows]
     index = np.concatenate([sharp.reshape(-1, 2), np.asarray(boundary).reshape(-1, 2)])
-    return np.asarray(mesh.vertices, dtype=np.float64)[index]
+    segments = np.asarray(mesh.vertices, dtype=np.float64)[index]
+    if not faces:
+        return segments
+    boundary_face = np.asarray(mesh.edges_face)[np.asarray(boundary_rows, dtype=np.int64)]
+    pairs = np.concatenate([np.asarray(mesh.face_adjacency)[is_sharp].reshape(-1, 2),
+                            np.repeat(boundary_face.reshape(-1, 1), 2, axis=1)])
+    return segments, pairs.astype(np.int64)
 
 
 def _segment_distances(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
@@ -161,6 +177,50 @@ def _segment_distances(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
         t = np.clip(np.einsum("nsk,sk->ns", ap, ab) * inv, 0.0, 1.0)
         diff = ap - t[..., None] * ab[None]
         out[i0:i0 + block] = np.sqrt(np.einsum("nsk,nsk->ns", diff, diff).min(axis=1))
+    return out
+
+
+def _wall_distances(points: np.ndarray, segments: np.ndarray, face_normals: np.ndarray):
+    """(N,) distance from each step point to the nearest wall through a sharp edge, taken
+    across the wall (and beyond the edge's ends along it), for points within
+    ``WALL_REACH_MM`` of the edge up or down the wall.
+
+    A step's point sits at half the step's height on its riser (paper section II); when the
+    riser leans (the part turned about x_T or y_T), that point lies off the (x_T, y_T)
+    projection of the riser's top and bottom edges by half the height times the lean's
+    tangent, by design. Across the riser itself, it is off by its own error only.
+
+    Parameters
+    ----------
+    points : (N, 3) float64
+        Step points in {T}, mm.
+    segments : (S, 2, 3) float64
+        Sharp edges in {T}, mm.
+    face_normals : (S, 2, 3) float64
+        The unit normals, in {T}, of the two faces at each edge; the more level one, if
+        within ``WALL_MAX_NZ`` of level, is the wall.
+    """
+    out = np.full(len(points), np.inf)
+    nz = np.abs(face_normals[:, :, 2])
+    wall_normal = face_normals[np.arange(len(segments)), np.argmin(nz, axis=1)]
+    a = segments[:, 0]
+    along = segments[:, 1] - a
+    length = np.linalg.norm(along, axis=1)
+    is_wall = (nz.min(axis=1) < WALL_MAX_NZ) & (length > EDGE_DEGENERATE_MM)
+    if not is_wall.any() or len(points) == 0:
+        return out
+    a, wall_normal, length = a[is_wall], wall_normal[is_wall], length[is_wall]
+    along = along[is_wall] / length[:, None]
+    up = np.cross(wall_normal, along)  # in the wall, across the edge
+    block = max(1, EDGE_PAIRS_PER_BLOCK // len(a))
+    for i0 in range(0, len(points), block):
+        ap = points[i0:i0 + block, None, :] - a[None]
+        t = np.einsum("nsk,sk->ns", ap, along)
+        beyond = t - np.clip(t, 0.0, length[None])
+        across = np.einsum("nsk,sk->ns", ap, wall_normal)
+        reach = np.abs(np.einsum("nsk,sk->ns", ap, up))
+        d = np.where(reach <= WALL_REACH_MM, np.hypot(across, beyond), np.inf)
+        out[i0:i0 + block] = d.min(axis=1)
     return out
 
 
@@ -192,7 +252,9 @@ def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kin
     placed at half the step height on the wall (paper section II), lies on that line. The
     3-D distance is reported for information: for a step it includes half the step height by
     design. Walls tilted away from z_T (a misplacement's rotation) move a step point off the
-    projected line by half the step height times the tilt's tangent.
+    projected line by half the step height times the tilt's tangent; with ``kinds``, a step
+    point is also measured across the wall it lies on (:func:`_wall_distances`), and the
+    nearer of the two counts.
 
     Parameters
     ----------
@@ -218,17 +280,23 @@ def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kin
         (segments), and with ``kinds`` one dict per kind under ``by_kind``.
     """
     points = np.asarray(edges_t, dtype=np.float64).reshape(-1, 3)
-    edges_p = sharp_edges(mesh, feature_angle_deg)
-    segments = apply_transform(np.asarray(true_grasp, dtype=np.float64),
-                               edges_p.reshape(-1, 3)).reshape(-1, 2, 3)
+    grasp = np.asarray(true_grasp, dtype=np.float64)
+    edges_p, faces = sharp_edges(mesh, feature_angle_deg, faces=True)
+    segments = apply_transform(grasp, edges_p.reshape(-1, 3)).reshape(-1, 2, 3)
     d_xy = _segment_distances(points[:, :2], segments[:, :, :2])
     d_3d = _segment_distances(points, segments)
-    out = _edge_stats(d_xy, d_3d, outlier_mm)
-    out["sharp_edges"] = int(len(segments))
     if kinds is not None:
         kinds = np.asarray(kinds).reshape(-1)
         if kinds.shape != (len(points),):
             raise ValueError(f"`kinds` must be ({len(points)},), got {kinds.shape}")
+        step = kinds == STEP_KIND
+        if step.any():
+            normals_t = np.asarray(mesh.face_normals, dtype=np.float64)[faces] @ grasp[:3, :3].T
+            d_xy[step] = np.minimum(d_xy[step],
+                                    _wall_distances(points[step], segments, normals_t))
+    out = _edge_stats(d_xy, d_3d, outlier_mm)
+    out["sharp_edges"] = int(len(segments))
+    if kinds is not None:
         out["by_kind"] = {name: _edge_stats(d_xy[kinds == code], d_3d[kinds == code], outlier_mm)
                           for code, name in EDGE_KIND_NAMES.items()}
     return out

@@ -318,7 +318,7 @@ def _scan(part: Part, cell: Cell, values, *, seed: int):
             "normals_ms": round((time.perf_counter() - t1) * 1e3, 3)}
     t2 = time.perf_counter()
     if len(scan.edges):
-        accuracy = edge_accuracy(scan.edges, part.mesh, truth)
+        accuracy = edge_accuracy(scan.edges, part.mesh, truth, kinds=scan.edge_kind)
         info["edges"] = {k: accuracy[k] for k in ("count", "rms_um", "median_um",
                                                   "outlier_fraction", "rms_inliers_um")}
     info["edge_scoring_ms"] = round((time.perf_counter() - t2) * 1e3, 3)

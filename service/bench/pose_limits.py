@@ -96,8 +96,8 @@ DEMO_PART = "demo"
 REFERENCE_PART = "idler_riser"
 
 #: Misplacements (tx, ty, tz mm, rotation vector deg) and camera seeds of the trials. No tilt
-#: about x_T or y_T: a tilted wall moves a step's edge point off the projected CAD edge by
-#: design (``edge_accuracy``), which would blur the edge figures.
+#: about x_T or y_T: each curve varies one cause, and a tilt changes which walls the camera
+#: sees (bench pose's trials tilt up to 10 degrees).
 TRIALS = (
     {"misplacement": (1.5, -1.0, 0.5, 0.0, 0.0, 2.0), "seed": 0},
     {"misplacement": (-2.5, 2.0, -0.5, 0.0, 0.0, -4.0), "seed": 1},

@@ -514,6 +514,7 @@ def _profiles_on_plane(normal, *, spacing_mm=1.2, profiles=7, seed=0):
 
 @pytest.mark.parametrize("tilt_deg, spacing_mm, grazed", [
     (7.0, 1.2, True),     # the next profile lands 9.8 mm up the wall: out of reach
+    (7.0, 1.3, True),     # a pass a little faster (the reference cell's, misplaced parts)
     (20.0, 1.2, True),    # 3.3 mm up: out of reach too
     (20.0, 0.3, True),    # a dense pass: the neighbours' plane is the wall's
     (40.0, 1.2, False),   # steep, but the neighbours span it: its normal is 50 deg off

@@ -69,6 +69,23 @@ def test_distances_are_measured_across_z_t(box):
         assert_allclose(moved[key], acc[key], rtol=1e-6, atol=EXACT_UM)
 
 
+def test_a_step_on_a_leaning_wall_is_measured_across_the_wall(box):
+    """Turned 10 degrees about y_T, the wall x = 30 leans: its half-height point lies
+    10 tan(10 deg) = 1.76 mm off the (x_T, y_T) line of its top and bottom edges, by design
+    (paper section II places a step there); across the wall it is off by its own error."""
+    grasp = parse_misplacement("0,0,0,0,10,0")
+    wall_point_p = np.array([[30.0 + 0.04, 5.0, 10.0]])  # 40 um out of the wall, half way up
+    point_t = apply_transform(grasp, wall_point_p)
+    as_dropout = edge_accuracy(point_t, box, grasp, kinds=[EdgeKind.DROPOUT])
+    as_step = edge_accuracy(point_t, box, grasp, kinds=[EdgeKind.STEP])
+    assert as_dropout["rms_um"] > 1000.0 * 10.0 * np.tan(np.radians(10.0)) - 100.0
+    assert_allclose(as_step["rms_um"], 40.0, rtol=1e-6)
+    # a point beyond the wall's reach (30 mm below its edge, in its plane) is no step of it
+    far_p = np.array([[30.0, 5.0, -30.0]])
+    far = edge_accuracy(apply_transform(grasp, far_p), box, grasp, kinds=[EdgeKind.STEP])
+    assert far["rms_um"] > 1000.0
+
+
 def test_no_points_and_bad_kinds(box):
     assert edge_accuracy(np.zeros((0, 3)), box, np.eye(4))["count"] == 0
     with pytest.raises(ValueError, match="`kinds`"):
