@@ -892,6 +892,22 @@ def occluded_dropouts(points_t, across_t, sensors_t, cloud_t, *, probe_mm: float
     return out
 
 
+def _on_own_profile(points, frame_ids, cloud, cloud_frames, tree, k: int = 32):
+    """Each point moved to the nearest cloud point of its own profile (among its `k` nearest
+    cloud points; kept where none is)."""
+    if len(frame_ids) != len(points):
+        raise ValueError(f"`frame_ids` must be ({len(points)},), got {frame_ids.shape}")
+    k = min(k, len(cloud))
+    _, nearest = tree.query(points, k=k)
+    nearest = nearest.reshape(len(points), k)
+    same = cloud_frames[nearest] == frame_ids[:, None]
+    first = np.argmax(same, axis=1)
+    found = same[np.arange(len(points)), first]
+    out = points.copy()
+    out[found] = cloud[nearest[found, first[found]]]
+    return out
+
+
 def _points3(points, name: str) -> np.ndarray:
     arr = np.asarray(points, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 3:
@@ -908,7 +924,7 @@ LONE_PROFILE_REACH = 2.1
 
 
 def grazing_edges(points_t, sheet_normals_t, cloud_t, cloud_frame_ids, spacing_mm: float, *,
-                  radius_mm: float = 2.5, grazing_deg: float = GRAZING_DEG,
+                  frame_ids=None, radius_mm: float = 2.5, grazing_deg: float = GRAZING_DEG,
                   min_points: int = 8) -> np.ndarray:
     """Edge points on a surface the light sheet grazes.
 
@@ -936,6 +952,11 @@ def grazing_edges(points_t, sheet_normals_t, cloud_t, cloud_frame_ids, spacing_m
     spacing_mm : float
         The profiles' spacing along the pass (median): at more than half ``radius_mm``, a
         lone profile says nothing, and only the plane test applies.
+    frame_ids : (M,) int, optional
+        The profile of each edge point: its neighbourhood is then centred on the nearest
+        cloud point of that profile. A step's point lies half the step's height off the
+        surface (2.5 mm on a 5 mm step), where a neighbourhood about it reaches its own
+        profile's points only and the test would take it for a grazed wall.
     radius_mm : float
         Neighbourhood of each edge point: about twice the profiles' spacing at the default
         pass (1.2 mm at 200 mm/s and 162 fps); widened to ``LONE_PROFILE_REACH`` spacings
@@ -967,7 +988,10 @@ def grazing_edges(points_t, sheet_normals_t, cloud_t, cloud_frame_ids, spacing_m
         radius_mm = max(radius_mm, min(LONE_PROFILE_REACH * spacing_mm, 2.0 * radius_mm))
     dense = np.isfinite(spacing_mm) and spacing_mm < radius_mm / 2
     cos_limit = math.cos(math.radians(grazing_deg))
-    for i, near in enumerate(cKDTree(cloud).query_ball_point(points, radius_mm)):
+    tree = cKDTree(cloud)
+    if frame_ids is not None:
+        points = _on_own_profile(points, np.asarray(frame_ids).reshape(-1), cloud, frames, tree)
+    for i, near in enumerate(tree.query_ball_point(points, radius_mm)):
         if len(near) < min_points:
             continue
         if np.all(frames[near] == frames[near[0]]):

@@ -616,7 +616,8 @@ def _stitch_edges(scan: Scan, placed: list[PlacedProfile], calibration: Calibrat
     track = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
     spacing = (float(np.median(np.linalg.norm(np.diff(track, axis=0), axis=1)))
                if len(track) > 1 else float("nan"))
-    grazed = grazing_edges(points, sheets, scan.cloud, scan.frame_ids, spacing) & keep
+    grazed = grazing_edges(points, sheets, scan.cloud, scan.frame_ids, spacing,
+                           frame_ids=frames) & keep
     keep &= ~grazed
     scan.edges_grazing = int(grazed.sum())
     scan.edges, scan.edge_frame_ids, scan.edge_kind = points[keep], frames[keep], kind[keep]

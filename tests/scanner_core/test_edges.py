@@ -529,3 +529,24 @@ def test_an_edge_on_a_wall_the_sheet_grazes_is_found(tilt_deg, spacing_mm, graze
     edge = np.array([[1.0, 0.0, 0.0]])
     found = grazing_edges(edge, [[0.0, 1.0, 0.0]], cloud, ids, spacing_mm)
     assert found.tolist() == [grazed]
+
+
+def test_a_step_point_in_mid_air_is_judged_by_its_own_surface():
+    """A 5 mm step across level faces, profiles 1.28 mm apart (a misplaced part's pass): the
+    step's point, half way up, is 2.5 mm from every cloud point. Centred on it, the
+    neighbourhood holds its own profile only and reads as a grazed wall; centred on its
+    profile's nearest point, it holds the neighbouring profiles' level face."""
+    spacing = 1.28
+    cloud, ids = [], []
+    for k in range(-3, 4):
+        x = np.linspace(10.0, 24.0, 80)
+        z = np.where(x < 17.0, 20.5, 15.5)
+        cloud.append(np.c_[x, np.full_like(x, k * spacing), z])
+        ids.append(np.full(len(x), k))
+    cloud, ids = np.concatenate(cloud), np.concatenate(ids)
+    step = np.array([[17.0, 0.0, 18.0]])
+    sheet = [[0.0, 1.0, 0.0]]
+    assert grazing_edges(step, sheet, cloud, ids, spacing).tolist() == [True]
+    assert grazing_edges(step, sheet, cloud, ids, spacing, frame_ids=[0]).tolist() == [False]
+    with pytest.raises(ValueError, match="`frame_ids`"):
+        grazing_edges(step, sheet, cloud, ids, spacing, frame_ids=[0, 1])
