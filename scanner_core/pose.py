@@ -605,7 +605,8 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, iterations=No
         pose = _apply(delta, centre) @ pose
         if gate_mm is None:
             gates = [max(params.min_gate_mm, min(g, 6.0 * sg)) for g, sg in zip(gates, sigmas)]
-        if sparse is not None and np.all(np.abs(observed) < _WARM_TOL_FACTOR * step_tol):
+        if sparse is not None and (it >= _WARM_MAX_ITERATIONS
+                                   or np.all(np.abs(observed) < _WARM_TOL_FACTOR * step_tol)):
             sparse = None
             continue
         if sparse is None and np.all(np.abs(observed) < step_tol):
@@ -710,10 +711,12 @@ _TOUCHED = 0.2
 # A fit whose residuals exceed this many times the expected scatter is flagged.
 _RMS_FLAG = 5.0
 # The fine fit's first iterations use every _WARM_STRIDE-th surface point (of at least
-# _WARM_MIN_POINTS) until its steps fall below _WARM_TOL_FACTOR times the tolerance.
+# _WARM_MIN_POINTS) until its steps fall below _WARM_TOL_FACTOR times the tolerance, for
+# _WARM_MAX_ITERATIONS at most (matches to few points can cycle short of that).
 _WARM_STRIDE = 4
 _WARM_MIN_POINTS = 2000
 _WARM_TOL_FACTOR = 100.0
+_WARM_MAX_ITERATIONS = 6
 # Information below this fraction of the strongest is no information (numerical zero).
 _SINGULAR = 1e-10
 # Model points that seed a coarse candidate's translation.
