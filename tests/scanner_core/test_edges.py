@@ -206,6 +206,42 @@ def test_chamfer_at_the_outline_is_one_dropout_at_its_end(geometry):
     assert_allclose(np.sort(edges.pixel[:, 0]), [799.5, 1003.5], atol=1e-6)
 
 
+
+@pytest.mark.parametrize("chamfer_px", [2, 3])
+def test_short_blurred_chamfer_keeps_its_own_level(geometry, chamfer_px):
+    """A dimmer chamfer only a few columns wide, blurred with the face inward of it: the
+    stripe brightens column by column from the gap up to the face, as a blurred flank of one
+    face would. The rows turn where the chamfer begins, so the flank stops there and the
+    drop-out is placed by the chamfer's level (walked up to the face's, the edge fell most of
+    a pixel short of the chamfer's end)."""
+    end = 1000 + chamfer_px - 1
+    cols = np.arange(800, end + 1)
+    d = NEAR_MM + np.clip(cols - 999, 0, None) * 0.16
+    rows = np.array([surface_at(geometry, [c], dd)[1][0] for c, dd in zip(cols, d)])
+    level = np.where(cols > 999, 0.6, 1.0)
+    blurred = np.convolve(np.r_[1.0, level, 0.0, 0.0], [0.25, 0.5, 0.25])[2:-2]  # to end + 1
+    profile = blank_profile()
+    set_stripe(profile, cols, rows, BACKGROUND_DN + PEAK_DN * blurred[:len(cols)])
+    row, peak, _ = profile
+    peak[end + 1] = BACKGROUND_DN + PEAK_DN * blurred[len(cols)]  # the blur's tail, no stripe
+    edges = edges_of(geometry, make(profile))
+    assert np.all(edges.kind == EdgeKind.DROPOUT)
+    assert_allclose(np.sort(edges.pixel[:, 0]), [799.5, end + 0.5], atol=0.1)
+
+@pytest.mark.parametrize("stripe_dn, expected", [(60.0, 0), (80.0, 2)])
+def test_faint_stripe_fading_into_its_gap_has_no_dropout(geometry, stripe_dn, expected):
+    """A stripe under twice its gap's level (60 DN beside 35 DN of a faint stripe or noise
+    under the threshold) ends in the noise: no half step to place an edge by, so no drop-out;
+    at 80 DN it has two."""
+    cols = np.arange(700, 1000)
+    _, rows = surface_at(geometry, cols, NEAR_MM)
+    profile = blank_profile()
+    set_stripe(profile, cols, rows, np.full(len(cols), stripe_dn))
+    _, peak, _ = profile
+    peak[[*range(690, 700), *range(1000, 1010)]] = 35.0  # the gaps: faint, under MIN_PEAK_DN
+    edges = edges_of(geometry, make(profile))
+    assert len(edges) == expected
+
 @pytest.mark.parametrize("gap", [1, 2])
 def test_narrow_gaps_and_specks_are_no_edges(geometry, gap):
     cols = np.arange(DIRECT[0], DIRECT[1])
@@ -237,7 +273,8 @@ def test_masked_columns_make_no_dropout(geometry):
     masked[1000:1025] = True  # the LED marker's columns, taken out by the pipeline
     cam, plane, _, _ = geometry
     assert len(find_edges(p, p.valid & ~masked, cam, plane, masked=masked)) == 0
-    # without telling, the masked columns look dark: two drop-outs
+    # without telling, masked columns as faint as the background look like a gap: two drop-outs
+    p.peak[masked] = DARK_PEAK_DN
     assert len(find_edges(p, p.valid & ~masked, cam, plane)) == 2
 
 
