@@ -83,6 +83,12 @@ LEVEL_PX = 3
 #: 45-degree chamfers turned them by 0.4 to 0.6 px, noise and partly lit end columns by up
 #: to about 0.2 px.
 ROW_BEND_PX = 0.25
+#: A step with a side cut short (fewer than side_px points before another edge or the end
+#: of the stripe) must be this many times the step threshold high: a chamfer at the rim of a
+#: larger step or of the outline reads as a step just over the threshold (the idler's 45
+#: degree chamfers beside its 8.6 mm steps: 0.3 mm, about 100 um off every edge), while the
+#: larger step beside it, cut short by the chamfer, stays.
+SHORT_SIDE_STEP_FACTOR = 2.0
 #: MAD of a normal sample times this is its standard deviation.
 MAD_TO_SIGMA = 1.4826
 #: The sheet must not be within about 0.06 degrees of perpendicular to the image columns (the
@@ -842,8 +848,10 @@ def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offse
                 rhi += 1
             if k0 - llo + 1 < min_run or rhi - k1 < min_run:
                 continue  # a step needs surface on both sides (a chamfer into a drop-out has not)
+            cut_short = k0 - llo + 1 < side_px or rhi - k1 < side_px
             if _step(k0, k1, llo, rhi, cols, a, d, pts, vcol, vrow, vpeak, double, threshold,
-                     fx, fy, cx, cy, n, offset, e_a, e_d, pc, res):
+                     fx, fy, cx, cy, n, offset, e_a, e_d, pc, res) and not (
+                         cut_short and res[2] < SHORT_SIDE_STEP_FACTOR * threshold):
                 out_px[count, 0], out_px[count, 1] = res[0], res[1]
                 out_pc[count, :] = pc
                 out_kind[count] = 1

@@ -335,6 +335,22 @@ def test_step_edge_at_half_height_on_the_wall(geometry, wall_col, near_left):
     assert_allclose(edges.pixel[i], [col, np.mean(rows)], atol=1e-3)
 
 
+def test_chamfer_at_a_steps_rim_is_no_step_of_its_own(geometry):
+    """A near face whose rim falls 0.4 mm over 4 columns (a chamfer) and then runs on for 3
+    before a 5 mm step: one step, the wall's. The chamfer's slope, with the wall's jump 3
+    columns away, has no surface of its own on that side."""
+    near_cols, far_cols = np.arange(700, 900), np.arange(901, 1100)
+    d = NEAR_MM + np.clip(near_cols - 892, 0, 4) * 0.1 + np.clip(near_cols - 896, 0, None) * 0.02
+    near_rows = np.array([surface_at(geometry, [c], dd)[1][0] for c, dd in zip(near_cols, d)])
+    _, far_rows = surface_at(geometry, far_cols, FAR_MM)
+    profile = blank_profile()
+    set_stripe(profile, near_cols, near_rows)
+    set_stripe(profile, far_cols, far_rows)
+    edges = edges_of(geometry, make(profile))
+    steps = edges.kind == EdgeKind.STEP
+    assert steps.sum() == 1
+    assert edges.size_mm[steps][0] == pytest.approx(FAR_MM - NEAR_MM, abs=0.5)
+
 def split_column_step(geometry, column, phase, near_left):
     """A step whose wall stands inside pixel column ``column``, at ``column + phase``: that
     column is lit in part by each side, in proportion to the share of the pixel each surface
