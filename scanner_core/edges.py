@@ -89,6 +89,15 @@ ROW_BEND_PX = 0.25
 #: degree chamfers beside its 8.6 mm steps: 0.3 mm, about 100 um off every edge), while the
 #: larger step beside it, cut short by the chamfer, stays.
 SHORT_SIDE_STEP_FACTOR = 2.0
+#: A side whose rows turn steadily over its last points before the end (by at least this
+#: much in all, px, no one turn more than CURL_SHARE of it) ends on a surface curving away
+#: from the camera or the sheet, not at an edge: cycloidal's rounded lobes turned the rows by
+#: 0.3 to 0.45 px over 3 turns and ended 0.1 to 0.4 mm short of every CAD edge. A chamfer
+#: turns them at one kink. Noisier profiles need CURL_NOISE_FACTOR times their rows' scatter
+#: (3 sigma of the turn over 3 steps: noise alone reaches it in about 1 of 400).
+CURL_PX = 0.25
+CURL_SHARE = 0.7
+CURL_NOISE_FACTOR = 6.0
 #: MAD of a normal sample times this is its standard deviation.
 MAD_TO_SIGMA = 1.4826
 #: The sheet must not be within about 0.06 degrees of perpendicular to the image columns (the
@@ -551,8 +560,8 @@ def _step_candidates(cols, vcol, d, seg, side_px, cand_threshold):
 
 @njit(nogil=True, cache=True)
 def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow, vpeak, peak,
-             valid, side_px, threshold, min_contrast, keep_far, fx, fy, cx, cy, n, offset,
-             out_pc, out):
+             valid, side_px, threshold, curl, min_contrast, keep_far, fx, fy, cx, cy, n,
+             offset, out_pc, out):
     """The drop-out edge at one end of a stripe (sign -1: its first column, +1: its last),
     into out_pc (point in {C}) and out (u, v, size, level). False when there is none: the far
     side of a gap across a range step, a side too faint for its gap, or a ray that misses the
@@ -567,6 +576,8 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
         lo, hi = k_lo, min(k_lo + side_px, k_hi + 1)
     else:
         lo, hi = max(k_hi - side_px + 1, k_lo), k_hi + 1
+    if _curls(vrow, k_end, sign, lo, hi, curl):
+        return False  # the stripe fades on a surface curving away: no edge there
     size = math.nan
     if k_other >= 0:
         size = math.sqrt((pts[k_other, 0] - pts[k_end, 0]) ** 2
@@ -645,6 +656,28 @@ def _bends(vrow, k, sign, lo, hi, k_end):
 
 
 @njit(nogil=True, cache=True)
+def _curls(vrow, k_end, sign, lo, hi, curl):
+    """Whether a side's rows turn steadily over the 4 row steps before its end point k_end
+    (the side runs toward the gap or the wall along sign; points lo..hi-1): a surface that
+    curves away until the stripe is lost on it, whose end is no edge of the part. The end
+    point itself is left out: lit in part, its row is off by up to about 0.2 px."""
+    far = k_end - 5 * sign
+    if not (lo <= far < hi and lo <= k_end - sign < hi):
+        return False
+    t0 = vrow[k_end - sign] - vrow[k_end - 2 * sign]
+    t3 = vrow[k_end - 4 * sign] - vrow[k_end - 5 * sign]
+    total = t0 - t3
+    if abs(total) < curl:
+        return False
+    for j in range(1, 4):
+        turn = ((vrow[k_end - j * sign] - vrow[k_end - (j + 1) * sign])
+                - (vrow[k_end - (j + 1) * sign] - vrow[k_end - (j + 2) * sign]))
+        if turn * total <= 0.0 or abs(turn) > CURL_SHARE * abs(total):
+            return False
+    return True
+
+
+@njit(nogil=True, cache=True)
 def _near_end(near, toward, nlo, nhi, cols, vpeak, double):
     """Column (sub-pixel) where the near side's stripe ends at a step within one column.
 
@@ -685,11 +718,12 @@ def _near_end(near, toward, nlo, nhi, cols, vpeak, double):
 
 
 @njit(nogil=True, cache=True)
-def _step(k0, k1, llo, rhi, cols, a, d, pts, vcol, vrow, vpeak, double, threshold, fx, fy,
-          cx, cy, n, offset, e_a, e_d, out_pc, out):
+def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, double, threshold,
+          curl, fx, fy, cx, cy, n, offset, e_a, e_d, out_pc, out):
     """The step edge of the jumps k0..k1 (points k0..k1+1) with its sides llo..k0 and
-    k1+1..rhi, into out_pc (point in {C}) and out (u, v, height, level, direction). False
-    when the step is below threshold or has no clean half-height crossing."""
+    k1+1..rhi, in the stretch of stripe k_lo..k_hi, into out_pc (point in {C}) and out (u, v,
+    height, level, direction). False when the step is below threshold, has no clean
+    half-height crossing, or its near side curves away (:func:`_curls`)."""
     lxm, lym, lsl = _fit_line(a, d, llo, k0 + 1)
     rxm, rym, rsl = _fit_line(a, d, k1 + 1, rhi + 1)
     a_b = 0.5 * (a[k0] + a[k1 + 1])
@@ -724,6 +758,8 @@ def _step(k0, k1, llo, rhi, cols, a, d, pts, vcol, vrow, vpeak, double, threshol
             near, toward, nlo, nhi, flo, fhi = p, 1, llo, k0 + 1, k1 + 1, rhi + 1
         else:
             near, toward, nlo, nhi, flo, fhi = q, -1, k1 + 1, rhi + 1, llo, k0 + 1
+        if _curls(vrow, near, toward, k_lo, k_hi + 1, curl):
+            return False  # the near side's stripe ends on a surface curving away, not at a rim
         u = _near_end(near, toward, nlo, nhi, cols, vpeak, double)
         cxm, cym, csl = _fit_line(vcol, vrow, nlo, nhi)
         v = cym + csl * (u - cxm) if nlo <= near < nhi else vrow[near] + csl * (u - vcol[near])
@@ -793,6 +829,8 @@ def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offse
     noise = _range_noise(cols, d, seg)
     scatter = noise * math.sqrt(2.0) if noise == noise else 0.0  # point to point
     threshold = max(min_step, noise_factor * scatter)
+    row_noise = _range_noise(cols, vrow, seg)  # the same estimate, on the rows (px)
+    curl = max(CURL_PX, CURL_NOISE_FACTOR * row_noise) if row_noise == row_noise else CURL_PX
     resid, cand = _step_candidates(cols, vcol, d, seg, side_px,
                                    max(noise_factor * scatter, min_step / max_ramp))
     res = np.empty(5)
@@ -817,8 +855,8 @@ def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offse
             if dark_cum[g_hi] - dark_cum[g_lo] < min_gap:
                 continue  # "drop-outs are evaluated by size"
             if _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
-                        vpeak, peak, valid, side_px, threshold, min_contrast, keep_far, fx, fy,
-                        cx, cy, n, offset, pc, res):
+                        vpeak, peak, valid, side_px, threshold, curl, min_contrast, keep_far,
+                        fx, fy, cx, cy, n, offset, pc, res):
                 out_px[count, 0], out_px[count, 1] = res[0], res[1]
                 out_pc[count, :] = pc
                 out_kind[count] = 0
@@ -849,8 +887,8 @@ def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offse
             if k0 - llo + 1 < min_run or rhi - k1 < min_run:
                 continue  # a step needs surface on both sides (a chamfer into a drop-out has not)
             cut_short = k0 - llo + 1 < side_px or rhi - k1 < side_px
-            if _step(k0, k1, llo, rhi, cols, a, d, pts, vcol, vrow, vpeak, double, threshold,
-                     fx, fy, cx, cy, n, offset, e_a, e_d, pc, res) and not (
+            if _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, double,
+                     threshold, curl, fx, fy, cx, cy, n, offset, e_a, e_d, pc, res) and not (
                          cut_short and res[2] < SHORT_SIDE_STEP_FACTOR * threshold):
                 out_px[count, 0], out_px[count, 1] = res[0], res[1]
                 out_pc[count, :] = pc

@@ -242,6 +242,19 @@ def test_faint_stripe_fading_into_its_gap_has_no_dropout(geometry, stripe_dn, ex
     edges = edges_of(geometry, make(profile))
     assert len(edges) == expected
 
+def test_stripe_fading_on_a_surface_curving_away_is_no_edge(geometry):
+    """A surface that rounds off over its last 10 columns (its range growing with the square
+    of the distance, as over a lobe's crest) until the stripe is lost: the rows turn steadily
+    up to the end, which is no edge of the part; the straight end on the left is one."""
+    cols = np.arange(800, 1001)
+    d = NEAR_MM + 0.02 * np.clip(cols - 990, 0, None) ** 2  # the rows turn 0.1 px a column
+    rows = np.array([surface_at(geometry, [c], dd)[1][0] for c, dd in zip(cols, d)])
+    profile = blank_profile()
+    set_stripe(profile, cols, rows)
+    edges = edges_of(geometry, make(profile))
+    assert len(edges) == 1 and edges.kind[0] == EdgeKind.DROPOUT
+    assert edges.pixel[0, 0] == pytest.approx(799.5)
+
 @pytest.mark.parametrize("gap", [1, 2])
 def test_narrow_gaps_and_specks_are_no_edges(geometry, gap):
     cols = np.arange(DIRECT[0], DIRECT[1])
