@@ -24,7 +24,10 @@ Along the profile (columns in order):
   extrapolated from that side's rows, then triangulated. When the two sides of a gap lie at
   different ranges (by more than the step threshold), the far side is the boundary of a
   shadow or of an occlusion cast by the near side's edge, not an edge of the part: only the
-  near side gives an edge point (``EdgeParams.keep_far_side``).
+  near side gives an edge point (``EdgeParams.keep_far_side``). A side's level is taken at the
+  top of its falling flank, short of where its rows turn (a dimmer chamfer next to the gap
+  keeps its own level); a side under ``min_contrast`` times its gap's level ends in the noise
+  and gives no edge point.
 - **Steps.** Between neighbouring valid columns (bridged gaps included) a jump in range,
   after removing the local slope of the surface, larger than the step threshold
   (``max(min_step_mm, noise_factor * point-to-point scatter)``) marks a step; a run of up to
@@ -39,6 +42,11 @@ Along the profile (columns in order):
   double, is taken as half lit by each), and the point is that boundary on the near surface
   moved by ``h / 2`` along ``d``: walls are taken to run along the range axis (vertical walls
   in the reference cell), so in {T} the point projects onto the wall's top and bottom edges.
+  A step with a side cut short by another edge must be ``SHORT_SIDE_STEP_FACTOR`` times the
+  threshold high (a chamfer's slope at the rim of a larger step is no step of its own).
+- **Surfaces curving away.** A side whose rows turn steadily up to its end (:func:`_curls`)
+  ends where the stripe is lost on a surface rounding off, not at an edge: neither a drop-out
+  nor a step is placed there.
 
 Drop-outs at the boundary of an occlusion by a feature outside the sheet look, in one profile,
 like a rim: :func:`occluded_dropouts` finds them in the scan.
@@ -83,6 +91,8 @@ LEVEL_PX = 3
 #: 45-degree chamfers turned them by 0.4 to 0.6 px, noise and partly lit end columns by up
 #: to about 0.2 px.
 ROW_BEND_PX = 0.25
+#: ... and by more than this many times the turn's noise (sqrt(6) times the rows' scatter).
+BEND_NOISE_FACTOR = 3.0
 #: A step with a side cut short (fewer than side_px points before another edge or the end
 #: of the stripe) must be this many times the step threshold high: a chamfer at the rim of a
 #: larger step or of the outline reads as a step just over the threshold (the idler's 45
@@ -182,6 +192,8 @@ class EdgeParams:
             raise ValueError(f"`min_step_mm` must be > 0, got {self.min_step_mm}")
         if not (self.noise_factor >= 0 and math.isfinite(self.noise_factor)):
             raise ValueError(f"`noise_factor` must be >= 0, got {self.noise_factor}")
+        if not (self.min_contrast >= 0 and math.isfinite(self.min_contrast)):
+            raise ValueError(f"`min_contrast` must be >= 0, got {self.min_contrast}")
 
 
 @dataclass(frozen=True)
@@ -560,8 +572,8 @@ def _step_candidates(cols, vcol, d, seg, side_px, cand_threshold):
 
 @njit(nogil=True, cache=True)
 def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow, vpeak, peak,
-             valid, side_px, threshold, curl, min_contrast, keep_far, fx, fy, cx, cy, n,
-             offset, out_pc, out):
+             valid, dark, side_px, threshold, curl, bend, min_contrast, keep_far, fx, fy, cx,
+             cy, n, offset, out_pc, out):
     """The drop-out edge at one end of a stripe (sign -1: its first column, +1: its last),
     into out_pc (point in {C}) and out (u, v, size, level). False when there is none: the far
     side of a gap across a range step, a side too faint for its gap, or a ray that misses the
@@ -576,7 +588,7 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
         lo, hi = k_lo, min(k_lo + side_px, k_hi + 1)
     else:
         lo, hi = max(k_hi - side_px + 1, k_lo), k_hi + 1
-    if _curls(vrow, k_end, sign, lo, hi, curl):
+    if _curls(vrow, vcol, k_end, sign, lo, hi, curl):
         return False  # the stripe fades on a surface curving away: no edge there
     size = math.nan
     if k_other >= 0:
@@ -596,7 +608,7 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
     k_top = k_end
     bent = False
     while lo <= k_top - sign < hi and vpeak[k_top - sign] > (1.0 + FLANK_RISE) * vpeak[k_top]:
-        if _bends(vrow, k_top - sign, sign, lo, hi, k_end):
+        if _bends(vrow, vcol, k_top - sign, sign, lo, hi, k_end, bend):
             bent = True
             break
         k_top -= sign
@@ -613,7 +625,7 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
     gap = np.empty(side_px)
     m = 0
     c = c_end + sign
-    while c >= 0 and c < peak.shape[0] and m < side_px and not valid[c]:
+    while c >= 0 and c < peak.shape[0] and m < side_px and dark[c]:
         if peak[c] == peak[c]:
             gap[m] = peak[c]
             m += 1
@@ -641,7 +653,7 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
 
 
 @njit(nogil=True, cache=True)
-def _bends(vrow, k, sign, lo, hi, k_end):
+def _bends(vrow, vcol, k, sign, lo, hi, k_end, bend):
     """Whether the stripe's rows turn at point k (toward the gap: sign): another face begins
     there, not a blurred flank of the same one. A 45-degree chamfer at a level face's rim
     moved the rows 0.4 to 0.6 px per column against under 0.1 px on the face, and its stripe
@@ -650,20 +662,25 @@ def _bends(vrow, k, sign, lo, hi, k_end):
     to about 0.2 px: no turn is judged on it."""
     if not (lo <= k - sign < hi and lo <= k + sign < hi) or k + sign == k_end:
         return False
+    if abs(vcol[k + sign] - vcol[k - sign]) != 2.0:
+        return False  # across a bridged gap: no neighbouring columns to compare
     inner = vrow[k] - vrow[k - sign]
     outer = vrow[k + sign] - vrow[k]
-    return abs(outer - inner) > ROW_BEND_PX
+    return abs(outer - inner) > bend
 
 
 @njit(nogil=True, cache=True)
-def _curls(vrow, k_end, sign, lo, hi, curl):
+def _curls(vrow, vcol, k_end, sign, lo, hi, curl):
     """Whether a side's rows turn steadily over the 4 row steps before its end point k_end
-    (the side runs toward the gap or the wall along sign; points lo..hi-1): a surface that
+    (the side runs toward the gap or the wall along sign; its points are lo..hi-1, of which
+    the 6 up to k_end are needed: a shorter side is never judged curled): a surface that
     curves away until the stripe is lost on it, whose end is no edge of the part. The end
     point itself is left out: lit in part, its row is off by up to about 0.2 px."""
     far = k_end - 5 * sign
     if not (lo <= far < hi and lo <= k_end - sign < hi):
         return False
+    if abs(vcol[k_end - sign] - vcol[far]) != 4.0:
+        return False  # across a bridged gap: no neighbouring columns to compare
     t0 = vrow[k_end - sign] - vrow[k_end - 2 * sign]
     t3 = vrow[k_end - 4 * sign] - vrow[k_end - 5 * sign]
     total = t0 - t3
@@ -723,7 +740,7 @@ def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, doub
     """The step edge of the jumps k0..k1 (points k0..k1+1) with its sides llo..k0 and
     k1+1..rhi, in the stretch of stripe k_lo..k_hi, into out_pc (point in {C}) and out (u, v,
     height, level, direction). False when the step is below threshold, has no clean
-    half-height crossing, or its near side curves away (:func:`_curls`)."""
+    half-height crossing, or its near side curves away up to the run (:func:`_curls`)."""
     lxm, lym, lsl = _fit_line(a, d, llo, k0 + 1)
     rxm, rym, rsl = _fit_line(a, d, k1 + 1, rhi + 1)
     a_b = 0.5 * (a[k0] + a[k1 + 1])
@@ -758,7 +775,8 @@ def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, doub
             near, toward, nlo, nhi, flo, fhi = p, 1, llo, k0 + 1, k1 + 1, rhi + 1
         else:
             near, toward, nlo, nhi, flo, fhi = q, -1, k1 + 1, rhi + 1, llo, k0 + 1
-        if _curls(vrow, near, toward, k_lo, k_hi + 1, curl):
+        if (_curls(vrow, vcol, k0, 1, k_lo, k0 + 1, curl) if h > 0
+                else _curls(vrow, vcol, k1 + 1, -1, k1 + 1, k_hi + 1, curl)):
             return False  # the near side's stripe ends on a surface curving away, not at a rim
         u = _near_end(near, toward, nlo, nhi, cols, vpeak, double)
         cxm, cym, csl = _fit_line(vcol, vrow, nlo, nhi)
@@ -830,7 +848,10 @@ def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offse
     scatter = noise * math.sqrt(2.0) if noise == noise else 0.0  # point to point
     threshold = max(min_step, noise_factor * scatter)
     row_noise = _range_noise(cols, vrow, seg)  # the same estimate, on the rows (px)
-    curl = max(CURL_PX, CURL_NOISE_FACTOR * row_noise) if row_noise == row_noise else CURL_PX
+    curl, bend = CURL_PX, ROW_BEND_PX
+    if row_noise == row_noise:
+        curl = max(CURL_PX, CURL_NOISE_FACTOR * row_noise)
+        bend = max(ROW_BEND_PX, BEND_NOISE_FACTOR * math.sqrt(6.0) * row_noise)
     resid, cand = _step_candidates(cols, vcol, d, seg, side_px,
                                    max(noise_factor * scatter, min_step / max_ramp))
     res = np.empty(5)
@@ -855,8 +876,8 @@ def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offse
             if dark_cum[g_hi] - dark_cum[g_lo] < min_gap:
                 continue  # "drop-outs are evaluated by size"
             if _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
-                        vpeak, peak, valid, side_px, threshold, curl, min_contrast, keep_far,
-                        fx, fy, cx, cy, n, offset, pc, res):
+                        vpeak, peak, valid, dark, side_px, threshold, curl, bend, min_contrast,
+                        keep_far, fx, fy, cx, cy, n, offset, pc, res):
                 out_px[count, 0], out_px[count, 1] = res[0], res[1]
                 out_pc[count, :] = pc
                 out_kind[count] = 0
