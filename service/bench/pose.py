@@ -830,7 +830,7 @@ def _summary(result: dict) -> dict:
                            "unflagged_within_target": c["unflagged"]["within_target"],
                            "time_ms_median": c["time_ms"]["median"]}
                     for name, c in configs.items()},
-        "model": _recommend(configs),
+        "model": _recommend(configs, result["trials"]),
     }
     summary["edges"] = _edge_summary(result["scans"])
     # (b) every trial up to the target level, whichever way it was made.
@@ -950,21 +950,27 @@ def _success_known_axes(row: dict) -> bool:
                 and np.linalg.norm(error[3:][known[3:]]) < SUCCESS_DEG * 1e3)
 
 
-def _recommend(configs: dict) -> dict:
+def _recommend(configs: dict, trials: list[dict]) -> dict:
     """Mesh or predicted cloud, both with edges at the default size: the one with fewer
     confident wrong poses (the worst outcome), then more trials within the accuracy target;
-    on a tie, the predicted cloud only if clearly faster. The mesh stays unless the predicted
-    cloud is better."""
+    on a tie, the predicted cloud only if clearly faster on the same scans (the median of the
+    per-scan time ratios: the times of different parts differ tenfold, and a median over all
+    of them falls between the parts). The mesh stays unless the predicted cloud is better."""
     mesh, pred = configs.get("mesh+edges"), configs.get("predicted+edges")
     if not mesh or not pred:
         return {"keep": "mesh", "reason": "only the mesh was measured"}
+    times = {(t["config"], t["part"], t["scan"]): t["time_ms"] for t in trials
+             if not t["refused"]}
+    ratios = [times[("predicted+edges", p, i)] / times[("mesh+edges", p, i)]
+              for (c, p, i) in times if c == "mesh+edges" and ("predicted+edges", p, i) in times]
+    ratio = float(np.median(ratios)) if ratios else float("nan")
 
     def key(c):
         return (c["confident_wrong"], -(c["within_target"] or 0.0))
 
     if key(pred) < key(mesh):
         keep = "predicted"
-    elif key(pred) == key(mesh) and pred["time_ms"]["median"] < 0.8 * mesh["time_ms"]["median"]:
+    elif key(pred) == key(mesh) and ratio < 0.8:
         keep = "predicted"
     else:
         keep = "mesh"
@@ -976,9 +982,10 @@ def _recommend(configs: dict) -> dict:
                 f", {c['confident_wrong']} confident wrong, median "
                 f"{_fmt(c['time_ms']['median'])} ms")
 
-    return {"keep": keep, "reason": describe("mesh", mesh) + "; " + describe("predicted", pred)
-            + ". The predicted cloud also has to be swept again for every cell setup and "
-              "nominal grasp."}
+    return {"keep": keep, "time_ratio_predicted_to_mesh": round(ratio, 3),
+            "reason": describe("mesh", mesh) + "; " + describe("predicted", pred)
+            + f"; predicted/mesh time on the same scans {ratio:.2f} (median). The predicted "
+              "cloud also has to be swept again for every cell setup and nominal grasp."}
 
 
 def _fmt(v) -> str:

@@ -124,3 +124,30 @@ def test_the_edge_cloud_is_scored_against_the_cad_edges(quick_bench):
     assert edges["rms_inliers_um_worst"]["met"] == (worst <= bench.TARGET_EDGE_RMS_UM)
     assert edges["outlier_fraction_worst"]["met"] == (
         max(e["outlier_fraction"] for e in scored) < bench.TARGET_EDGE_OUTLIERS)
+
+
+def test_model_choice_compares_times_on_the_same_scans():
+    """On a tie in accuracy, the predicted cloud is kept when it is faster scan by scan (half
+    the time here), not when it is 10 % slower on every scan; two parts ten times apart in
+    time do not enter the comparison."""
+    summary = {"confident_wrong": 0, "within_target": 0.9,
+               "translation_um": {"p95": 5.0}, "rotation_mdeg": {"p95": 9.0},
+               "time_ms": {"median": 0.0}}
+    configs = {"mesh+edges": dict(summary), "predicted+edges": dict(summary)}
+
+    def trials(pred_factor):
+        rows = []
+        for part, n, ms in (("fast", 5, 60.0), ("slow", 4, 900.0)):
+            for i in range(n):
+                rows.append({"config": "mesh+edges", "part": part, "scan": i,
+                             "time_ms": ms, "refused": False})
+                rows.append({"config": "predicted+edges", "part": part, "scan": i,
+                             "time_ms": ms * pred_factor, "refused": False})
+        return rows
+
+    slower = bench._recommend(configs, trials(1.1))
+    assert slower["keep"] == "mesh"
+    assert slower["time_ratio_predicted_to_mesh"] == pytest.approx(1.1)
+    faster = bench._recommend(configs, trials(0.5))
+    assert faster["keep"] == "predicted"
+    assert faster["time_ratio_predicted_to_mesh"] == pytest.approx(0.5)
