@@ -108,6 +108,11 @@ SHORT_SIDE_STEP_FACTOR = 2.0
 CURL_PX = 0.25
 CURL_SHARE = 0.7
 CURL_NOISE_FACTOR = 6.0
+#: The far side of a gap (a shadow's or an occlusion's boundary) must lie beyond the near one
+#: by the step threshold plus this many standard errors of the two sides' lines extrapolated
+#: to the gap's middle: across a 100-column gap at 0.1 px of row noise, the bare threshold
+#: took a quarter of the holes' rims for shadows.
+FAR_SIDE_SIGMAS = 3.0
 #: MAD of a normal sample times this is its standard deviation.
 MAD_TO_SIGMA = 1.4826
 #: The sheet must not be within about 0.06 degrees of perpendicular to the image columns (the
@@ -428,6 +433,21 @@ def _fit_line(x, y, lo, hi):
 
 
 @njit(nogil=True, cache=True)
+def _lever(x, lo, hi, at):
+    """Variance of a line fitted to points lo..hi-1, evaluated at x = at, per unit variance of
+    one point: 1/n + (at - mean)^2 / Sxx."""
+    m = hi - lo
+    xm = 0.0
+    for i in range(lo, hi):
+        xm += x[i]
+    xm /= m
+    sxx = 0.0
+    for i in range(lo, hi):
+        sxx += (x[i] - xm) ** 2
+    return 1.0 / m + ((at - xm) ** 2 / sxx if sxx > 0.0 else 0.0)
+
+
+@njit(nogil=True, cache=True)
 def _median_small(buf, m):
     """Median of buf[:m] (m >= 1), sorting it in place: insertion sort for a dozen values."""
     for i in range(1, m):
@@ -572,8 +592,8 @@ def _step_candidates(cols, vcol, d, seg, side_px, cand_threshold):
 
 @njit(nogil=True, cache=True)
 def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow, vpeak, peak,
-             valid, dark, side_px, threshold, curl, bend, min_contrast, keep_far, fx, fy, cx,
-             cy, n, offset, out_pc, out):
+             valid, dark, side_px, threshold, noise, curl, bend, min_contrast, keep_far, fx,
+             fy, cx, cy, n, offset, out_pc, out):
     """The drop-out edge at one end of a stripe (sign -1: its first column, +1: its last),
     into out_pc (point in {C}) and out (u, v, size, level). False when there is none: the far
     side of a gap across a range step, a side too faint for its gap, or a ray that misses the
@@ -600,7 +620,9 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
         oxm, oym, osl = _fit_line(a, d, o_lo, o_hi)
         a_mid = 0.5 * (a[k_other] + a[k_end])
         rise = (ym + sl * (a_mid - xm)) - (oym + osl * (a_mid - oxm))
-        if rise > threshold and not keep_far:
+        # each side's line extrapolated across the gap: its error grows with the lever arm
+        spread = noise * math.sqrt(_lever(a, lo, hi, a_mid) + _lever(a, o_lo, o_hi, a_mid))
+        if rise > threshold + FAR_SIDE_SIGMAS * spread and not keep_far:
             return False  # this side is farther: the boundary of a shadow or an occlusion
     # the side's level: at the top of the edge's falling flank (a blurred edge falls over a
     # few columns), found walking in while the stripe keeps brightening; a dimmer face next to
@@ -847,6 +869,7 @@ def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offse
     noise = _range_noise(cols, d, seg)
     scatter = noise * math.sqrt(2.0) if noise == noise else 0.0  # point to point
     threshold = max(min_step, noise_factor * scatter)
+    point_noise = noise if noise == noise else 0.0
     row_noise = _range_noise(cols, vrow, seg)  # the same estimate, on the rows (px)
     curl, bend = CURL_PX, ROW_BEND_PX
     if row_noise == row_noise:
@@ -876,8 +899,8 @@ def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offse
             if dark_cum[g_hi] - dark_cum[g_lo] < min_gap:
                 continue  # "drop-outs are evaluated by size"
             if _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
-                        vpeak, peak, valid, dark, side_px, threshold, curl, bend, min_contrast,
-                        keep_far, fx, fy, cx, cy, n, offset, pc, res):
+                        vpeak, peak, valid, dark, side_px, threshold, point_noise, curl, bend,
+                        min_contrast, keep_far, fx, fy, cx, cy, n, offset, pc, res):
                 out_px[count, 0], out_px[count, 1] = res[0], res[1]
                 out_pc[count, :] = pc
                 out_kind[count] = 0

@@ -173,6 +173,18 @@ def test_blurred_dropout_with_row_noise(geometry, rng, row_noise_px):
         found.append(inner)
     assert_allclose(found, [[left_end, right_end]] * len(found), atol=SUBPIXEL_TOL_PX)
 
+def test_wide_hole_with_row_noise_keeps_both_rims(geometry, rng):
+    """A 100-column hole in one surface, rows noisy by 0.1 px: each side's line, extrapolated
+    50 columns to the hole's middle, misses the other by its lever arm's error; only a far
+    side beyond that error is a shadow's boundary, so both rims are edges every time."""
+    cols = np.r_[np.arange(600, 800), np.arange(900, 1100)]
+    _, rows = surface_at(geometry, cols, NEAR_MM)
+    profile = blank_profile()
+    set_stripe(profile, cols, rows)
+    for _ in range(40):
+        edges = edges_of(geometry, make(profile, rng, 0.1))
+        assert_allclose(np.sort(edges.pixel[:, 0]), [599.5, 799.5, 899.5, 1099.5], atol=0.2)
+
 
 def test_dropout_of_a_point_sampled_edge_lies_half_way_between_columns(geometry):
     """A stripe that stops on the boundary between two columns at full intensity: half the
