@@ -22,7 +22,8 @@ Along the profile (columns in order):
   point where the stripe's peak intensity falls to half way between its level on that side
   and the level in the gap ("half the relative step", interpolated between columns), its row
   extrapolated from that side's rows, then triangulated. When the two sides of a gap lie at
-  different ranges (by more than the step threshold), the far side is the boundary of a
+  different ranges (by more than the step threshold and ``FAR_SIDE_SIGMAS`` standard errors
+  of their lines extrapolated to the gap's middle), the far side is the boundary of a
   shadow or of an occlusion cast by the near side's edge, not an edge of the part: only the
   near side gives an edge point (``EdgeParams.keep_far_side``). A side's level is taken at the
   top of its falling flank, short of where its rows turn (a dimmer chamfer next to the gap
