@@ -414,7 +414,9 @@ def _mask(mask, w: int, name: str) -> np.ndarray:
 
 @njit(nogil=True, cache=True)
 def _fit_line(x, y, lo, hi):
-    """Least-squares line through points lo..hi-1, centred: (x_mean, y_mean, slope)."""
+    """Least-squares line through points lo..hi-1, centred: (x_mean, y_mean, slope, Sxx), Sxx
+    the sum of squared deviations of x (a prediction at x0 has variance per unit variance of
+    one point 1/n + (x0 - x_mean)^2 / Sxx)."""
     m = hi - lo
     xm = 0.0
     ym = 0.0
@@ -430,22 +432,7 @@ def _fit_line(x, y, lo, hi):
         sxx += dx * dx
         sxy += dx * (y[i] - ym)
     slope = sxy / sxx if sxx > 0.0 else 0.0
-    return xm, ym, slope
-
-
-@njit(nogil=True, cache=True)
-def _lever(x, lo, hi, at):
-    """Variance of a line fitted to points lo..hi-1, evaluated at x = at, per unit variance of
-    one point: 1/n + (at - mean)^2 / Sxx."""
-    m = hi - lo
-    xm = 0.0
-    for i in range(lo, hi):
-        xm += x[i]
-    xm /= m
-    sxx = 0.0
-    for i in range(lo, hi):
-        sxx += (x[i] - xm) ** 2
-    return 1.0 / m + ((at - xm) ** 2 / sxx if sxx > 0.0 else 0.0)
+    return xm, ym, slope, sxx
 
 
 @njit(nogil=True, cache=True)
@@ -617,12 +604,14 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
                          + (pts[k_other, 1] - pts[k_end, 1]) ** 2
                          + (pts[k_other, 2] - pts[k_end, 2]) ** 2)
         # "discontinuities are evaluated by range": both sides at the middle of the gap
-        xm, ym, sl = _fit_line(a, d, lo, hi)
-        oxm, oym, osl = _fit_line(a, d, o_lo, o_hi)
+        xm, ym, sl, sxx = _fit_line(a, d, lo, hi)
+        oxm, oym, osl, osxx = _fit_line(a, d, o_lo, o_hi)
         a_mid = 0.5 * (a[k_other] + a[k_end])
         rise = (ym + sl * (a_mid - xm)) - (oym + osl * (a_mid - oxm))
         # each side's line extrapolated across the gap: its error grows with the lever arm
-        spread = noise * math.sqrt(_lever(a, lo, hi, a_mid) + _lever(a, o_lo, o_hi, a_mid))
+        lever = (1.0 / (hi - lo) + ((a_mid - xm) ** 2 / sxx if sxx > 0.0 else 0.0)
+                 + 1.0 / (o_hi - o_lo) + ((a_mid - oxm) ** 2 / osxx if osxx > 0.0 else 0.0))
+        spread = noise * math.sqrt(lever)
         if rise > threshold + FAR_SIDE_SIGMAS * spread and not keep_far:
             return False  # this side is farther: the boundary of a shadow or an occlusion
     # the side's level: at the top of the edge's falling flank (a blurred edge falls over a
@@ -667,7 +656,7 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
     p_out = _peak_at(peak, c_in + sign)
     f = (p_in - half) / (p_in - p_out) if p_in > p_out else 0.5
     u = c_in + sign * min(max(f, 0.0), 1.0)
-    cxm, cym, csl = _fit_line(vcol, vrow, lo, hi)  # the side's rows, extrapolated
+    cxm, cym, csl, _ = _fit_line(vcol, vrow, lo, hi)  # the side's rows, extrapolated
     v = cym + csl * (u - cxm)
     if not _triangulate(u, v, fx, fy, cx, cy, n, offset, out_pc):
         return False
@@ -764,8 +753,8 @@ def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, doub
     k1+1..rhi, in the stretch of stripe k_lo..k_hi, into out_pc (point in {C}) and out (u, v,
     height, level, direction). False when the step is below threshold, has no clean
     half-height crossing, or its near side curves away up to the run (:func:`_curls`)."""
-    lxm, lym, lsl = _fit_line(a, d, llo, k0 + 1)
-    rxm, rym, rsl = _fit_line(a, d, k1 + 1, rhi + 1)
+    lxm, lym, lsl, _ = _fit_line(a, d, llo, k0 + 1)
+    rxm, rym, rsl, _ = _fit_line(a, d, k1 + 1, rhi + 1)
     a_b = 0.5 * (a[k0] + a[k1 + 1])
     h = (rym + rsl * (a_b - rxm)) - (lym + lsl * (a_b - lxm))  # the relative step height
     if abs(h) < threshold:
@@ -802,7 +791,7 @@ def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, doub
                 else _curls(vrow, vcol, k1 + 1, -1, k1 + 1, k_hi + 1, curl)):
             return False  # the near side's stripe ends on a surface curving away, not at a rim
         u = _near_end(near, toward, nlo, nhi, cols, vpeak, double)
-        cxm, cym, csl = _fit_line(vcol, vrow, nlo, nhi)
+        cxm, cym, csl, _ = _fit_line(vcol, vrow, nlo, nhi)
         v = cym + csl * (u - cxm) if nlo <= near < nhi else vrow[near] + csl * (u - vcol[near])
         if not _triangulate(u, v, fx, fy, cx, cy, n, offset, out_pc):
             return False
@@ -812,7 +801,7 @@ def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, doub
         for i in range(3):
             out_pc[i] += (mid - d_n) * e_d[i]  # up the wall to half the step
         # in the image: half way between the two sides' rows at the wall's column
-        fxm, fym, fsl = _fit_line(vcol, vrow, flo, fhi)
+        fxm, fym, fsl, _ = _fit_line(vcol, vrow, flo, fhi)
         v = 0.5 * (v + fym + fsl * (u - fxm))
     out[0], out[1], out[2] = u, v, abs(h)
     out[3] = min(_median_of(vpeak, llo, k0 + 1), _median_of(vpeak, k1 + 1, rhi + 1))
