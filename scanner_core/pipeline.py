@@ -613,10 +613,7 @@ def _stitch_edges(scan: Scan, placed: list[PlacedProfile], calibration: Calibrat
     # The sheet's normal in {T} per frame: R^T n_B.
     sheet_b = calibration.light_plane_b.normal
     sheets = np.repeat(np.array([p.rotation_b.T @ sheet_b for p in placed]), counts, axis=0)
-    track = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
-    spacing = (float(np.median(np.linalg.norm(np.diff(track, axis=0), axis=1)))
-               if len(track) > 1 else float("nan"))
-    grazed = grazing_edges(points, sheets, scan.cloud, scan.frame_ids, spacing,
+    grazed = grazing_edges(points, sheets, scan.cloud, scan.frame_ids, scan.profile_spacing_mm,
                            frame_ids=frames) & keep
     keep &= ~grazed
     scan.edges_grazing = int(grazed.sum())

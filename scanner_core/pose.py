@@ -534,12 +534,10 @@ def _coverage_flags(scan, pose, surface_model: SurfaceModel) -> list[str]:
     """Flags a pose cannot raise from its fit alone: profiles too far apart, and a pass that
     saw only part of the part (the trigger started late, or the pass ended early)."""
     flags = []
-    track = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
-    if len(track) > 1:
-        spacing = float(np.median(np.linalg.norm(np.diff(track, axis=0), axis=1)))
-        if spacing > MAX_PROFILE_SPACING_MM:
-            flags.append(f"sparse: {spacing:.1f} mm between profiles (at most "
-                         f"{MAX_PROFILE_SPACING_MM:g})")
+    spacing = scan.profile_spacing_mm
+    if spacing > MAX_PROFILE_SPACING_MM:  # False for NaN: fewer than two profiles
+        flags.append(f"sparse: {spacing:.1f} mm between profiles (at most "
+                     f"{MAX_PROFILE_SPACING_MM:g})")
     normals_t = surface_model.normals @ pose[:3, :3].T
     facing = normals_t[:, 2] > 0.3  # the sensor looks up at the part along -z_T
     if facing.any():

@@ -210,3 +210,12 @@ class Scan:
     edges_grazing: int = 0
     points_partly_lit: int = 0
     normals: np.ndarray | None = None
+
+    @property
+    def profile_spacing_mm(self) -> float:
+        """Median distance between consecutive profiles along the pass (the TCP's steps), mm;
+        NaN with fewer than two profiles."""
+        track = np.asarray(self.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
+        if len(track) < 2:
+            return float("nan")
+        return float(np.median(np.linalg.norm(np.diff(track, axis=0), axis=1)))

@@ -125,7 +125,7 @@ EDGE_PAIRS_PER_BLOCK = 1_000_000
 EDGE_DEGENERATE_MM = 1e-9
 #: ``EdgePoints.kind`` codes (``scanner_core.edges.EdgeKind``) and their report names.
 EDGE_KIND_NAMES = {0: "dropout", 1: "step"}
-STEP_KIND = 1
+STEP_KIND = {name: code for code, name in EDGE_KIND_NAMES.items()}["step"]
 #: A face is a wall (a step's riser) when its normal, in {T}, is within this of level.
 WALL_MAX_NZ = 0.5
 #: A step's half-height point lies at most this far up or down its wall from the edge, mm.

@@ -963,14 +963,14 @@ def _recommend(configs: dict, trials: list[dict]) -> dict:
              if not t["refused"]}
     ratios = [times[("predicted+edges", p, i)] / times[("mesh+edges", p, i)]
               for (c, p, i) in times if c == "mesh+edges" and ("predicted+edges", p, i) in times]
-    ratio = float(np.median(ratios)) if ratios else float("nan")
+    ratio = float(np.median(ratios)) if ratios else None  # None: no scan registered by both
 
     def key(c):
         return (c["confident_wrong"], -(c["within_target"] or 0.0))
 
     if key(pred) < key(mesh):
         keep = "predicted"
-    elif key(pred) == key(mesh) and ratio < 0.8:
+    elif key(pred) == key(mesh) and ratio is not None and ratio < 0.8:
         keep = "predicted"
     else:
         keep = "mesh"
@@ -982,9 +982,11 @@ def _recommend(configs: dict, trials: list[dict]) -> dict:
                 f", {c['confident_wrong']} confident wrong, median "
                 f"{_fmt(c['time_ms']['median'])} ms")
 
-    return {"keep": keep, "time_ratio_predicted_to_mesh": round(ratio, 3),
+    return {"keep": keep,
+            "time_ratio_predicted_to_mesh": None if ratio is None else round(ratio, 3),
             "reason": describe("mesh", mesh) + "; " + describe("predicted", pred)
-            + f"; predicted/mesh time on the same scans {ratio:.2f} (median). The predicted "
+            + "; predicted/mesh time on the same scans "
+            + ("n/a" if ratio is None else f"{ratio:.2f}") + " (median). The predicted "
               "cloud also has to be swept again for every cell setup and nominal grasp."}
 
 
