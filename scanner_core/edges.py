@@ -45,9 +45,9 @@ Along the profile (columns in order):
   in the reference cell), so in {T} the point projects onto the wall's top and bottom edges.
   A step with a side cut short by another edge must be ``SHORT_SIDE_STEP_FACTOR`` times the
   threshold high (a chamfer's slope at the rim of a larger step is no step of its own).
-- **Surfaces curving away.** A side whose rows turn steadily up to its end (:func:`_curls`)
-  ends where the stripe is lost on a surface rounding off, not at an edge: neither a drop-out
-  nor a step is placed there.
+- **Surfaces curving away.** A side whose rows turn steadily up to its end, ever faster
+  (:func:`_curls`), ends where the stripe is lost on a surface rounding off, not at an edge:
+  neither a drop-out nor a step is placed there.
 
 Drop-outs at the boundary of an occlusion by a feature outside the sheet look, in one profile,
 like a rim: :func:`occluded_dropouts` finds them in the scan.
@@ -103,12 +103,18 @@ SHORT_SIDE_STEP_FACTOR = 2.0
 #: A side whose rows turn steadily over its last points before the end (by at least this
 #: much in all, px, no one turn more than CURL_SHARE of it) ends on a surface curving away
 #: from the camera or the sheet, not at an edge: cycloidal's rounded lobes turned the rows by
-#: 0.3 to 0.45 px over 3 turns and ended 0.1 to 0.4 mm short of every CAD edge. A chamfer
-#: turns them at one kink. Noisier profiles need CURL_NOISE_FACTOR times their rows' scatter
-#: (3 sigma of the turn over 3 steps: noise alone reaches it in about 1 of 400).
-CURL_PX = 0.25
+#: 0.2 to 0.45 px over 3 turns and ended 0.1 to 0.45 mm short of every CAD edge. A chamfer
+#: turns them at one kink. CURL_MAX_TURNS turns are judged; a side too short for them (a
+#: stretch of stripe 4 or 5 columns long across a lobe's crest) over the turns it has, at
+#: least CURL_MIN_TURNS. Noisier profiles need CURL_NOISE_FACTOR times their rows' scatter
+#: (2.5 sigma of the turn over 3 steps): on a level stripe with 0.1 px of row noise the test
+#: took 10 of 8000 ends for curls (4 at 3 sigma, which kept two lobe ends 0.37 and 0.38 mm
+#: off in the bench's cycloidal scans).
+CURL_PX = 0.2
 CURL_SHARE = 0.7
-CURL_NOISE_FACTOR = 6.0
+CURL_NOISE_FACTOR = 5.0
+CURL_MAX_TURNS = 3
+CURL_MIN_TURNS = 2
 #: The far side of a gap (a shadow's or an occlusion's boundary) must lie beyond the near one
 #: by the step threshold plus this many standard errors of the two sides' lines extrapolated
 #: to the gap's middle: across a 100-column gap at 0.1 px of row noise, the bare threshold
@@ -683,22 +689,32 @@ def _bends(vrow, vcol, k, sign, lo, hi, k_end, bend):
 
 @njit(nogil=True, cache=True)
 def _curls(vrow, vcol, k_end, sign, lo, hi, curl):
-    """Whether a side's rows turn steadily over the 4 row steps before its end point k_end
-    (the side runs toward the gap or the wall along sign; its points are lo..hi-1, of which
-    the 6 up to k_end are needed: a shorter side is never judged curled): a surface that
-    curves away until the stripe is lost on it, whose end is no edge of the part. The end
-    point itself is left out: lit in part, its row is off by up to about 0.2 px."""
-    far = k_end - 5 * sign
-    if not (lo <= far < hi and lo <= k_end - sign < hi):
+    """Whether a side's rows turn steadily over the row steps before its end point k_end
+    (the side runs toward the gap or the wall along sign; its points are lo..hi-1), ever
+    faster toward the end: a surface that curves away until the stripe is lost on it, whose
+    end is no edge of the part. Rows levelling out toward the end (a crest) are not judged
+    curled. Up to CURL_MAX_TURNS turns are judged (the 6 points up to k_end); a shorter side
+    over the turns it has, at least CURL_MIN_TURNS (a short stretch of stripe across a lobe's
+    crest ends, on its steep side, where the stripe is lost). The end point itself is left
+    out: lit in part, its row is off by up to about 0.2 px."""
+    if sign > 0:
+        before = k_end - lo
+    else:
+        before = hi - 1 - k_end
+    turns = min(CURL_MAX_TURNS, before - 2)
+    if turns < CURL_MIN_TURNS:
         return False
-    if abs(vcol[k_end - sign] - vcol[far]) != 4.0:
+    far = k_end - (turns + 2) * sign
+    if abs(vcol[k_end - sign] - vcol[far]) != turns + 1:
         return False  # across a bridged gap: no neighbouring columns to compare
     t0 = vrow[k_end - sign] - vrow[k_end - 2 * sign]
-    t3 = vrow[k_end - 4 * sign] - vrow[k_end - 5 * sign]
-    total = t0 - t3
+    t_far = vrow[far + sign] - vrow[far]
+    total = t0 - t_far
     if abs(total) < curl:
         return False
-    for j in range(1, 4):
+    if t0 * total <= 0.0:
+        return False  # the rows level out toward the end: a crest, not a surface turning away
+    for j in range(1, turns + 1):
         turn = ((vrow[k_end - j * sign] - vrow[k_end - (j + 1) * sign])
                 - (vrow[k_end - (j + 1) * sign] - vrow[k_end - (j + 2) * sign]))
         if turn * total <= 0.0 or abs(turn) > CURL_SHARE * abs(total):

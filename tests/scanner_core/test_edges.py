@@ -176,14 +176,20 @@ def test_blurred_dropout_with_row_noise(geometry, rng, row_noise_px):
 def test_wide_hole_with_row_noise_keeps_both_rims(geometry, rng):
     """A 100-column hole in one surface, rows noisy by 0.1 px: each side's line, extrapolated
     50 columns to the hole's middle, misses the other by its lever arm's error; only a far
-    side beyond that error is a shadow's boundary, so both rims are edges every time."""
+    side beyond that error is a shadow's boundary, so both rims are edges every time. (Noise
+    this heavy passes for a curl at about 1 end in 800: those ends are lost, never moved.)"""
     cols = np.r_[np.arange(600, 800), np.arange(900, 1100)]
     _, rows = surface_at(geometry, cols, NEAR_MM)
     profile = blank_profile()
     set_stripe(profile, cols, rows)
+    rims = []
     for _ in range(40):
         edges = edges_of(geometry, make(profile, rng, 0.1))
-        assert_allclose(np.sort(edges.pixel[:, 0]), [599.5, 799.5, 899.5, 1099.5], atol=0.2)
+        found = edges.pixel[:, 0]
+        assert np.all(np.min(np.abs(found[:, None] - [599.5, 799.5, 899.5, 1099.5]), axis=1)
+                      < 0.2)
+        rims += [np.any(np.abs(found - rim) < 0.2) for rim in (799.5, 899.5)]
+    assert np.all(rims)
 
 
 def test_dropout_of_a_point_sampled_edge_lies_half_way_between_columns(geometry):
@@ -292,6 +298,23 @@ def test_stripe_fading_on_a_surface_curving_away_is_no_edge(geometry):
     edges = edges_of(geometry, make(profile))
     assert len(edges) == 1 and edges.kind[0] == EdgeKind.DROPOUT
     assert edges.pixel[0, 0] == pytest.approx(799.5)
+
+
+@pytest.mark.parametrize("turn_mm, expected", [(0.0, [899.5, 904.5]), (0.03, [904.5])])
+def test_short_stretch_across_a_crest_ends_on_its_steep_side_in_no_edge(geometry, turn_mm,
+                                                                         expected):
+    """Five columns of stripe across a rounded crest (cycloidal's lobes), its range growing
+    with the square of the distance from the crest at the right end: too short a side for
+    three turns, its steep end is judged over two, and is no edge; the crest's end is one.
+    Level, both ends are edges."""
+    cols = np.arange(900, 905)
+    d = NEAR_MM + turn_mm * (904 - cols) ** 2
+    rows = np.array([surface_at(geometry, [c], dd)[1][0] for c, dd in zip(cols, d)])
+    profile = blank_profile()
+    set_stripe(profile, cols, rows)
+    edges = edges_of(geometry, make(profile))
+    assert np.all(edges.kind == EdgeKind.DROPOUT)
+    assert_allclose(np.sort(edges.pixel[:, 0]), expected, atol=1e-6)
 
 
 def test_masked_columns_make_no_dropout(geometry):
