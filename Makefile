@@ -30,6 +30,7 @@ bench: $(BIN)/flyscan
 	$(BIN)/flyscan bench simulate --out $(OUT)/bench/simulate
 	$(BIN)/flyscan bench service --out $(OUT)/bench/service
 	$(BIN)/flyscan bench pose --out $(OUT)/bench/pose
+	$(BIN)/flyscan bench coarse --out $(OUT)/bench/coarse
 	$(BIN)/flyscan bench hardware --out $(OUT)/bench/hardware
 	$(BIN)/flyscan bench surfaces --out $(OUT)/bench/surfaces
 
