@@ -45,9 +45,9 @@ Along the profile (columns in order):
   in the reference cell), so in {T} the point projects onto the wall's top and bottom edges.
   A step with a side cut short by another edge must be ``SHORT_SIDE_STEP_FACTOR`` times the
   threshold high (a chamfer's slope at the rim of a larger step is no step of its own).
-- **Surfaces curving away.** A side whose rows turn steadily up to its end, ever faster
-  (:func:`_curls`), ends where the stripe is lost on a surface rounding off, not at an edge:
-  neither a drop-out nor a step is placed there.
+- **Surfaces curving away.** A side whose rows turn steadily up to its end, past their
+  crest (:func:`_curls`), ends where the stripe is lost on a surface rounding off, not at an
+  edge: neither a drop-out nor a step is placed there.
 
 Drop-outs at the boundary of an occlusion by a feature outside the sheet look, in one profile,
 like a rim: :func:`occluded_dropouts` finds them in the scan.
@@ -690,13 +690,14 @@ def _bends(vrow, vcol, k, sign, lo, hi, k_end, bend):
 @njit(nogil=True, cache=True)
 def _curls(vrow, vcol, k_end, sign, lo, hi, curl):
     """Whether a side's rows turn steadily over the row steps before its end point k_end
-    (the side runs toward the gap or the wall along sign; its points are lo..hi-1), ever
-    faster toward the end: a surface that curves away until the stripe is lost on it, whose
-    end is no edge of the part. Rows levelling out toward the end (a crest) are not judged
-    curled. Up to CURL_MAX_TURNS turns are judged (the 6 points up to k_end); a shorter side
-    over the turns it has, at least CURL_MIN_TURNS (a short stretch of stripe across a lobe's
-    crest ends, on its steep side, where the stripe is lost). The end point itself is left
-    out: lit in part, its row is off by up to about 0.2 px."""
+    (the side runs toward the gap or the wall along sign; lo..hi-1 are its points, or for a
+    step its whole stretch of stripe), and their last step runs the way they turn: a surface
+    past its crest, curving away until the stripe is lost on it, whose end is no edge of the
+    part. Rows still rising into a crest at the end are not judged curled (the crest's end of
+    a short stretch is an edge); a stretch with its crest in the middle has no edge at
+    either end (a cylinder seen across its top). Up to CURL_MAX_TURNS turns are judged (the
+    6 points up to k_end); a shorter side over the turns it has, at least CURL_MIN_TURNS. The
+    end point itself is left out: lit in part, its row is off by up to about 0.2 px."""
     if sign > 0:
         before = k_end - lo
     else:

@@ -9,14 +9,19 @@ For each reference part (quick: the procedural block), PPF is trained once on th
 10 degrees (`bench pose`'s set (a), same seeds), each from a start displaced by the basin's
 target level (10 mm and 20 degrees, random directions, as `bench pose` (b)):
 
-- **flyscan**: `scan_pose` from the displaced start, its coarse stage as it is;
+- **flyscan**: its registration (`bench pose`'s default: mesh and edges) from the displaced
+  start, its coarse stage as it is;
 - **PPF + flyscan**: PPF's best pose on the scan's cloud with normals (PPF is global: the start
-  plays no part), then `scan_pose` from it;
-- **PPF top-k + flyscan**: `scan_pose` from each of PPF's ``TOP_K`` best poses, the fit that
-  matches most points kept.
+  plays no part), then flyscan's registration from it, coarse search included when the fit
+  from PPF's pose looks poor (``coarse`` says when it ran; ``ppf_*`` is PPF's own error);
+- **PPF top-k + flyscan**: the registration from each of PPF's ``TOP_K`` best poses, the one
+  it trusts most kept (unflagged, then most points matched, then the tightest fit).
 
-A trial succeeds as in `bench pose`: within 0.1 mm and 0.1 degree of the truth. Times are per
-scan (PPF's match plus the registrations); the training is reported apart (once per part).
+A trial succeeds as in `bench pose`: within 0.1 mm and 0.1 degree of the truth; a failure
+without a flag is confidently wrong. Times are per scan: the registrations with the normals
+they use, and for PPF the normals of the whole cloud and its match; PPF's training is reported
+apart (once per part). The method kept has the fewest confidently wrong poses, then the most
+successes, then the least time.
 ``run(out_dir)`` writes ``coarse.json`` and ``coarse.png``.
 """
 from __future__ import annotations
@@ -78,38 +83,53 @@ def ppf_poses(detector, points, normals, k: int = TOP_K) -> tuple[list[np.ndarra
 
 
 def _error(matrix, truth) -> tuple[float, float]:
+    """PPF's own pose against the truth: um, mdeg."""
     e = np.asarray(matrix) @ np.linalg.inv(truth)
     return (float(np.linalg.norm(e[:3, 3]) * 1e3),
             float(np.degrees(Rotation.from_matrix(e[:3, :3]).magnitude()) * 1e3))
 
 
-def _register(part, scan, start):
-    return scan_pose(scan, part.surface_model, start, edge_model=part.edge_model)
+def _registration(part, scan, start):
+    """`bench pose`'s default registration from `start`, and its time with the normals of the
+    points it uses (ms)."""
+    result = bench_pose._register(part, scan, start, bench_pose.DEFAULT_CONFIG, None)
+    return result, result.time_ms + result.normals_ms
 
 
-def _row(method, result, truth, time_ms, extra=None) -> dict:
-    t_um, r_mdeg = _error(result.matrix, truth)
-    return {"method": method, "translation_um": t_um, "rotation_mdeg": r_mdeg,
-            "success": bool(t_um < bench_pose.SUCCESS_MM * 1e3
-                            and r_mdeg < bench_pose.SUCCESS_DEG * 1e3),
-            "flagged": bool(result.flags), "time_ms": time_ms, **(extra or {})}
+def _row(method, result, truth, register_ms, extra=None) -> dict:
+    row = {"method": method, **bench_pose._score(result, truth), "register_ms": register_ms,
+           **(extra or {})}
+    row["time_ms"] = register_ms + row.get("normals_ms", 0.0) + row.get("match_ms", 0.0)
+    row["confident_wrong"] = not row["success"] and not row["flags"]
+    return row
 
 
-def _trials(part, scan, truth, start, detector) -> list[dict]:
-    ours = _register(part, scan, start)
-    rows = [_row(METHODS[0], ours, truth, ours.time_ms, {"coarse": bool(ours.coarse)})]
+def _trials(part, scan, truth, start, detector, normals_ms) -> list[dict]:
+    """One row per method for one scan and start. PPF's rows count the normals of the whole
+    cloud (`normals_ms`, which it needs and flyscan does not), its match and the
+    registrations; flyscan's registration, its coarse search included, runs from PPF's
+    poses as from any start (``coarse`` says whether it ran)."""
+    try:
+        ours, ours_ms = _registration(part, scan, start)
+    except ValueError as exc:  # too few points: every method refuses alike
+        return [{"method": m, "success": False, "confident_wrong": False, "time_ms": None,
+                 "refused": str(exc)} for m in METHODS]
+    rows = [_row(METHODS[0], ours, truth, ours_ms)]
     poses, match_ms = ppf_poses(detector, scan.cloud, scan_normals(scan))
     if not poses:
-        return rows + [{"method": m, "success": False, "time_ms": match_ms, "refused":
-                        "PPF found no pose"} for m in METHODS[1:]]
-    raw_um, raw_mdeg = _error(poses[0], truth)
-    fits = [_register(part, scan, p) for p in poses]
-    rows.append(_row(METHODS[1], fits[0], truth, match_ms + fits[0].time_ms,
-                     {"match_ms": match_ms, "ppf_translation_um": raw_um,
-                      "ppf_rotation_mdeg": raw_mdeg}))
-    best = max(fits, key=lambda f: (f.inlier_fraction, -f.rms_mm))
-    rows.append(_row(METHODS[2], best, truth, match_ms + sum(f.time_ms for f in fits),
-                     {"match_ms": match_ms, "candidates": len(poses)}))
+        return rows + [{"method": m, "success": False, "confident_wrong": False,
+                        "time_ms": normals_ms + match_ms, "match_ms": match_ms,
+                        "refused": "PPF found no pose"} for m in METHODS[1:]]
+    ppf_um, ppf_mdeg = _error(poses[0], truth)
+    fits = [_registration(part, scan, p) for p in poses]
+    shared = {"normals_ms": normals_ms, "match_ms": match_ms}
+    rows.append(_row(METHODS[1], fits[0][0], truth, fits[0][1],
+                     {**shared, "ppf_translation_um": ppf_um, "ppf_rotation_mdeg": ppf_mdeg}))
+    # the candidate the registration itself would trust most: unflagged, then most points
+    # matched, then the tightest fit
+    best, _ = max(fits, key=lambda f: (not f[0].flags, f[0].inlier_fraction, -f[0].rms_mm))
+    rows.append(_row(METHODS[2], best, truth, sum(ms for _, ms in fits),
+                     {**shared, "candidates": len(poses)}))
     return rows
 
 
@@ -136,16 +156,17 @@ def run(out_dir, quick: bool = False, *, progress=None) -> dict:
             for i in range(n_scans):
                 values = bench_pose._random_misplacement(
                     rng, bench_pose.ACCURACY_MAX_MM, bench_pose.ACCURACY_MAX_DEG, up_to=True)
-                scan, truth, _ = bench_pose._scan(part, cell, values, seed=i)
+                scan, truth, info = bench_pose._scan(part, cell, values, seed=i)
                 offset = bench_pose._random_misplacement(start_rng, *START_LEVEL, up_to=False)
                 start = np.linalg.inv(misplacement_matrix(offset)) @ truth
-                rows = _trials(part, scan, truth, start, detector)
+                rows = _trials(part, scan, truth, start, detector, info["normals_ms"])
                 for r in rows:
                     r.update(part=name, scan=i, misplacement=values, start_offset=offset)
                 trials += rows
                 say(f"{name} scan {i}: " + "; ".join(
-                    f"{r['method']} {'ok' if r['success'] else 'FAILED'} "
-                    f"{r['time_ms']:.0f} ms" for r in rows))
+                    f"{r['method']} " + (f"refused ({r['refused']})" if r.get("refused") else
+                                         f"{'ok' if r['success'] else 'FAILED'} "
+                                         f"{r['time_ms']:.0f} ms") for r in rows))
     result = {"machine": machine_info(), "quick": quick,
               "settings": {"parts": list(names), "scans_per_part": n_scans,
                            "start_offset": list(START_LEVEL), "top_k": TOP_K,
@@ -154,7 +175,7 @@ def run(out_dir, quick: bool = False, *, progress=None) -> dict:
                                    "scene_sample_step": PPF_SCENE_SAMPLE_STEP,
                                    "model_points": QUICK_PPF_MODEL_POINTS if quick
                                    else PPF_MODEL_POINTS},
-                           "threads": os.cpu_count()},
+                           "blas_threads": 1, "cpu_count": os.cpu_count()},
               "parts": parts, "trials": trials,
               "elapsed_s": round(time.perf_counter() - t_start, 1)}
     result["summary"] = _summary(result)
@@ -165,21 +186,31 @@ def run(out_dir, quick: bool = False, *, progress=None) -> dict:
 
 
 def _summary(result: dict) -> dict:
+    """Per method: success, confident wrong poses (wrong and unflagged: the worst outcome),
+    time per scan; PPF's own error and match time; the method to keep: fewest confident wrong
+    poses, then most successes, then least time."""
     out = {"ppf_train_s": {name: p["ppf_train_s"] for name, p in result["parts"].items()}}
     for method in METHODS:
         rows = [r for r in result["trials"] if r["method"] == method]
-        times = [r["time_ms"] for r in rows]
-        out[method] = {"trials": len(rows), "success_rate": sum(r["success"] for r in rows)
-                       / len(rows) if rows else None,
-                       "per_part": {name: sum(r["success"] for r in rows if r["part"] == name)
-                                    / max(1, sum(1 for r in rows if r["part"] == name))
-                                    for name in result["parts"]},
-                       "time_ms_median": float(np.median(times)) if times else None}
-    matches = [r["match_ms"] for r in result["trials"] if "match_ms" in r
-               and r["method"] == METHODS[1]]
-    out["ppf_match_ms_median"] = float(np.median(matches)) if matches else None
-    out["keep"] = max(METHODS, key=lambda m: (out[m]["success_rate"] or 0.0,
-                                              -(out[m]["time_ms_median"] or np.inf)))
+        times = [r["time_ms"] for r in rows if r.get("time_ms") is not None]
+        out[method] = {
+            "trials": len(rows),
+            "success_rate": bench_pose._fraction([r["success"] for r in rows]),
+            "confident_wrong": sum(r["confident_wrong"] for r in rows),
+            "per_part": {name: bench_pose._fraction([r["success"] for r in rows
+                                                     if r["part"] == name])
+                         for name in result["parts"]},
+            "time_ms_median": float(np.median(times)) if times else None}
+    ppf = [r for r in result["trials"] if r["method"] == METHODS[1] and "match_ms" in r]
+    out["ppf_match_ms_median"] = float(np.median([r["match_ms"] for r in ppf])) if ppf else None
+    own = [r for r in ppf if "ppf_translation_um" in r]
+    out["ppf_own_error_median"] = {
+        "translation_mm": float(np.median([r["ppf_translation_um"] for r in own])) / 1e3,
+        "rotation_deg": float(np.median([r["ppf_rotation_mdeg"] for r in own])) / 1e3,
+    } if own else None
+    out["keep"] = min(METHODS, key=lambda m: (out[m]["confident_wrong"],
+                                              -(out[m]["success_rate"] or 0.0),
+                                              out[m]["time_ms_median"] or np.inf))
     return out
 
 
@@ -194,9 +225,11 @@ def _plot(result: dict, path: pathlib.Path) -> None:
     width = 0.8 / len(METHODS)
     for k, method in enumerate(METHODS):
         x = np.arange(len(names)) + (k - (len(METHODS) - 1) / 2) * width
-        ax_ok.bar(x, [s[method]["per_part"][n] * 100 for n in names], width, label=method)
+        ax_ok.bar(x, [(s[method]["per_part"][n] or 0.0) * 100 for n in names], width,
+                  label=method)
         rows = [r for r in result["trials"] if r["method"] == method]
-        ax_time.bar(x, [np.median([r["time_ms"] for r in rows if r["part"] == n] or [np.nan])
+        ax_time.bar(x, [np.median([r["time_ms"] for r in rows if r["part"] == n
+                                   and r.get("time_ms") is not None] or [np.nan])
                         for n in names], width, label=method)
     for ax in (ax_ok, ax_time):
         ax.set_xticks(np.arange(len(names)), names)

@@ -176,20 +176,23 @@ def test_blurred_dropout_with_row_noise(geometry, rng, row_noise_px):
 def test_wide_hole_with_row_noise_keeps_both_rims(geometry, rng):
     """A 100-column hole in one surface, rows noisy by 0.1 px: each side's line, extrapolated
     50 columns to the hole's middle, misses the other by its lever arm's error; only a far
-    side beyond that error is a shadow's boundary, so both rims are edges every time. (Noise
-    this heavy passes for a curl at about 1 end in 800: those ends are lost, never moved.)"""
+    side beyond that error is a shadow's boundary. Taking the bare threshold, a quarter of the
+    rims were lost as shadows; now a rim is lost only where noise this heavy passes for a
+    curl (about 1 end in 800), and no edge is ever moved or doubled."""
     cols = np.r_[np.arange(600, 800), np.arange(900, 1100)]
     _, rows = surface_at(geometry, cols, NEAR_MM)
     profile = blank_profile()
     set_stripe(profile, cols, rows)
-    rims = []
-    for _ in range(40):
-        edges = edges_of(geometry, make(profile, rng, 0.1))
-        found = edges.pixel[:, 0]
-        assert np.all(np.min(np.abs(found[:, None] - [599.5, 799.5, 899.5, 1099.5]), axis=1)
-                      < 0.2)
-        rims += [np.any(np.abs(found - rim) < 0.2) for rim in (799.5, 899.5)]
-    assert np.all(rims)
+    ends = np.array([599.5, 799.5, 899.5, 1099.5])
+    rims_found = 0
+    trials = 200
+    for _ in range(trials):
+        found = edges_of(geometry, make(profile, rng, 0.1)).pixel[:, 0]
+        nearest = np.abs(found[:, None] - ends)
+        assert np.all(nearest.min(axis=1) < 0.2)  # every edge at one of the ends
+        assert np.all(np.bincount(nearest.argmin(axis=1), minlength=4) <= 1)  # once at most
+        rims_found += int(np.sum(nearest[:, 1:3].min(axis=0) < 0.2))
+    assert rims_found >= 0.98 * 2 * trials
 
 
 def test_dropout_of_a_point_sampled_edge_lies_half_way_between_columns(geometry):

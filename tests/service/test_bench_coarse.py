@@ -34,15 +34,21 @@ def test_one_row_per_method_and_scan_with_times_that_add_up(quick_bench):
         (i, m) for i in range(bench.QUICK_SCANS_PER_PART) for m in bench.METHODS)
     assert result["parts"]["block"]["ppf_train_s"] > 0
     for t in trials:
-        assert t["time_ms"] > 0
-        if t["method"] != "flyscan":
-            # PPF's match is part of its time per scan, and most of it
-            assert 0 < t["match_ms"] < t["time_ms"]
+        assert t.get("refused") is None, t
+        if t["method"] == "flyscan":
+            assert t["time_ms"] == pytest.approx(t["register_ms"]) and t["register_ms"] > 0
+        else:
+            # the whole cloud's normals, PPF's match, the registration(s) from its poses
+            assert t["match_ms"] > 0 and t["normals_ms"] > 0 and t["register_ms"] > 0
+            assert t["time_ms"] == pytest.approx(t["register_ms"] + t["normals_ms"]
+                                                 + t["match_ms"])
     summary = result["summary"]
     for method in bench.METHODS:
         rows = [t for t in trials if t["method"] == method]
         assert summary[method]["success_rate"] == pytest.approx(
             np.mean([t["success"] for t in rows]))
+        assert summary[method]["confident_wrong"] == sum(
+            not t["success"] and not t["flags"] for t in rows)
 
 
 def test_flyscan_finds_the_block_from_starts_10_mm_and_20_degrees_off(quick_bench):
@@ -53,7 +59,7 @@ def test_flyscan_finds_the_block_from_starts_10_mm_and_20_degrees_off(quick_benc
         assert np.linalg.norm(t["start_offset"][:3]) == pytest.approx(bench.START_LEVEL[0])
         if t["method"] == "flyscan":
             assert t["success"], t
-            assert t["translation_um"] < 100 and t["rotation_mdeg"] < 100
+            assert t["translation_norm_um"] < 100 and t["rotation_angle_mdeg"] < 100
 
 
 def test_ppf_poses_map_the_model_onto_the_scene(block_part):
