@@ -714,7 +714,7 @@ def _curls(vrow, vcol, k_end, sign, lo, hi, curl):
     if abs(total) < curl:
         return False
     if t0 * total <= 0.0:
-        return False  # the rows level out toward the end: a crest, not a surface turning away
+        return False  # still rising into a crest at the end: not a surface turning away
     for j in range(1, turns + 1):
         turn = ((vrow[k_end - j * sign] - vrow[k_end - (j + 1) * sign])
                 - (vrow[k_end - (j + 1) * sign] - vrow[k_end - (j + 2) * sign]))

@@ -37,7 +37,6 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from scanner_core.fileio import save_json_atomic
-from scanner_core.pose import scan_pose
 from scanner_core.scanio import scan_normals
 from service.bench import pose as bench_pose
 from service.bench.machine import machine_info
