@@ -177,6 +177,7 @@ def run(out_dir, quick: bool = False, *, progress=None) -> dict:
                            "blas_threads": 1, "cpu_count": os.cpu_count()},
               "parts": parts, "trials": trials,
               "elapsed_s": round(time.perf_counter() - t_start, 1)}
+    result = bench_pose._clean(result)  # a free axis's sigma is NaN: None in JSON
     result["summary"] = _summary(result)
     save_json_atomic(out_dir / "coarse.json", result)
     _plot(result, out_dir / "coarse.png")
