@@ -268,6 +268,24 @@ def test_a_many_lobed_disc_is_not_left_a_lobe_off(disc, offset, force_coarse):
     assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr)
 
 
+@pytest.mark.parametrize("turn_deg", [100.0, -170.0])
+def test_a_four_lobed_disc_turned_far_about_its_axis_is_found(turn_deg):
+    """A round part picked from a bin can sit any turn off its nominal. A disc of 4 broad lobes
+    and a keyway (cycloidal's outline fits 90, 180 and 270 degrees off with 91 % of its points
+    matched): far beyond the coarse grid, the fit from the nominal grasp settles on the lobes
+    it meets, which look good; refits from turns of every 30 degrees about its weakest
+    rotation find the keyway."""
+    mesh = lobed_disc(lobes=4, amplitude=2.0, n=1440)
+    nominal = centred_grasp(mesh)
+    truth = misplacement(0.5, -0.3, 0.2, 1.0, -1.0, turn_deg) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=2)
+    result = register(pts, nrm, SurfaceModel.from_mesh(mesh), nominal, frame_ids=frames,
+                      edges_t=edges, edge_frame_ids=edge_frames,
+                      edge_model=EdgeModel.from_mesh(mesh))
+    dt, dr = pose_error(result.matrix, truth)
+    assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr, result.flags)
+
+
 def test_a_pose_the_scan_cannot_tell_from_a_turned_one_is_flagged_not_confident():
     """A disc of 90 identical lobes (4 degrees apart) and no keyway, turned half a lobe: the
     fine fit settles between two lobes, each as good as the other. Probed about its weakest
