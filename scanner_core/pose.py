@@ -18,7 +18,7 @@ is registered against the CAD model in {P}, starting from the nominal grasp ^T X
   scale, which favours a loose, unsettled fit. The same sweep checks a fit from the nominal
   grasp that looks good: one a lobe off matches every edge point but a keyway's. OpenCV's
   point-pair features (Drost et al. 2010), measured against it by ``flyscan bench coarse``,
-  led to 7 of 16 poses where it found 15, in about 5 times the time, after 42-307 s of
+  led to 9 of 16 poses where it found 15, in about 5 times the time, after 38-335 s of
   training per part.
 - **uncertainty**: the covariance of the six motion parameters is the cluster-robust
   sandwich ``H^-1 (sum_f g_f g_f^T) H^-1`` over the frames f (Liang and Zeger 1986): the
