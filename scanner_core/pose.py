@@ -110,8 +110,9 @@ class PoseParams:
     probe_weakness : float
         A converged fit whose weakest rotation is held less than this (its information over the
         strongest rotation's, translations free) is probed with refits from turns of 1 and 2
-        degrees about it, and of every 30 degrees round unless the scan leaves it free (a part
-        near-symmetric about it: cycloidal's lobes fit 90 degrees off): a minimum that fits
+        degrees about it, and, unless the scan leaves it free, from the best turns of a sweep
+        all the way round it (a part near-symmetric about it: cycloidal's lobes fit 90
+        degrees off, a many-lobed disc's any whole number of lobes): a minimum that fits
         clearly better is taken; another that fits as well makes the pose ambiguous, and the
         spread between them enters its uncertainty. (Measured on the reference parts' fits:
         idler_riser 0.016-0.023, held by its surfaces; ADIS16480's wrong minimum 0.012,
@@ -835,26 +836,54 @@ def _agreement(surface: _Terms, edges: _Terms | None, pose, tol_surface: float,
     robust scale, this does not reward a loose, unsettled fit: it ranks the
     candidates of the coarse search, which are refined only briefly.
     """
-    rotation, translation = pose[:3, :3], pose[:3, 3]
-    idx, nearest = _match(surface, pose, tol_surface + 2.0 * _spacing(surface.model))
-    n_t = surface.model.normals[nearest] @ rotation.T
-    q_t = surface.model.points[nearest] @ rotation.T + translation
-    res = np.abs(np.einsum("ij,ij->i", n_t, surface.points[idx] - q_t))
-    if surface.normals is not None:
-        scan_n = surface.normals[idx]
-        agree = np.einsum("ij,ij->i", n_t, np.nan_to_num(scan_n, nan=0.0))
-        res[(agree < surface.agreement) & np.isfinite(scan_n[:, 0])] = np.inf
-    score = np.count_nonzero(res <= tol_surface) / max(len(surface.points), 1)
+    return float(_agreements(surface, edges, pose[None], tol_surface, tol_edge)[0])
+
+
+def _agreements(surface: _Terms, edges: _Terms | None, poses, tol_surface: float,
+                tol_edge: float) -> np.ndarray:
+    """(P,) :func:`_agreement` of each of the (P, 4, 4) `poses`, in one query of each model's
+    tree (a sweep of hundreds of turns costs a tenth of as many single queries)."""
+    rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
+    scores = _matched_fraction(surface, poses, tol_surface + 2.0 * _spacing(surface.model),
+                               tol_surface, planes=True)
     if edges is None or not len(edges.points):
-        return score + 1.0
-    idx, nearest = _match(edges, pose, tol_edge + _spacing(edges.model) + _EDGE_SEARCH_MM)
-    d_t = edges.model.directions[nearest] @ rotation.T
-    m = np.stack([d_t[:, 1], -d_t[:, 0], np.zeros(len(d_t))], axis=1)
-    length = np.linalg.norm(m, axis=1)
-    ok = length > _MIN_EDGE_LEVEL
-    q_t = edges.model.points[nearest[ok]] @ rotation.T + translation
-    res = np.abs(np.einsum("ij,ij->i", m[ok] / length[ok, None], edges.points[idx[ok]] - q_t))
-    return score + np.count_nonzero(res <= tol_edge) / len(edges.points)
+        return scores + 1.0
+    return scores + _matched_fraction(edges, poses,
+                                      tol_edge + _spacing(edges.model) + _EDGE_SEARCH_MM,
+                                      tol_edge, planes=False)
+
+
+def _matched_fraction(terms: _Terms, poses, bound, tol, *, planes: bool) -> np.ndarray:
+    """(P,) fraction of `terms`' points within `tol` of their model at each pose: of its
+    plane (normals agreeing) for surfaces, of its edge across it in (x_T, y_T) for edges.
+    Residuals are taken in {P}, where the model lies (a distance does not change with the
+    frame), so each pose's rotation is applied once per point, not per match."""
+    count, n = len(poses), len(terms.points)
+    rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
+    local = (terms.points[None] - translation[:, None]) @ rotation  # (P, N, 3) in {P}
+    workers = -1 if count * n > _THREADED_QUERY else 1
+    dist, nearest = terms.model.tree.query(local.reshape(-1, 3), k=1,
+                                           distance_upper_bound=bound, workers=workers)
+    hit = np.nonzero(np.isfinite(dist))[0]
+    which, nearest = hit // n, nearest[hit]
+    offset = local.reshape(-1, 3)[hit] - terms.model.points[nearest]
+    if planes:
+        normal = terms.model.normals[nearest]
+        res = np.abs(np.sum(normal * offset, axis=1))
+        if terms.normals is not None:
+            scan_n = (np.nan_to_num(terms.normals)[None] @ rotation).reshape(-1, 3)[hit]
+            seen = np.isfinite(terms.normals[hit % n, 0])
+            res[(np.sum(normal * scan_n, axis=1) < terms.agreement) & seen] = np.inf
+        ok = res <= tol
+    else:
+        # across the edge in (x_T, y_T): the z_T component of (direction x offset) in {T},
+        # over the length of the direction's (x_T, y_T) part
+        up = rotation[which, 2, :]  # z_T in {P}
+        direction = terms.model.directions[nearest]
+        level = np.sqrt(np.maximum(1.0 - np.sum(up * direction, axis=1) ** 2, 0.0))
+        across = np.abs(np.sum(up * np.cross(direction, offset), axis=1))
+        ok = (level > _MIN_EDGE_LEVEL) & (across <= tol * level)
+    return np.bincount(which[ok], minlength=count) / max(n, 1)
 
 
 # The coarse candidates are ranked at these tolerances (mm, surface and edges): wide enough
@@ -950,8 +979,18 @@ def _better_turn(surface: _Terms, edges: _Terms | None, pose, params) -> bool:
 _PROBE_DEG = (-2.0, -1.0, 1.0, 2.0)
 # And all the way round, for a part with a near symmetry about that rotation: cycloidal's
 # lobes fit 90, 180 and 270 degrees off with 91 % of the points matched against 96 % at the
-# truth, unflagged, for a start that far off (a round part picked from a bin).
-_WIDE_PROBE_DEG = tuple(float(a) for a in range(30, 360, 30))
+# truth, unflagged, for a start that far off (a round part picked from a bin); a 38-lobed
+# disc's any whole number of lobes off. The sweep (:func:`_round_seeds`) turns the fit in
+# steps of ``coarse_sweep_deg`` from beyond the near probes, scores each turn unrefined at
+# loose tolerances (mm, surface and edges: lobes 0.4 mm high blur, a keyway does not, and a
+# turn about a slightly wrong line still scores), with this many points of each kind, and
+# keeps its best turns this far apart (degrees) for the quick refinement: 6 of them, at
+# about 60 ms a sweep.
+_ROUND_FROM_DEG = 3.0
+_ROUND_TOL_MM = (0.5, 1.0)
+_ROUND_POINTS = 150
+_ROUND_APART_DEG = 5.0
+_ROUND_SEEDS = 6
 # Not about a rotation the scan leaves free (a cylinder's: weakness 2e-6, against 0.004 to
 # 0.023 for the reference parts' weakest): every turn about it fits, and it is reported free.
 _HELD_WEAKNESS = 1e-4
@@ -983,9 +1022,12 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
         return fit, []
     own = _agreement(few, few_edges, fit.pose, *_COARSE_TOL_MM)
     fits = [fit]
-    for angle in _PROBE_DEG + (_WIDE_PROBE_DEG if weakness > _HELD_WEAKNESS else ()):
-        turn = _apply(np.concatenate([np.zeros(3), np.radians(angle) * axis]), centre)
-        quick = _fine(few, few_edges, turn @ fit.pose, params, iterations=_PROBE_ITERATIONS,
+    starts = [_apply(np.concatenate([np.zeros(3), np.radians(angle) * axis]), centre) @ fit.pose
+              for angle in _PROBE_DEG]
+    if weakness > _HELD_WEAKNESS:
+        starts += _round_seeds(few, few_edges, fit.pose, axis, params)
+    for start in starts:
+        quick = _fine(few, few_edges, start, params, iterations=_PROBE_ITERATIONS,
                       gate_mm=params.gate_mm * 2)
         if (_agreement(few, few_edges, quick.pose, *_COARSE_TOL_MM) >= own - _PROBE_MARGIN
                 and all(not _same(quick.pose, f.pose, _RIVAL_SAME_DEG * 10, _RIVAL_SAME_MM * 10)
@@ -1005,6 +1047,28 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
                         for other in [fits[keep].pose] + rivals)):
             rivals.append(f.pose)
     return fits[keep], rivals
+
+
+def _round_seeds(few: _Terms, few_edges: _Terms | None, pose, axis, params) -> list:
+    """Starts all the way round the weakest rotation: `pose` turned about `axis` through the
+    model's centre (on the axis of a part near-symmetric about it; the scan's own centre is
+    not, when the scan sees one side) in steps of ``coarse_sweep_deg``, scored without
+    refinement in one batch (:func:`_agreements`); the best ``_ROUND_SEEDS`` turns at least
+    ``_ROUND_APART_DEG`` apart, as (4, 4) poses in {T}."""
+    step = max(params.coarse_sweep_deg, 0.1)
+    pivot = pose[:3, :3] @ few.model.points.mean(axis=0) + pose[:3, 3]
+    few = few.subset(slice(None, None, max(1, len(few.points) // _ROUND_POINTS)))
+    if few_edges is not None:
+        few_edges = few_edges.subset(
+            slice(None, None, max(1, len(few_edges.points) // _ROUND_POINTS)))
+    angles = np.arange(_ROUND_FROM_DEG, 360.0 - _ROUND_FROM_DEG + 1e-9, step)
+    turns = np.tile(np.eye(4), (len(angles), 1, 1))
+    turns[:, :3, :3] = Rotation.from_rotvec(np.radians(angles)[:, None] * axis).as_matrix()
+    turns[:, :3, 3] = pivot - turns[:, :3, :3] @ pivot  # about the line through `pivot`
+    moved = turns @ pose
+    scores = _agreements(few, few_edges, moved, *_ROUND_TOL_MM)
+    return [m for m, _ in _distinct(list(zip(moved, scores)), _ROUND_SEEDS,
+                                    same_deg=_ROUND_APART_DEG)]
 
 
 def _rival_motion(pose, rival) -> np.ndarray:

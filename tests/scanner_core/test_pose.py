@@ -269,13 +269,15 @@ def test_a_many_lobed_disc_is_not_left_a_lobe_off(disc, offset, force_coarse):
 
 
 @pytest.mark.parametrize("turn_deg", [100.0, -170.0])
-def test_a_four_lobed_disc_turned_far_about_its_axis_is_found(turn_deg):
+@pytest.mark.parametrize("lobes, amplitude", [(4, 2.0), (38, 0.4)])
+def test_a_lobed_disc_turned_far_about_its_axis_is_found(lobes, amplitude, turn_deg):
     """A round part picked from a bin can sit any turn off its nominal. A disc of 4 broad lobes
     and a keyway (cycloidal's outline fits 90, 180 and 270 degrees off with 91 % of its points
-    matched): far beyond the coarse grid, the fit from the nominal grasp settles on the lobes
-    it meets, which look good; refits from turns of every 30 degrees about its weakest
-    rotation find the keyway."""
-    mesh = lobed_disc(lobes=4, amplitude=2.0, n=1440)
+    matched), or of 38 small ones (a lobe is 9.5 degrees): far beyond the coarse grid, the
+    fit from the nominal grasp settles on the lobes it meets, which look good (the 38-lobed
+    disc 1 or 2 lobes off, the 4-lobed 90 degrees); refits from the best turns of a sweep
+    all the way round its weakest rotation find the keyway."""
+    mesh = lobed_disc(lobes=lobes, amplitude=amplitude, n=max(1440, 40 * lobes))
     nominal = centred_grasp(mesh)
     truth = misplacement(0.5, -0.3, 0.2, 1.0, -1.0, turn_deg) @ nominal
     pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=2)
@@ -284,6 +286,25 @@ def test_a_four_lobed_disc_turned_far_about_its_axis_is_found(turn_deg):
                       edge_model=EdgeModel.from_mesh(mesh))
     dt, dr = pose_error(result.matrix, truth)
     assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr, result.flags)
+
+
+def test_a_symmetric_lobed_disc_turned_far_is_ambiguous_not_confident():
+    """Without a keyway a 38-lobed disc fits any whole number of lobes off: turned 100
+    degrees, whichever lobe the fit settles on, the sweep round finds others that fit as
+    well, and the pose is flagged ambiguous with a sigma about the axis that covers them."""
+    mesh = lobed_disc(lobes=38, amplitude=0.4, key_deg=-1.0, n=1520)
+    nominal = centred_grasp(mesh)
+    truth = misplacement(0.5, -0.3, 0.2, 1.0, -1.0, 100.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=2)
+    result = register(pts, nrm, SurfaceModel.from_mesh(mesh), nominal, frame_ids=frames,
+                      edges_t=edges, edge_frame_ids=edge_frames,
+                      edge_model=EdgeModel.from_mesh(mesh))
+    assert any(f.startswith("ambiguous: ") for f in result.flags), result.flags
+    _, dr = pose_error(result.matrix, truth)
+    lobe = 360.0 / 38
+    off = abs(dr[2] / lobe - round(dr[2] / lobe)) * lobe
+    assert off < 0.05, dr  # on a lobe, just not the one it came from
+    assert abs(dr[2]) <= 3.0 * result.std[5]
 
 
 def test_a_pose_the_scan_cannot_tell_from_a_turned_one_is_flagged_not_confident():
