@@ -216,7 +216,9 @@ class EdgeModel:
     at half the step's height) lies on the vertical wall through the edge, so it constrains
     the part across the edge in the (x_T, y_T) plane only: its residual is the distance to the
     vertical plane through the edge line. That is what the surfaces cannot give: a part whose
-    visible faces are all level slides and turns freely over them.
+    visible faces are all level slides and turns freely over them. A step's point is matched
+    from half its step above and below it as well (`register`'s ``edge_steps_mm``), to the
+    edge it was found at rather than its wall's other one.
 
     Attributes
     ----------
@@ -404,7 +406,7 @@ class PoseResult:
 
 def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=None,
              edges_t=None, edge_frame_ids=None, edge_model: EdgeModel | None = None,
-             params: PoseParams = PoseParams()) -> PoseResult:
+             edge_steps_mm=None, params: PoseParams = PoseParams()) -> PoseResult:
     """The part's pose ^T X_P from its scan.
 
     Parameters
@@ -428,6 +430,10 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
         The frame of each edge point.
     edge_model : EdgeModel, optional
         The part's sharp edges in {P}.
+    edge_steps_mm : (M,) float, optional
+        Per edge point, the height of its step (``Scan.edge_size_mm`` of a step point), 0 or
+        NaN for a drop-out: a step's point lies half of it from the edge it was found at,
+        and is matched from there. Default: every point a drop-out.
     params : PoseParams
 
     Returns
@@ -449,8 +455,9 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
     edges = None
     if edges_t is not None and edge_model is not None and len(edge_model.points):
         e_points, _, e_frames = _check_inputs(edges_t, None, edge_frame_ids, minimum=0)
+        steps = _edge_steps(edges_t, edge_steps_mm)
         if len(e_points):
-            edges = _Terms(e_points, None, e_frames, edge_model)
+            edges = _Terms(e_points, None, e_frames, edge_model, steps_mm=steps)
 
     fit = _fine(surface, edges, nominal, params)
     coarse = False
@@ -525,10 +532,23 @@ def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeMod
                       frame_ids=scan.frame_ids[used],
                       edges_t=scan.edges if use_edges else None,
                       edge_frame_ids=edge_frames if use_edges else None,
-                      edge_model=edge_model if use_edges else None, params=params)
+                      edge_model=edge_model if use_edges else None,
+                      edge_steps_mm=_scan_steps(scan) if use_edges else None, params=params)
     result.flags += _coverage_flags(scan, result.matrix, surface_model)
     result.normals_ms = (time.perf_counter() - t0) * 1e3 - result.time_ms
     return result
+
+
+def _scan_steps(scan) -> np.ndarray | None:
+    """(M,) the height of each step point of the scan's edge cloud, 0 for a drop-out."""
+    from scanner_core.edges import EdgeKind
+
+    kinds = getattr(scan, "edge_kind", None)
+    sizes = getattr(scan, "edge_size_mm", None)
+    if kinds is None or sizes is None or len(kinds) != len(scan.edges):
+        return None
+    return np.where(np.asarray(kinds) == EdgeKind.STEP,
+                    np.nan_to_num(np.asarray(sizes, dtype=np.float64)), 0.0)
 
 
 #: Profiles farther apart than this (mm) sample a part's features too coarsely for the
@@ -568,10 +588,12 @@ class _Terms:
     frames: np.ndarray
     model: SurfaceModel | EdgeModel
     agreement: float = -1.0     # least cosine between `normals` and a match's normal
+    steps_mm: np.ndarray | None = None  # edges: a step's height, 0 for a drop-out
 
     def subset(self, index) -> "_Terms":
         return _Terms(self.points[index], None if self.normals is None else self.normals[index],
-                      self.frames[index], self.model, self.agreement)
+                      self.frames[index], self.model, self.agreement,
+                      None if self.steps_mm is None else self.steps_mm[index])
 
 
 @dataclass
@@ -743,11 +765,42 @@ def _match(terms: _Terms, pose, bound):
     """Indices of the scan points with a model point within `bound` mm, and those points."""
     rotation, translation = pose[:3, :3], pose[:3, 3]
     local = (terms.points - translation) @ rotation  # the scan in {P}
-    # Threads pay off only for large queries (each call starts its own).
-    workers = -1 if len(local) > _THREADED_QUERY else 1
-    dist, nearest = terms.model.tree.query(local, k=1, distance_upper_bound=bound, workers=workers)
+    dist, nearest = _nearest(terms, local, rotation[2], bound)
     idx = np.nonzero(np.isfinite(dist))[0]
     return idx, nearest[idx]
+
+
+def _nearest(terms: _Terms, local, up, bound):
+    """Distance to and index of the nearest model point within `bound` mm (inf and the
+    model's size beyond it) of each point of `local` ((..., N, 3), the scan in {P}).
+
+    A step's edge point lies half the step's height from the edge it was found at, up or
+    down the wall (paper section II), and as far from the wall's other edge: matched from
+    where it lies, it finds either, or another edge near the wall's middle. It is matched
+    from half its step above and below it along z_T (`up`, z_T in {P}, (..., 3)) as well,
+    and keeps the nearest of the three matches: the edge it came from.
+    """
+    shape = local.shape[:-1]
+    # Threads pay off only for large queries (each call starts its own).
+    workers = -1 if int(np.prod(shape)) > _THREADED_QUERY else 1
+    query = terms.model.tree.query
+    dist, nearest = query(local.reshape(-1, 3), k=1, distance_upper_bound=bound,
+                          workers=workers)
+    dist, nearest = dist.reshape(shape), nearest.reshape(shape)
+    if terms.steps_mm is None:
+        return dist, nearest
+    stepped = np.nonzero(terms.steps_mm > 0)[0]
+    if not len(stepped):
+        return dist, nearest
+    half = 0.5 * terms.steps_mm[stepped, None]
+    for sign in (1.0, -1.0):
+        moved = local[..., stepped, :] + sign * half * up[..., None, :]
+        d, n = query(moved.reshape(-1, 3), k=1, distance_upper_bound=bound, workers=workers)
+        d, n = d.reshape(moved.shape[:-1]), n.reshape(moved.shape[:-1])
+        nearer = d < dist[..., stepped]
+        dist[..., stepped] = np.where(nearer, d, dist[..., stepped])
+        nearest[..., stepped] = np.where(nearer, n, nearest[..., stepped])
+    return dist, nearest
 
 
 def _robust_rows(s_t, n_t, q_t, frames, centre, gate, noise_mm):
@@ -863,11 +916,9 @@ def _matched_fraction(terms: _Terms, poses, bound, tol, *, planes: bool) -> np.n
     count, n = len(poses), len(terms.points)
     rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
     local = (terms.points[None] - translation[:, None]) @ rotation  # (P, N, 3) in {P}
-    workers = -1 if count * n > _THREADED_QUERY else 1
-    dist, nearest = terms.model.tree.query(local.reshape(-1, 3), k=1,
-                                           distance_upper_bound=bound, workers=workers)
-    hit = np.nonzero(np.isfinite(dist))[0]
-    which, nearest = hit // n, nearest[hit]
+    dist, nearest = _nearest(terms, local, rotation[:, 2], bound)
+    hit = np.nonzero(np.isfinite(dist.reshape(-1)))[0]
+    which, nearest = hit // n, nearest.reshape(-1)[hit]
     offset = local.reshape(-1, 3)[hit] - terms.model.points[nearest]
     if planes:
         normal = terms.model.normals[nearest]
@@ -1239,6 +1290,20 @@ def _check_inputs(points_t, normals_t, frame_ids, minimum: int = 6):
     if keep.sum() < minimum:
         raise ValueError(f"a pose needs at least {minimum} finite points, got {int(keep.sum())}")
     return points[keep], normals[keep], frames[keep]
+
+
+def _edge_steps(edges_t, edge_steps_mm) -> np.ndarray | None:
+    """(K,) step heights of the finite edge points (as `_check_inputs` keeps them), mm, 0 for
+    a drop-out; None without `edge_steps_mm`."""
+    if edge_steps_mm is None:
+        return None
+    points = np.asarray(edges_t, dtype=np.float64)
+    steps = np.asarray(edge_steps_mm, dtype=np.float64).reshape(-1)
+    if steps.shape != (len(points),):
+        raise ValueError(f"edge_steps_mm must be ({len(points)},), got {steps.shape}")
+    if np.any(steps < 0):
+        raise ValueError("edge_steps_mm must be >= 0 (a step's height, 0 for a drop-out)")
+    return np.nan_to_num(steps[np.isfinite(points).all(axis=1)], nan=0.0)
 
 
 def _subsample(n: int, limit: int, rng) -> np.ndarray:
