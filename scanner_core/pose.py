@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -116,12 +117,14 @@ class PoseParams:
         all the way round it (a part near-symmetric about it: cycloidal's lobes fit 90
         degrees off, a many-lobed disc's any whole number of lobes): a minimum that fits
         clearly better is taken; another that fits as well makes the pose ambiguous, and the
-        spread between them enters its uncertainty. (Measured on the reference parts' fits:
-        idler_riser 0.016-0.023, held by its surfaces; ADIS16480's wrong minimum 0.012,
-        featuretype 0.004-0.008, cycloidal 0.005-0.007.)
+        spread between them enters its uncertainty. A fit whose surfaces alone hold that
+        rotation little (``_EDGES_ALONE``) is probed too. (Measured at the bench's fits:
+        idler_riser 0.030-0.043, held by its surfaces; ADIS16480 0.0023-0.026, featuretype
+        0.044-0.055, cycloidal 0.016-0.032.)
     coarse_sweep_deg : float
         Step of the finer sweep about the weakest rotation of the best coarse candidates
-        (across one step of the grid); the seeds it finds are refined like the grid's.
+        (across one step of the grid); the seeds it finds are refined like the grid's. Also
+        the step of the probe's sweep all the way round (``probe_weakness``).
     seed : int
         Seed of the subsampling.
     """
@@ -540,7 +543,8 @@ def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeMod
 
 
 def _scan_steps(scan) -> np.ndarray | None:
-    """(M,) the height of each step point of the scan's edge cloud, 0 for a drop-out."""
+    """(M,) the height of each step point of the scan's edge cloud, 0 for a drop-out; None
+    when the scan carries no kinds and sizes for its edge points."""
     from scanner_core.edges import EdgeKind
 
     kinds = getattr(scan, "edge_kind", None)
@@ -895,16 +899,18 @@ def _agreement(surface: _Terms, edges: _Terms | None, pose, tol_surface: float,
 
 
 def _agreements(surface: _Terms, edges: _Terms | None, poses, tol_surface: float,
-                tol_edge: float) -> np.ndarray:
+                tol_edge: float, edge_search_mm: float = _EDGE_SEARCH_MM) -> np.ndarray:
     """(P,) :func:`_agreement` of each of the (P, 4, 4) `poses`, in one query of each model's
-    tree (a sweep of hundreds of turns costs a tenth of as many single queries)."""
-    rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
+    tree (a sweep of 355 turns took 56 ms, as many single calls 123 ms). An edge point
+    finds its model edge within `edge_search_mm` beyond `tol_edge` (a step's point of
+    unknown height lies up to half the tallest step from its edge; a query that far costs
+    six times one within a millimetre)."""
     scores = _matched_fraction(surface, poses, tol_surface + 2.0 * _spacing(surface.model),
                                tol_surface, planes=True)
     if edges is None or not len(edges.points):
         return scores + 1.0
     return scores + _matched_fraction(edges, poses,
-                                      tol_edge + _spacing(edges.model) + _EDGE_SEARCH_MM,
+                                      tol_edge + _spacing(edges.model) + edge_search_mm,
                                       tol_edge, planes=False)
 
 
@@ -994,7 +1000,7 @@ def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> list
 # Only a fit whose weakest rotation is held this much less than its strongest (their
 # information, translations free) is checked for a better turn: a flat part turning in its
 # plane, held by its outline alone (a 38-lobed disc: 0.006-0.008; a block, the reference
-# parts' fits: 0.012-0.036). The check costs about 30 agreements, 0.1 s.
+# parts' fits: 0.012-0.036). The check is one batch of about 30 agreements, some 20 ms.
 _TURN_CHECK_WEAKNESS = 0.01
 # A turn whose agreement beats the fit's by this much (fractions of the surface points plus
 # of the edge points) sends a fit that looked good to the coarse search.
@@ -1032,13 +1038,20 @@ _PROBE_DEG = (-2.0, -1.0, 1.0, 2.0)
 # steps of ``coarse_sweep_deg`` from beyond the near probes, scores each turn unrefined at
 # loose tolerances (mm, surface and edges: lobes 0.4 mm high blur, a keyway does not, and a
 # turn about a slightly wrong line still scores), with this many points of each kind, and
-# keeps its best turns this far apart (degrees) for the quick refinement: 6 of them, at
-# about 60 ms a sweep.
+# keeps the best turn of each of its peaks (maxima this far either side, degrees) for the
+# quick refinement: the 6 best peaks, at 60-80 ms a sweep.
 _ROUND_FROM_DEG = 3.0
 _ROUND_TOL_MM = (0.5, 1.0)
 _ROUND_POINTS = 150
 _ROUND_APART_DEG = 5.0
 _ROUND_SEEDS = 6
+_ROUND_FINE_DEG = 0.2
+# A rotation the surfaces hold less than this (their weakest rotation's information over their
+# strongest's) rests mostly on the edges, where an outline that repeats (lobes, teeth) can fit
+# a turn off. Measured at the bench's fits: a disc seen on its flat face 1e-17, featuretype
+# up to 6e-6, cycloidal 4.5e-4 to 4.4e-3 (its fits' weakness with the edges, 0.016-0.032,
+# is above ``probe_weakness``), ADIS16480 1.6e-3 to 0.026, idler_riser 0.011-0.023.
+_EDGES_ALONE = 7e-3
 # Not about a rotation the scan leaves free (a cylinder's: weakness 2e-6, against 0.004 to
 # 0.023 for the reference parts' weakest): every turn about it fits, and it is reported free.
 _HELD_WEAKNESS = 1e-4
@@ -1047,6 +1060,11 @@ _HELD_WEAKNESS = 1e-4
 _PROBE_MARGIN = 0.01
 # The quick refinement of a probe: points and iterations (a tenth of the fit's cost).
 _PROBE_POINTS, _PROBE_ITERATIONS = 400, 4
+# A turn from the sweep round lies up to a few degrees off its minimum, about a rotation held
+# weakly: its quick refinement may stop short (cycloidal's true turn, started 2.1 degrees
+# off, settled 1.6 degrees short on the probe's points, 0.015 below a lobe 180 degrees off);
+# it gets more iterations, and a wider margin for its full refinement.
+_ROUND_ITERATIONS, _ROUND_MARGIN = 4, 0.01
 _RIVAL_SCORE = 0.002
 # A rival this close to the fit (degrees, mm) is the same minimum.
 _RIVAL_SAME_DEG, _RIVAL_SAME_MM = 0.02, 0.02
@@ -1057,8 +1075,11 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
 
     Returns the fit (or a probe's, when it scores clearly better: ``_BETTER_TURN``) and the
     others that score as well (within ``_RIVAL_SCORE``, or better) but lie elsewhere: distinct
-    minima the scan cannot tell apart, which the uncertainty must then cover. A quick refinement (the coarse stage's) screens the turns, so
-    a clear minimum costs a few milliseconds.
+    minima the scan cannot tell apart, which the uncertainty must then cover. Probed: a fit
+    whose weakest rotation is held less than ``probe_weakness``, or by its edges alone (its
+    surfaces hold it less than ``_EDGES_ALONE``: a flat part turning in its plane, whose
+    outline may repeat). A quick refinement (the coarse stage's) screens the turns: the
+    probe cost 180-330 ms on featuretype's and cycloidal's scans (bench pose).
     """
     rng = np.random.default_rng(params.seed + 2)
     few = surface.subset(_subsample(len(surface.points), _PROBE_POINTS, rng))
@@ -1066,17 +1087,22 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
         _subsample(len(edges.points), _PROBE_POINTS, rng))
     centre = few.points.mean(axis=0)
     axis, weakness = _weakest_rotation(few, few_edges, fit.pose, centre, params, weakness=True)
-    if weakness > params.probe_weakness:
+    if weakness > params.probe_weakness and (
+            few_edges is None
+            or _weakest_rotation(few, None, fit.pose, centre, params, weakness=True)[1]
+            > _EDGES_ALONE):
         return fit, []
     own = _agreement(few, few_edges, fit.pose, *_COARSE_TOL_MM)
     fits = [fit]
-    starts = list(_turned(fit.pose, axis, centre, _PROBE_DEG))
+    starts = [(s, _PROBE_ITERATIONS, _PROBE_MARGIN)
+              for s in _turned(fit.pose, axis, centre, _PROBE_DEG)]
     if weakness > _HELD_WEAKNESS:
-        starts += _round_seeds(few, few_edges, fit.pose, axis, params)
-    for start in starts:
-        quick = _fine(few, few_edges, start, params, iterations=_PROBE_ITERATIONS,
+        starts += [(s, _ROUND_ITERATIONS, _ROUND_MARGIN)
+                   for s in _round_seeds(few, few_edges, fit.pose, axis, params)]
+    for start, iterations, margin in starts:
+        quick = _fine(few, few_edges, start, params, iterations=iterations,
                       gate_mm=params.gate_mm * 2)
-        if (_agreement(few, few_edges, quick.pose, *_COARSE_TOL_MM) >= own - _PROBE_MARGIN
+        if (_agreement(few, few_edges, quick.pose, *_COARSE_TOL_MM) >= own - margin
                 and all(not _same(quick.pose, f.pose, _RIVAL_SAME_DEG * 10, _RIVAL_SAME_MM * 10)
                         for f in fits)):
             fits.append(_fine(surface, edges, quick.pose, params))
@@ -1100,19 +1126,37 @@ def _round_seeds(few: _Terms, few_edges: _Terms | None, pose, axis, params) -> l
     """Starts all the way round the weakest rotation: `pose` turned about `axis` through the
     model's centre (on the axis of a part near-symmetric about it; the scan's own centre is
     not, when the scan sees one side) in steps of ``coarse_sweep_deg``, scored without
-    refinement in one batch (:func:`_agreements`); the best ``_ROUND_SEEDS`` turns at least
-    ``_ROUND_APART_DEG`` apart, as (4, 4) poses in {T}."""
+    refinement in one batch (:func:`_agreements`); the best turns of the ``_ROUND_SEEDS``
+    best peaks of that score (maxima ``_ROUND_APART_DEG`` either side), as (4, 4) poses in
+    {T}."""
     step = max(params.coarse_sweep_deg, 0.1)
     pivot = pose[:3, :3] @ few.model.points.mean(axis=0) + pose[:3, 3]
-    few = few.subset(slice(None, None, max(1, len(few.points) // _ROUND_POINTS)))
+    few = few.subset(_evenly(len(few.points), _ROUND_POINTS))
     if few_edges is not None:
-        few_edges = few_edges.subset(
-            slice(None, None, max(1, len(few_edges.points) // _ROUND_POINTS)))
+        few_edges = few_edges.subset(_evenly(len(few_edges.points), _ROUND_POINTS))
     moved = _turned(pose, axis, pivot, np.arange(_ROUND_FROM_DEG, 360.0 - _ROUND_FROM_DEG + 1e-9,
                                                  step))
-    scores = _agreements(few, few_edges, moved, *_ROUND_TOL_MM)
-    return [m for m, _ in _distinct(list(zip(moved, scores)), _ROUND_SEEDS,
-                                    same_deg=_ROUND_APART_DEG)]
+    # an edge point matched near its edge (drop-outs, steps of known height) is all a rough
+    # ranking needs
+    scores = _agreements(few, few_edges, moved, *_ROUND_TOL_MM, edge_search_mm=_ROUND_TOL_MM[1])
+    # the best turn of each peak of the score (a broad lobe's shoulders outscore a narrower
+    # lobe's top): maxima within _ROUND_APART_DEG either side, best first
+    reach = max(1, int(round(_ROUND_APART_DEG / step)))
+    peaks = np.nonzero(scores >= maximum_filter1d(scores, 2 * reach + 1, mode="nearest"))[0]
+    chosen = []
+    for i in peaks[np.argsort(-scores[peaks], kind="stable")]:
+        if all(abs(i - j) > reach for j in chosen):
+            chosen.append(i)
+            if len(chosen) == _ROUND_SEEDS:
+                break
+    # Each peak placed within a fraction of a degree, at the tight tolerances: a minimum
+    # about a weakly held rotation can be narrower than the sweep's step (cycloidal's true
+    # turn: a start 2 degrees off settles in a minimum 1.6 degrees off it).
+    fine = np.arange(-step, step + 1e-9, _ROUND_FINE_DEG)
+    local = np.concatenate([_turned(moved[i], axis, pivot, fine) for i in chosen]) if chosen \
+        else np.zeros((0, 4, 4))
+    tight = _agreements(few, few_edges, local, *_COARSE_TOL_MM).reshape(len(chosen), len(fine))
+    return [local[k * len(fine) + int(np.argmax(row))] for k, row in enumerate(tight)]
 
 
 def _turned(pose, axis, pivot, angles_deg) -> np.ndarray:
@@ -1301,9 +1345,15 @@ def _edge_steps(edges_t, edge_steps_mm) -> np.ndarray | None:
     steps = np.asarray(edge_steps_mm, dtype=np.float64).reshape(-1)
     if steps.shape != (len(points),):
         raise ValueError(f"edge_steps_mm must be ({len(points)},), got {steps.shape}")
-    if np.any(steps < 0):
-        raise ValueError("edge_steps_mm must be >= 0 (a step's height, 0 for a drop-out)")
+    if np.any(steps < 0) or np.any(np.isinf(steps)):
+        raise ValueError("edge_steps_mm must be finite and >= 0 (a step's height, 0 or NaN "
+                         "for a drop-out)")
     return np.nan_to_num(steps[np.isfinite(points).all(axis=1)], nan=0.0)
+
+
+def _evenly(n: int, limit: int) -> np.ndarray:
+    """At most `limit` indices spread evenly over ``range(n)``."""
+    return np.unique(np.linspace(0, n - 1, min(n, limit)).astype(np.int64)) if n else np.arange(0)
 
 
 def _subsample(n: int, limit: int, rng) -> np.ndarray:
