@@ -18,7 +18,7 @@ is registered against the CAD model in {P}, starting from the nominal grasp ^T X
   scale, which favours a loose, unsettled fit. The same sweep checks a fit from the nominal
   grasp that looks good: one a lobe off matches every edge point but a keyway's. OpenCV's
   point-pair features (Drost et al. 2010), measured against it by ``flyscan bench coarse``,
-  led to 11 of 16 poses where it found 15, in about 5 times the time, after 25-245 s of
+  led to 11 of 16 poses where it found 15, in about 5 times the time, after 39-258 s of
   training per part. A converged fit whose weakest turn is held loosely is also refitted
   from turns near it and from the best turns of a sweep all the way round it
   (`_probe_turns`): a round part picked from a bin can sit any turn off its nominal.
