@@ -1060,11 +1060,6 @@ _HELD_WEAKNESS = 1e-4
 _PROBE_MARGIN = 0.01
 # The quick refinement of a probe: points and iterations (a tenth of the fit's cost).
 _PROBE_POINTS, _PROBE_ITERATIONS = 400, 4
-# A turn from the sweep round lies up to a few degrees off its minimum, about a rotation held
-# weakly: its quick refinement may stop short (cycloidal's true turn, started 2.1 degrees
-# off, settled 1.6 degrees short on the probe's points, 0.015 below a lobe 180 degrees off);
-# it gets more iterations, and a wider margin for its full refinement.
-_ROUND_ITERATIONS, _ROUND_MARGIN = 4, 0.01
 _RIVAL_SCORE = 0.002
 # A rival this close to the fit (degrees, mm) is the same minimum.
 _RIVAL_SAME_DEG, _RIVAL_SAME_MM = 0.02, 0.02
@@ -1094,15 +1089,13 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
         return fit, []
     own = _agreement(few, few_edges, fit.pose, *_COARSE_TOL_MM)
     fits = [fit]
-    starts = [(s, _PROBE_ITERATIONS, _PROBE_MARGIN)
-              for s in _turned(fit.pose, axis, centre, _PROBE_DEG)]
+    starts = list(_turned(fit.pose, axis, centre, _PROBE_DEG))
     if weakness > _HELD_WEAKNESS:
-        starts += [(s, _ROUND_ITERATIONS, _ROUND_MARGIN)
-                   for s in _round_seeds(few, few_edges, fit.pose, axis, params)]
-    for start, iterations, margin in starts:
-        quick = _fine(few, few_edges, start, params, iterations=iterations,
+        starts += _round_seeds(few, few_edges, fit.pose, axis, params)
+    for start in starts:
+        quick = _fine(few, few_edges, start, params, iterations=_PROBE_ITERATIONS,
                       gate_mm=params.gate_mm * 2)
-        if (_agreement(few, few_edges, quick.pose, *_COARSE_TOL_MM) >= own - margin
+        if (_agreement(few, few_edges, quick.pose, *_COARSE_TOL_MM) >= own - _PROBE_MARGIN
                 and all(not _same(quick.pose, f.pose, _RIVAL_SAME_DEG * 10, _RIVAL_SAME_MM * 10)
                         for f in fits)):
             fits.append(_fine(surface, edges, quick.pose, params))
