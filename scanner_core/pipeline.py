@@ -34,8 +34,8 @@ from scanner_core.calibration import Calibration
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
 from scanner_core.exposure import (ExposureController, ExposureParams, merge_exposure_pairs,
                                    partly_lit)
-from scanner_core.edges import (EdgeKind, EdgeParams, EdgePoints, find_edges, grazing_edges,
-                                occluded_dropouts)
+from scanner_core.edges import (EdgeKind, EdgeParams, EdgePoints, chamfered_dropouts, find_edges,
+                                grazing_edges, occluded_dropouts)
 from scanner_core.geometry import (base_to_tcp, reproject_marker, triangulate_marker,
                                    triangulate_stripe)
 from scanner_core.trigger import EndReason, Trigger, TriggerParams, TriggerStep
@@ -380,6 +380,7 @@ class PlacedProfile:
     rotation_b: np.ndarray | None = None
     edges_t: np.ndarray | None = None      # (M, 3) float32
     edge_across_t: np.ndarray | None = None  # (M, 3) float64, unit, into the gap
+    edge_per_px_t: np.ndarray | None = None  # (M, 3) float64, mm per px outward (drop-outs)
     edges: EdgePoints | None = None
     columns: np.ndarray | None = None       # (N,) int32
     saturated: np.ndarray | None = None     # (N,) bool
@@ -478,7 +479,8 @@ class PassAccumulator:
                                        profile.quality, tcp, profile.marker.residual_px,
                                        rotation,
                                        base_to_tcp(edges.point_b, tcp, rotation).astype(np.float32),
-                                       edges.across_b @ rotation, edges, profile.columns,
+                                       edges.across_b @ rotation, edges.per_px_b @ rotation,
+                                       edges, profile.columns,
                                        profile.saturated,
                                        profile.exposure_us * profile.gain)
         with self._lock:
@@ -591,9 +593,10 @@ def _without_partly_lit(placed: list[PlacedProfile], ratio: float):
 
 
 def _stitch_edges(scan: Scan, placed: list[PlacedProfile], calibration: Calibration) -> None:
-    """The profiles' edge points in {T}, less the drop-outs that bound an occlusion (which a
-    single profile cannot tell from a rim: ``scanner_core.edges.occluded_dropouts``) and the
-    points on a surface the sheet grazes (``scanner_core.edges.grazing_edges``)."""
+    """The profiles' edge points in {T}, the drop-outs of a chamfered outline placed at it
+    (``scanner_core.edges.chamfered_dropouts``), less the drop-outs that bound an occlusion
+    (which a single profile cannot tell from a rim: ``scanner_core.edges.occluded_dropouts``)
+    and the points on a surface the sheet grazes (``scanner_core.edges.grazing_edges``)."""
     if not placed:
         return
     counts = [len(p.edges_t) for p in placed]
@@ -606,6 +609,13 @@ def _stitch_edges(scan: Scan, placed: list[PlacedProfile], calibration: Calibrat
     sensors = np.repeat(scan.sensor_positions_t, counts, axis=0)
     keep = np.ones(len(points), bool)
     dropout = np.nonzero(kind == EdgeKind.DROPOUT)[0]
+    if len(dropout):
+        stripe_end = np.concatenate([p.edges.stripe_end for p in placed]).reshape(-1, 5)
+        per_px = np.concatenate([p.edge_per_px_t for p in placed]).reshape(-1, 3)
+        moved, _ = chamfered_dropouts(points[dropout], across[dropout], frames[dropout],
+                                      stripe_end[dropout], per_px[dropout],
+                                      scan.profile_spacing_mm)
+        points[dropout] = moved
     if len(dropout) and len(scan.cloud):
         keep[dropout[occluded_dropouts(points[dropout], across[dropout], sensors[dropout],
                                        scan.cloud)]] = False

@@ -12,8 +12,8 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.special import ndtr
 
-from scanner_core.edges import (EdgeKind, EdgeParams, EdgePoints, find_edges, grazing_edges,
-                                occluded_dropouts,
+from scanner_core.edges import (CHAMFER_MIN_POINTS, EdgeKind, EdgeParams, EdgePoints,
+                                chamfered_dropouts, find_edges, grazing_edges, occluded_dropouts,
                                 profile_axes)
 from scanner_core.stripe import Reason
 
@@ -53,6 +53,8 @@ class Profile:
     row: np.ndarray
     peak: np.ndarray
     reason: np.ndarray
+
+    background_dn: float = BACKGROUND_DN
 
     @property
     def valid(self) -> np.ndarray:
@@ -272,6 +274,131 @@ def test_short_blurred_chamfer_keeps_its_own_level(geometry, chamfer_px, at_righ
     chamfer_end = end + (0.5 if at_right else -0.5)
     found = edges.pixel[np.argmin(np.abs(edges.pixel[:, 0] - chamfer_end)), 0]
     assert found == pytest.approx(chamfer_end, abs=0.1)
+
+
+def chamfered_outline(geometry, wall, width_px=1.25, level=0.65, row_shift_px=0.4):
+    """Per column (of 700..1001) the share of the face and of a chamfer ``width_px`` wide
+    that ends at the continuous column ``wall`` (a column c spans c - 0.5 .. c + 0.5): the
+    columns' peaks with the chamfer lit at ``level`` of the face, and their rows, the
+    chamfer's ``row_shift_px`` off the face's line in proportion to its light."""
+    cols = np.arange(700, 1002)
+    lo, hi = cols - 0.5, cols + 0.5
+    face = np.clip(np.minimum(hi, wall - width_px) - lo, 0.0, 1.0)
+    chamfer = np.clip(np.minimum(hi, wall) - np.maximum(lo, wall - width_px), 0.0, 1.0)
+    light = face + level * chamfer
+    _, rows = surface_at(geometry, cols, NEAR_MM)
+    rows = rows + row_shift_px * np.divide(level * chamfer, light, out=np.zeros_like(light),
+                                           where=light > 0)
+    lit = light > 0.02
+    return cols[lit], rows[lit], BACKGROUND_DN + PEAK_DN * light[lit], face, chamfer
+
+
+@pytest.mark.parametrize("phase", [0.1, 0.3, 0.6, 0.9])
+def test_stripe_end_of_a_subpixel_chamfer(geometry, phase):
+    """A chamfer 1.25 px wide lit at 0.65 of the face, its rows 0.4 px off: the drop-out
+    reports its last two columns' levels (over the gap's, of the face's), the distance to
+    the outer side of its last column, that column's row off the face's line, and how the
+    point moves per px outward (``chamfered_dropouts`` places the outline by them)."""
+    wall = 999.5 + phase  # inside column 1000, `phase` of it lit
+    cols, rows, peaks, face, chamfer = chamfered_outline(geometry, wall)
+    profile = blank_profile()
+    set_stripe(profile, cols, rows, peaks)
+    edges = edges_of(geometry, make(profile))
+    i = int(np.argmax(edges.pixel[:, 0]))
+    assert edges.kind[i] == EdgeKind.DROPOUT and edges.direction[i] == 1
+    end = cols[peaks >= MIN_PEAK_DN].max()  # the last lit column (too faint below)
+    expected = (face + 0.65 * chamfer)[[end - 700, end - 701]]  # over the background
+    assert_allclose(edges.stripe_end[i, :2], expected, atol=1e-4)
+    assert edges.stripe_end[i, 2] == pytest.approx(end + 0.5 - edges.pixel[i, 0], abs=1e-5)
+    assert edges.stripe_end[i, 3] == pytest.approx(0.4, abs=0.05)
+    assert edges.stripe_end[i, 4] in (0.0, 1.0)  # whether the flank walk found the chamfer
+    a, _ = surface_at(geometry, [edges.pixel[i, 0], edges.pixel[i, 0] + 1.0], NEAR_MM)
+    outward = float(edges.per_px_b[i] @ edges.across_b[i])  # along the stripe, mm per px
+    assert outward == pytest.approx(a[1] - a[0], rel=0.02)
+    # steps carry none
+    assert np.all(np.isnan(edges.stripe_end[edges.kind == EdgeKind.STEP]))
+
+
+def _chain(rng, n=12, level=0.65, width_px=1.25, row_off=0.4, noise=0.02, mm_per_px=0.16):
+    """Drop-outs along the edge x = 0 (gap toward +x) of a chamfer's chain, one per profile:
+    their outline lies in their last lit column at lit fraction f; each point was placed
+    0.4 px inside it (as half the face's level places it)."""
+    f = rng.uniform(0.05, 1.0, n)
+    last = level * f
+    face_share = np.clip(f - width_px + 1.0, 0.0, 1.0)
+    before = face_share + level * (1.0 - face_share)
+    placed_px = -0.4  # where the point sits, px from the outline (inward)
+    offset = (1.0 - f) - placed_px  # from the point to the outer side of its last column
+    end = np.column_stack([last + rng.normal(0, noise, n), before + rng.normal(0, noise, n),
+                           offset, np.full(n, row_off) + rng.normal(0, 0.05, n),
+                           np.zeros(n)])
+    points = np.column_stack([np.full(n, placed_px * mm_per_px), 1.2 * np.arange(n), np.zeros(n)])
+    across = np.tile([1.0, 0.0, 0.0], (n, 1))
+    per_px = np.tile([mm_per_px, 0.0, 0.0], (n, 1))
+    return points, across, np.arange(n), end, per_px
+
+
+def test_chamfered_dropouts_move_a_chamfers_chain_to_its_outline(rng):
+    """12 profiles of a chamfer 1.25 px wide at 0.65 of the face, with 0.02 of level noise:
+    the chain's fit finds the level, and its points move from 0.4 px (64 um) inside the
+    outline to within 0.1 px of it."""
+    points, across, frames, end, per_px = _chain(rng)
+    moved, level = chamfered_dropouts(points, across, frames, end, per_px, 1.2)
+    assert_allclose(level, 0.65, atol=0.05)
+    assert np.sqrt(np.mean(moved[:, 0] ** 2)) < 0.1 * 0.16
+    assert_allclose(moved[:, 1:], points[:, 1:])
+
+
+def test_chamfered_dropouts_leave_what_is_no_narrow_chamfer(rng):
+    """A sharp edge (its last column at the face's level times f), a dim end whose rows do
+    not turn (no face of its own), points placed by a chamfer's own level, and a chain too
+    short to fit keep their places."""
+    points, across, frames, end, per_px = _chain(rng, level=1.0)
+    moved, level = chamfered_dropouts(points, across, frames, end, per_px, 1.2)
+    assert np.all(level >= 0.95)
+    assert_allclose(moved, points)
+    points, across, frames, end, per_px = _chain(rng, row_off=0.05)
+    moved, level = chamfered_dropouts(points, across, frames, end, per_px, 1.2)
+    assert np.all(level < 0.8)
+    assert_allclose(moved, points)
+    points, across, frames, end, per_px = _chain(rng)
+    end[::2, 4] = 1.0  # every other one placed by the chamfer's level in its profile
+    moved, _ = chamfered_dropouts(points, across, frames, end, per_px, 1.2)
+    assert_allclose(moved[::2], points[::2])
+    assert np.all(np.abs(moved[1::2, 0]) < 0.03)
+    points, across, frames, end, per_px = _chain(rng, n=CHAMFER_MIN_POINTS - 1)
+    moved, level = chamfered_dropouts(points, across, frames, end, per_px, 1.2)
+    assert np.all(np.isnan(level))
+    assert_allclose(moved, points)
+
+
+def test_chamfered_dropouts_split_chains_by_direction_and_profile(rng):
+    """A chamfer's chain beside a sharp edge's facing the other way (a slot's two sides
+    0.5 mm apart) are two chains; a chain whose profiles lie 10 frames apart is none."""
+    chamfer = _chain(rng)
+    sharp = list(_chain(rng, level=1.0))
+    sharp[0] = sharp[0] + [0.5, 0.0, 0.0]
+    sharp[1] = -sharp[1]
+    n = len(chamfer[0])
+    both = [np.concatenate([a, b]) for a, b in zip(chamfer, sharp)]
+    moved, level = chamfered_dropouts(*both, 1.2)
+    assert_allclose(level[:n], 0.65, atol=0.05)
+    assert np.all(level[n:] >= 0.95)
+    assert np.sqrt(np.mean(moved[:n, 0] ** 2)) < 0.1 * 0.16
+    assert_allclose(moved[n:], both[0][n:])
+    points, across, frames, end, per_px = _chain(rng)
+    moved, level = chamfered_dropouts(points, across, frames * 10, end, per_px, 1.2)
+    assert np.all(np.isnan(level))
+    assert_allclose(moved, points)
+
+
+def test_chamfered_dropouts_check_their_inputs():
+    with pytest.raises(ValueError, match="`stripe_end`"):
+        chamfered_dropouts(np.zeros((3, 3)), np.zeros((3, 3)), np.arange(3), np.zeros((3, 4)),
+                           np.zeros((3, 3)), 1.0)
+    empty, level = chamfered_dropouts(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, int),
+                                      np.zeros((0, 5)), np.zeros((0, 3)), float("nan"))
+    assert empty.shape == (0, 3) and level.shape == (0,)
 
 
 @pytest.mark.parametrize("stripe_dn, expected", [(60.0, 0), (80.0, 2)])

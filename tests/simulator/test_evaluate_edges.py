@@ -5,11 +5,14 @@ import pytest
 import trimesh
 from numpy.testing import assert_allclose
 
+import scanner_core.pipeline as pipeline
 from scanner_core.edges import EdgeKind
 from scanner_core.geometry import apply_transform, base_to_tcp
 from scanner_core.pipeline import PipelineParams, process_frame
 from simulator.evaluate import edge_accuracy, sharp_edges
-from simulator.session import camera_frames, parse_misplacement, simulated_cell
+from simulator.parts import part_from_mesh
+from simulator.session import (camera_frames, parse_misplacement, run_simulated_scan,
+                               simulated_cell)
 
 #: Float round-off of the distances, um.
 EXACT_UM = 1e-6
@@ -130,3 +133,45 @@ def test_demo_part_edges_lie_on_the_cad_edges(demo_pass_edges, block_part):
     # from the wall's edges in 3-D
     assert step["rms_3d_um"] > 2000.0
     assert np.all(np.isin(kinds, [EdgeKind.DROPOUT, EdgeKind.STEP]))
+
+
+def chamfered_box(extents=(40.0, 30.0, 12.0), chamfer_mm=0.2) -> trimesh.Trimesh:
+    """A box whose every edge is chamfered at 45 degrees, ``chamfer_mm`` on each face (the
+    hull of three boxes, each short of the full size by twice that along two axes):
+    ADIS16480's outline, narrower than a pixel's footprint in the reference cell."""
+    ext = np.asarray(extents, dtype=np.float64)
+    corners = []
+    for axis in range(3):
+        size = ext - 2.0 * chamfer_mm
+        size[axis] = ext[axis]
+        corners.append(trimesh.creation.box(extents=size).vertices)
+    mesh = trimesh.convex.convex_hull(np.concatenate(corners))
+    mesh.apply_translation((0.0, 0.0, ext[2] / 2.0))
+    return mesh
+
+
+def scan_chamfered_box(cell):
+    """One pass of the chamfered box, misplaced and turned: its part, scan and true grasp."""
+    part = part_from_mesh(chamfered_box(), name="chamfered box")
+    scan, report = run_simulated_scan(part, cell, misplacement=parse_misplacement(
+        "1,-1.5,0.5,1,-2,7"), seed=5, evaluate=False, pose=False)
+    return part, scan, np.asarray(report["ground_truth"]["grasp"])
+
+
+def dropout_accuracy(part, scan, grasp) -> dict:
+    return edge_accuracy(scan.edges[scan.edge_kind == EdgeKind.DROPOUT], part.mesh, grasp)
+
+
+def test_a_chamfered_outline_is_placed_at_the_outline(cell, monkeypatch):
+    """A 0.2 mm chamfer (1.25 px) along the underside's outline: its drop-outs lie on the
+    outline within the edge target (``scanner_core.edges.chamfered_dropouts``); placed by
+    half the face's level alone, they fall on the chamfer, about 0.4 px (65 um) inside."""
+    acc = dropout_accuracy(*scan_chamfered_box(cell))
+    assert acc["count"] >= 20
+    assert acc["outlier_fraction"] == 0.0
+    assert acc["rms_um"] < EDGE_RMS_UM
+    monkeypatch.setattr(pipeline, "chamfered_dropouts", lambda points, *args: (
+        np.asarray(points, np.float64), np.full(len(points), np.nan)))
+    unmoved = dropout_accuracy(*scan_chamfered_box(cell))
+    assert unmoved["count"] == acc["count"]
+    assert unmoved["rms_um"] > 1.5 * acc["rms_um"]
