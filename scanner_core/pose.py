@@ -1258,7 +1258,7 @@ def _uncertainty(fit: _Fit, params, rivals=()) -> tuple[np.ndarray, np.ndarray, 
         m = _rival_motion(fit.pose, rival)
         covariance = covariance + np.outer(m, m)
     free_scaled = vectors[:, ~strong]
-    free_axes = [_describe(v, s, c) for v in free_scaled.T]
+    free_axes = _free_motions(free_scaled, s, c)
     std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     std[3:] = np.degrees(std[3:])
     if free_axes:
@@ -1282,6 +1282,19 @@ def _uncertainty(fit: _Fit, params, rivals=()) -> tuple[np.ndarray, np.ndarray, 
         covariance[touched, :] = np.nan
         covariance[:, touched] = np.nan
     return covariance, std, free_axes
+
+
+def _free_motions(free_scaled, s, centre) -> list[dict]:
+    """The free motions (orthonormal columns of `free_scaled`, scaled parameters) in words,
+    the slides among them split out: two free turns about one axis through different points
+    (ADIS16480 with y_T and its turn free came out "about z_T, about z_T") span that turn and
+    a slide, which is how the free motion is read."""
+    if free_scaled.shape[1] > 1:
+        _, sv, vt = np.linalg.svd(free_scaled[3:])  # singular values in descending order
+        free_scaled = free_scaled @ vt.T  # turns first; columns past the rank only slide
+        rank = int(np.sum(sv > _SINGULAR * max(float(sv.max()), 1e-300)))
+        free_scaled[3:, rank:] = 0.0
+    return [_describe(v / np.linalg.norm(v), s, centre) for v in free_scaled.T]
 
 
 def _describe(vector_scaled, s, centre) -> dict:

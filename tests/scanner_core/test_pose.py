@@ -101,6 +101,26 @@ def test_block_pose_from_surfaces_and_edges(block, offset):
     assert np.all(np.abs(np.concatenate([dt, dr])) <= 4 * result.std + 1e-4)
 
 
+def test_two_free_turns_about_one_axis_read_as_a_turn_and_a_slide():
+    """A free subspace spanned by turns about z_T through (10, 0) and (-10, 0) mm holds a
+    slide along y_T (their difference): it is reported as that slide and one turn, not as
+    "about z_T" twice."""
+    from scanner_core.pose import _free_motions
+
+    scale = np.array([1.0, 1.0, 1.0, 20.0, 20.0, 20.0])
+
+    def turn_about_z_through(point):
+        w = np.array([0.0, 0.0, 1.0])
+        motion = np.concatenate([-np.cross(w, point), w * scale[3:]])  # about the origin
+        return motion / np.linalg.norm(motion)
+
+    basis, _ = np.linalg.qr(np.column_stack([turn_about_z_through(np.array([10.0, 0, 0])),
+                                             turn_about_z_through(np.array([-10.0, 0, 0]))]))
+    motions = _free_motions(basis, scale, np.zeros(3))
+    assert [m["label"] for m in motions] == ["about z_T", "along y_T"]
+    assert_allclose(motions[0]["through_mm"], [0.0, 0.0, 0.0], atol=1e-9)
+
+
 def test_surfaces_alone_leave_the_level_part_free_to_slide_and_turn(block):
     """The block's visible faces are all level: without its edges, x, y and the turn about z
     are not observable, reported as free and left at the nominal grasp."""
