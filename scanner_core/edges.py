@@ -250,12 +250,16 @@ class EdgePoints:
         NaN when too few points to tell.
     stripe_end : (M, 5) float32
         Drop-out: its last lit column's peak and the one before it over the image's
-        background (``result.background_dn``), as fractions of the face's level further in
-        (the light each holds: a peak is its column's largest pixel), the distance from the point to the outer side of that column (px,
-        outward), that column's row off the face's line (px), and 1 where the point was
-        placed by a chamfer's own level (its rows turned short of the end), else 0: what
-        :func:`chamfered_dropouts` places a chamfered outline by. NaN for a step, and for
-        levels where the side is too short to hold its face.
+        background (``result.background_dn``), as fractions of the face's level 3 to 5
+        columns in (the light each holds: a peak is its column's largest pixel), the
+        distance from the point to the outer side of that column (px, outward), that
+        column's row off the face's line (px), and 1 where the point was placed by a
+        chamfer's own level (its rows turned short of the end), else 0: what
+        :func:`chamfered_dropouts` places a chamfered outline by. NaN for a step; the levels
+        and row NaN where the side is too short or broken for its face, or its face is no
+        brighter than the background. A last column lit too faintly to pass the stripe's
+        threshold is dark: the one before it is then the last, and the outline lies up to
+        that faint share of a column beyond where the fit puts it.
     per_px_b : (M, 3) float64
         Drop-out: how the point moves in {B}, mm, when its column moves one px outward along
         its side's rows. NaN for a step.
@@ -278,6 +282,9 @@ class EdgePoints:
             object.__setattr__(self, "stripe_end", np.full((m, 5), np.nan, np.float32))
         if self.per_px_b is None:
             object.__setattr__(self, "per_px_b", np.full((m, 3), np.nan))
+        if np.shape(self.stripe_end) != (m, 5) or np.shape(self.per_px_b) != (m, 3):
+            raise ValueError(f"`stripe_end` and `per_px_b` must be ({m}, 5) and ({m}, 3), got "
+                             f"{np.shape(self.stripe_end)} and {np.shape(self.per_px_b)}")
 
     def __len__(self) -> int:
         return len(self.kind)
@@ -627,9 +634,9 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
              valid, dark, side_px, threshold, noise, curl, bend, min_contrast, keep_far,
              background, fx, fy, cx, cy, n, offset, out_pc, out):
     """The drop-out edge at one end of a stripe (sign -1: its first column, +1: its last),
-    into out_pc (point in {C}) and out (u, v, size, level). False when there is none: the far
-    side of a gap across a range step, a side too faint for its gap, or a ray that misses the
-    sheet.
+    into out_pc (point in {C}) and out (u, v, size, level, then :func:`_stripe_end`'s
+    fields). False when there is none: the far side of a gap across a range step, a side too
+    faint for its gap, or a ray that misses the sheet.
 
     k_other is the other side's end point (-1: the stripe does not come back), o_lo..o_hi-1
     the other side's points next to the gap."""
@@ -715,11 +722,13 @@ def _stripe_end(k_end, sign, lo, hi, c_end, u, v, row_slope, vcol, vrow, vpeak, 
                 bent, fx, fy, cx, cy, n, offset, point, out):
     """What :func:`chamfered_dropouts` needs of a drop-out, into out[4:12]: its last two lit
     columns' peaks over the background as fractions of the face's (the median of the
-    END_FACE_PX columns from END_FACE_FROM in), the distance from the point to the outer side of its last lit
-    column (px), the end column's row off the face's line fitted further in (px), how the
-    point moves in {C} per px outward along the side's rows (mm), and whether its flank walk
-    found a chamfer (`bent`: it is placed by that chamfer's own level). No levels where the
-    side is too short or broken for a face level."""
+    END_FACE_PX columns from END_FACE_FROM in), the distance from the point to the outer
+    side of its last lit column (px), the end column's row off the line of the face's
+    columns 2 to 5 in (px), how the point moves in {C} per px outward along the side's rows
+    (mm; by the ideal pinhole, as the kernel's rays), and whether its flank walk found a
+    chamfer (`bent`: it is placed by that chamfer's own level). No levels where the side is
+    too short, broken by a bridged gap, or no brighter than the background where its face
+    should be."""
     for i in range(4, 12):
         out[i] = math.nan
     out[6] = (c_end + 0.5 * sign - u) * sign
@@ -732,13 +741,16 @@ def _stripe_end(k_end, sign, lo, hi, c_end, u, v, row_slope, vcol, vrow, vpeak, 
         if face > 0.0:
             out[4] = (vpeak[k_end] - background) / face
             out[5] = (vpeak[k_end - sign] - background) / face
+            # the face's rows from columns 2 to 5 in: three columns' line, extrapolated,
+            # turned idler_riser's blurred ends 0.5-1.6 px off; a chamfer reaching into the
+            # second column shrinks the offset, which only makes the test stricter
             g_lo = min(k_in, k_end - 2 * sign)
             fxm, fym, fsl, _ = _fit_line(vcol, vrow, g_lo, g_lo + END_FACE_PX + 1)
             out[7] = vrow[k_end] - (fym + fsl * (vcol[k_end] - fxm))
-    moved = np.empty(3)
+    moved = out[8:11]  # a view: no allocation per drop-out
     if _triangulate(u + sign, v + sign * row_slope, fx, fy, cx, cy, n, offset, moved):
         for i in range(3):
-            out[8 + i] = moved[i] - point[i]
+            moved[i] -= point[i]
 
 
 @njit(nogil=True, cache=True)
@@ -1109,6 +1121,13 @@ def occluded_dropouts(points_t, across_t, sensors_t, cloud_t, *, probe_mm: float
 CHAMFER_MAX_LEVEL = 0.85
 #: Fewest drop-outs along one edge to fit its chamfer by.
 CHAMFER_MIN_POINTS = 6
+#: A chamfer must explain its chain's levels better than a sharp edge by this much per
+#: profile (mean squared residual, squared fractions of the face's level: 0.07 of it RMS).
+#: An edge the profiles cross at one phase fits a sharp edge as well (the chamfer's level
+#: and the lit fraction cannot be told apart): nothing is moved then. Noise alone gained
+#: at most 0.002 on 800 synthetic sharp chains (6-30 profiles, 0.03-0.05 of level noise,
+#: the phase varying or fixed); ADIS16480's chamfer chains gained 0.011 to 0.076.
+CHAMFER_MIN_GAIN = 0.005
 #: Drop-outs along one edge: within this many profiles of each other, their directions into
 #: the gap within CHAIN_DEG, and within CHAIN_SPACINGS profile spacings (at least
 #: CHAIN_MIN_MM) of each other.
@@ -1136,7 +1155,8 @@ def chamfered_dropouts(points_t, across_t, frame_ids, stripe_end, per_px_t, spac
     in part by the near surface, in proportion to the share of the pixel it covers"``, as
     at steps). ``c`` and ``w`` are fitted to the chain's levels by least squares (a grid:
     ``c`` from 0.2 to 1, ``w`` from 1 to 2 px), each profile's ``f`` with them in closed
-    form. Where ``c`` is below ``CHAMFER_MAX_LEVEL`` and the chain's last columns lie off
+    form. Where ``c`` is below ``CHAMFER_MAX_LEVEL``, explains the levels better than a
+    sharp edge by ``CHAMFER_MIN_GAIN``, and the chain's last columns lie off
     their faces' lines by ``ROW_BEND_PX`` or more (median: a face turned against the one
     inward puts its stripe on a line of its own, as :func:`_bends` judges a wider chamfer;
     one partly lit column's row is too noisy to judge alone), its points move to the
@@ -1147,8 +1167,10 @@ def chamfered_dropouts(points_t, across_t, frame_ids, stripe_end, per_px_t, spac
     ``f``, a blurred edge dims over a few columns without turning its rows, and a chamfer
     two columns wide or more has been placed by its own level in the profile.
 
-    ADIS16480's 16 outline chains in the bench's 8 scans fitted ``c`` 0.45 to 0.80 with their
-    rows 0.31 to 0.50 px off; their points moved from 26-75 um RMS to 8-38 um.
+    ADIS16480's 16 outline chains in the bench's 8 scans fitted ``c`` 0.42 to 0.79 with their
+    rows 0.31 to 0.50 px off; their points moved from 26-75 um RMS to 13-35 um. Costs 1.5 ms
+    for a scan's 28 drop-outs, 6 ms for 220 (bench pose's scans, 2 cores); memory, one
+    (widths, points) array at a time.
 
     Parameters
     ----------
@@ -1181,7 +1203,7 @@ def chamfered_dropouts(points_t, across_t, frame_ids, stripe_end, per_px_t, spac
     across = _points3(across_t, "across_t")
     per_px = _points3(per_px_t, "per_px_t")
     end = np.asarray(stripe_end, dtype=np.float64)
-    frames = np.asarray(frame_ids).reshape(-1)
+    frames = np.asarray(frame_ids).reshape(-1).astype(np.int64)  # unsigned ids would wrap
     m = len(points)
     if across.shape != points.shape or per_px.shape != points.shape or end.shape != (m, 5) \
             or frames.shape != (m,):
@@ -1206,9 +1228,10 @@ def chamfered_dropouts(points_t, across_t, frame_ids, stripe_end, per_px_t, spac
         members = usable[label[usable] == chain]
         if len(members) < CHAMFER_MIN_POINTS:
             continue
-        c, _, fill = _fit_chamfer(end[members, 0], end[members, 1])
+        c, _, fill, gain = _fit_chamfer(end[members, 0], end[members, 1])
         level[members] = c
-        if c < CHAMFER_MAX_LEVEL and abs(np.median(end[members, 3])) >= ROW_BEND_PX:
+        if (c < CHAMFER_MAX_LEVEL and gain >= CHAMFER_MIN_GAIN
+                and abs(np.median(end[members, 3])) >= ROW_BEND_PX):
             shift_px = np.where(end[members, 4] > 0, 0.0, end[members, 2] - (1.0 - fill))
             out[members] += shift_px[:, None] * per_px[members]
     return out, level
@@ -1216,23 +1239,33 @@ def chamfered_dropouts(points_t, across_t, frame_ids, stripe_end, per_px_t, spac
 
 def _fit_chamfer(last, before):
     """The chamfer level c and width w (px) that best explain one chain's last two column
-    levels (:func:`chamfered_dropouts`), and each profile's lit fraction f of its last
-    column under them: c, w and the fractions."""
-    c = _CHAMFER_LEVELS[:, None, None]
-    w = _CHAMFER_WIDTHS_PX[None, :, None]
-    last, before = last[None, None, :], before[None, None, :]
-    # f <= w - 1: the column before is all chamfer
-    f_a = np.clip(last / c, 0.0, w - 1.0)
-    cost_a = (last - c * f_a) ** 2 + (before - c) ** 2
-    # f >= w - 1: the column before holds face on f - w + 1 of it
-    rest = before - c + (1.0 - c) * (w - 1.0)
-    f_b = np.clip((c * last + (1.0 - c) * rest) / (c**2 + (1.0 - c) ** 2), w - 1.0, 1.0)
-    cost_b = (last - c * f_b) ** 2 + (before - c - (1.0 - c) * (f_b - w + 1.0)) ** 2
-    first = cost_a <= cost_b
-    cost = np.where(first, cost_a, cost_b)
-    best = np.unravel_index(np.argmin(cost.sum(axis=2)), cost.shape[:2])
-    fill = np.where(first, f_a, f_b)[best[0], best[1]]
-    return float(_CHAMFER_LEVELS[best[0]]), float(_CHAMFER_WIDTHS_PX[best[1]]), fill
+    levels (:func:`chamfered_dropouts`), each profile's lit fraction f of its last column
+    under them, and how much better per profile than a sharp edge (c = 1) they explain
+    them (mean squared residual, in squared fractions of the face's level): c, w, the
+    fractions and the gain. Levels are tried from 1 down, a tie keeping the higher (a
+    sharp edge crossed at one phase fits c = f, f = 1 as well as c = 1). Memory: one
+    (widths, points) array at a time."""
+    w = _CHAMFER_WIDTHS_PX[:, None]
+    best_cost, best = np.inf, None
+    sharp_cost = np.inf
+    for c in _CHAMFER_LEVELS[::-1]:
+        # f <= w - 1: the column before is all chamfer
+        f_a = np.clip(last / c, 0.0, w - 1.0)
+        cost_a = (last - c * f_a) ** 2 + (before - c) ** 2
+        # f >= w - 1: the column before holds face on f - w + 1 of it
+        rest = before - c + (1.0 - c) * (w - 1.0)
+        f_b = np.clip((c * last + (1.0 - c) * rest) / (c**2 + (1.0 - c) ** 2), w - 1.0, 1.0)
+        cost_b = (last - c * f_b) ** 2 + (before - c - (1.0 - c) * (f_b - w + 1.0)) ** 2
+        first = cost_a <= cost_b
+        totals = np.where(first, cost_a, cost_b).sum(axis=1)
+        k = int(np.argmin(totals))
+        if c == _CHAMFER_LEVELS[-1]:
+            sharp_cost = float(totals[k])
+        if totals[k] < best_cost:
+            best_cost = float(totals[k])
+            best = (float(c), float(_CHAMFER_WIDTHS_PX[k]), np.where(first[k], f_a[k], f_b[k]))
+    c, width, fill = best
+    return c, width, fill, (sharp_cost - best_cost) / len(last)
 
 
 def _on_own_profile(points, frame_ids, cloud, cloud_frames, tree, k: int = 32):

@@ -751,6 +751,8 @@ _WARM_TOL_FACTOR = 100.0
 _WARM_MAX_ITERATIONS = 6
 # Information below this fraction of the strongest is no information (numerical zero).
 _SINGULAR = 1e-10
+# A free motion's turn part (scaled, of a unit motion) below this is round-off: it slides.
+_FREE_TURN = 1e-8
 # Model points that seed a coarse candidate's translation.
 _SEED_POINTS = 5000
 # Queries with more points than this use both cores.
@@ -1286,15 +1288,32 @@ def _uncertainty(fit: _Fit, params, rivals=()) -> tuple[np.ndarray, np.ndarray, 
 
 def _free_motions(free_scaled, s, centre) -> list[dict]:
     """The free motions (orthonormal columns of `free_scaled`, scaled parameters) in words,
-    the slides among them split out: two free turns about one axis through different points
-    (ADIS16480 with y_T and its turn free came out "about z_T, about z_T") span that turn and
-    a slide, which is how the free motion is read."""
-    if free_scaled.shape[1] > 1:
+    turns first, then slides along the {T} axes where they can be: a free subspace that
+    holds a turn and a slide can come out of the eigen-decomposition as two mixed motions
+    (ADIS16480 with y_T and its turn free read "about z_T, about z_T")."""
+    k = free_scaled.shape[1]
+    if k > 1:
         _, sv, vt = np.linalg.svd(free_scaled[3:])  # singular values in descending order
-        free_scaled = free_scaled @ vt.T  # turns first; columns past the rank only slide
-        rank = int(np.sum(sv > _SINGULAR * max(float(sv.max()), 1e-300)))
-        free_scaled[3:, rank:] = 0.0
+        rank = int(np.sum(sv > _FREE_TURN))  # unit columns: an absolute floor
+        basis = free_scaled @ vt.T  # the first `rank` turn; the rest only slide
+        basis[3:, rank:] = 0.0
+        if k - rank > 1:
+            basis[:3, rank:] = _axis_aligned(basis[:3, rank:])
+        free_scaled = basis
     return [_describe(v / np.linalg.norm(v), s, centre) for v in free_scaled.T]
+
+
+def _axis_aligned(slides) -> np.ndarray:
+    """An orthonormal basis of the span of `slides` ((3, m), orthonormal columns) whose
+    vectors lie as close to the {T} axes as the span allows, nearest first."""
+    projector = slides @ slides.T
+    out = []
+    for _ in range(slides.shape[1]):
+        candidates = projector - sum((np.outer(b, b) for b in out), np.zeros((3, 3)))
+        axis = int(np.argmax(np.linalg.norm(candidates, axis=0)))
+        vector = candidates[:, axis]
+        out.append(vector / np.linalg.norm(vector))
+    return np.column_stack(out)
 
 
 def _describe(vector_scaled, s, centre) -> dict:

@@ -276,15 +276,18 @@ def test_short_blurred_chamfer_keeps_its_own_level(geometry, chamfer_px, at_righ
     assert found == pytest.approx(chamfer_end, abs=0.1)
 
 
-def chamfered_outline(geometry, wall, width_px=1.25, level=0.65, row_shift_px=0.4):
-    """Per column (of 700..1001) the share of the face and of a chamfer ``width_px`` wide
-    that ends at the continuous column ``wall`` (a column c spans c - 0.5 .. c + 0.5): the
-    columns' peaks with the chamfer lit at ``level`` of the face, and their rows, the
-    chamfer's ``row_shift_px`` off the face's line in proportion to its light."""
-    cols = np.arange(700, 1002)
-    lo, hi = cols - 0.5, cols + 0.5
-    face = np.clip(np.minimum(hi, wall - width_px) - lo, 0.0, 1.0)
-    chamfer = np.clip(np.minimum(hi, wall) - np.maximum(lo, wall - width_px), 0.0, 1.0)
+def chamfered_outline(geometry, wall, at_right, width_px=1.25, level=0.65, row_shift_px=0.4):
+    """A stripe over columns 700..1000 that ends at the continuous column ``wall`` (a column
+    c spans c - 0.5 .. c + 0.5) on its right or left, through a chamfer ``width_px`` wide lit
+    at ``level`` of the face, its rows ``row_shift_px`` off the face's line in proportion to
+    its light: the lit columns, rows and peaks, and each column's (of 650..1049) face and
+    chamfer shares."""
+    cols = np.arange(650, 1050)
+    inward = wall - cols if at_right else cols - wall  # each column's centre, from the wall
+    lo, hi = inward - 0.5, inward + 0.5
+    chamfer = np.clip(np.minimum(hi, width_px) - np.maximum(lo, 0.0), 0.0, 1.0)
+    face = np.clip(hi - np.maximum(lo, width_px), 0.0, 1.0)
+    face[(cols < 700) if at_right else (cols > 1000)] = 0.0  # the stripe's other end
     light = face + level * chamfer
     _, rows = surface_at(geometry, cols, NEAR_MM)
     rows = rows + row_shift_px * np.divide(level * chamfer, light, out=np.zeros_like(light),
@@ -293,37 +296,45 @@ def chamfered_outline(geometry, wall, width_px=1.25, level=0.65, row_shift_px=0.
     return cols[lit], rows[lit], BACKGROUND_DN + PEAK_DN * light[lit], face, chamfer
 
 
+@pytest.mark.parametrize("at_right", [True, False])
 @pytest.mark.parametrize("phase", [0.1, 0.3, 0.6, 0.9])
-def test_stripe_end_of_a_subpixel_chamfer(geometry, phase):
+def test_stripe_end_of_a_subpixel_chamfer(geometry, phase, at_right):
     """A chamfer 1.25 px wide lit at 0.65 of the face, its rows 0.4 px off: the drop-out
-    reports its last two columns' levels (over the gap's, of the face's), the distance to
-    the outer side of its last column, that column's row off the face's line, and how the
-    point moves per px outward (``chamfered_dropouts`` places the outline by them)."""
-    wall = 999.5 + phase  # inside column 1000, `phase` of it lit
-    cols, rows, peaks, face, chamfer = chamfered_outline(geometry, wall)
+    reports its last two columns' light (over the background, of the face's), the distance
+    to the outer side of its last column, that column's row off the face's line, whether
+    its flank walk found the chamfer, and how the point moves per px outward
+    (``chamfered_dropouts`` places the outline by them). At either end of the stripe."""
+    sign = 1 if at_right else -1
+    wall = (999.5 + phase) if at_right else (700.5 - phase)  # `phase` of the end column lit
+    cols, rows, peaks, face, chamfer = chamfered_outline(geometry, wall, at_right)
     profile = blank_profile()
     set_stripe(profile, cols, rows, peaks)
     edges = edges_of(geometry, make(profile))
-    i = int(np.argmax(edges.pixel[:, 0]))
-    assert edges.kind[i] == EdgeKind.DROPOUT and edges.direction[i] == 1
-    end = cols[peaks >= MIN_PEAK_DN].max()  # the last lit column (too faint below)
-    expected = (face + 0.65 * chamfer)[[end - 700, end - 701]]  # over the background
+    i = int(np.argmax(edges.pixel[:, 0] * sign))
+    assert edges.kind[i] == EdgeKind.DROPOUT and edges.direction[i] == sign
+    lit = cols[peaks >= MIN_PEAK_DN]  # too faint below: dark
+    end = lit.max() if at_right else lit.min()
+    expected = (face + 0.65 * chamfer)[[end - 650, end - sign - 650]]  # over the background
     assert_allclose(edges.stripe_end[i, :2], expected, atol=1e-4)
-    assert edges.stripe_end[i, 2] == pytest.approx(end + 0.5 - edges.pixel[i, 0], abs=1e-5)
-    assert edges.stripe_end[i, 3] == pytest.approx(0.4, abs=0.05)
-    assert edges.stripe_end[i, 4] in (0.0, 1.0)  # whether the flank walk found the chamfer
-    a, _ = surface_at(geometry, [edges.pixel[i, 0], edges.pixel[i, 0] + 1.0], NEAR_MM)
+    assert edges.stripe_end[i, 2] == pytest.approx((end + 0.5 * sign - edges.pixel[i, 0]) * sign,
+                                                   abs=1e-5)
+    assert abs(edges.stripe_end[i, 3]) == pytest.approx(0.4, abs=0.05)  # rows run either way
+    # the chamfer fills column 999 (or 701) with its rows turned: the flank walk stops there
+    assert edges.stripe_end[i, 4] == (1.0 if phase == 0.3 else 0.0)
+    a, _ = surface_at(geometry, [edges.pixel[i, 0], edges.pixel[i, 0] + sign], NEAR_MM)
     outward = float(edges.per_px_b[i] @ edges.across_b[i])  # along the stripe, mm per px
-    assert outward == pytest.approx(a[1] - a[0], rel=0.02)
+    assert outward == pytest.approx(abs(a[1] - a[0]), rel=0.02)
     # steps carry none
     assert np.all(np.isnan(edges.stripe_end[edges.kind == EdgeKind.STEP]))
 
 
-def _chain(rng, n=12, level=0.65, width_px=1.25, row_off=0.4, noise=0.02, mm_per_px=0.16):
+def _chain(rng, n=12, level=0.65, width_px=1.25, row_off=0.4, noise=0.02, mm_per_px=0.16,
+           phase=None):
     """Drop-outs along the edge x = 0 (gap toward +x) of a chamfer's chain, one per profile:
-    their outline lies in their last lit column at lit fraction f; each point was placed
-    0.4 px inside it (as half the face's level places it)."""
-    f = rng.uniform(0.05, 1.0, n)
+    their outline lies in their last lit column at lit fraction f (random, or `phase` in
+    every profile); each point was placed 0.4 px inside it (as half the face's level places
+    it)."""
+    f = rng.uniform(0.05, 1.0, n) if phase is None else np.full(n, phase)
     last = level * f
     face_share = np.clip(f - width_px + 1.0, 0.0, 1.0)
     before = face_share + level * (1.0 - face_share)
@@ -350,12 +361,16 @@ def test_chamfered_dropouts_move_a_chamfers_chain_to_its_outline(rng):
 
 
 def test_chamfered_dropouts_leave_what_is_no_narrow_chamfer(rng):
-    """A sharp edge (its last column at the face's level times f), a dim end whose rows do
-    not turn (no face of its own), points placed by a chamfer's own level, and a chain too
-    short to fit keep their places."""
+    """A sharp edge (its last column at the face's level times f), one crossed at the same
+    phase by every profile (which fits a chamfer at that level as well as a sharp edge), a
+    dim end whose rows do not turn (no face of its own), points placed by a chamfer's own
+    level, and a chain too short to fit keep their places."""
     points, across, frames, end, per_px = _chain(rng, level=1.0)
     moved, level = chamfered_dropouts(points, across, frames, end, per_px, 1.2)
     assert np.all(level >= 0.95)
+    assert_allclose(moved, points)
+    points, across, frames, end, per_px = _chain(rng, level=1.0, phase=0.6)
+    moved, _ = chamfered_dropouts(points, across, frames, end, per_px, 1.2)
     assert_allclose(moved, points)
     points, across, frames, end, per_px = _chain(rng, row_off=0.05)
     moved, level = chamfered_dropouts(points, across, frames, end, per_px, 1.2)

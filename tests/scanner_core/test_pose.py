@@ -101,24 +101,32 @@ def test_block_pose_from_surfaces_and_edges(block, offset):
     assert np.all(np.abs(np.concatenate([dt, dr])) <= 4 * result.std + 1e-4)
 
 
-def test_two_free_turns_about_one_axis_read_as_a_turn_and_a_slide():
-    """A free subspace spanned by turns about z_T through (10, 0) and (-10, 0) mm holds a
-    slide along y_T (their difference): it is reported as that slide and one turn, not as
-    "about z_T" twice."""
+def test_free_motions_read_as_turns_and_slides(rng):
+    """Free motions in words (``_free_motions``): two mixed motions that each turn mostly
+    about z_T, one sliding along +y_T and one along -y_T (orthonormal, as the information's
+    eigenvectors come), read as a turn about z_T and a slide along y_T, not "about z_T"
+    twice; slides along x_T and y_T mixed at random, with round-off in their turn parts,
+    read as those slides; one free motion is described as it is."""
     from scanner_core.pose import _free_motions
 
     scale = np.array([1.0, 1.0, 1.0, 20.0, 20.0, 20.0])
-
-    def turn_about_z_through(point):
-        w = np.array([0.0, 0.0, 1.0])
-        motion = np.concatenate([-np.cross(w, point), w * scale[3:]])  # about the origin
-        return motion / np.linalg.norm(motion)
-
-    basis, _ = np.linalg.qr(np.column_stack([turn_about_z_through(np.array([10.0, 0, 0])),
-                                             turn_about_z_through(np.array([-10.0, 0, 0]))]))
-    motions = _free_motions(basis, scale, np.zeros(3))
-    assert [m["label"] for m in motions] == ["about z_T", "along y_T"]
-    assert_allclose(motions[0]["through_mm"], [0.0, 0.0, 0.0], atol=1e-9)
+    centre = np.zeros(3)
+    slide = 0.9014  # makes the two motions orthogonal
+    mixed = np.column_stack([[0.0, slide, 0.0, 0.3, 0.0, 0.95],
+                             [0.0, -slide, 0.0, -0.3, 0.0, 0.95]])
+    mixed /= np.linalg.norm(mixed, axis=0)
+    assert abs(mixed[:, 0] @ mixed[:, 1]) < 1e-4
+    assert [m["label"] for m in _free_motions(mixed, scale, centre)] == ["about z_T",
+                                                                        "along y_T"]
+    for _ in range(20):
+        slides = np.zeros((6, 2))
+        slides[0, 0] = slides[1, 1] = 1.0
+        slides[3:] = rng.normal(0.0, 1e-17, (3, 2))
+        turned = slides @ np.linalg.qr(rng.normal(size=(2, 2)))[0]
+        labels = sorted(m["label"] for m in _free_motions(turned, scale, centre))
+        assert labels == ["along x_T", "along y_T"]
+    one = np.array([[0.0, 0.0, 0.0, 0.0, 0.0, 1.0]]).T
+    assert [m["label"] for m in _free_motions(one, scale, centre)] == ["about z_T"]
 
 
 def test_surfaces_alone_leave_the_level_part_free_to_slide_and_turn(block):
