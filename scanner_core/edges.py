@@ -419,8 +419,8 @@ def find_edges(result, valid, camera: PinholeCamera, light_plane_c: Plane, *,
         # The kernel's rays are the ideal pinhole's: a lens bends them by up to a few pixels at
         # the border, which moves the edge's position but not the steps it found.
         point_b = triangulate_stripe(pixel, camera, light_plane_c)
-    per_px_b = np.einsum("ij,jk->ik", end[:, 4:7], camera.rotation)  # {C} -> {B}, no BLAS
-    stripe_end = np.concatenate([end[:, :4], end[:, 7:8]], axis=1).astype(np.float32)
+    per_px_b = np.einsum("ij,jk->ik", end[:, 5:8], camera.rotation)  # {C} -> {B}, no BLAS
+    stripe_end = end[:, :5].astype(np.float32)
     return EdgePoints(pixel, point_b, kind, size, pk.astype(np.float32), direction, along_b,
                       float(noise), stripe_end, per_px_b)
 
@@ -724,15 +724,16 @@ def _stripe_end(k_end, sign, lo, hi, c_end, u, v, row_slope, vcol, vrow, vpeak, 
     columns' peaks over the background as fractions of the face's (the median of the
     END_FACE_PX columns from END_FACE_FROM in), the distance from the point to the outer
     side of its last lit column (px), the end column's row off the line of the face's
-    columns 2 to 5 in (px), how the point moves in {C} per px outward along the side's rows
-    (mm; by the ideal pinhole, as the kernel's rays), and whether its flank walk found a
-    chamfer (`bent`: it is placed by that chamfer's own level). No levels where the side is
+    columns 2 to 5 in (px), whether its flank walk found a chamfer (`bent`: it is placed by
+    that chamfer's own level): ``EdgePoints.stripe_end``; then how the point moves in {C}
+    per px outward along the side's rows (mm; by the ideal pinhole, as the kernel's rays):
+    ``EdgePoints.per_px_b`` once rotated. No levels where the side is
     too short, broken by a bridged gap, or no brighter than the background where its face
     should be."""
     for i in range(4, 12):
         out[i] = math.nan
     out[6] = (c_end + 0.5 * sign - u) * sign
-    out[11] = 1.0 if bent else 0.0
+    out[8] = 1.0 if bent else 0.0
     k_in = k_end - (END_FACE_FROM + END_FACE_PX - 1) * sign
     if (lo <= k_in < hi
             and abs(vcol[k_end] - vcol[k_in]) == END_FACE_FROM + END_FACE_PX - 1):
@@ -747,7 +748,7 @@ def _stripe_end(k_end, sign, lo, hi, c_end, u, v, row_slope, vcol, vrow, vpeak, 
             g_lo = min(k_in, k_end - 2 * sign)
             fxm, fym, fsl, _ = _fit_line(vcol, vrow, g_lo, g_lo + END_FACE_PX + 1)
             out[7] = vrow[k_end] - (fym + fsl * (vcol[k_end] - fxm))
-    moved = out[8:11]  # a view: no allocation per drop-out
+    moved = out[9:12]  # a view: no allocation per drop-out
     if _triangulate(u + sign, v + sign * row_slope, fx, fy, cx, cy, n, offset, moved):
         for i in range(3):
             moved[i] -= point[i]
