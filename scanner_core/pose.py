@@ -907,18 +907,32 @@ def _agreements(surface: _Terms, edges: _Terms | None, poses, tol_surface: float
     finds its model edge within `edge_search_mm` beyond `tol_edge` (a step's point of
     unknown height lies up to half the tallest step from its edge; a query that far costs
     six times one within a millimetre)."""
-    scores = _matched_fraction(surface, poses, tol_surface + 2.0 * _spacing(surface.model),
+    scores = _matched_fraction(surface, poses, _surface_bound(surface, tol_surface),
                                tol_surface, planes=True)
     if edges is None or not len(edges.points):
         return scores + 1.0
-    return scores + _matched_fraction(edges, poses,
-                                      tol_edge + _spacing(edges.model) + edge_search_mm,
+    return scores + _matched_fraction(edges, poses, _edge_bound(edges, tol_edge, edge_search_mm),
                                       tol_edge, planes=False)
 
 
+def _surface_bound(surface: _Terms, tol: float) -> float:
+    """How far (mm) a surface point's model sample may lie for a match within `tol`."""
+    return tol + 2.0 * _spacing(surface.model)
+
+
+def _edge_bound(edges: _Terms, tol: float, search_mm: float = _EDGE_SEARCH_MM) -> float:
+    return tol + _spacing(edges.model) + search_mm
+
+
 def _matched_fraction(terms: _Terms, poses, bound, tol, *, planes: bool) -> np.ndarray:
-    """(P,) fraction of `terms`' points within `tol` of their model at each pose: of its
-    plane (normals agreeing) for surfaces, of its edge across it in (x_T, y_T) for edges.
+    """(P,) fraction of `terms`' points :func:`_matched` at each pose."""
+    return _matched(terms, poses, bound, tol, planes=planes).sum(axis=1) / max(len(terms.points), 1)
+
+
+def _matched(terms: _Terms, poses, bound, tol, *, planes: bool) -> np.ndarray:
+    """(P, N) bool: whether each of `terms`' points lies within `tol` of its model at each
+    pose: of its plane (normals agreeing) for surfaces, of its edge across it in (x_T, y_T)
+    for edges.
     Residuals are taken in {P}, where the model lies (a distance does not change with the
     frame), so each pose's rotation is applied once per point, not per match."""
     count, n = len(poses), len(terms.points)
@@ -944,7 +958,9 @@ def _matched_fraction(terms: _Terms, poses, bound, tol, *, planes: bool) -> np.n
         level = np.sqrt(np.maximum(1.0 - np.sum(up * direction, axis=1) ** 2, 0.0))
         across = np.abs(np.sum(up * np.cross(direction, offset), axis=1))
         ok = (level > _MIN_EDGE_LEVEL) & (across <= tol * level)
-    return np.bincount(which[ok], minlength=count) / max(n, 1)
+    matched = np.zeros(count * n, bool)
+    matched[hit[ok]] = True
+    return matched.reshape(count, n)
 
 
 # The coarse candidates are ranked at these tolerances (mm, surface and edges): wide enough
@@ -1063,6 +1079,12 @@ _PROBE_MARGIN = 0.01
 # The quick refinement of a probe: points and iterations (a tenth of the fit's cost).
 _PROBE_POINTS, _PROBE_ITERATIONS = 400, 4
 _RIVAL_SCORE = 0.002
+# ... or within this many standard errors of the paired difference of the two agreements
+# (McNemar 1947, per profile: of the points one pose matches and the other does not, as many
+# each way when the scan cannot tell them apart). ADIS16480 seen on its 44 x 14 mm end in 12 profiles
+# has two minima 0.15 degree apart about z_T that differ by 8 of 2 600 surface points: the
+# one 0.003 better was reported with a sigma of 20 mdeg.
+_RIVAL_Z = 2.0
 # A rival this close to the fit (degrees, mm) is the same minimum.
 _RIVAL_SAME_DEG, _RIVAL_SAME_MM = 0.02, 0.02
 
@@ -1071,7 +1093,7 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
     """The converged fit checked against refits from turns of it about its weakest rotation.
 
     Returns the fit (or a probe's, when it scores clearly better: ``_BETTER_TURN``) and the
-    others that score as well (within ``_RIVAL_SCORE``, or better) but lie elsewhere: distinct
+    others that score as well (within :func:`_rival_margin`, or better) but lie elsewhere: distinct
     minima the scan cannot tell apart, which the uncertainty must then cover. Probed: a fit
     whose weakest rotation is held less than ``probe_weakness``, or by its edges alone (its
     surfaces hold it less than ``_EDGES_ALONE``: a flat part turning in its plane, whose
@@ -1110,11 +1132,35 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
     keep = best if scores[best] > scores[0] + _BETTER_TURN else 0
     rivals = []
     for f, sc in zip(fits, scores):
-        if (f is not fits[keep] and sc >= scores[keep] - _RIVAL_SCORE
+        if (f is not fits[keep]
+                and scores[keep] - sc <= _rival_margin(surface, edges, fits[keep].pose, f.pose,
+                                                        params)
                 and all(not _same(f.pose, other, _RIVAL_SAME_DEG, _RIVAL_SAME_MM)
                         for other in [fits[keep].pose] + rivals)):
             rivals.append(f.pose)
     return fits[keep], rivals
+
+
+def _rival_margin(surface: _Terms, edges: _Terms | None, pose, other, params) -> float:
+    """How much lower than `pose`'s final score `other`'s may be and still fit as well:
+    ``_RIVAL_SCORE``, or ``_RIVAL_Z`` standard errors of the difference, counted on the
+    points that only one of the two matches (each kind of point over its own number, as
+    in :func:`_agreement`). The points of one profile share its placement, so they count as
+    one cluster (as in :func:`_uncertainty`): its net count squared, never less than its
+    discordant points (McNemar's variance for independent points)."""
+    variance = 0.0
+    kinds = [(surface, _surface_bound(surface, 5.0 * params.surface_noise_mm),
+              5.0 * params.surface_noise_mm, True)]
+    if edges is not None and len(edges.points):
+        kinds.append((edges, _edge_bound(edges, 5.0 * params.edge_noise_mm),
+                      5.0 * params.edge_noise_mm, False))
+    for terms, bound, tol, planes in kinds:
+        first, second = _matched(terms, np.stack([pose, other]), bound, tol, planes=planes)
+        _, cluster = np.unique(terms.frames, return_inverse=True)
+        net = np.bincount(cluster, first.astype(float) - second)
+        discordant = np.bincount(cluster, (first != second).astype(float))
+        variance += np.sum(np.maximum(net**2, discordant)) / max(len(terms.points), 1) ** 2
+    return max(_RIVAL_SCORE, _RIVAL_Z * float(np.sqrt(variance)))
 
 
 def _round_seeds(few: _Terms, few_edges: _Terms | None, pose, axis, params) -> list:

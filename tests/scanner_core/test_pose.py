@@ -475,3 +475,27 @@ def test_edge_steps_must_match_the_edges(block):
         with pytest.raises(ValueError, match=match):
             register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
                      edge_frame_ids=edge_frames, edge_model=edge_model, edge_steps_mm=bad)
+
+
+@pytest.mark.parametrize("one_profile", [False, True])
+def test_a_rival_that_misses_a_few_points_more_still_fits_as_well(one_profile):
+    """Two minima whose scores differ by a few points of thousands are one fit to the scan:
+    the margin is two standard errors of the paired difference (the points only one pose
+    matches), with a profile's points as one cluster. 9 points missed in 9 profiles: 2
+    sqrt(9) / 2000; the same 9 in one profile: 2 x 9 / 2000."""
+    from scanner_core.pose import _RIVAL_SCORE, _rival_margin, _Terms
+    grid = np.stack(np.meshgrid(np.linspace(-20, 20, 40), np.linspace(-20, 20, 40)), -1)
+    plane = np.column_stack([grid.reshape(-1, 2), np.zeros(1600)])
+    model = SurfaceModel.from_points(plane, np.tile([0.0, 0.0, 1.0], (1600, 1)))
+    rng = np.random.default_rng(1)
+    points = np.column_stack([rng.uniform(-19, 19, (2000, 2)), np.zeros(2000)])
+    frames = np.arange(2000) // 20                     # 100 profiles of 20 points
+    low = np.arange(9) * (1 if one_profile else 20)    # 9 points 45 um below the plane
+    points[low, 2] = -0.045
+    params = PoseParams()
+    terms = _Terms(points, np.tile([0.0, 0.0, 1.0], (2000, 1)), frames, model, 0.9)
+    raised = np.eye(4)
+    raised[2, 3] = 0.01        # the low points now lie 55 um off: beyond 5 x 10 um
+    assert _rival_margin(terms, None, np.eye(4), np.eye(4), params) == _RIVAL_SCORE
+    margin = _rival_margin(terms, None, np.eye(4), raised, params)
+    assert margin == pytest.approx(2 * (9 if one_profile else 3) / 2000)
