@@ -5,7 +5,8 @@ cloud from {T} back to {P} through the true grasp. Provenance: every cloud point
 near a stripe sample that the renderer found lit by the laser and seen by the camera in the
 same frame (or between two samples of one pixel column: their blend); a point that does not
 came from a surface the camera cannot see (or from nothing at all). Edge points are scored
-against the CAD's sharp edges (:func:`edge_accuracy`).
+against the CAD's sharp edges, and drop-outs also against the part's outline seen along z_T
+(:func:`edge_accuracy`).
 """
 from __future__ import annotations
 
@@ -126,6 +127,9 @@ EDGE_DEGENERATE_MM = 1e-9
 #: ``EdgePoints.kind`` codes (``scanner_core.edges.EdgeKind``) and their report names.
 EDGE_KIND_NAMES = {0: "dropout", 1: "step"}
 STEP_KIND = {name: code for code, name in EDGE_KIND_NAMES.items()}["step"]
+#: A drop-out this much nearer the outline than any sharp edge (mm) is counted as placed
+#: by the outline (``dropouts_off_sharp_edges``).
+OUTLINE_COUNTED_MM = 0.01
 #: A face is a wall (a step's riser) when its normal, in {T}, is within this of level.
 WALL_MAX_NZ = 0.5
 #: A step's half-height point lies at most this far up or down its wall from the edge, mm.
@@ -157,6 +161,29 @@ def sharp_edges(mesh: trimesh.Trimesh, feature_angle_deg: float = 30.0, *,
     pairs = np.concatenate([np.asarray(mesh.face_adjacency)[is_sharp].reshape(-1, 2),
                             np.repeat(boundary_face.reshape(-1, 1), 2, axis=1)])
     return segments, pairs.astype(np.int64)
+
+
+def outline_edges(mesh: trimesh.Trimesh, true_grasp: np.ndarray) -> np.ndarray:
+    """The part's outline seen along z_T: the mesh edges where a face turned toward the
+    sensor (+z_T) meets one that is not, placed in {T} by the true grasp.
+
+    A drop-out marks where the lit surface ends along its profile. At a sharp rim that is
+    the sharp edge; at a rounded or drafted rim (cycloidal's lobes: a face 8 degrees off
+    vertical below the top's edge, then a wall) it is where the surface turns away, which
+    no sharp edge marks: 0.1-0.3 mm outside the top's edge in (x_T, y_T) there.
+
+    Returns
+    -------
+    (S, 2, 3) float64
+        Segments in {T}, mm.
+    """
+    grasp = np.asarray(true_grasp, dtype=np.float64)
+    toward = (np.asarray(mesh.face_normals) @ grasp[:3, :3].T)[:, 2] > 0.0
+    adjacency = np.asarray(mesh.face_adjacency)
+    turn = toward[adjacency[:, 0]] != toward[adjacency[:, 1]]
+    segments = np.asarray(mesh.vertices, dtype=np.float64)[
+        np.asarray(mesh.face_adjacency_edges)[turn]]
+    return apply_transform(grasp, segments.reshape(-1, 3)).reshape(-1, 2, 3)
 
 
 def _segment_distances(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
@@ -243,7 +270,8 @@ def _edge_stats(distance_xy: np.ndarray, distance_3d: np.ndarray, outlier_mm: fl
 
 def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kinds=None,
                   feature_angle_deg: float = 30.0, outlier_mm: float = 0.5) -> dict:
-    """Distances from edge points to the CAD's sharp edges (issue 8's edge target).
+    """Distances from edge points to the CAD's sharp edges, and from drop-outs also to the
+    part's outline (issue 8's edge target).
 
     The sharp edges (:func:`sharp_edges`: faces meeting at more than ``feature_angle_deg``,
     plus boundary edges) are placed in {T} by the true grasp. Each edge point's distance to
@@ -254,7 +282,9 @@ def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kin
     design. Walls tilted away from z_T (a misplacement's rotation) move a step point off the
     projected line by half the step height times the tilt's tangent; with ``kinds``, a step
     point is also measured across the wall it lies on (:func:`_wall_distances`), and the
-    nearer of the two counts.
+    nearer of the two counts. A drop-out (every point, without ``kinds``) is also measured to
+    the outline seen along z_T (:func:`outline_edges`): where a rounded or drafted rim turns
+    away from the sensor, the stripe ends away from any sharp edge.
 
     Parameters
     ----------
@@ -270,14 +300,17 @@ def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kin
     feature_angle_deg : float
         Faces meeting at more than this make a sharp edge.
     outlier_mm : float
-        Points farther than this (in x_T, y_T) from every sharp edge are outliers.
+        Points farther than this (in x_T, y_T) from every edge they are measured against
+        are outliers.
 
     Returns
     -------
     dict
         ``count``, ``rms_um``, ``median_um``, ``p99_um``, ``outlier_fraction`` (farther than
         ``outlier_mm``), ``rms_inliers_um``, ``rms_3d_um``, ``p99_3d_um``, ``sharp_edges``
-        (segments), and with ``kinds`` one dict per kind under ``by_kind``.
+        and ``outline_edges`` (segments), ``dropouts_off_sharp_edges`` (drop-outs nearer
+        the outline than any sharp edge by more than 10 um), and with ``kinds`` one dict
+        per kind under ``by_kind``.
     """
     points = np.asarray(edges_t, dtype=np.float64).reshape(-1, 3)
     grasp = np.asarray(true_grasp, dtype=np.float64)
@@ -285,17 +318,25 @@ def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kin
     segments = apply_transform(grasp, edges_p.reshape(-1, 3)).reshape(-1, 2, 3)
     d_xy = _segment_distances(points[:, :2], segments[:, :, :2])
     d_3d = _segment_distances(points, segments)
+    dropout = np.ones(len(points), bool)
     if kinds is not None:
         kinds = np.asarray(kinds).reshape(-1)
         if kinds.shape != (len(points),):
             raise ValueError(f"`kinds` must be ({len(points)},), got {kinds.shape}")
         step = kinds == STEP_KIND
+        dropout = ~step
         if step.any():
             normals_t = np.asarray(mesh.face_normals, dtype=np.float64)[faces] @ grasp[:3, :3].T
             d_xy[step] = np.minimum(d_xy[step],
                                     _wall_distances(points[step], segments, normals_t))
+    outline = outline_edges(mesh, grasp)
+    to_outline = _segment_distances(points[dropout, :2], outline[:, :, :2])
+    off_sharp = int(np.sum(to_outline < d_xy[dropout] - OUTLINE_COUNTED_MM))
+    d_xy[dropout] = np.minimum(d_xy[dropout], to_outline)
     out = _edge_stats(d_xy, d_3d, outlier_mm)
     out["sharp_edges"] = int(len(segments))
+    out["outline_edges"] = int(len(outline))
+    out["dropouts_off_sharp_edges"] = off_sharp
     if kinds is not None:
         out["by_kind"] = {name: _edge_stats(d_xy[kinds == code], d_3d[kinds == code], outlier_mm)
                           for code, name in EDGE_KIND_NAMES.items()}

@@ -320,7 +320,8 @@ def _scan(part: Part, cell: Cell, values, *, seed: int):
     if len(scan.edges):
         accuracy = edge_accuracy(scan.edges, part.mesh, truth, kinds=scan.edge_kind)
         info["edges"] = {k: accuracy[k] for k in ("count", "rms_um", "median_um",
-                                                  "outlier_fraction", "rms_inliers_um")}
+                                                  "outlier_fraction", "rms_inliers_um",
+                                                  "dropouts_off_sharp_edges")}
     info["edge_scoring_ms"] = round((time.perf_counter() - t2) * 1e3, 3)
     return scan, truth, info
 
@@ -908,7 +909,8 @@ def _summary(result: dict) -> dict:
 
 
 def _edge_summary(scans: list[dict]) -> dict:
-    """The edge cloud of every scan of (a) against the CAD's sharp edges, per part: the
+    """The edge cloud of every scan of (a) against the CAD's sharp edges (drop-outs also
+    against the outline: ``simulator.evaluate.edge_accuracy``), per part: the
     issue's target is an RMS within 30 um and fewer than 5 % beyond 0.5 mm. The RMS is of
     the points within 0.5 mm (one stray point 1 mm off among a hundred would make it 100 um
     alone: the outliers are the other half of the target); that of all points beside it."""
@@ -923,6 +925,10 @@ def _edge_summary(scans: list[dict]) -> dict:
             "rms_inliers_um_median": float(np.median([e["rms_inliers_um"] for e in sel])),
             "outlier_fraction_worst": max(e["outlier_fraction"] for e in sel),
             "rms_all_um_worst": max(e["rms_um"] for e in sel),
+            # drop-outs where a rounded or drafted rim turns away: on the outline, off the
+            # sharp edges
+            "dropouts_off_sharp_edges": int(sum(e.get("dropouts_off_sharp_edges", 0)
+                                                for e in sel)),
             "within_target": _fraction([e["rms_inliers_um"] <= TARGET_EDGE_RMS_UM
                                         and e["outlier_fraction"] < TARGET_EDGE_OUTLIERS
                                         for e in sel]),
