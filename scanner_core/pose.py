@@ -486,10 +486,14 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
         time_ms=(time.perf_counter() - t0) * 1e3, flags=flags)
 
 
+# A converged fit is scored at this many times the expected scatter.
+_FINAL_TOL = 5.0
+
+
 def _final_score(surface, edges, fit: _Fit, params) -> float:
-    """A converged fit's agreement at five times the expected scatter."""
-    return _agreement(surface, edges, fit.pose, 5.0 * params.surface_noise_mm,
-                      5.0 * params.edge_noise_mm)
+    """A converged fit's agreement at ``_FINAL_TOL`` times the expected scatter."""
+    return _agreement(surface, edges, fit.pose, _FINAL_TOL * params.surface_noise_mm,
+                      _FINAL_TOL * params.edge_noise_mm)
 
 
 def _flags(fit: _Fit, free_axes, with_edges: bool, params: PoseParams) -> list[str]:
@@ -926,7 +930,8 @@ def _edge_bound(edges: _Terms, tol: float, search_mm: float = _EDGE_SEARCH_MM) -
 
 def _matched_fraction(terms: _Terms, poses, bound, tol, *, planes: bool) -> np.ndarray:
     """(P,) fraction of `terms`' points :func:`_matched` at each pose."""
-    return _matched(terms, poses, bound, tol, planes=planes).sum(axis=1) / max(len(terms.points), 1)
+    matched = _matched(terms, poses, bound, tol, planes=planes)
+    return matched.sum(axis=1) / max(len(terms.points), 1)
 
 
 def _matched(terms: _Terms, poses, bound, tol, *, planes: bool) -> np.ndarray:
@@ -1081,9 +1086,9 @@ _PROBE_POINTS, _PROBE_ITERATIONS = 400, 4
 _RIVAL_SCORE = 0.002
 # ... or within this many standard errors of the paired difference of the two agreements
 # (McNemar 1947, per profile: of the points one pose matches and the other does not, as many
-# each way when the scan cannot tell them apart). ADIS16480 seen on its 44 x 14 mm end in 12 profiles
-# has two minima 0.15 degree apart about z_T that differ by 8 of 2 600 surface points: the
-# one 0.003 better was reported with a sigma of 20 mdeg.
+# each way when the scan cannot tell them apart). ADIS16480 seen on its 44 x 14 mm end in 12
+# profiles has two minima 0.15 degree apart about z_T that differ by 8 of 2 600 surface
+# points: the one 0.003 better was reported with a sigma of 20 mdeg.
 _RIVAL_Z = 2.0
 # A rival this close to the fit (degrees, mm) is the same minimum.
 _RIVAL_SAME_DEG, _RIVAL_SAME_MM = 0.02, 0.02
@@ -1093,11 +1098,11 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
     """The converged fit checked against refits from turns of it about its weakest rotation.
 
     Returns the fit (or a probe's, when it scores clearly better: ``_BETTER_TURN``) and the
-    others that score as well (within :func:`_rival_margin`, or better) but lie elsewhere: distinct
-    minima the scan cannot tell apart, which the uncertainty must then cover. Probed: a fit
-    whose weakest rotation is held less than ``probe_weakness``, or by its edges alone (its
-    surfaces hold it less than ``_EDGES_ALONE``: a flat part turning in its plane, whose
-    outline may repeat). A quick refinement (the coarse stage's) screens the turns: the
+    others that score as well (within :func:`_rival_margin`, or better) but lie elsewhere:
+    distinct minima the scan cannot tell apart, which the uncertainty must then cover.
+    Probed: a fit whose weakest rotation is held less than ``probe_weakness``, or by its
+    edges alone (its surfaces hold it less than ``_EDGES_ALONE``: a flat part turning in its
+    plane, whose outline may repeat). A quick refinement (the coarse stage's) screens the turns: the
     probe cost 180-330 ms on featuretype's and cycloidal's scans (bench pose).
     """
     rng = np.random.default_rng(params.seed + 2)
@@ -1149,11 +1154,10 @@ def _rival_margin(surface: _Terms, edges: _Terms | None, pose, other, params) ->
     one cluster (as in :func:`_uncertainty`): its net count squared, never less than its
     discordant points (McNemar's variance for independent points)."""
     variance = 0.0
-    kinds = [(surface, _surface_bound(surface, 5.0 * params.surface_noise_mm),
-              5.0 * params.surface_noise_mm, True)]
+    tol_surface, tol_edge = _FINAL_TOL * params.surface_noise_mm, _FINAL_TOL * params.edge_noise_mm
+    kinds = [(surface, _surface_bound(surface, tol_surface), tol_surface, True)]
     if edges is not None and len(edges.points):
-        kinds.append((edges, _edge_bound(edges, 5.0 * params.edge_noise_mm),
-                      5.0 * params.edge_noise_mm, False))
+        kinds.append((edges, _edge_bound(edges, tol_edge), tol_edge, False))
     for terms, bound, tol, planes in kinds:
         first, second = _matched(terms, np.stack([pose, other]), bound, tol, planes=planes)
         _, cluster = np.unique(terms.frames, return_inverse=True)
