@@ -18,10 +18,11 @@ Five factors, each grown from the reference cell until the method breaks, one si
 - **symmetry**: a cylinder with an off-centre blind hole whose offset shrinks to 0, where the
   part turns freely about its axis.
 
-The edge cloud is scored against the CAD's sharp edges (``simulator.evaluate.edge_accuracy``),
-the pose against the true grasp (``report["ground_truth"]["pose_error"]``). Errors count only
-along the motions the pose reports as constrained (a free motion has no sigma: its error is the
-misplacement it cannot see). Each run gets a verdict:
+The edge cloud is scored against the CAD's sharp edges, its drop-outs also against the
+outline (``simulator.evaluate.edge_accuracy``), the pose against the true grasp
+(``report["ground_truth"]["pose_error"]``). Errors count only along the motions the pose
+reports as constrained (a free motion has no sigma: its error is the misplacement it cannot
+see). Each run gets a verdict:
 
 ``refused``
     the pass gave no scan, the pose was refused, or the command line refuses the pass (too few
