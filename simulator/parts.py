@@ -136,9 +136,10 @@ class Part:
 
     @cached_property
     def edge_model(self):
-        """The CAD's sharp edges for registration (``scanner_core.pose.EdgeModel``)."""
+        """The CAD's sharp edges for registration (``scanner_core.pose.EdgeModel``), a
+        narrow chamfer's on the outline seen from the sensor under the nominal grasp."""
         from scanner_core.pose import EdgeModel
-        return EdgeModel.from_mesh(self.mesh)
+        return EdgeModel.from_mesh(self.mesh, view=self.grasp[2, :3])
 
     def vertices_t(self) -> np.ndarray:
         """(V, 3) float64, mm: the mesh vertices in {T} under the nominal grasp."""

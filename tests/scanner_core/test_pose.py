@@ -412,6 +412,23 @@ def test_a_chamfer_the_scanner_cannot_resolve_is_one_edge_along_its_middle(chamf
     assert np.sum(near) <= lines * (24.0 / model.spacing_mm + 2)
 
 
+@pytest.mark.parametrize("view, expected", [
+    ((0.0, 0.0, 1.0), (20.0, 4.8)),     # seen from above: the chamfer meets the wall there
+    ((0.0, 0.0, -1.0), (19.9, 4.9)),    # from below: neither edge is on the outline
+])
+def test_a_narrow_chamfer_seen_from_the_sensor_is_one_edge_on_the_outline(view, expected):
+    """Where the scanner's view is known (the nominal grasp), a rim's 0.2 mm chamfer is the
+    edge where it meets the wall, the outline whose drop-outs the scanner places
+    (``scanner_core.edges.chamfered_dropouts``); a chamfer off the outline stays one line
+    along its middle."""
+    model = EdgeModel.from_mesh(_chamfered_box((20.0, 15.0, 5.0), 0.2), view=view)
+    along = (np.abs(model.directions[:, 1]) > 0.99) & (np.abs(model.points[:, 1]) < 12.0)
+    near = along & (model.points[:, 0] > 18.0) & (model.points[:, 2] > 3.0)
+    found = np.unique(np.round(model.points[near][:, [0, 2]], 3), axis=0)
+    assert_allclose(found, [expected], atol=0.005)
+    assert np.sum(near) <= 24.0 / model.spacing_mm + 2
+
+
 def test_merging_bevels_leaves_a_sharp_box_alone():
     box = trimesh.creation.box(extents=(40.0, 30.0, 10.0))
     merged, plain = EdgeModel.from_mesh(box), EdgeModel.from_mesh(box, bevel_mm=0.0)
