@@ -45,11 +45,16 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 __all__ = ["PoseParams", "SurfaceModel", "EdgeModel", "PoseResult", "register", "scan_pose",
-           "AXIS_NAMES", "MIN_POSE_POINTS", "BEVEL_MM", "merge_bevels"]
+           "AXIS_NAMES", "MIN_POSE_POINTS", "BEVEL_MM", "TOWARD_MIN", "merge_bevels"]
 
 #: Parallel sharp edges of the CAD closer than this (mm, about two pixels' footprint) are
 #: one edge to the scanner: a chamfer's two (`merge_bevels`).
 BEVEL_MM = 0.4
+
+#: A face is turned toward the sensor when its unit normal's component along the view
+#: exceeds this: a wall side-on to it (0, give or take float noise: a float32 STL's walls
+#: carry +-1e-7) is not.
+TOWARD_MIN = 1e-6
 
 #: A scan with fewer points gives no pose (refused, with the reason), not a guess.
 MIN_POSE_POINTS = 50
@@ -260,7 +265,7 @@ class EdgeModel:
         on_outline = np.zeros(len(segments), bool)
         if view is not None:
             toward = np.asarray(mesh.face_normals, dtype=np.float64) @ np.asarray(
-                view, dtype=np.float64) > 0.0
+                view, dtype=np.float64) > TOWARD_MIN
             faces = mesh.face_adjacency[is_sharp]
             on_outline[:len(sharp)] = toward[faces[:, 0]] != toward[faces[:, 1]]
         a, b = vertices[segments[:, 0]], vertices[segments[:, 1]]
@@ -321,9 +326,12 @@ def merge_bevels(points, directions, width_mm: float = BEVEL_MM, spacing_mm: flo
     directions = np.asarray(directions, dtype=np.float64)
     if width_mm <= 0 or len(points) < 2:
         return points, directions
+    if on_outline is not None:
+        on_outline = np.asarray(on_outline, dtype=bool)
+        if on_outline.shape != (len(points),):
+            raise ValueError(f"on_outline must be ({len(points)},), got {on_outline.shape}")
     i, j, across = _bevel_pairs(points, directions, width_mm, spacing_mm)
     if on_outline is not None and len(i):
-        on_outline = np.asarray(on_outline, dtype=bool)
         inner = np.zeros(len(points), bool)
         one = on_outline[i] != on_outline[j]
         inner[np.where(on_outline[i], j, i)[one]] = True
@@ -1193,21 +1201,31 @@ def _rival_margin(surface: _Terms, edges: _Terms | None, pose, other, params) ->
     """How much lower than `pose`'s final score `other`'s may be and still fit as well:
     ``_RIVAL_SCORE``, or ``_RIVAL_Z`` standard errors of the difference, counted on the
     points that only one of the two matches (each kind of point over its own number, as
-    in :func:`_agreement`). The points of one profile share its placement, so they count as
-    one cluster (as in :func:`_uncertainty`): its net count squared, never less than its
-    discordant points (McNemar's variance for independent points)."""
-    variance = 0.0
+    in :func:`_agreement`), but never more than ``_PROBE_MARGIN``. The points of one
+    profile, surface and edge alike, share its placement, so they count as one cluster (as
+    in :func:`_uncertainty`): its net share squared, never less than its discordant points'
+    (McNemar's variance for independent points). The cap keeps a minimum that misses a
+    whole profile or two from passing: with the differences in a few clusters, the
+    difference is never more than a few standard errors, however large."""
     tol_surface, tol_edge = _FINAL_TOL * params.surface_noise_mm, _FINAL_TOL * params.edge_noise_mm
     kinds = [(surface, _surface_bound(surface, tol_surface), tol_surface, True)]
     if edges is not None and len(edges.points):
         kinds.append((edges, _edge_bound(edges, tol_edge), tol_edge, False))
+    frames = np.concatenate([terms.frames for terms, *_ in kinds])
+    _, cluster = np.unique(frames, return_inverse=True)
+    net = np.zeros(cluster.max() + 1 if len(cluster) else 0)
+    independent = np.zeros_like(net)
+    start = 0
     for terms, bound, tol, planes in kinds:
+        n = len(terms.points)
         first, second = _matched(terms, np.stack([pose, other]), bound, tol, planes=planes)
-        _, cluster = np.unique(terms.frames, return_inverse=True)
-        net = np.bincount(cluster, first.astype(float) - second)
-        discordant = np.bincount(cluster, (first != second).astype(float))
-        variance += np.sum(np.maximum(net**2, discordant)) / max(len(terms.points), 1) ** 2
-    return max(_RIVAL_SCORE, _RIVAL_Z * float(np.sqrt(variance)))
+        mine = cluster[start:start + n]
+        start += n
+        net += np.bincount(mine, first.astype(float) - second, minlength=len(net)) / max(n, 1)
+        independent += np.bincount(mine, (first != second).astype(float),
+                                   minlength=len(net)) / max(n, 1) ** 2
+    standard_error = float(np.sqrt(np.sum(np.maximum(net**2, independent))))
+    return min(max(_RIVAL_SCORE, _RIVAL_Z * standard_error), _PROBE_MARGIN)
 
 
 def _round_seeds(few: _Terms, few_edges: _Terms | None, pose, axis, params) -> list:

@@ -15,6 +15,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from scanner_core.geometry import apply_transform, base_to_tcp
+from scanner_core.pose import TOWARD_MIN
 
 #: Closest-point queries cost about 0.1 ms each; larger clouds are subsampled (seeded).
 MAX_EVAL_POINTS = 30000
@@ -178,7 +179,7 @@ def outline_edges(mesh: trimesh.Trimesh, true_grasp: np.ndarray) -> np.ndarray:
         Segments in {T}, mm.
     """
     grasp = np.asarray(true_grasp, dtype=np.float64)
-    toward = (np.asarray(mesh.face_normals) @ grasp[:3, :3].T)[:, 2] > 0.0
+    toward = (np.asarray(mesh.face_normals) @ grasp[:3, :3].T)[:, 2] > TOWARD_MIN
     adjacency = np.asarray(mesh.face_adjacency)
     turn = toward[adjacency[:, 0]] != toward[adjacency[:, 1]]
     segments = np.asarray(mesh.vertices, dtype=np.float64)[
@@ -278,8 +279,8 @@ def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kin
     the nearest of them is measured in the (x_T, y_T) plane: the scanner looks along z_T, so
     a vertical wall's top and bottom edges project onto one line, and a step's edge point,
     placed at half the step height on the wall (paper section II), lies on that line. The
-    3-D distance is reported for information: for a step it includes half the step height by
-    design. Walls tilted away from z_T (a misplacement's rotation) move a step point off the
+    3-D distance is reported for information, to the sharp edges only: for a step it
+    includes half the step height by design. Walls tilted away from z_T (a misplacement's rotation) move a step point off the
     projected line by half the step height times the tilt's tangent; with ``kinds``, a step
     point is also measured across the wall it lies on (:func:`_wall_distances`), and the
     nearer of the two counts. A drop-out (every point, without ``kinds``) is also measured to

@@ -429,6 +429,25 @@ def test_a_narrow_chamfer_seen_from_the_sensor_is_one_edge_on_the_outline(view, 
     assert np.sum(near) <= 24.0 / model.spacing_mm + 2
 
 
+def test_a_part_s_edge_model_is_seen_from_its_nominal_grasp():
+    """`Part.edge_model` takes its view from the nominal grasp: a plate held flat (a quarter
+    turn about x brings its thin y to z_T) shows the sensor its face at y = +5, whose rim's
+    0.2 mm chamfer is kept where it meets the wall."""
+    from simulator.parts import part_from_mesh
+    part = part_from_mesh(_chamfered_box((20.0, 5.0, 15.0), 0.2), name="plate", grasp="flat")
+    model = part.edge_model
+    along = (np.abs(model.directions[:, 2]) > 0.99) & (np.abs(model.points[:, 2]) < 12.0)
+    near = along & (model.points[:, 0] > 18.0) & (model.points[:, 1] > 3.0)
+    found = np.unique(np.round(model.points[near][:, [0, 1]], 3), axis=0)
+    assert_allclose(found, [[20.0, 4.8]], atol=0.005)
+
+
+def test_an_outline_flag_per_sample_is_checked():
+    from scanner_core.pose import merge_bevels
+    with pytest.raises(ValueError, match="on_outline"):
+        merge_bevels(np.zeros((3, 3)), np.tile([1.0, 0, 0], (3, 1)), on_outline=[True])
+
+
 def test_merging_bevels_leaves_a_sharp_box_alone():
     box = trimesh.creation.box(extents=(40.0, 30.0, 10.0))
     merged, plain = EdgeModel.from_mesh(box), EdgeModel.from_mesh(box, bevel_mm=0.0)
@@ -494,25 +513,64 @@ def test_edge_steps_must_match_the_edges(block):
                      edge_frame_ids=edge_frames, edge_model=edge_model, edge_steps_mm=bad)
 
 
+def _rival_plane(low=(), high=()):
+    """A plane model, 2000 scan points on it in 100 profiles of 20, the points `low` 45 um
+    below it and `high` 55 um above; and a pose raised 10 um, at which the low points lie
+    55 um off (beyond 5 x 10 um) and the high ones 45 um."""
+    from scanner_core.pose import _Terms
+    grid = np.stack(np.meshgrid(np.linspace(-20, 20, 40), np.linspace(-20, 20, 40)), -1)
+    plane = np.column_stack([grid.reshape(-1, 2), np.zeros(1600)])
+    model = SurfaceModel.from_points(plane, np.tile([0.0, 0.0, 1.0], (1600, 1)))
+    rng = np.random.default_rng(1)
+    points = np.column_stack([rng.uniform(-19, 19, (2000, 2)), np.zeros(2000)])
+    points[list(low), 2] = -0.045
+    points[list(high), 2] = 0.055
+    frames = np.arange(2000) // 20
+    raised = np.eye(4)
+    raised[2, 3] = 0.01
+    return _Terms(points, np.tile([0.0, 0.0, 1.0], (2000, 1)), frames, model, 0.9), raised
+
+
 @pytest.mark.parametrize("one_profile", [False, True])
 def test_a_rival_that_misses_a_few_points_more_still_fits_as_well(one_profile):
     """Two minima whose scores differ by a few points of thousands are one fit to the scan:
     the margin is two standard errors of the paired difference (the points only one pose
     matches), with a profile's points as one cluster. 9 points missed in 9 profiles: 2
     sqrt(9) / 2000; the same 9 in one profile: 2 x 9 / 2000."""
-    from scanner_core.pose import _RIVAL_SCORE, _rival_margin, _Terms
-    grid = np.stack(np.meshgrid(np.linspace(-20, 20, 40), np.linspace(-20, 20, 40)), -1)
-    plane = np.column_stack([grid.reshape(-1, 2), np.zeros(1600)])
-    model = SurfaceModel.from_points(plane, np.tile([0.0, 0.0, 1.0], (1600, 1)))
-    rng = np.random.default_rng(1)
-    points = np.column_stack([rng.uniform(-19, 19, (2000, 2)), np.zeros(2000)])
-    frames = np.arange(2000) // 20                     # 100 profiles of 20 points
-    low = np.arange(9) * (1 if one_profile else 20)    # 9 points 45 um below the plane
-    points[low, 2] = -0.045
+    from scanner_core.pose import _RIVAL_SCORE, _rival_margin
+    terms, raised = _rival_plane(low=np.arange(9) * (1 if one_profile else 20))
     params = PoseParams()
-    terms = _Terms(points, np.tile([0.0, 0.0, 1.0], (2000, 1)), frames, model, 0.9)
-    raised = np.eye(4)
-    raised[2, 3] = 0.01        # the low points now lie 55 um off: beyond 5 x 10 um
     assert _rival_margin(terms, None, np.eye(4), np.eye(4), params) == _RIVAL_SCORE
     margin = _rival_margin(terms, None, np.eye(4), raised, params)
     assert margin == pytest.approx(2 * (9 if one_profile else 3) / 2000)
+
+
+def test_a_rival_margin_counts_each_way_and_is_capped():
+    """Within one profile, 5 points that only the fit matches and 5 that only the rival
+    does cancel in the net count but not in McNemar's floor: 2 sqrt(10) / 2000. Three whole
+    profiles missed are a worse fit whatever the clusters say: the margin stops at
+    ``_PROBE_MARGIN``."""
+    from scanner_core.pose import _PROBE_MARGIN, _rival_margin
+    terms, raised = _rival_plane(low=range(5), high=range(5, 10))
+    assert _rival_margin(terms, None, np.eye(4), raised, PoseParams()) == pytest.approx(
+        2 * np.sqrt(10) / 2000)
+    terms, raised = _rival_plane(low=range(60))
+    assert _rival_margin(terms, None, np.eye(4), raised, PoseParams()) == _PROBE_MARGIN
+
+
+def test_a_rival_margin_takes_a_profile_s_surface_and_edge_points_together():
+    """2 surface points of 2000 and 1 edge point of 400, all in one profile, that only the
+    fit matches: one cluster whose share is 2 / 2000 + 1 / 400 (0.007 at two standard
+    errors; 0.0054 were the two kinds independent)."""
+    from scanner_core.pose import _rival_margin, _Terms
+    terms, _ = _rival_plane(low=[0, 1])
+    line = np.column_stack([np.full(401, 10.0), np.linspace(-20, 20, 401), np.zeros(401)])
+    model = EdgeModel(line, np.tile([0.0, 1.0, 0.0], (401, 1)))
+    edge_points = np.column_stack([np.full(400, 10.0), np.linspace(-19, 19, 400),
+                                   np.zeros(400)])
+    edge_points[0, 0] = 10.14     # within 5 x 30 um of the edge, and 160 um at the rival
+    edges = _Terms(edge_points, None, np.arange(400) // 4, model)
+    other = np.eye(4)
+    other[:3, 3] = [-0.02, 0.0, 0.01]
+    margin = _rival_margin(terms, edges, np.eye(4), other, PoseParams())
+    assert margin == pytest.approx(2 * (2 / 2000 + 1 / 400))
