@@ -206,6 +206,9 @@ def test_a_stalled_consumer_never_stalls_acquisition(tmp_path, cell, monkeypatch
                         queue_frames=4)
     service = Service(settings, devices=(sim.camera, sim.robot, SimPassDriver(sim), cell.calibration))
     with serve_in_thread(create_app(service=service)) as client:
+        # Counted from here: with numba's cache cold (a fresh clone), the start-up loses
+        # about 50 idle frames before the service is up, none of them a scan's.
+        lost_before = sim.camera.frames_lost
         scan_id = client.post("/scans", json={}).json()["scan_id"]
         info = wait_for(lambda: finished(client, scan_id))
         status = client.get("/status").json()
@@ -214,7 +217,7 @@ def test_a_stalled_consumer_never_stalls_acquisition(tmp_path, cell, monkeypatch
     assert info["queue_overflows"] > 10, {key: info.get(key) for key in (
         "state", "reason", "frames", "frames_dropped", "queue_overflows", "end_reason")}
     assert status["queue"]["overflows"] == info["queue_overflows"]
-    assert sim.camera.frames_lost < info["queue_overflows"] / 4
+    assert sim.camera.frames_lost - lost_before < info["queue_overflows"] / 4
     # The frames that got through are the pass's first, often before the part meets the sheet:
     # a scan without points is a failed scan, but its frames were placed.
     assert info["frames"] > 0
