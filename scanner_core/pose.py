@@ -45,7 +45,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 __all__ = ["PoseParams", "SurfaceModel", "EdgeModel", "PoseResult", "register", "scan_pose",
-           "AXIS_NAMES", "MIN_POSE_POINTS", "BEVEL_MM", "TOWARD_MIN", "merge_bevels"]
+           "AXIS_NAMES", "MIN_POSE_POINTS", "BEVEL_MM", "TOWARD_MIN", "merge_bevels",
+           "outline_adjacency"]
 
 #: Parallel sharp edges of the CAD closer than this (mm, about two pixels' footprint) are
 #: one edge to the scanner: a chamfer's two (`merge_bevels`).
@@ -264,10 +265,7 @@ class EdgeModel:
         segments = np.concatenate([sharp.reshape(-1, 2), boundary.reshape(-1, 2)])
         on_outline = np.zeros(len(segments), bool)
         if view is not None:
-            toward = np.asarray(mesh.face_normals, dtype=np.float64) @ np.asarray(
-                view, dtype=np.float64) > TOWARD_MIN
-            faces = mesh.face_adjacency[is_sharp]
-            on_outline[:len(sharp)] = toward[faces[:, 0]] != toward[faces[:, 1]]
+            on_outline[:len(sharp)] = outline_adjacency(mesh, view)[is_sharp]
         a, b = vertices[segments[:, 0]], vertices[segments[:, 1]]
         length = np.linalg.norm(b - a, axis=1)
         keep = length > 1e-9
@@ -353,6 +351,16 @@ def merge_bevels(points, directions, width_mm: float = BEVEL_MM, spacing_mm: flo
     keep = np.ones(len(points), bool)
     keep[twins[:, 1]] = False
     return points[keep], directions[keep]
+
+
+def outline_adjacency(mesh, view) -> np.ndarray:
+    """(A,) bool over ``mesh.face_adjacency`` (and its ``face_adjacency_edges``): whether the
+    two faces lie on either side of the outline seen from `view`, (3,) in the mesh's frame:
+    one turned toward it (beyond `TOWARD_MIN`), the other not."""
+    toward = np.asarray(mesh.face_normals, dtype=np.float64) @ np.asarray(
+        view, dtype=np.float64) > TOWARD_MIN
+    adjacency = np.asarray(mesh.face_adjacency)
+    return toward[adjacency[:, 0]] != toward[adjacency[:, 1]]
 
 
 def _bevel_pairs(points, directions, width_mm, spacing_mm):

@@ -15,7 +15,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from scanner_core.geometry import apply_transform, base_to_tcp
-from scanner_core.pose import TOWARD_MIN
+from scanner_core.pose import outline_adjacency
 
 #: Closest-point queries cost about 0.1 ms each; larger clouds are subsampled (seeded).
 MAX_EVAL_POINTS = 30000
@@ -179,9 +179,8 @@ def outline_edges(mesh: trimesh.Trimesh, true_grasp: np.ndarray) -> np.ndarray:
         Segments in {T}, mm.
     """
     grasp = np.asarray(true_grasp, dtype=np.float64)
-    toward = (np.asarray(mesh.face_normals) @ grasp[:3, :3].T)[:, 2] > TOWARD_MIN
-    adjacency = np.asarray(mesh.face_adjacency)
-    turn = toward[adjacency[:, 0]] != toward[adjacency[:, 1]]
+    # z_T in {P}: the grasp's third row
+    turn = outline_adjacency(mesh, grasp[2, :3])
     segments = np.asarray(mesh.vertices, dtype=np.float64)[
         np.asarray(mesh.face_adjacency_edges)[turn]]
     return apply_transform(grasp, segments.reshape(-1, 3)).reshape(-1, 2, 3)
