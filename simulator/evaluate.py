@@ -279,12 +279,13 @@ def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kin
     a vertical wall's top and bottom edges project onto one line, and a step's edge point,
     placed at half the step height on the wall (paper section II), lies on that line. The
     3-D distance is reported for information, to the sharp edges only: for a step it
-    includes half the step height by design. Walls tilted away from z_T (a misplacement's rotation) move a step point off the
-    projected line by half the step height times the tilt's tangent; with ``kinds``, a step
-    point is also measured across the wall it lies on (:func:`_wall_distances`), and the
-    nearer of the two counts. A drop-out (every point, without ``kinds``) is also measured to
-    the outline seen along z_T (:func:`outline_edges`): where a rounded or drafted rim turns
-    away from the sensor, the stripe ends away from any sharp edge.
+    includes half the step height by design. Walls tilted away from z_T (a misplacement's
+    rotation) move a step point off the projected line by half the step height times the
+    tilt's tangent; with ``kinds``, a step point is also measured across the wall it lies on
+    (:func:`_wall_distances`), and the nearer of the two counts. A drop-out (every point,
+    without ``kinds``) is also measured to the outline seen along z_T
+    (:func:`outline_edges`): where a rounded or drafted rim turns away from the sensor, the
+    stripe ends away from any sharp edge.
 
     Parameters
     ----------
