@@ -79,6 +79,32 @@ def test_basin_converges_at_small_misplacements(quick_bench):
     basin = result["summary"]["basin"]
     assert basin["trials"] == len(bench.QUICK_BASIN_LEVELS) * bench.QUICK_BASIN_TRIALS
     assert basin["success_rate"]["met"] == (basin["success_rate"]["value"] >= bench.TARGET_BASIN)
+    # With its edges the block fixes every axis at its true pose: every trial is in scope.
+    assert all(i["observable_at_truth"] for i in result["scans"])
+    assert basin["all_trials"]["trials"] == basin["trials"]
+    assert basin["unobservable_scans"]["trials"] == 0
+
+
+def test_basin_target_leaves_out_scans_with_a_free_axis(quick_bench, tmp_path):
+    """A trial on a scan that is not observable at its true pose leaves the target's scope,
+    stays in the rate over every trial, and is scored along the axes its pose reports."""
+    out, result, _ = quick_bench
+    written = json.loads((out / "pose.json").read_text())
+    row = written["basin"]["trials"][0]
+    row.update(scan_observable=False, success=False, free_axes=["along y_T"],
+               translation_um=[1.0, 500.0, 1.0], std_um_mdeg=[5.0, None, 5.0, 9.0, 9.0, 9.0])
+    (tmp_path / "pose.json").write_text(json.dumps(written))
+    basin = bench.rebuild(tmp_path)["summary"]["basin"]
+    before = result["summary"]["basin"]
+    assert basin["trials"] == before["trials"] - 1
+    assert basin["converged"] == before["converged"] - 1
+    assert basin["all_trials"]["trials"] == before["trials"]
+    assert basin["all_trials"]["converged"] == before["converged"] - 1
+    unobservable = basin["unobservable_scans"]
+    assert unobservable["trials"] == 1 and unobservable["reported_free_axes"] == 1
+    # 500 um along the free y_T is not held against it; its known axes are within limits.
+    assert unobservable["converged_known_axes"] == int(
+        np.linalg.norm(row["rotation_mdeg"]) < bench.SUCCESS_DEG * 1e3)
 
 
 def test_calibration_is_consistent(quick_bench):
