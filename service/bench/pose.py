@@ -887,11 +887,14 @@ def _summary(result: dict) -> dict:
                        "success_rate_lower_95": _lower_95(sum(r["success"] for r in sel),
                                                           len(sel))},
         # A free axis keeps whatever the minimum lets it: these trials are scored along the
-        # axes their pose reports, and each must have said which axes it cannot give.
+        # axes their pose reports, and a pose off the truth must say so (a flag: free axes,
+        # a rival minimum); none may be confidently wrong.
         "unobservable_scans": {
             "trials": len(unobservable),
             "converged_known_axes": sum(_success_known_axes(r) for r in unobservable),
-            "reported_free_axes": sum(1 for r in unobservable if r.get("free_axes")),
+            "flagged": sum(1 for r in unobservable if r.get("refused") or r.get("flags")),
+            "confident_wrong": sum(1 for r in unobservable if not r["success"]
+                                   and not r.get("refused") and not r.get("flags")),
             "scans": sorted({f"{r['part']} scan {r['scan']}" for r in unobservable})},
         "success_rate_on_good_scans": _fraction(
             [r["success"] for r in sel if r.get("scan_converged_from_nominal", True)]),
@@ -906,7 +909,10 @@ def _summary(result: dict) -> dict:
                        **{kind: lv[kind]["success_rate"] for kind in ("displaced start",
                                                                       "rendered") if kind in lv},
                        "displaced start, good scans":
-                           lv.get("displaced start", {}).get("success_rate_on_good_scans")}
+                           lv.get("displaced start", {}).get("success_rate_on_good_scans"),
+                       "displaced start, observable scans":
+                           lv.get("displaced start", {}).get(
+                               "success_rate_on_observable_scans")}
                       for lv in result["basin"]["levels"]],
     }
     cal = default["calibration"]
@@ -920,6 +926,18 @@ def _summary(result: dict) -> dict:
         "rms_z_per_axis_converged": {axis: v["rms_z"] for axis, v in
                                      cal["converged"].get("per_axis", {}).items()},
     }
+    # The basin's trials carry sigmas too: more trials for the same question, from every
+    # start (each registration's sigma is its own, whatever the start).
+    basin_cal = _calibration([r for r in result["basin"]["trials"] if not r.get("refused")])
+    summary["calibration"]["basin_trials"] = {
+        k: basin_cal["all"][k] for k in ("trials", "within", "worst_axis_z_max")
+        if k in basin_cal["all"]}
+    n_all = cal["all"]["trials"] + basin_cal["all"]["trials"]
+    n_within = round((cal["all"]["within"] or 0.0) * cal["all"]["trials"]
+                     + (basin_cal["all"]["within"] or 0.0) * basin_cal["all"]["trials"])
+    summary["calibration"]["with_basin_trials"] = {
+        "trials": n_all, "within": n_within / n_all if n_all else None,
+        "within_lower_95": _lower_95(n_within, n_all)}
     side = result["side_by_side"]
     ratios = {}
     for case in side["cases"]:

@@ -101,7 +101,9 @@ def test_basin_target_leaves_out_scans_with_a_free_axis(quick_bench, tmp_path):
     assert basin["all_trials"]["trials"] == before["trials"]
     assert basin["all_trials"]["converged"] == before["converged"] - 1
     unobservable = basin["unobservable_scans"]
-    assert unobservable["trials"] == 1 and unobservable["reported_free_axes"] == 1
+    assert unobservable["trials"] == 1
+    assert unobservable["flagged"] == int(bool(row["flags"]))
+    assert unobservable["confident_wrong"] == int(not row["flags"])
     # 500 um along the free y_T is not held against it; its known axes are within limits.
     assert unobservable["converged_known_axes"] == int(
         np.linalg.norm(row["rotation_mdeg"]) < bench.SUCCESS_DEG * 1e3)
@@ -117,6 +119,16 @@ def test_calibration_is_consistent(quick_bench):
     assert cal["all"]["inflation_needed"] >= 1.0
     summary = result["summary"]["calibration"]
     assert summary["within_3_sigma"]["met"] == (within >= bench.TARGET_CALIBRATED)
+    # The basin's registrations count too, each against its own sigma.
+    basin = [r for r in result["basin"]["trials"] if not r.get("refused")]
+    basin_worst = [max(abs(v) for v in r["z"] if v is not None) for r in basin]
+    assert summary["basin_trials"]["trials"] == len(basin)
+    assert summary["basin_trials"]["worst_axis_z_max"] == pytest.approx(max(basin_worst))
+    pooled = summary["with_basin_trials"]
+    assert pooled["trials"] == len(worst) + len(basin)
+    assert pooled["within"] == pytest.approx(
+        (sum(w <= bench.SIGMA_BOUND for w in worst + basin_worst)) / pooled["trials"])
+    assert pooled["within_lower_95"] <= pooled["within"]
 
 
 def test_side_by_side_has_every_method_or_a_note(quick_bench):
