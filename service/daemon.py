@@ -213,11 +213,12 @@ class Service:
         try:
             if self.driver is not None:
                 self.driver.start()
-            self.engine.start()
-            if self.driver is not None:
                 # The default part's pass is rendered (and the simulator's kernels compiled)
-                # before the service says it is up, so that the first scan does not wait.
+                # before the camera streams: a compiling kernel holds the GIL for a second,
+                # and the acquisition thread would lose frames meanwhile. The first scan
+                # does not wait for it either.
                 self.driver.prepare(self.parts.get(self.default_part))
+            self.engine.start()
         except BaseException:
             self.stop()
             raise
