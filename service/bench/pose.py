@@ -90,7 +90,10 @@ QUICK_CONFIGS = tuple(CONFIGS)
 # (b) Initial misplacements (mm, degrees), in random directions; the target holds up to
 # BASIN_TARGET_LEVEL.
 BASIN_LEVELS = ((2.5, 5.0), (5.0, 10.0), (7.5, 15.0), (10.0, 20.0), (12.5, 25.0), (15.0, 30.0))
-BASIN_TRIALS = 10         # per part and level, on the scans of (a)
+BASIN_TRIALS = 10         # per part and level, on the scans of (a), beyond the target's range
+# Within it (up to BASIN_TARGET_LEVEL): enough trials that a rate of 99 % can be shown, not
+# only measured (with none failed, the one-sided 95 % lower bound passes 99 % at 299).
+BASIN_TRIALS_IN_TARGET = 25
 BASIN_RENDERED_LEVELS = ((10.0, 20.0), (15.0, 30.0))  # one scan per part rendered at each
 QUICK_BASIN_LEVELS = ((2.5, 5.0), (10.0, 20.0))
 QUICK_BASIN_TRIALS = 2
@@ -162,7 +165,8 @@ def run(out_dir, quick: bool = False, *, progress=None) -> dict:
     names = (BLOCK_PART,) if quick else REFERENCE_PARTS
     n_scans = QUICK_SCANS_PER_PART if quick else SCANS_PER_PART
     levels = QUICK_BASIN_LEVELS if quick else BASIN_LEVELS
-    n_basin = QUICK_BASIN_TRIALS if quick else BASIN_TRIALS
+    n_basin = [QUICK_BASIN_TRIALS if quick else
+               BASIN_TRIALS_IN_TARGET if _in_target(level) else BASIN_TRIALS for level in levels]
     with threadpool_limits(limits=1, user_api="blas"):
         trials, basin, models, scans_info = [], [], {}, []
         first_scan = None
@@ -258,7 +262,7 @@ def _settings(quick, names, n_scans, levels, n_basin) -> dict:
                     for name, (m, e, mp) in CONFIGS.items()},
         "default_config": DEFAULT_CONFIG,
         "basin_levels": [list(level) for level in levels],
-        "basin_trials_per_part_and_level": n_basin,
+        "basin_trials_per_part_and_level": n_basin,  # one count per level
         "basin_rendered_levels": [] if quick else [list(lv) for lv in BASIN_RENDERED_LEVELS],
         "success": {"mm": SUCCESS_MM, "deg": SUCCESS_DEG},
         "sigma_bound": SIGMA_BOUND,
@@ -401,16 +405,18 @@ def _trial_line(info: dict, rows: list[dict]) -> str:
 
 def _basin_displaced(part, scans, from_nominal, observable, levels, n_trials, rng,
                      say) -> list[dict]:
-    """Trials on the scans of (a), taken in turn: the start is the true pose displaced by the
-    trial's misplacement (``truth = D @ start``), the default configuration, the coarse stage
-    as is. Each row says whether the same scan converged from the nominal grasp in (a)
+    """Trials on the scans of (a) (`n_trials`: a count per level), taken in turn: the start
+    is the true pose displaced by the trial's misplacement (``truth = D @ start``), the
+    default configuration, the coarse stage as is. Each row says whether the same scan
+    converged from the nominal grasp in (a)
     (`from_nominal`: scan index -> bool), which tells a narrow basin from a hard scan, and
     whether it constrains every axis at its true pose (`observable`: scan index -> bool,
     from `_at_truth`)."""
-    rows = []
+    rows, turn = [], 0
     for level_index, (t_mm, r_deg) in enumerate(levels):
-        for k in range(n_trials):
-            index = (level_index * n_trials + k) % len(scans)
+        for _ in range(n_trials[level_index]):
+            index = turn % len(scans)  # the scans taken in turn, across the levels
+            turn += 1
             scan, truth = scans[index]
             values = _random_misplacement(rng, t_mm, r_deg, up_to=False)
             start = np.linalg.inv(misplacement_matrix(values)) @ truth
@@ -448,6 +454,11 @@ def _basin_rendered(part, cell, levels, rng, say) -> list[dict]:
                f"{r['translation_norm_um']:.1f} um {r['rotation_angle_mdeg']:.1f} mdeg "
                f"{r['time_ms']:.0f} ms" + (" coarse" if r["coarse"] else "")))
     return rows
+
+
+def _in_target(level) -> bool:
+    """Whether a basin level (mm, degrees) lies within the target's range."""
+    return level[0] <= BASIN_TARGET_LEVEL[0] and level[1] <= BASIN_TARGET_LEVEL[1]
 
 
 def _at_truth(part: Part, scan, truth) -> dict:
@@ -868,8 +879,7 @@ def _summary(result: dict) -> dict:
     # (b) every trial up to the target level, whichever way it was made; the target on the
     # scans that constrain every axis, the rest scored along the axes their pose reports.
     limit_mm, limit_deg = BASIN_TARGET_LEVEL
-    sel = [r for r in result["basin"]["trials"]
-           if r["level"][0] <= limit_mm and r["level"][1] <= limit_deg]
+    sel = [r for r in result["basin"]["trials"] if _in_target(r["level"])]
     scoped = [r for r in sel if r.get("scan_observable", True)]
     unobservable = [r for r in sel if not r.get("scan_observable", True)]
     ok = sum(r["success"] for r in scoped)
