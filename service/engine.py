@@ -537,7 +537,13 @@ def _failure(job: ScanJob, reason: EndReason, scan: Scan) -> str | None:
     if scan.frames == 0:
         return "no profile could be placed (the marker was never triangulated)"
     if len(scan.cloud) == 0:
-        return f"no points: {scan.frames} profiles were placed but the stripe was found on none"
+        lost = []
+        if job.frames_dropped:
+            lost.append(f"{job.frames_dropped} frames of the pass never arrived from the camera")
+        if job.queue_overflows:
+            lost.append(f"{job.queue_overflows} overflowed the processing queue")
+        return (f"no points: {scan.frames} profiles were placed but the stripe was found on none"
+                + (f" ({'; '.join(lost)}: the machine fell behind the camera)" if lost else ""))
     if job.worker_errors:
         return f"{len(job.worker_errors)} frames failed to process: {job.worker_errors[0]}"
     return None
