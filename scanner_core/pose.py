@@ -131,6 +131,13 @@ class PoseParams:
         Step of the finer sweep about the weakest rotation of the best coarse candidates
         (across one step of the grid); the seeds it finds are refined like the grid's. Also
         the step of the probe's sweep all the way round (``probe_weakness``).
+    max_fine_turn_deg : float
+        The fine stage is a local search: a fit that turned farther than this from its start
+        has slid onto another face of the part (a scan of one flat end fits any flat face;
+        ``flyscan bench pose`` saw ADIS16480 fits 84 degrees off from starts 10 and 15
+        degrees off, while converged fits turned at most 30 degrees, the bench's farthest
+        start). It is not accepted: the coarse search runs from the start, and a pose that
+        still lies this far from it is flagged implausible.
     seed : int
         Seed of the subsampling.
     """
@@ -155,6 +162,7 @@ class PoseParams:
     coarse_iterations: int = 8
     coarse_sweep_deg: float = 1.0
     probe_weakness: float = 0.015
+    max_fine_turn_deg: float = 45.0
     seed: int = 0
 
 
@@ -523,18 +531,26 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
 
     fit = _fine(surface, edges, nominal, params)
     coarse = False
-    if (fit.inlier_fraction < params.good_inlier_fraction
+    slid = _turn_deg(fit.pose, nominal) > params.max_fine_turn_deg
+    if (slid or fit.inlier_fraction < params.good_inlier_fraction
             or fit.edge_fraction < params.good_edge_fraction
             or _better_turn(surface, edges, fit.pose, params)):
         starts = _coarse(surface, edges, nominal, params, rng)
         candidate = _fine(surface, edges, starts[0], params)
         coarse = True
-        if _final_score(surface, edges, candidate, params) > _final_score(surface, edges, fit,
-                                                                            params):
+        candidate_slid = _turn_deg(candidate.pose, nominal) > params.max_fine_turn_deg
+        if (slid and not candidate_slid) or (
+                slid == candidate_slid and _final_score(surface, edges, candidate, params)
+                > _final_score(surface, edges, fit, params)):
             fit = candidate
+    before_probes = fit.pose
     fit, rivals = _probe_turns(surface, edges, fit, params)
     covariance, std, free_axes = _uncertainty(fit, params, rivals)
     flags = _flags(fit, free_axes, edges is not None, params)
+    turned = _turn_deg(before_probes, nominal)
+    if turned > params.max_fine_turn_deg:
+        flags.append(f"implausible: the fit turned {turned:.0f} degrees from the start, farther "
+                     f"than a misplacement the search covers ({params.max_fine_turn_deg:g})")
     if rivals:
         flags.append("ambiguous: " + "; ".join(_rival_words(fit.pose, r) for r in rivals)
                      + " fits as well")
@@ -543,6 +559,12 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
         inlier_fraction=fit.inlier_fraction, std=std, free_axes=free_axes,
         covariance=covariance, iterations=fit.iterations, coarse=coarse,
         time_ms=(time.perf_counter() - t0) * 1e3, flags=flags)
+
+
+def _turn_deg(pose, start) -> float:
+    """The angle between two poses' rotations, degrees."""
+    relative = np.asarray(pose)[:3, :3] @ np.asarray(start)[:3, :3].T
+    return float(np.degrees(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 # A converged fit is scored at this many times the expected scatter.

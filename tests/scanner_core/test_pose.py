@@ -163,6 +163,53 @@ def test_a_large_misplacement_is_found(block, force_coarse):
     assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr)
 
 
+def test_a_fit_that_slid_onto_another_face_is_not_taken(block, monkeypatch):
+    """The fine stage from the start comes back turned 90 degrees (as ADIS16480's fits did,
+    seen on one flat end that any face fits, with every fraction good): the coarse search
+    runs and its fit near the start is taken, without an implausible flag."""
+    import dataclasses
+
+    import scanner_core.pose as pose_mod
+
+    mesh, nominal, model, edge_model = block
+    truth = misplacement(1.0, -1.0, 0.5, 2.0, -1.0, 3.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=7)
+    real, calls = pose_mod._fine, []
+
+    def first_one_slides(surface, edges_, start, params, **kwargs):
+        fit = real(surface, edges_, start, params, **kwargs)
+        calls.append(kwargs)
+        if len(calls) == 1:  # the fine stage from the start
+            return dataclasses.replace(fit, pose=misplacement(0, 0, 0, 90.0, 0, 0) @ fit.pose)
+        return fit
+
+    monkeypatch.setattr(pose_mod, "_fine", first_one_slides)
+    result = register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
+                      edge_frame_ids=edge_frames, edge_model=edge_model)
+    dt, dr = pose_error(result.matrix, truth)
+    assert result.coarse
+    assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr)
+    assert not [f for f in result.flags if f.startswith("implausible")]
+
+
+def test_a_pose_beyond_the_fine_stage_s_reach_is_flagged_implausible(block):
+    """A pose farther from the start than ``max_fine_turn_deg`` (here 5 degrees, the truth 8
+    away) is kept only when the coarse search finds none nearer, and says so."""
+    mesh, nominal, model, edge_model = block
+    truth = misplacement(1.0, -1.0, 0.5, 4.0, -3.0, 6.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=8)
+    kwargs = dict(frame_ids=frames, edges_t=edges, edge_frame_ids=edge_frames,
+                  edge_model=edge_model)
+    near = register(pts, nrm, model, nominal, **kwargs)
+    assert not [f for f in near.flags if f.startswith("implausible")]
+    far = register(pts, nrm, model, nominal, params=PoseParams(max_fine_turn_deg=5.0), **kwargs)
+    assert far.coarse
+    (flag,) = [f for f in far.flags if f.startswith("implausible")]
+    assert re.search(r"turned [78] degrees", flag), flag
+    dt, dr = pose_error(far.matrix, truth)
+    assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr)
+
+
 def test_outliers_do_not_pull_the_pose(block):
     """A gripper finger in view and scattered reflections: 15 % of the points."""
     mesh, nominal, model, edge_model = block
