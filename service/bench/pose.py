@@ -965,6 +965,10 @@ def _summary(result: dict) -> dict:
         "distinct_results": len({_result_key(r) for r in done}),
         "distinct_results_within": _fraction([
             _max_abs_z(r) <= SIGMA_BOUND for r in {_result_key(r): r for r in done}.values()]),
+        # The poses a robot would act on: those without any flag.
+        "unflagged_distinct_results_within": _fraction([
+            _max_abs_z(r) <= SIGMA_BOUND for r in {_result_key(r): r for r in done
+                                                   if not r.get("flags")}.values()]),
     }
     side = result["side_by_side"]
     ratios = {}

@@ -134,6 +134,10 @@ def test_calibration_is_consistent(quick_bench):
         sum(w <= bench.SIGMA_BOUND for w in basin_worst) / len(basin))
     assert registrations["worst_axis_z_max"] == pytest.approx(max(basin_worst))
     assert 1 <= registrations["distinct_results"] <= len(basin)
+    unflagged = {bench._result_key(r): r for r in basin if not r["flags"]}
+    if unflagged:
+        assert registrations["unflagged_distinct_results_within"] == pytest.approx(
+            np.mean([bench._max_abs_z(r) <= bench.SIGMA_BOUND for r in unflagged.values()]))
 
 
 def test_side_by_side_has_every_method_or_a_note(quick_bench):
