@@ -561,10 +561,10 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
         time_ms=(time.perf_counter() - t0) * 1e3, flags=flags)
 
 
-def _turn_deg(pose, start) -> float:
+def _turn_deg(pose, other) -> float:
     """The angle between two poses' rotations, degrees."""
-    relative = np.asarray(pose)[:3, :3] @ np.asarray(start)[:3, :3].T
-    return float(np.degrees(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0))))
+    relative = np.asarray(pose)[:3, :3] @ np.asarray(other)[:3, :3].T
+    return float(np.degrees(Rotation.from_matrix(relative).magnitude()))
 
 
 # A converged fit is scored at this many times the expected scatter.
@@ -1331,9 +1331,7 @@ def _distinct(candidates, count, *, same_deg=_SAME_DEG, same_mm=_SAME_MM):
 
 
 def _same(a, b, same_deg=_SAME_DEG, same_mm=_SAME_MM) -> bool:
-    d = a @ np.linalg.inv(b)
-    angle = np.degrees(np.linalg.norm(Rotation.from_matrix(d[:3, :3]).as_rotvec()))
-    return angle < same_deg and np.linalg.norm(a[:3, 3] - b[:3, 3]) < same_mm
+    return _turn_deg(a, b) < same_deg and np.linalg.norm(a[:3, 3] - b[:3, 3]) < same_mm
 
 
 def _weakest_rotation(surface, edges, pose, centre, params, *, weakness: bool = False):

@@ -408,10 +408,9 @@ def _basin_displaced(part, scans, from_nominal, observable, levels, n_trials, rn
     """Trials on the scans of (a) (`n_trials`: a count per level), taken in turn: the start
     is the true pose displaced by the trial's misplacement (``truth = D @ start``), the
     default configuration, the coarse stage as is. Each row says whether the same scan
-    converged from the nominal grasp in (a)
-    (`from_nominal`: scan index -> bool), which tells a narrow basin from a hard scan, and
-    whether it constrains every axis at its true pose (`observable`: scan index -> bool,
-    from `_at_truth`)."""
+    converged from the nominal grasp in (a) (`from_nominal`: scan index -> bool), which
+    tells a narrow basin from a hard scan, and whether it constrains every axis at its true
+    pose (`observable`: scan index -> bool, from `_at_truth`)."""
     rows, turn = [], 0
     for level_index, (t_mm, r_deg) in enumerate(levels):
         for _ in range(n_trials[level_index]):
@@ -959,16 +958,15 @@ def _summary(result: dict) -> dict:
     # and sigma. Their distinct results are counted, and no confidence bound is drawn.
     done = [r for r in result["basin"]["trials"] if not r.get("refused")]
     basin_cal = _calibration(done)
+    distinct = list({_result_key(r): r for r in done}.values())
     summary["calibration"]["basin_registrations"] = {
         **{k: basin_cal["all"][k] for k in ("trials", "within", "worst_axis_z_max")
            if k in basin_cal["all"]},
-        "distinct_results": len({_result_key(r) for r in done}),
-        "distinct_results_within": _fraction([
-            _max_abs_z(r) <= SIGMA_BOUND for r in {_result_key(r): r for r in done}.values()]),
+        "distinct_results": len(distinct),
+        "distinct_results_within": _fraction([_max_abs_z(r) <= SIGMA_BOUND for r in distinct]),
         # The poses a robot would act on: those without any flag.
-        "unflagged_distinct_results_within": _fraction([
-            _max_abs_z(r) <= SIGMA_BOUND for r in {_result_key(r): r for r in done
-                                                   if not r.get("flags")}.values()]),
+        "unflagged_distinct_results_within": _fraction(
+            [_max_abs_z(r) <= SIGMA_BOUND for r in distinct if not r.get("flags")]),
     }
     side = result["side_by_side"]
     ratios = {}
