@@ -187,6 +187,23 @@ def test_a_cold_start_loses_no_frame(tmp_path):
     assert lost <= 2, (lost, delivered)
 
 
+def test_start_up_objects_are_left_out_of_garbage_collection(tmp_path, cell):
+    """The service freezes what it built at start-up (a full collection over it would pause
+    the acquisition thread for several frames mid-pass) and thaws it when it stops."""
+    import gc
+
+    sim = LiveSimCell(cell, seed=1)
+    service = Service(Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0"),
+                      devices=(sim.camera, sim.robot, SimPassDriver(sim), cell.calibration))
+    assert gc.get_freeze_count() == 0
+    service.start()
+    try:
+        assert gc.get_freeze_count() > 50_000  # the models and the prepared pass among them
+    finally:
+        service.stop()
+    assert gc.get_freeze_count() == 0
+
+
 def test_a_process_killed_while_storing_leaves_no_half_scan(tmp_path):
     """The writer is killed after the clouds are written and before the scan is renamed into
     place: the next start sees only the complete scan stored before."""
