@@ -194,7 +194,7 @@ def _pack(camera: PinholeCamera, planes, distortion: bool) -> np.ndarray:
     parts.append(camera.origin)
     for plane in planes:
         n = plane.normal
-        parts.append([np.arccos(np.clip(n[2], -1, 1)), np.arctan2(n[1], n[0]), plane.offset])
+        parts.append([np.arctan2(np.hypot(n[0], n[1]), n[2]), np.arctan2(n[1], n[0]), plane.offset])
     return np.concatenate([np.asarray(p, dtype=np.float64) for p in parts])
 
 

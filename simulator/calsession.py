@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from scanner_core.geometry import apply_transform
+from scanner_core.geometry import angle_between, apply_transform
 from service.calibrate import Session
 from simulator.cell import Cell
 from simulator.parts import Part, part_from_mesh
@@ -161,11 +161,11 @@ def evaluate_calibration(calibration, cell: Cell) -> dict:
     """
     true = cell.calibration
     plane, true_plane = calibration.light_plane_b, true.light_plane_b
-    normal_deg = float(np.degrees(np.arccos(np.clip(abs(plane.normal @ true_plane.normal), 0, 1))))
+    normal_deg = float(np.degrees(angle_between(plane.normal, true_plane.normal, undirected=True)))
     # The offset error where it matters: at the point of the true sheet nearest {B}'s origin.
     centre = true_plane.normal * true_plane.offset
     offset_um = float(abs(plane.signed_distance(centre)[0]) * 1e3)
-    mirrors = [float(np.degrees(np.arccos(np.clip(abs(m.plane.normal @ t.plane.normal), 0, 1))))
+    mirrors = [float(np.degrees(angle_between(m.plane.normal, t.plane.normal, undirected=True)))
                for m, t in zip(calibration.mirrors, true.mirrors)]
     effects = cell.effects
     mid_exposure_s = 0.5e-3 if effects.exposure_blur else 0.0

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scanner_core.geometry import angle_between
+
 __all__ = ["Surface", "SURFACES", "surface_gain", "mirror_directions", "with_surface"]
 
 
@@ -106,8 +108,7 @@ def surface_gain(surface: Surface, incoming, normals, to_camera) -> np.ndarray:
     d = np.asarray(incoming, dtype=np.float64)
     gain = surface.albedo * np.abs(np.einsum("ij,ij->i", d, n))
     if surface.specular > 0:
-        cos_theta = np.einsum("ij,ij->i", mirror_directions(d, n), to_camera)
-        theta = np.arccos(np.clip(cos_theta, -1.0, 1.0))
+        theta = angle_between(mirror_directions(d, n), to_camera)
         gain = gain + surface.specular * np.exp(-0.5 * (theta / np.radians(surface.lobe_deg)) ** 2)
     return gain
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from scanner_core.geometry import (Plane, reflection_matrix, apply_transform, reproject_marker,
+from scanner_core.geometry import (Plane, angle_between, reflection_matrix, apply_transform, reproject_marker,
                                    marker_views, triangulate_marker, triangulate_rays,
                                    triangulate_stripe)
 
@@ -35,6 +35,21 @@ def test_stripe_triangulation_parallel_ray_is_nan(cell):
     plane = Plane(np.array([1.0, 0.0, 0.0]), 0.0)
     out = triangulate_stripe([[cam.cx, cam.cy]], cam, plane)
     assert np.all(np.isnan(out))
+
+
+@pytest.mark.parametrize("angle", [1e-9, 1e-6, 0.3, np.pi / 2, np.pi - 1e-9])
+def test_angle_between_keeps_its_precision_near_parallel(angle, rng):
+    """arccos of the dot product gives 0 or 2.1e-8 rad below about 1e-8 rad; atan2 of the
+    cross and dot products keeps it (here to the rounding of the vectors built)."""
+    a = rng.normal(size=3)
+    a /= np.linalg.norm(a)
+    axis = np.cross(a, rng.normal(size=3))
+    axis /= np.linalg.norm(axis)
+    # b: a turned by `angle` about an axis normal to it (Rodrigues, exact for axis . a = 0)
+    b = a * np.cos(angle) + np.cross(axis, a) * np.sin(angle)
+    assert_allclose(angle_between(a, 3.0 * b), angle, rtol=1e-6)
+    assert_allclose(angle_between(np.stack([a, a]), np.stack([b, -b]), undirected=True),
+                    min(angle, np.pi - angle), rtol=1e-6)
 
 
 def test_reflection_is_an_involution():

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from scanner_core.geometry import Plane, unit
+from scanner_core.geometry import Plane, angle_between, unit
 from scanner_core.planecal import PlaneCalibrationError, calibrate_plane
 from simulator.cell import load_cell
 
@@ -38,7 +38,7 @@ def test_noise_free_plane_to_numerical_precision():
     cell = load_cell(perturb_seed=4)
     fit = calibrate_plane(_frames(cell, np.random.default_rng(0)), cell.calibration.camera, RADIUS)
     true = cell.light_plane_b
-    assert np.degrees(np.arccos(min(1.0, abs(fit.plane_b.normal @ true.normal)))) < 1e-6
+    assert np.degrees(angle_between(fit.plane_b.normal, true.normal, undirected=True)) < 1e-6
     assert abs(fit.plane_b.signed_distance(true.normal * true.offset)[0]) < 1e-6
     assert fit.rms_mm < 1e-6
     assert fit.centre_rms_mm < 1e-6
@@ -56,7 +56,7 @@ def test_five_percent_stray_points_do_not_move_the_plane():
         frames.append((px, centre))
     fit = calibrate_plane(frames, cell.calibration.camera, RADIUS)
     true = cell.light_plane_b
-    assert np.degrees(np.arccos(min(1.0, abs(fit.plane_b.normal @ true.normal)))) < 0.005
+    assert np.degrees(angle_between(fit.plane_b.normal, true.normal, undirected=True)) < 0.005
     assert abs(fit.plane_b.signed_distance(true.normal * true.offset)[0]) < 0.010
 
 

@@ -8,6 +8,7 @@ import trimesh
 from numpy.testing import assert_allclose
 from scipy.spatial.transform import Rotation
 
+from scanner_core.geometry import angle_between
 from scanner_core.pose import EdgeModel, PoseParams, SurfaceModel, register
 from simulator.parts import block_with_holes_and_steps, centred_grasp
 
@@ -249,7 +250,7 @@ def test_a_cylinder_turns_freely_about_its_axis():
     foot = np.array([0.0, 0.0, 15.0, 1.0])  # the cylinder's bottom centre in {P}
     assert_allclose((result.matrix @ foot)[:3], (truth @ foot)[:3], atol=0.01)
     axis = np.array([0.0, 0.0, 1.0])
-    tilt = np.degrees(np.arccos(np.clip((result.matrix[:3, :3] @ axis) @ (truth[:3, :3] @ axis), -1, 1)))
+    tilt = np.degrees(angle_between(result.matrix[:3, :3] @ axis, truth[:3, :3] @ axis))
     assert tilt < 0.01
 
 

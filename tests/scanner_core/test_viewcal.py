@@ -4,7 +4,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from scanner_core.geometry import reproject_marker
+from scanner_core.geometry import angle_between, reproject_marker
 from scanner_core.viewcal import (ViewCalibrationError, calibrate_views, fit_affine, fit_dlt,
                                   project_affine, project_dlt)
 from simulator.cell import load_cell
@@ -30,7 +30,7 @@ def _session(distortion=REAL_LENS_DISTORTION, n=200, seed=0):
 
 
 def _angle_deg(a, b):
-    return np.degrees(np.arccos(np.clip(abs(a @ b), 0.0, 1.0)))
+    return np.degrees(angle_between(a, b, undirected=True))
 
 
 def test_noise_free_recovery_to_numerical_precision():

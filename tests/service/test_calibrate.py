@@ -7,6 +7,7 @@ import textwrap
 import numpy as np
 import pytest
 
+from scanner_core.geometry import angle_between
 from service.calibrate import SessionError, load_session, write_session
 from service.cli import main
 from simulator.calsession import simulate_session
@@ -102,7 +103,7 @@ def test_the_scanner_never_reads_the_truth(tmp_path):
     from scanner_core.calibration import Calibration
     cal = Calibration.from_dict(json.loads(done.stdout.strip().splitlines()[-1]))
     true = cell.calibration
-    angle = np.degrees(np.arccos(min(1.0, abs(cal.light_plane_b.normal @ true.light_plane_b.normal))))
+    angle = np.degrees(angle_between(cal.light_plane_b.normal, true.light_plane_b.normal, undirected=True))
     assert 0.0 < angle < 0.02
     assert 0.0 < np.linalg.norm(cal.camera.origin - true.camera.origin) < 1.0
     # The lens as it bends pixels (its k2 and k3 trade off against each other over a session

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
+from scanner_core.geometry import angle_between
 from simulator.cell import (REFERENCE_CELL, Cell, design_reference_cell, load_cell, marker_pixels,
                             perturb)
 from simulator.motion import PassMotion
@@ -66,6 +67,6 @@ def test_perturbation_is_repeatable_and_small(cell):
     assert not _close(a.to_dict(), c.to_dict())
     moved = np.linalg.norm(a.calibration.camera.origin - cell.calibration.camera.origin)
     assert 0.0 < moved < 6.0  # millimetres
-    tilt = np.degrees(np.arccos(np.clip(a.light_plane_b.normal @ cell.light_plane_b.normal, -1, 1)))
+    tilt = np.degrees(angle_between(a.light_plane_b.normal, cell.light_plane_b.normal))
     assert 0.0 < tilt < 1.5  # degrees
     assert _close(load_cell(perturb_seed=7).to_dict(), a.to_dict())

@@ -3,6 +3,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from simulator.cell import load_cell
 from simulator.devices import SimClock, SimRobot
@@ -46,7 +47,7 @@ def test_the_robot_reports_on_its_own_clock_with_its_errors():
     t = 0.3
     pose = robot.pose_at(float(effects.robot_time(t)))
     np.testing.assert_allclose(pose.position, motion.tcp_position(t), atol=2e-4)
-    angle = np.degrees(np.arccos((np.trace(pose.rotation @ cell.gripper_rotation_b.T) - 1) / 2))
+    angle = np.degrees(Rotation.from_matrix(pose.rotation @ cell.gripper_rotation_b.T).magnitude())
     assert angle == pytest.approx(0.01, rel=1e-3)
     with pytest.raises(LookupError):  # the robot's "now" is the camera's plus the offset
         robot.pose_at(float(effects.robot_time(0.5)) + 0.01)

@@ -5,6 +5,7 @@ import trimesh
 from numpy.testing import assert_allclose
 
 from scanner_core.devices import ExposureControl
+from scanner_core.geometry import angle_between
 from simulator.imaging import NOMINAL_EXPOSURE_US, exposed_model
 from simulator.parts import part_from_mesh
 from simulator.render import PartScene
@@ -80,7 +81,7 @@ def test_specular_lobe_glints_where_the_mirror_meets_the_camera(cell):
     normal = pose[:3, :3] @ rotation[:3, :3] @ down_p  # the tilted underside, {B}
     d_all, v_all = _incidence_and_view(cell, truth)
     mirror = d_all - 2 * (d_all @ normal)[:, None] * normal
-    theta = np.arccos(np.clip(np.einsum("ij,ij->i", mirror, v_all), -1, 1))
+    theta = angle_between(mirror, v_all)
     expected = (shiny.albedo * np.abs(d_all @ normal)
                 + shiny.specular * np.exp(-0.5 * (theta / np.radians(shiny.lobe_deg)) ** 2))
     # per pixel column (two triangles meeting inside one share it, their coverages adding to
