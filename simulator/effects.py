@@ -79,6 +79,8 @@ class CellEffects:
 
     def camera_time(self, t_robot):
         """The inverse of :meth:`robot_time`."""
+        if isinstance(t_robot, float):  # the robot's per-frame lookups: no numpy on scalars
+            return (t_robot - self.clock_offset_s) / (1.0 + 1e-6 * self.clock_drift_ppm)
         return (np.asarray(t_robot) - self.clock_offset_s) / (1.0 + 1e-6 * self.clock_drift_ppm)
 
     def to_dict(self) -> dict:

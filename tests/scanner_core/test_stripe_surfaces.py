@@ -166,18 +166,26 @@ def test_geometric_window():
 
 
 def test_only_reflection_outside_window_flagged():
+    """A peak outside its column's window but within the rows some window reaches is flagged
+    OUTSIDE_WINDOW; rows no window reaches are not read at all (the window's speed)."""
     n = 500
-    truth = _random_rows(71, n=n, lo=100.0, hi=150.0)
-    img = _render(truth - 60.0, np.ones(n), np.arange(n), 72, width=n)  # the reflection only
-    res = extract(img, row_min=truth - 15.0, row_max=truth + 15.0)
+    cols = np.arange(n)
+    upper = cols % 2 == 0  # windows alternate between rows 40-60 and 140-160: all rows read
+    row_min = np.where(upper, 40.0, 140.0)
+    reflection = np.where(upper, 150.0, 50.0) + _random_rows(71, n=n, lo=-3.0, hi=3.0)
+    img = _render(reflection, np.ones(n), cols, 72, width=n)  # the reflection only
+    res = extract(img, row_min=row_min, row_max=row_min + 20.0)
     assert not res.valid.any()
     assert np.all(res.reason == Reason.OUTSIDE_WINDOW)
     assert np.all(np.isnan(res.row))
     # without a window the same peak is taken for the stripe (the window is what says otherwise)
     assert extract(img).valid.mean() > 0.98
+    # a peak in rows that no column's window reaches is never read: no peak there
+    res = extract(img, row_min=80.0, row_max=120.0)
+    assert np.all(res.reason == Reason.NO_PEAK)
     # and a column with nothing at all is NO_PEAK, window or not
     blank = render_image(HEIGHT, n, REFERENCE, np.random.default_rng(73))
-    res = extract(blank, row_min=truth - 15.0, row_max=truth + 15.0)
+    res = extract(blank, row_min=row_min, row_max=row_min + 20.0)
     assert not np.any(res.reason == Reason.OUTSIDE_WINDOW)
 
 

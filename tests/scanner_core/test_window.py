@@ -114,6 +114,9 @@ def test_window_rejects_a_reflection_outside_the_volume(cell, pass_frames, polic
 
 
 def test_window_reason_is_outside(cell, pass_frames):
+    """Where the stripe is erased and only the glare 40 rows beyond the window is left, the
+    column holds no stripe: OUTSIDE_WINDOW where the glare lies in rows some column's window
+    reaches, NO_PEAK where no window reaches its rows (those are never read)."""
     frame, truth = pass_frames[len(pass_frames) // 2]
     cal = cell.calibration
     lo, hi = volume_rows(cal, truth.tcp_b, cell.gripper_rotation_b, VOLUME)
@@ -122,5 +125,8 @@ def test_window_reason_is_outside(cell, pass_frames):
     params = PipelineParams()
     marker = observe_marker(glared.image, cal, params)
     result, valid, _ = frame_stripe(glared.image, cal, params, marker, cell.gripper_rotation_b)
-    assert np.all(result.reason[erased] == Reason.OUTSIDE_WINDOW)
+    read = np.nanmax(np.where(lo <= hi, hi, np.nan)) + 1  # the last row any window reaches
+    glare_read = hi[erased] + 40.0 < read - 2.0
+    assert np.all(result.reason[erased][glare_read] == Reason.OUTSIDE_WINDOW)
+    assert np.all(result.reason[erased][~glare_read] == Reason.NO_PEAK)
     assert not valid[erased].any()

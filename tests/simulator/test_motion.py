@@ -27,3 +27,11 @@ def test_robot_arrives_and_leaves_moving():
     assert_allclose(start[1] - before[1], 0.1 * p.speed_mm_s * (1 - p.accel_fraction))
     end, after = motion.tcp_position(motion.duration_s), motion.tcp_position(motion.duration_s + 0.1)
     assert_allclose(after[1] - end[1], 0.1 * p.speed_mm_s * (1 + p.accel_fraction))
+
+
+def test_one_time_gives_what_many_times_give():
+    """The scalar path (the simulated robot's per-frame lookups) is the vectorised one."""
+    motion = PassMotion(PassProfile())
+    t = np.linspace(-0.3, motion.duration_s + 0.3, 257)
+    one_by_one = np.array([motion.tcp_position(float(ti)) for ti in t])
+    assert_allclose(one_by_one, motion.tcp_position(t), rtol=1e-12, atol=1e-9)

@@ -1,0 +1,393 @@
+"""The per-frame kernel of stripe extraction: candidates, the choice between them, the width
+gates and the sub-pixel refinement (``scanner_core.stripe.extract`` documents the behaviour;
+this module holds its constants and its numba code).
+
+Per frame: the row-major passes (``scanner_core.stripe_passes``) give, per column, the maximum,
+its row and a far second maximum; here each column gets its candidates (the maximum, and the
+second one if it is strong, a local maximum and apart from the first), their widths, the
+frame's typical width, the choice between two candidates (a policy), the gates (too narrow,
+too wide, linked to the neighbouring columns) and the refinement of the chosen peak
+(``scanner_core.stripe_estimators``). Reason codes are ``scanner_core.stripe.Reason``'s.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from scanner_core import stripe_estimators as est
+from scanner_core import stripe_passes as passes
+from scanner_core.stripe_estimators import FWHM_PER_SIGMA, SATURATION_DN
+
+__all__ = ["extract_kernel"]
+
+# A second peak must lie farther than this many of the main peak's sigmas from it (and than
+# 2 * window rows): at 2 sigma a Gaussian stripe's own flank is down to 13.5 % of its peak, and
+# lifting it to ``DOUBLE_PEAK_RATIO`` (0.3) takes a noise excursion of a sixth of the peak (11
+# sigmas at 200 DN over 3 DN); on a wide stripe, sigma 6 px, the flank 2 * window = 8 rows out
+# is still at 41 % of the peak and its noise bumps are local maxima.
+SEPARATE_SIGMAS = 2.0
+
+# --- width gates (``max_width="auto"``)
+# Narrow peaks: a peak narrower than MIN_WIDTH_PX (sigma-like), or with fewer than
+# MIN_PIXELS_ABOVE pixels above the threshold within +-window, looks like a lone noise pixel
+# (width ~0.42 px, 1 pixel above) - and so does a stripe of sigma 0.5 px (0.44-0.6 px, 1 to 3
+# pixels above). A stripe goes on into the next column, a noise or hot pixel does not: a narrow
+# peak is kept when a neighbouring column holds a peak within LINK_ROWS_PX (+ the widths) of
+# its row, and its own peak reaches NARROW_MIN_SIGMAS noise sigmas above the background (the
+# largest of 1e6 normal noise samples is ~4.9 sigma: two such neighbours by chance, never).
+MIN_WIDTH_PX = 0.5
+MIN_PIXELS_ABOVE = 3
+NARROW_MIN_SIGMAS = 8.0
+# Wide peaks: the widest stripe of a frame depends on the optics and the surface (sigma 0.7 to
+# 4.7 px along one line on a photograph of a laser line crossing a printed checkerboard; 1.5 px
+# in the reference cell), so the gate follows the frame: its typical width is the median of its
+# unclipped candidate peaks' widths (at least WIDTH_MIN_SAMPLES of them, else ``max_width``
+# alone), and a peak up to CORE_WIDTH_FACTOR times it (never under ``max_width``) is a stripe.
+# A peak up to LINKED_WIDTH_FACTOR times that is one too when it continues, column by column
+# (rows within LINK_ROWS_PX + the widths), a stripe that passed: a stripe widening along its
+# length (defocus, a surface turning) stays whole, while a broad blob apart from the stripe
+# (ambient light, a diffuse reflection) is rejected as before. Beyond WIDTH_CAP_PX nothing is
+# measured (the width walk stops there).
+CORE_WIDTH_FACTOR = 2.0
+LINKED_WIDTH_FACTOR = 2.0
+WIDTH_MIN_SAMPLES = 16
+WIDTH_CAP_PX = 16.0
+LINK_ROWS_PX = 2.0
+# Histogram of the widths for the median: bins of WIDTH_BIN_PX up to WIDTH_CAP_PX.
+WIDTH_BIN_PX = 0.05
+_WIDTH_BINS = int(WIDTH_CAP_PX / WIDTH_BIN_PX) + 1
+# Column classes in the gate pass.
+_CORE, _NARROW, _WIDE, _REJECTED = 0, 1, 2, 3
+
+# --- noise-derived floors (threshold="auto"): the noise estimate is
+# ``scanner_core.stripe_passes.noise_estimate``.
+# The saturated-peak fit uses the unclipped samples above background + this many noise sigmas:
+# low samples weigh little ((v - b)^2 weights) but keep the fit determined when the flanks are
+# steep (at 10x full scale only one sample per flank clears a 20 DN threshold).
+SAT_FIT_MIN_SIGMAS = 2.0
+# threshold = background + AUTO_THRESHOLD_SIGMAS * noise: 3.33 reproduces the fixed 20 DN on the
+# reference model (background 10, noise 3), where it measured best for ``cog``.
+AUTO_THRESHOLD_SIGMAS = 10.0 / 3.0
+# A candidate peak must reach background + AUTO_MIN_PEAK_SIGMAS * noise in "auto" mode: the
+# largest of 1200 normal noise samples is ~3.2 sigma, so 5 sigma leaves ~3e-7 false peaks per
+# pixel, which the MIN_PIXELS_ABOVE and width tests then reject.
+AUTO_MIN_PEAK_SIGMAS = 5.0
+
+# With threshold="auto", ``cog`` weighs ``v - t`` above a level ``t`` of its own per column:
+# background + max(AUTO_COG_SIGMAS * noise, AUTO_COG_PEAK_FRACTION * (peak - background)).
+# On bright stripes the second term rules (10 DN on a 200 DN stripe: the 20 DN that measured best
+# on the reference model); on dim ones the first (measured on 30 DN over 3 DN, RMS: 0.1495 px
+# at 20 DN, 0.1468 at 18.5, 0.1472 at 17, against a Cramer-Rao bound of 0.130).
+AUTO_COG_SIGMAS = 2.8
+AUTO_COG_PEAK_FRACTION = 0.05
+
+# --- continuity policy (a Viterbi path over the columns, two states per column)
+# Cost, in px of row jump, of choosing a candidate of zero brightness over the brightest one
+# (linear in the brightness ratio).  40 px makes a candidate at half the brightness cost 20 px per
+# column, more than the two capped links it could save: a reflection at <= half the stripe's
+# brightness is never chosen over it however the rows jump (measured: 100 % of the columns on the
+# stripe with smooth and with random per-column rows; 4 px kept glints over 10 columns but fell
+# to 89 % on random rows), while a glint 1.5x the stripe over 1 (2) columns is still bridged in
+# 100 % (95 %) of the columns.  Longer glints need ``expected_row`` (the previous profile).
+CONTINUITY_BRIGHTNESS_PX = 40.0
+# Row jumps between linked columns are charged up to this (px): a real step of the surface costs
+# every path the same.
+CONTINUITY_JUMP_CAP_PX = 10.0
+# Columns farther apart than this (without a candidate between them) are not linked.
+CONTINUITY_MAX_GAP = 8
+# Weight (per px of distance, capped like the jumps) of the expected row when one is given.
+EXPECTED_WEIGHT = 1.0
+
+
+
+@njit(nogil=True, cache=True)
+def _continuity(ncand, mx, am, sec, a2, expected, c0, choice):
+    """Viterbi path over the columns (states: candidate 0 or 1), written into ``choice``.
+
+    Cost of a path: per column ``CONTINUITY_BRIGHTNESS_PX * (1 - p_k / p_max)`` (+ the capped
+    distance to the expected row, if any), per link ``min(|row jump|, CONTINUITY_JUMP_CAP_PX)``
+    between columns at most ``CONTINUITY_MAX_GAP`` apart.  Unlinked stretches are separate paths.
+    """
+    n = ncand.shape[0]
+    cost = np.zeros((n, 2))
+    back = np.zeros((n, 2), np.int8)
+    link = np.full(n, -1, np.int64)
+    last = -1
+    for j in range(n):
+        kn = ncand[j]
+        if kn == 0:
+            continue
+        linked = last >= 0 and j - last <= CONTINUITY_MAX_GAP
+        e = expected[c0 + j]
+        pm = float(mx[j])
+        for k in range(kn):
+            rk = float(am[j]) if k == 0 else float(a2[j])
+            pk = float(mx[j]) if k == 0 else float(sec[j])
+            u = CONTINUITY_BRIGHTNESS_PX * (1.0 - pk / pm)
+            if math.isfinite(e):
+                u += EXPECTED_WEIGHT * min(abs(rk - e), CONTINUITY_JUMP_CAP_PX)
+            best = 0.0
+            bk = 0
+            if linked:
+                best = math.inf
+                for kp in range(ncand[last]):
+                    rp = float(am[last]) if kp == 0 else float(a2[last])
+                    t = cost[last, kp] + min(abs(rk - rp), CONTINUITY_JUMP_CAP_PX)
+                    if t < best:
+                        best = t
+                        bk = kp
+            cost[j, k] = u + best
+            back[j, k] = bk
+        if linked:
+            link[j] = last
+        last = j
+    for j in range(n - 1, -1, -1):
+        if ncand[j] == 0:
+            continue
+        if choice[j] < 0:  # end of a path: its cheaper state
+            choice[j] = 1 if ncand[j] == 2 and cost[j, 1] < cost[j, 0] else 0
+        if link[j] >= 0:
+            choice[link[j]] = back[j, choice[j]]
+
+
+@njit(nogil=True, cache=True)
+def _whole_span(k0, k1, n):
+    """Columns ``k0 <= j < k1`` of a read span ``n`` wide, widened to all of it when they
+    cover half of it (a sequential stream: ``scanner_core.stripe_passes``)."""
+    if k1 - k0 >= passes.READ_WHOLE_ROWS_SHARE * n:
+        return 0, n
+    return k0, k1
+
+
+@njit(nogil=True, cache=True)
+def _linked(a0, w0, a1, w1):
+    """Neighbouring columns' peaks continue one another: rows within LINK_ROWS_PX plus the
+    wider one's sigma-like width."""
+    return abs(a0 - a1) <= LINK_ROWS_PX + max(w0, w1)
+
+
+@njit(nogil=True, cache=True)
+def extract_kernel(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_width,
+                   double_ratio, bg, policy, expected, use_window, rmin, rmax, fit_saturated,
+                   row, peak, width, reason, saturated, snr, n_peaks, noise):
+    """``scanner_core.stripe.extract``'s work on a checked frame; writes the per-column outputs
+    (indexed by the frame's column) and ``noise = [background, noise, width gate]``."""
+    h, w = img.shape
+    med, sig = passes.noise_estimate(img)
+    noise[0] = med
+    noise[1] = sig
+    noise[2] = max_width
+    if auto:
+        threshold = med + AUTO_THRESHOLD_SIGMAS * sig
+        floor = med + AUTO_MIN_PEAK_SIGMAS * sig
+    else:
+        threshold = thr
+        floor = thr
+    if c1 == c0:
+        return
+    sep = 2 * window
+    r0, r1 = 0, h
+    if use_window:
+        r0, r1 = passes.window_band(rmin, rmax, c0, c1, h)
+    ca, cb = passes.read_span(c0, c1, w)
+    n = cb - ca
+    js, je = c0 - ca, c1 - ca  # the requested columns in the read span
+    mx = np.zeros(n, np.uint8)
+    am = np.zeros(n, np.uint16)
+    sec = np.zeros(n, np.uint8)
+    a2 = np.zeros(n, np.uint16)
+    out = np.zeros(n, np.uint8)
+    passes.column_max(img, r0, r1, ca, cb, sep, mx, am, sec)
+    # the rows of the second maxima, only over the columns that hold one (none on a clean
+    # frame): a second pass there is cheaper than tracking them in every frame
+    maybe_double = False
+    k0, k1 = n, -1
+    for j in range(js, je):
+        s = float(sec[j])
+        if s > threshold and s >= floor and s >= double_ratio * float(mx[j]):
+            k0 = min(k0, j)
+            k1 = max(k1, j)
+    if k1 >= k0:
+        maybe_double = True
+        k0, k1 = _whole_span(k0, k1 + 1, n)
+        mx[k0:k1] = 0  # the second pass starts afresh (it finds the same maxima)
+        am[k0:k1] = 0
+        sec[k0:k1] = 0
+        passes.column_max2(img, r0, r1, ca + k0, ca + k1, sep, mx[k0:k1], am[k0:k1],
+                           sec[k0:k1], a2[k0:k1])
+    if use_window:
+        # Only the columns whose maximum lies outside their window (a reflection brighter than
+        # the stripe, rare) are searched again, inside it: a frame without one costs what the
+        # plain pass costs.
+        k0, k1 = n, -1
+        for j in range(js, je):
+            p = float(mx[j])
+            a = am[j]
+            if p > threshold and p >= floor and (a < rmin[ca + j] or a > rmax[ca + j]):
+                k0 = min(k0, j)
+                k1 = max(k1, j)
+        if k1 >= k0:
+            maybe_double = True
+            k0, k1 = _whole_span(k0, k1 + 1, n)
+            mx[k0:k1] = 0
+            am[k0:k1] = 0
+            sec[k0:k1] = 0
+            a2[k0:k1] = 0
+            passes.column_max_window(img, r0, r1, ca + k0, ca + k1, sep, rmin, rmax,
+                                     mx[k0:k1], am[k0:k1], sec[k0:k1], a2[k0:k1], out[k0:k1])
+    # candidates (the maximum, and the far second maximum if it is strong, a local maximum and
+    # apart from the first: on a wide stripe the far "second" is only its own flank), the main
+    # one's width, and the frame's widths
+    if auto_width:
+        max_walk = int(math.ceil(WIDTH_CAP_PX * FWHM_PER_SIGMA)) + 2
+    else:
+        max_walk = int(math.ceil(max_width * FWHM_PER_SIGMA)) + 2
+    ncand = np.zeros(n, np.int8)
+    wmain = np.full(n, np.inf)
+    hist = np.zeros(_WIDTH_BINS, np.int64)
+    n_widths = 0
+    for j in range(js, je):
+        p = float(mx[j])
+        if not (p > threshold and p >= floor):
+            continue
+        ncand[j] = 1
+        c = ca + j
+        a = int(am[j])
+        wd = est.fwhm_width(img, c, a, h, 0.5 * (p + threshold), max_walk)
+        wmain[j] = wd
+        s = float(sec[j])
+        if s > threshold and s >= floor and s >= double_ratio * p:
+            b = int(a2[j])
+            inside = not use_window or (b >= rmin[c] and b <= rmax[c])
+            apart = not math.isfinite(wd) or abs(b - a) > SEPARATE_SIGMAS * wd
+            if (inside and apart and b > 0 and b < h - 1 and img[b - 1, c] <= img[b, c]
+                    and img[b + 1, c] <= img[b, c]):
+                ncand[j] = 2
+        if p < SATURATION_DN and wd >= min_width and wd < WIDTH_CAP_PX:
+            hist[int(wd / WIDTH_BIN_PX)] += 1
+            n_widths += 1
+    core = max_width
+    linked = max_width
+    if auto_width:
+        if n_widths >= WIDTH_MIN_SAMPLES:
+            # bin k holds widths in [k, k + 1) * WIDTH_BIN_PX; the quantile puts it at k +- 0.5
+            typical = (passes.quantile_from_hist(hist, float(n_widths), 0.5) + 0.5) * WIDTH_BIN_PX
+            core = max(max_width, CORE_WIDTH_FACTOR * typical)
+        linked = min(LINKED_WIDTH_FACTOR * core, WIDTH_CAP_PX)
+    noise[2] = core
+    choice = np.zeros(n, np.int8)
+    if policy == 1:  # nearest
+        for j in range(js, je):
+            e = expected[ca + j]
+            if ncand[j] == 2 and math.isfinite(e):
+                if abs(float(a2[j]) - e) < abs(float(am[j]) - e):
+                    choice[j] = 1
+    elif policy == 2 and maybe_double:  # continuity, when some column may hold two candidates
+        choice[js:je] = -1
+        _continuity(ncand[js:je], mx[js:je], am[js:je], sec[js:je], a2[js:je], expected, c0,
+                    choice[js:je])
+    # the chosen peak of each column and its class for the gates
+    klass = np.full(n, _REJECTED, np.int8)
+    arow = np.zeros(n, np.int64)
+    wsel = np.full(n, np.inf)
+    yrow = np.full(n, np.nan)
+    bg_sat = med if math.isnan(bg) else bg
+    for j in range(js, je):
+        c = ca + j
+        n_peaks[c] = ncand[j]
+        if ncand[j] == 0:
+            peak[c] = float(mx[j])
+            snr[c] = (float(mx[j]) - med) / sig
+            o = float(out[j])
+            reason[c] = 8 if (o > threshold and o >= floor) else 1  # OUTSIDE_WINDOW / NO_PEAK
+            continue
+        if choice[j] == 1:
+            p = float(sec[j])
+            a = int(a2[j])
+            wd = est.fwhm_width(img, c, a, h, 0.5 * (p + threshold), max_walk)
+        else:
+            p = float(mx[j])
+            a = int(am[j])
+            wd = wmain[j]
+        peak[c] = p
+        snr[c] = (p - med) / sig
+        if p >= SATURATION_DN:
+            if not fit_saturated:
+                reason[c] = 2  # SATURATED
+                continue
+            saturated[c] = True
+        width[c] = wd
+        if wd > linked:
+            reason[c] = 4  # TOO_WIDE
+            continue
+        if policy == 3 and ncand[j] == 2:
+            reason[c] = 3  # DOUBLE
+            continue
+        arow[j] = a
+        wsel[j] = wd
+        if wd < min_width or est.count_above(img, c, a, h, threshold, window) < MIN_PIXELS_ABOVE:
+            if snr[c] < NARROW_MIN_SIGMAS:
+                reason[c] = 5  # TOO_NARROW
+                continue
+            klass[j] = _NARROW
+        elif wd > core:
+            klass[j] = _WIDE
+        else:
+            klass[j] = _CORE
+        # the refinement, here while the column's pixels are in the cache (a peak the gates
+        # then reject is refined for nothing: rare)
+        y = math.nan
+        if saturated[c]:
+            y = est.saturated_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig, window,
+                                     bg_sat, max_walk)
+            if not math.isfinite(y):  # too few samples for the fit: a narrow stripe?
+                y = est.narrow_clip_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig,
+                                           bg_sat)
+        elif method == 0:
+            t_cog = threshold
+            if auto:
+                t_cog = med + max(AUTO_COG_SIGMAS * sig, AUTO_COG_PEAK_FRACTION * (p - med))
+            y = est.cog(img, c, a, h, t_cog, window, bg, max_walk)
+        elif method == 1:
+            y = est.gaussian3(img, c, a, h, bg)
+        elif method == 2:
+            y = est.parabola(img, c, a, h)
+        elif method == 3:
+            y = est.blais_rioux(img, c, a, h)
+        else:
+            y0 = est.cog(img, c, a, h, threshold, window, math.nan, max_walk)
+            y = est.lsq_gauss(img, c, a, h, threshold, window, y0, wd) if math.isfinite(y0) else y0
+        yrow[j] = y
+    # the gates: a narrow peak continued by a neighbour's, a wide one by a chain of them from a
+    # stripe within the gate
+    ok = np.zeros(n, np.bool_)
+    for j in range(js, je):
+        if klass[j] == _CORE:
+            ok[j] = True
+        elif klass[j] == _NARROW:
+            for i in (j - 1, j + 1):
+                if (i >= js and i < je and klass[i] != _REJECTED
+                        and _linked(arow[i], wsel[i], arow[j], wsel[j])):
+                    ok[j] = True
+    for j in range(js + 1, je):
+        if (klass[j] == _WIDE and not ok[j] and ok[j - 1]
+                and _linked(arow[j - 1], wsel[j - 1], arow[j], wsel[j])):
+            ok[j] = True
+    for j in range(je - 2, js - 1, -1):
+        if (klass[j] == _WIDE and not ok[j] and ok[j + 1]
+                and _linked(arow[j + 1], wsel[j + 1], arow[j], wsel[j])):
+            ok[j] = True
+    # the peaks that passed
+    for j in range(js, je):
+        if klass[j] == _REJECTED:
+            continue
+        c = ca + j
+        if not ok[j]:
+            reason[c] = 5 if klass[j] == _NARROW else 4  # TOO_NARROW / TOO_WIDE
+        elif not math.isfinite(yrow[j]):
+            reason[c] = 6  # FIT_FAILED
+        else:
+            row[c] = yrow[j]
+            reason[c] = 0
