@@ -467,13 +467,14 @@ class PassAccumulator:
                 self._rotation, self._rotation_t = rotation, t_camera
         return rotation, True
 
-    def add(self, profile: Profile) -> bool:
-        """Place one profile; returns whether it was placed."""
+    def add(self, profile: Profile, looked_up: tuple | None = None) -> bool:
+        """Place one profile; returns whether it was placed. ``looked_up``: what
+        :meth:`rotation_at` gave for the profile's time, when the caller has it already."""
         placed = None
         from_robot = True
         rotation = None
         if profile.marker.valid:
-            rotation, from_robot = self.rotation_at(profile.t)
+            rotation, from_robot = looked_up if looked_up is not None else self.rotation_at(profile.t)
             if rotation is not None:
                 tcp = profile.marker.position_b - rotation @ self.calibration.marker_offset_t
                 edges = profile.edges if profile.edges is not None else EdgePoints.empty()
@@ -649,13 +650,14 @@ def measure_frame(frame: Frame, marker: MarkerObservation, accumulator: PassAccu
     """One triggered frame: its profile (in the geometric window of the robot's rotation at
     its time), placed; exposure control learns from its stripe. Returns whether it was
     placed. Thread-safe (the service's workers)."""
-    rotation = accumulator.rotation_at(frame.t)[0] if marker.valid else None
-    profile = process_frame(frame, accumulator.calibration, params, marker, rotation,
+    looked_up = accumulator.rotation_at(frame.t) if marker.valid else None
+    profile = process_frame(frame, accumulator.calibration, params, marker,
+                            None if looked_up is None else looked_up[0],
                             accumulator.expected_rows(frame.frame_id))
     if exposure is not None:
         exposure.profile_measured(profile.exposure_us, profile.gain, profile.stripe_peaks,
                                   profile.background_dn)
-    return accumulator.add(profile)
+    return accumulator.add(profile, looked_up)
 
 
 def feed_frame(frame: Frame, tracker: MarkerTracker, trigger: Trigger,

@@ -33,6 +33,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from scanner_core import stripe_passes as passes
 from scanner_core.stripe_estimators import FWHM_PER_SIGMA, SATURATION_DN  # noqa: F401
@@ -40,7 +41,7 @@ from scanner_core.stripe_kernel import (  # noqa: F401  (the gates' constants, d
     AUTO_COG_PEAK_FRACTION, AUTO_COG_SIGMAS, AUTO_MIN_PEAK_SIGMAS, AUTO_THRESHOLD_SIGMAS,
     CONTINUITY_BRIGHTNESS_PX, CONTINUITY_JUMP_CAP_PX, CONTINUITY_MAX_GAP, CORE_WIDTH_FACTOR,
     LINKED_WIDTH_FACTOR, MIN_PIXELS_ABOVE, MIN_WIDTH_PX, NARROW_MIN_SIGMAS, SEPARATE_SIGMAS,
-    extract_kernel)
+    extract_kernel, window_bounds)
 from scanner_core.validate import check_columns, check_image
 
 __all__ = ["METHODS", "POLICIES", "StripeResult", "extract", "Reason", "estimate_noise",
@@ -170,30 +171,46 @@ def isolated_runs(row, valid, *, max_jump_px=20.0, min_run=3, max_gap=2) -> np.n
     (W,) bool
         True for the columns to drop.
     """
-    row = np.asarray(row, dtype=np.float64)
-    valid = np.asarray(valid, dtype=bool)
-    cols = np.flatnonzero(valid)
-    out = np.zeros(len(valid), dtype=bool)
-    if len(cols) == 0 or min_run <= 1:
+    row = np.ascontiguousarray(row, dtype=np.float64)
+    valid = np.ascontiguousarray(valid, dtype=np.bool_)
+    if row.shape != valid.shape or row.ndim != 1:
+        raise ValueError(f"`row` and `valid` must be (W,) arrays of one length, got {row.shape} "
+                         f"and {valid.shape}")
+    return _isolated_runs(row, valid, float(max_jump_px), int(min_run), int(max_gap))
+
+
+@njit(nogil=True, cache=True)
+def _isolated_runs(row, valid, max_jump_px, min_run, max_gap):
+    """:func:`isolated_runs` in one pass over the runs (numpy's version cost 10 us a frame)."""
+    n = valid.shape[0]
+    out = np.zeros(n, np.bool_)
+    if min_run <= 1:
         return out
-    r = row[cols]
-    breaks = (np.diff(cols) > 1) | (np.abs(np.diff(r)) > max_jump_px)
-    run_id = np.concatenate([[0], np.cumsum(breaks)])
-    length = np.bincount(run_id)[run_id]
-    short = length < min_run
-    if not short.any():
-        return out
-    # For each valid column, is its predecessor / successor (in valid order) close enough in
-    # columns and in a long run? A short run is judged by its ends.
-    prev_long = np.zeros(len(cols), dtype=bool)
-    next_long = np.zeros(len(cols), dtype=bool)
-    near = np.diff(cols) <= max_gap + 1
-    other = run_id[1:] != run_id[:-1]
-    prev_long[1:] = near & other & ~short[:-1]
-    next_long[:-1] = near & other & ~short[1:]
-    contradicted = np.zeros(run_id[-1] + 1, dtype=bool)
-    np.logical_or.at(contradicted, run_id, (prev_long | next_long) & short)
-    out[cols[contradicted[run_id] & short]] = True
+    # runs of valid columns: [start, stop) in column index, length in valid columns
+    starts = np.empty(n, np.int64)
+    stops = np.empty(n, np.int64)
+    lengths = np.empty(n, np.int64)
+    k = -1
+    last = -1
+    for c in range(n):
+        if not valid[c]:
+            continue
+        if k < 0 or c - last > 1 or abs(row[c] - row[last]) > max_jump_px:
+            k += 1
+            starts[k] = c
+            lengths[k] = 0
+        stops[k] = c + 1
+        lengths[k] += 1
+        last = c
+    # a short run is judged by its ends: a long run at most max_gap columns beyond either
+    for i in range(k + 1):
+        if lengths[i] >= min_run:
+            continue
+        before = i > 0 and lengths[i - 1] >= min_run and starts[i] - stops[i - 1] <= max_gap
+        after = i < k and lengths[i + 1] >= min_run and starts[i + 1] - stops[i] <= max_gap
+        if before or after:
+            for c in range(starts[i], stops[i]):
+                out[c] = valid[c]
     return out
 
 
@@ -396,28 +413,18 @@ def extract(image, method="cog", *, threshold=20.0, window=4, max_width="auto", 
     expected = _per_column("expected_row", expected_row, w, math.nan)
     use_window = row_min is not None or row_max is not None
     if use_window:
-        lo = np.clip(np.ceil(_per_column("row_min", row_min, w, 0.0)), 0, 65535)
-        hi = np.clip(np.floor(_per_column("row_max", row_max, w, h - 1.0)), 0, 65535)
-        if np.isnan(lo).any() or np.isnan(hi).any():
+        rmin, rmax, ok = window_bounds(_per_column("row_min", row_min, w, 0.0),
+                                       _per_column("row_max", row_max, w, h - 1.0), h)
+        if not ok:
             raise ValueError("`row_min` and `row_max` must not be NaN")
-        rmin, rmax = lo.astype(np.uint16), hi.astype(np.uint16)
     else:
         rmin = rmax = np.zeros(0, np.uint16)
-    row = np.full(w, np.nan, np.float32)
-    peak = np.full(w, np.nan, np.float32)
-    width = np.full(w, np.nan, np.float32)
-    snr = np.full(w, np.nan, np.float32)
-    reason = np.full(w, Reason.NOT_PROCESSED, np.uint8)
-    saturated = np.zeros(w, np.bool_)
-    n_peaks = np.zeros(w, np.uint8)
-    noise = np.zeros(3)
-    extract_kernel(img, c0, c1, _METHOD_CODE[method], auto, thr, window, gate, auto_width,
-                   min_width, double_ratio, bg, _POLICY_CODE[policy], expected, use_window,
-                   rmin, rmax, saturation == "fit", row, peak, width, reason, saturated, snr,
-                   n_peaks, noise)
+    (row, peak, width, reason, saturated, snr, n_peaks, background, noise,
+     gate) = extract_kernel(img, c0, c1, _METHOD_CODE[method], auto, thr, window, gate, auto_width,
+                            min_width, double_ratio, bg, _POLICY_CODE[policy], expected,
+                            use_window, rmin, rmax, saturation == "fit")
     return StripeResult(row=row, peak=peak, width=width, valid=reason == Reason.OK, reason=reason,
-                        saturated=saturated, snr=snr, n_peaks=n_peaks,
-                        background_dn=float(noise[0]), noise_dn=float(noise[1]),
-                        width_gate_px=float(noise[2]))
+                        saturated=saturated, snr=snr, n_peaks=n_peaks, background_dn=background,
+                        noise_dn=noise, width_gate_px=gate)
 
 

@@ -20,7 +20,7 @@ from scanner_core import stripe_estimators as est
 from scanner_core import stripe_passes as passes
 from scanner_core.stripe_estimators import FWHM_PER_SIGMA, SATURATION_DN
 
-__all__ = ["extract_kernel"]
+__all__ = ["extract_kernel", "window_bounds"]
 
 # A second peak must lie farther than this many of the main peak's sigmas from it (and than
 # 2 * window rows): at 2 sigma a Gaussian stripe's own flank is down to 13.5 % of its peak, and
@@ -169,16 +169,49 @@ def _linked(a0, w0, a1, w1):
 
 
 @njit(nogil=True, cache=True)
+def window_bounds(row_min, row_max, h):
+    """The geometric window's rows as uint16 per column: ``ceil(row_min)`` and
+    ``floor(row_max)`` clipped to ``[0, 65535]``, and False if any is NaN."""
+    n = row_min.shape[0]
+    lo = np.empty(n, np.uint16)
+    hi = np.empty(n, np.uint16)
+    for c in range(n):
+        a, b = row_min[c], row_max[c]
+        if math.isnan(a) or math.isnan(b):
+            return lo, hi, False
+        lo[c] = np.uint16(min(max(math.ceil(a), 0.0), 65535.0))
+        hi[c] = np.uint16(min(max(math.floor(b), 0.0), 65535.0))
+    return lo, hi, True
+
+
+@njit(nogil=True, cache=True)
 def extract_kernel(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_width,
-                   double_ratio, bg, policy, expected, use_window, rmin, rmax, fit_saturated,
-                   row, peak, width, reason, saturated, snr, n_peaks, noise):
-    """``scanner_core.stripe.extract``'s work on a checked frame; writes the per-column outputs
-    (indexed by the frame's column) and ``noise = [background, noise, width gate]``."""
+                   double_ratio, bg, policy, expected, use_window, rmin, rmax, fit_saturated):
+    """``scanner_core.stripe.extract``'s work on a checked frame.
+
+    Returns the per-column arrays (W,) indexed by the frame's column, ``row, peak, width,
+    reason, saturated, snr, n_peaks``, then the frame's background, noise and width gate."""
     h, w = img.shape
+    row = np.full(w, np.nan, np.float32)
+    peak = np.full(w, np.nan, np.float32)
+    width = np.full(w, np.nan, np.float32)
+    snr = np.full(w, np.nan, np.float32)
+    reason = np.full(w, 7, np.uint8)  # NOT_PROCESSED
+    saturated = np.zeros(w, np.bool_)
+    n_peaks = np.zeros(w, np.uint8)
     med, sig = passes.noise_estimate(img)
-    noise[0] = med
-    noise[1] = sig
-    noise[2] = max_width
+    core = _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_width,
+                    double_ratio, bg, policy, expected, use_window, rmin, rmax, fit_saturated,
+                    med, sig, row, peak, width, reason, saturated, snr, n_peaks)
+    return row, peak, width, reason, saturated, snr, n_peaks, med, sig, core
+
+
+@njit(nogil=True, cache=True)
+def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_width,
+             double_ratio, bg, policy, expected, use_window, rmin, rmax, fit_saturated, med, sig,
+             row, peak, width, reason, saturated, snr, n_peaks):
+    """The columns ``c0 <= c < c1``: outputs written in place; returns the width gate."""
+    h, w = img.shape
     if auto:
         threshold = med + AUTO_THRESHOLD_SIGMAS * sig
         floor = med + AUTO_MIN_PEAK_SIGMAS * sig
@@ -186,7 +219,7 @@ def extract_kernel(img, c0, c1, method, auto, thr, window, max_width, auto_width
         threshold = thr
         floor = thr
     if c1 == c0:
-        return
+        return max_width
     sep = 2 * window
     r0, r1 = 0, h
     if use_window:
@@ -276,7 +309,6 @@ def extract_kernel(img, c0, c1, method, auto, thr, window, max_width, auto_width
             typical = (passes.quantile_from_hist(hist, float(n_widths), 0.5) + 0.5) * WIDTH_BIN_PX
             core = max(max_width, CORE_WIDTH_FACTOR * typical)
         linked = min(LINKED_WIDTH_FACTOR * core, WIDTH_CAP_PX)
-    noise[2] = core
     choice = np.zeros(n, np.int8)
     if policy == 1:  # nearest
         for j in range(js, je):
@@ -391,3 +423,4 @@ def extract_kernel(img, c0, c1, method, auto, thr, window, max_width, auto_width
         else:
             row[c] = yrow[j]
             reason[c] = 0
+    return core

@@ -100,31 +100,26 @@ def volume_rows(calibration: Calibration, tcp_b, rotation_b, volume_mm, *, margi
         px; ``row_min > row_max`` in columns the section does not reach (no stripe possible).
     """
     cam = calibration.camera
-    width = cam.width
-    row_min = np.full(width, np.inf)
-    row_max = np.full(width, -np.inf)
     corners = volume_section_b(tcp_b, rotation_b, volume_mm, margin_mm, calibration.light_plane_b)
-    if len(corners) >= 2:
-        px = cam.project(corners)
-        _chord_rows(px[np.isfinite(px).all(axis=1)], row_min, row_max)
-    empty = row_min > row_max
-    row_min = np.where(empty, cam.height, row_min - margin_px)
-    row_max = np.where(empty, -1.0, row_max + margin_px)
-    return row_min, row_max
+    px = cam.project(corners) if len(corners) >= 2 else np.zeros((0, 2))
+    return _chord_rows(px, cam.width, float(cam.height), float(margin_px))
 
 
 @njit(nogil=True, cache=True)
-def _chord_rows(px, row_min, row_max):
-    """Per column, the span of the rows where the chords between any two of the projected
-    corners ``px`` (K, 2) cross it, into ``row_min`` and ``row_max`` (W,)."""
-    width = row_min.shape[0]
+def _chord_rows(px, width, height, margin_px):
+    """Per column of a frame ``width`` wide, the span of the rows where the chords between
+    any two of the projected corners ``px`` (K, 2; NaN rows skipped) cross it, widened by
+    ``margin_px``; ``(height, -1)`` in the columns no chord reaches."""
+    row_min = np.full(width, np.inf)
+    row_max = np.full(width, -np.inf)
     k = px.shape[0]
     for i in range(k):
         for j in range(i + 1, k):
             u0, v0, u1, v1 = px[i, 0], px[i, 1], px[j, 0], px[j, 1]
             # A chord along a column (du = 0) is skipped: the chords from its two ends reach
-            # that column too.
-            if u1 == u0:
+            # that column too. A corner behind the camera (NaN) gives no chord.
+            if u1 == u0 or not (np.isfinite(u0) and np.isfinite(v0) and np.isfinite(u1)
+                                and np.isfinite(v1)):
                 continue
             lo = max(int(np.ceil(min(u0, u1))), 0)
             hi = min(int(np.floor(max(u0, u1))), width - 1)
@@ -132,3 +127,11 @@ def _chord_rows(px, row_min, row_max):
                 v = v0 + (c - u0) / (u1 - u0) * (v1 - v0)
                 row_min[c] = min(row_min[c], v)
                 row_max[c] = max(row_max[c], v)
+    for c in range(width):
+        if row_min[c] > row_max[c]:
+            row_min[c] = height
+            row_max[c] = -1.0
+        else:
+            row_min[c] -= margin_px
+            row_max[c] += margin_px
+    return row_min, row_max

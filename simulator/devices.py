@@ -6,6 +6,7 @@ robot can only report poses up to "now", as a real one would.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -163,10 +164,10 @@ class SimRobot:
     def _sample_range(self) -> tuple[float, float]:
         """Indices (k_first, k_last) of the 500 Hz samples reported so far and still kept;
         k_last < k_first when there is none."""
-        now = float(self.effects.robot_time(self.clock.now))
-        start = float(self.effects.robot_time(-self.motion.profile.lead_in_s))
+        now = float(self.effects.robot_time(float(self.clock.now)))
+        start = float(self.effects.robot_time(-float(self.motion.profile.lead_in_s)))
         first = max(now - ROBOT_HISTORY_S, start)
-        return np.ceil(first * ROBOT_RATE_HZ), np.floor(now * ROBOT_RATE_HZ)
+        return float(math.ceil(first * ROBOT_RATE_HZ)), float(math.floor(now * ROBOT_RATE_HZ))
 
     def latest(self) -> TcpPose:
         if not self._connected:
@@ -184,7 +185,7 @@ class SimRobot:
         if k_last < k_first or not k_first / ROBOT_RATE_HZ <= t <= k_last / ROBOT_RATE_HZ:
             raise LookupError(f"t = {t:.4f} s is outside the robot's history")
         # The two samples around t (one sample when the history holds only one).
-        k0 = min(max(np.floor(t * ROBOT_RATE_HZ), k_first), max(k_last - 1, k_first))
+        k0 = min(max(float(math.floor(t * ROBOT_RATE_HZ)), k_first), max(k_last - 1, k_first))
         t0, t1 = k0 / ROBOT_RATE_HZ, min(k0 + 1, k_last) / ROBOT_RATE_HZ
         w = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
         pos = (1 - w) * self._position(t0) + w * self._position(t1)

@@ -75,6 +75,8 @@ class CellEffects:
 
     def robot_time(self, t_camera):
         """The robot's clock at camera time(s) ``t_camera``, s."""
+        if isinstance(t_camera, float):  # the robot's per-frame lookups: no numpy on scalars
+            return self.clock_offset_s + (1.0 + 1e-6 * self.clock_drift_ppm) * t_camera
         return self.clock_offset_s + (1.0 + 1e-6 * self.clock_drift_ppm) * np.asarray(t_camera)
 
     def camera_time(self, t_robot):
