@@ -602,6 +602,53 @@ def test_step_with_its_wall_inside_a_column(geometry, phase, near_left):
     assert edges.direction[i] == (1 if near_left else -1)
 
 
+@dataclass(frozen=True)
+class TwoPeakProfile(Profile):
+    """A profile whose extraction measured some columns on one of two peaks
+    (``StripeResult.n_peaks``, the default "continuity" policy)."""
+
+    n_peaks: np.ndarray = None
+
+
+#: The near side's share of a column measured on the far side's peak, beside it: from the
+#: least a second peak holds (stripe.DOUBLE_PEAK_RATIO) to 0.6 of the far side's (the bracket's
+#: leaning wall, edges.DOUBLE_SHARE); taking it as DOUBLE_SHARE of that peak puts the near end
+#: within 0.19 of a column of the truth over that range (as none, 0.3 to 0.6 off).
+TWO_PEAK_TOL_PX = 0.2
+
+
+@pytest.mark.parametrize("share", [0.3, 0.45, 0.6])
+@pytest.mark.parametrize("near_left", [True, False])
+def test_step_beside_a_column_of_two_peaks(geometry, share, near_left):
+    """A wall leaning under its top edge: the column beyond the near side's last one holds
+    all of the far side's stripe and `share` of the near side's, and the extraction measures
+    it on the far side's (brighter) peak, with a second one. The near side ends `share` into
+    that column; the step's column lies within TWO_PEAK_TOL_PX of it. Without the second peak
+    the near side's share is taken as none and the step lands at the column's border."""
+    column = 1000
+    cols = np.arange(column - 150, column + 151)
+    near = cols < column if near_left else cols > column
+    profile = blank_profile()
+    set_stripe(profile, cols[near], surface_at(geometry, cols[near], NEAR_MM)[1])
+    set_stripe(profile, cols[~near], surface_at(geometry, cols[~near], FAR_MM)[1])
+    n_peaks = np.zeros(WIDTH, np.uint8)
+    n_peaks[cols] = 1
+    n_peaks[column] = 2
+    base = make(profile)
+    row, peak, reason = base.row, base.peak, base.reason
+    expected = column + (share - 0.5 if near_left else 0.5 - share)
+    for peaks, tol in ((n_peaks, TWO_PEAK_TOL_PX), (None, None)):
+        two = TwoPeakProfile(row, peak, reason, n_peaks=peaks)
+        edges = edges_of(geometry, two)
+        steps = np.nonzero(edges.kind == EdgeKind.STEP)[0]
+        assert len(steps) == 1
+        u = edges.pixel[steps[0], 0]
+        if tol is not None:
+            assert abs(u - expected) <= tol
+        else:  # as before issue 25: at the border of the near side's last column
+            assert_allclose(u, column + (-0.5 if near_left else 0.5), atol=1e-9)
+
+
 @pytest.mark.parametrize("row_noise_px", ROW_NOISE_PX)
 def test_step_with_stripe_noise(geometry, rng, row_noise_px):
     profile, a_wall = step_profile(geometry, 1000)
