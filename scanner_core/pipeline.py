@@ -34,6 +34,7 @@ from scanner_core.calibration import Calibration
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
 from scanner_core.exposure import (ExposureController, ExposureParams, merge_exposure_pairs,
                                    partly_lit)
+from scanner_core.edge_kinds import AsideEdges, sheet_range_b, turned_away
 from scanner_core.edges import (EdgeKind, EdgeParams, EdgePoints, chamfered_dropouts, find_edges,
                                 grazing_edges, occluded_dropouts)
 from scanner_core.geometry import (base_to_tcp, reproject_marker, triangulate_marker,
@@ -598,9 +599,14 @@ def _without_partly_lit(placed: list[PlacedProfile], ratio: float):
 
 def _stitch_edges(scan: Scan, placed: list[PlacedProfile], calibration: Calibration) -> None:
     """The profiles' edge points in {T}, the drop-outs of a chamfered outline placed at it
-    (``scanner_core.edges.chamfered_dropouts``), less the drop-outs that bound an occlusion
-    (which a single profile cannot tell from a rim: ``scanner_core.edges.occluded_dropouts``)
-    and the points on a surface the sheet grazes (``scanner_core.edges.grazing_edges``)."""
+    (``scanner_core.edges.chamfered_dropouts``), less those set aside
+    (``Scan.edges_aside``, each with its ``EdgeKind``): the drop-outs that bound an
+    occlusion (which a single profile cannot tell from a rim:
+    ``scanner_core.edges.occluded_dropouts``), the points on a surface the sheet grazes
+    (``scanner_core.edges.grazing_edges``), and those whose surface may go on unseen beyond
+    them, turned from the view or the light by a soft crease
+    (``scanner_core.edge_kinds.turned_away``)."""
+    scan.edges_aside = AsideEdges.empty()
     if not placed:
         return
     counts = [len(p.edges_t) for p in placed]
@@ -611,7 +617,7 @@ def _stitch_edges(scan: Scan, placed: list[PlacedProfile], calibration: Calibrat
     peak = np.concatenate([p.edges.peak for p in placed]).astype(np.float32)
     frames = np.repeat(np.array([p.frame_id for p in placed], np.int32), counts)
     sensors = np.repeat(scan.sensor_positions_t, counts, axis=0)
-    keep = np.ones(len(points), bool)
+    why = np.zeros(len(points), np.uint8)  # 0: kept; else the EdgeKind it is set aside as
     dropout = np.nonzero(kind == EdgeKind.DROPOUT)[0]
     if len(dropout):
         stripe_end = np.concatenate([p.edges.stripe_end for p in placed]).reshape(-1, 5)
@@ -621,18 +627,30 @@ def _stitch_edges(scan: Scan, placed: list[PlacedProfile], calibration: Calibrat
                                       scan.profile_spacing_mm)
         points[dropout] = moved
     if len(dropout) and len(scan.cloud):
-        keep[dropout[occluded_dropouts(points[dropout], across[dropout], sensors[dropout],
-                                       scan.cloud)]] = False
-    scan.edges_occluded = int((~keep).sum())
+        why[dropout[occluded_dropouts(points[dropout], across[dropout], sensors[dropout],
+                                      scan.cloud)]] = EdgeKind.OCCLUDED
+    scan.edges_occluded = int((why == EdgeKind.OCCLUDED).sum())
     # The sheet's normal in {T} per frame: R^T n_B.
     sheet_b = calibration.light_plane_b.normal
-    sheets = np.repeat(np.array([p.rotation_b.T @ sheet_b for p in placed]), counts, axis=0)
+    rotations = np.array([p.rotation_b for p in placed])
+    sheets = np.repeat(np.einsum("fji,j->fi", rotations, sheet_b), counts, axis=0)
     grazed = grazing_edges(points, sheets, scan.cloud, scan.frame_ids, scan.profile_spacing_mm,
-                           frame_ids=frames) & keep
-    keep &= ~grazed
+                           frame_ids=frames) & (why == 0)
+    why[grazed] = EdgeKind.GRAZING
     scan.edges_grazing = int(grazed.sum())
+    if len(points) and len(scan.cloud):
+        from scanner_core.scanio import point_sensors  # its PLY and normals: not at import
+
+        range_b = sheet_range_b(calibration)
+        ranges = np.repeat(np.einsum("fji,j->fi", rotations, range_b), counts, axis=0)
+        turned, _, _ = turned_away(points, kind, size, ranges, sensors, scan.cloud,
+                                   scan.frame_ids, frames, point_sensors(scan))
+        why[turned & (why == 0)] = EdgeKind.TURNED_AWAY
+    keep = why == 0
     scan.edges, scan.edge_frame_ids, scan.edge_kind = points[keep], frames[keep], kind[keep]
     scan.edge_size_mm, scan.edge_quality = size[keep], peak[keep]
+    scan.edges_aside = AsideEdges(points[~keep].astype(np.float32), frames[~keep], why[~keep],
+                                  kind[~keep], size[~keep], peak[~keep])
 
 
 def camera_frames(camera: Camera, timeout: float = 1.0) -> Iterator[Frame]:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 
+from scanner_core.edge_kinds import kind_counts
 from scanner_core.types import Scan
 
 #: The stages of ``Scan.timings_ms`` that are processing (not waiting for frames or workers).
@@ -16,6 +17,10 @@ def _finite(x):
 
 def scan_report(scan: Scan, cross_check: dict | None = None, **extra) -> dict:
     """The report of one scan (the contract's fields, then what the pass adds).
+
+    ``edge_kinds`` counts the edge points per ``scanner_core.edges.EdgeKind``: in the edge
+    cloud (``dropout``, ``step``) and set aside (``occluded``, ``grazing``, ``turned_away``,
+    ``off_model``: ``Scan.edges_aside``); ``edge_points`` is the edge cloud's size.
 
     Parameters
     ----------
@@ -41,6 +46,7 @@ def scan_report(scan: Scan, cross_check: dict | None = None, **extra) -> dict:
         "edge_points": int(len(scan.edges)),
         "edges_occluded": int(scan.edges_occluded),
         "edges_grazing": int(scan.edges_grazing),
+        "edge_kinds": kind_counts(scan),
         "timings_ms": {**scan.timings_ms, "processing": round(processing_ms, 3)},
         "pose": None,
         "cross_check": cross_check if cross_check is not None else {"samples": 0},

@@ -178,6 +178,9 @@ class Scan:
     edges_grazing : int
         Edge points dropped because the light sheet grazes the surface they lie on
         (``scanner_core.edges.grazing_edges``).
+    edges_aside : scanner_core.edge_kinds.AsideEdges or None
+        The edge points kept out of ``edges``, each with its reason (``EdgeKind.OCCLUDED``,
+        ``GRAZING``, ``TURNED_AWAY``, ``OFF_MODEL``); None for a scan built by hand.
     normals : (N, 3) float32 or None
         Unit normals of the cloud toward the camera; computed once, on first use, by
         ``scanner_core.scanio.scan_normals``.
@@ -208,6 +211,7 @@ class Scan:
     edge_quality: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     edges_occluded: int = 0
     edges_grazing: int = 0
+    edges_aside: object = None
     points_partly_lit: int = 0
     normals: np.ndarray | None = None
 

@@ -6,7 +6,9 @@ near a stripe sample that the renderer found lit by the laser and seen by the ca
 same frame (or between two samples of one pixel column: their blend); a point that does not
 came from a surface the camera cannot see (or from nothing at all). Edge points are scored
 against the CAD's sharp edges, and drop-outs also against the part's outline seen along z_T
-(:func:`edge_accuracy`).
+(:func:`edge_accuracy`); a scan's edge points per kind, those it set aside included
+(:func:`edge_kind_accuracy`), and why a drop-out's stripe ended by the true section of the part
+by the sheet (:func:`dropout_causes`).
 """
 from __future__ import annotations
 
@@ -268,6 +270,42 @@ def _edge_stats(distance_xy: np.ndarray, distance_3d: np.ndarray, outlier_mm: fl
     }
 
 
+def edge_distances(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kinds=None,
+                   feature_angle_deg: float = 30.0):
+    """Each edge point's distance to the edges it is measured against (:func:`edge_accuracy`).
+
+    Returns
+    -------
+    d_xy : (N,) float64
+        In the (x_T, y_T) plane, mm: to the sharp edges, a step also across its wall, a
+        drop-out (every point without `kinds`) also to the outline.
+    d_3d : (N,) float64
+        In 3-D to the sharp edges, mm.
+    info : dict
+        ``sharp_edges``, ``outline_edges`` (segments) and ``dropouts_off_sharp_edges``.
+    """
+    points = np.asarray(edges_t, dtype=np.float64).reshape(-1, 3)
+    grasp = np.asarray(true_grasp, dtype=np.float64)
+    edges_p, faces = sharp_edges(mesh, feature_angle_deg, faces=True)
+    segments = apply_transform(grasp, edges_p.reshape(-1, 3)).reshape(-1, 2, 3)
+    d_xy = _segment_distances(points[:, :2], segments[:, :, :2])
+    d_3d = _segment_distances(points, segments)
+    dropout = np.ones(len(points), bool)
+    if kinds is not None:
+        step = np.asarray(kinds).reshape(-1) == STEP_KIND
+        dropout = ~step
+        if step.any():
+            normals_t = np.asarray(mesh.face_normals, dtype=np.float64)[faces] @ grasp[:3, :3].T
+            d_xy[step] = np.minimum(d_xy[step],
+                                    _wall_distances(points[step], segments, normals_t))
+    outline = outline_edges(mesh, grasp)
+    to_outline = _segment_distances(points[dropout, :2], outline[:, :, :2])
+    off_sharp = int(np.sum(to_outline < d_xy[dropout] - OUTLINE_COUNTED_MM))
+    d_xy[dropout] = np.minimum(d_xy[dropout], to_outline)
+    return d_xy, d_3d, {"sharp_edges": int(len(segments)), "outline_edges": int(len(outline)),
+                        "dropouts_off_sharp_edges": off_sharp}
+
+
 def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kinds=None,
                   feature_angle_deg: float = 30.0, outlier_mm: float = 0.5) -> dict:
     """Distances from edge points to the CAD's sharp edges, and from drop-outs also to the
@@ -314,31 +352,175 @@ def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kin
         per kind under ``by_kind``.
     """
     points = np.asarray(edges_t, dtype=np.float64).reshape(-1, 3)
-    grasp = np.asarray(true_grasp, dtype=np.float64)
-    edges_p, faces = sharp_edges(mesh, feature_angle_deg, faces=True)
-    segments = apply_transform(grasp, edges_p.reshape(-1, 3)).reshape(-1, 2, 3)
-    d_xy = _segment_distances(points[:, :2], segments[:, :, :2])
-    d_3d = _segment_distances(points, segments)
-    dropout = np.ones(len(points), bool)
     if kinds is not None:
         kinds = np.asarray(kinds).reshape(-1)
         if kinds.shape != (len(points),):
             raise ValueError(f"`kinds` must be ({len(points)},), got {kinds.shape}")
-        step = kinds == STEP_KIND
-        dropout = ~step
-        if step.any():
-            normals_t = np.asarray(mesh.face_normals, dtype=np.float64)[faces] @ grasp[:3, :3].T
-            d_xy[step] = np.minimum(d_xy[step],
-                                    _wall_distances(points[step], segments, normals_t))
-    outline = outline_edges(mesh, grasp)
-    to_outline = _segment_distances(points[dropout, :2], outline[:, :, :2])
-    off_sharp = int(np.sum(to_outline < d_xy[dropout] - OUTLINE_COUNTED_MM))
-    d_xy[dropout] = np.minimum(d_xy[dropout], to_outline)
+    d_xy, d_3d, info = edge_distances(points, mesh, true_grasp, kinds=kinds,
+                                      feature_angle_deg=feature_angle_deg)
     out = _edge_stats(d_xy, d_3d, outlier_mm)
-    out["sharp_edges"] = int(len(segments))
-    out["outline_edges"] = int(len(outline))
-    out["dropouts_off_sharp_edges"] = off_sharp
+    out.update(info)
     if kinds is not None:
         out["by_kind"] = {name: _edge_stats(d_xy[kinds == code], d_3d[kinds == code], outlier_mm)
                           for code, name in EDGE_KIND_NAMES.items()}
     return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Edge kinds of a scan (issue 25): the edge cloud and what the scan set aside, by the truth
+
+
+def edge_kind_accuracy(scan, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *,
+                       outlier_mm: float = 0.5) -> dict:
+    """:func:`edge_accuracy` of a scan's edge cloud, and of each kind of edge point it set
+    aside (``Scan.edges_aside``, ``scanner_core.edges.EdgeKind``), each point measured as what
+    its profile found (a drop-out or a step).
+
+    Returns
+    -------
+    dict
+        ``edges``: the edge cloud's figures (``by_kind``: drop-outs and steps); ``aside``: one
+        dict per reason (``occluded``, ``grazing``, ``turned_away``, ``off_model``) with the
+        figures of the points set aside for it (``count`` 0 when none); ``without_turned_away``:
+        the edge cloud with the turned-away points put back (what the scan gave before
+        ``scanner_core.edge_kinds.turned_away``).
+    """
+    from scanner_core.edge_kinds import EDGE_KIND_NAMES, AsideEdges
+    from scanner_core.edges import EdgeKind
+
+    def figures(points, kinds) -> dict:
+        if len(points) == 0:
+            return {"count": 0}
+        out = edge_accuracy(points, mesh, true_grasp, kinds=kinds, outlier_mm=outlier_mm)
+        out.pop("sharp_edges")
+        out.pop("outline_edges")
+        return out
+
+    aside = scan.edges_aside if scan.edges_aside is not None else AsideEdges.empty()
+    result = {"edges": figures(scan.edges, scan.edge_kind), "aside": {}}
+    for code, name in EDGE_KIND_NAMES.items():
+        if code in (EdgeKind.DROPOUT, EdgeKind.STEP):
+            continue
+        mine = aside.kind == code
+        result["aside"][name] = figures(aside.points[mine], aside.found[mine])
+    turned = aside.kind == EdgeKind.TURNED_AWAY
+    result["without_turned_away"] = figures(
+        np.concatenate([np.asarray(scan.edges, np.float64).reshape(-1, 3),
+                        aside.points[turned].astype(np.float64)]),
+        np.concatenate([scan.edge_kind, aside.found[turned]]))
+    return result
+
+
+#: A drop-out's surface "goes on" when the true section of the part by the sheet has a point
+#: within this of it (mm) farther into the gap than DROPOUT_BEYOND_MM: about six columns of
+#: the reference cell, past a partly lit last column.
+DROPOUT_REACH_MM = 1.0
+DROPOUT_BEYOND_MM = 0.05
+#: The true section is sampled this finely (mm).
+SECTION_STEP_MM = 0.05
+#: Causes of a drop-out by the truth (:func:`dropout_causes`).
+DROPOUT_CAUSES = ("outline", "unlit", "unseen", "faint")
+
+
+def dropout_causes(points_t, frame_ids, cloud_t, cloud_frame_ids, mesh: trimesh.Trimesh,
+                   truths: dict, gripper_rotation_b, cell) -> list[str]:
+    """Why each drop-out's stripe ended, by the true section of the part by the sheet.
+
+    Into the gap (away from the nearest points of the drop-out's own profile, in the sheet),
+    within ``DROPOUT_REACH_MM``: ``"outline"``, nothing of the part; ``"unlit"``, only faces
+    turned from the laser (the part's outline seen from the sensor, a rim); ``"unseen"``, a
+    face lit by the laser that the camera does not see (its back to the camera, or hidden by
+    the part); ``"faint"``, a face lit and seen, its stripe too faint to be found (the sheet
+    grazing it). The first two are edges of the part, the others where the stripe left the
+    camera's view or the light.
+
+    Parameters
+    ----------
+    points_t : (M, 3) float
+        Drop-out points in {T}, mm.
+    frame_ids : (M,) int
+    cloud_t : (N, 3) float
+        The scan's cloud in {T} (each drop-out's side: its own profile's points).
+    cloud_frame_ids : (N,) int
+    mesh : trimesh.Trimesh
+        The part in {P}.
+    truths : dict frame_id -> simulator.render.FrameTruth
+        With ``part_pose_b`` and ``tcp_b``.
+    gripper_rotation_b : (3, 3) float
+    cell : simulator.cell.Cell
+        The true cell: its light plane, camera centre and laser origin.
+
+    Returns
+    -------
+    list of str
+        One of ``DROPOUT_CAUSES`` per point.
+    """
+    points = np.asarray(points_t, dtype=np.float64).reshape(-1, 3)
+    frames = np.asarray(frame_ids).reshape(-1)
+    cloud = np.asarray(cloud_t, dtype=np.float64).reshape(-1, 3)
+    cloud_frames = np.asarray(cloud_frame_ids).reshape(-1)
+    rotation = np.asarray(gripper_rotation_b, dtype=np.float64)
+    plane = cell.calibration.light_plane_b
+    out = []
+    sections = {}
+    for p_t, fid in zip(points, frames):
+        truth = truths[int(fid)]
+        to_p = np.linalg.inv(truth.part_pose_b)
+        # the point and its profile in {B}, then {P}
+        p_b = rotation @ p_t + truth.tcp_b
+        own = cloud[cloud_frames == fid]
+        own_b = own @ rotation.T + truth.tcp_b
+        if int(fid) not in sections:
+            sections[int(fid)] = _section(mesh, to_p, plane)
+        samples, normals = sections[int(fid)]
+        p_p = apply_transform(to_p, p_b[None])[0]
+        if len(own_b):
+            near = own_b[np.argsort(np.linalg.norm(own_b - p_b, axis=1))[:5]]
+            gap_b = p_b - near.mean(axis=0)
+        else:
+            gap_b = np.zeros(3)
+        gap_b -= (gap_b @ plane.normal) * plane.normal
+        length = np.linalg.norm(gap_b)
+        if len(samples) == 0 or length == 0:
+            out.append("outline")
+            continue
+        gap_p = to_p[:3, :3] @ (gap_b / length)
+        rel = samples - p_p
+        beyond = ((np.linalg.norm(rel, axis=1) < DROPOUT_REACH_MM)
+                  & (rel @ gap_p > DROPOUT_BEYOND_MM))
+        if not beyond.any():
+            out.append("outline")
+            continue
+        laser_p = apply_transform(to_p, cell.laser_origin_b[None])[0]
+        camera_p = apply_transform(to_p, cell.calibration.camera.origin[None])[0]
+        at, n = samples[beyond], normals[beyond]
+        lit = np.einsum("ij,ij->i", n, laser_p - at) > 0
+        if not lit.any():
+            out.append("unlit")
+            continue
+        at, n = at[lit], n[lit]
+        sight = camera_p - at
+        sight /= np.linalg.norm(sight, axis=1)[:, None]
+        front = np.einsum("ij,ij->i", n, sight) > 0
+        seen = front.copy()
+        if front.any():
+            seen[front] = ~mesh.ray.intersects_any(at[front] + 1e-3 * sight[front], sight[front])
+        out.append("faint" if seen.any() else "unseen")
+    return out
+
+
+def _section(mesh: trimesh.Trimesh, to_p: np.ndarray, plane_b):
+    """The part's section by the sheet, in {P}: points every ``SECTION_STEP_MM`` with their
+    faces' normals."""
+    normal_p = to_p[:3, :3] @ np.asarray(plane_b.normal, np.float64)
+    origin_p = apply_transform(to_p, (plane_b.offset * np.asarray(plane_b.normal))[None])[0]
+    lines, faces = trimesh.intersections.mesh_plane(mesh, normal_p, origin_p, return_faces=True)
+    if len(lines) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    length = np.linalg.norm(lines[:, 1] - lines[:, 0], axis=1)
+    count = np.maximum(1, np.ceil(length / SECTION_STEP_MM).astype(int))
+    owner = np.repeat(np.arange(len(lines)), count)
+    first = np.cumsum(count) - count
+    t = (np.arange(count.sum()) - first[owner] + 0.5) / count[owner]
+    samples = lines[owner, 0] + t[:, None] * (lines[owner, 1] - lines[owner, 0])
+    return samples, np.asarray(mesh.face_normals)[faces[owner]]
