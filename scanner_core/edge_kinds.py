@@ -30,8 +30,9 @@ points, 2 cores).
 
 **With the part's model** (:func:`reclassify_with_model`, after registration). The CAD
 model says where its edges are (:class:`ModelEdges`: its sharp edges, and its outline seen
-from the sensor under the registered pose). An edge point farther than ``MODEL_EDGE_TOL_MM``
-from all of them is set aside (``EdgeKind.OFF_MODEL``). Points set aside model-free stay
+from the sensor under the registered pose, the outline for drop-outs only, as the edge
+evaluation measures them). An edge point farther than ``MODEL_EDGE_TOL_MM`` from all of them
+is set aside (``EdgeKind.OFF_MODEL``). Points set aside model-free stay
 aside: on the faceted dome, those lying within the tolerance of its outline were 70-90 um
 RMS from it (the stripe fading on a steep tier short of the rim). Distances are those the pose
 matches edge points by: in the (x_T, y_T) plane (its residual is the distance to the
@@ -296,24 +297,36 @@ class ModelEdges:
                    np.asarray(mesh.face_adjacency_angles) > math.radians(feature_angle_deg),
                    unique[counts == 1])
 
-    def segments_t(self, pose) -> np.ndarray:
-        """(S, 2, 3) float64: the sharp edges, the border and the outline seen from the
-        sensor (+z_T) under ``pose`` (^T X_P), placed in {T}, mm."""
+    def segments_t(self, pose, *, outline: bool = True) -> np.ndarray:
+        """(S, 2, 3) float64: the sharp edges, the border and (with `outline`) the outline
+        seen from the sensor (+z_T) under ``pose`` (^T X_P), placed in {T}, mm."""
         pose = np.asarray(pose, dtype=np.float64)
-        toward = self.face_normals @ pose[2, :3] > TOWARD_MIN  # z_T in {P}: the pose's third row
-        outline = toward[self.faces[:, 0]] != toward[self.faces[:, 1]]
-        index = np.concatenate([self.edges[self.sharp | outline], self.boundary])
+        keep = self.sharp.copy()
+        if outline:
+            toward = self.face_normals @ pose[2, :3] > TOWARD_MIN  # z_T in {P}: 3rd row
+            keep |= toward[self.faces[:, 0]] != toward[self.faces[:, 1]]
+        index = np.concatenate([self.edges[keep], self.boundary])
         return apply_transform(pose, self.vertices[index].reshape(-1, 3)).reshape(-1, 2, 3)
 
 
-def model_distances(points_t, model: ModelEdges, pose) -> np.ndarray:
+def model_distances(points_t, kinds, model: ModelEdges, pose) -> np.ndarray:
     """(M,) float64: how far each edge point lies from the model's edges under ``pose``, mm,
-    in the (x_T, y_T) plane: the pose's residual for an edge point is its distance to the
-    vertical plane through the edge it matches (a step's half-height point included: on a
-    leaning wall it lies off its edges' projection, and the pose cannot use it either)."""
+    in the (x_T, y_T) plane, as the pose's residual for an edge point (its distance to the
+    vertical plane through the edge it matches): a drop-out from the sharp edges and the
+    outline seen from the sensor (a rounded rim's stripe ends where it turns away), a step
+    (``kinds`` == ``EdgeKind.STEP``) from the sharp edges (its half-height point on a
+    leaning wall lies off them, and the pose cannot use it either)."""
     points = _points3(points_t, "points_t")
-    segments = model.segments_t(pose)
-    return _segment_distances(points[:, :2], segments[:, :, :2])
+    kinds = np.asarray(kinds).reshape(-1)
+    if kinds.shape != (len(points),):
+        raise ValueError(f"`kinds` must be ({len(points)},), got {kinds.shape}")
+    out = np.full(len(points), np.inf)
+    step = kinds == EdgeKind.STEP
+    for mask, outline in ((~step, True), (step, False)):
+        if mask.any():
+            segments = model.segments_t(pose, outline=outline)
+            out[mask] = _segment_distances(points[mask, :2], segments[:, :, :2])
+    return out
 
 
 def _segment_distances(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
@@ -357,7 +370,7 @@ def reclassify_with_model(scan, model: ModelEdges, pose, *,
         The points set aside.
     """
     aside = scan.edges_aside if scan.edges_aside is not None else AsideEdges.empty()
-    distance = model_distances(scan.edges, model, pose)
+    distance = model_distances(scan.edges, scan.edge_kind, model, pose)
     off = ~(distance <= tol_mm)
     moved = AsideEdges(scan.edges[off], scan.edge_frame_ids[off],
                        np.full(int(off.sum()), EdgeKind.OFF_MODEL, np.uint8),

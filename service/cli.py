@@ -234,13 +234,14 @@ def _parse_args(argv):
 
     bench = command("bench", help="benchmarks: JSON figures and PNG charts")
     bench.add_argument("what", choices=["stripe", "scan", "simulate", "service", "pose",
-                                        "coarse", "hardware", "surfaces", "calibrate"],
+                                        "coarse", "hardware", "surfaces", "calibrate", "edges"],
                        help="pose: registration accuracy, time, basin, sigma calibration and "
                             "the side-by-side with Open3D and small_gicp, then where pose and "
                             "edges break; coarse: the pose's coarse stage against OpenCV's "
                             "point-pair features (PPF); hardware: the UR cross-check through "
                             "ur-rtde, the robot link's loss and recovery, replay against real "
-                            "time")
+                            "time; edges: edge points per part and edge kind on creased, "
+                            "curved and walled parts")
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
     bench.add_argument("--meshes", type=Path, default=None,
@@ -685,6 +686,8 @@ def _cmd_bench(args) -> int:
         from service.bench import calibrate as bench
     elif args.what == "coarse":
         from service.bench import coarse as bench
+    elif args.what == "edges":
+        from service.bench import edges as bench
     elif args.what == "pose":
         from service.bench import pose as bench
         from service.bench import pose_limits

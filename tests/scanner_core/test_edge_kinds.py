@@ -112,8 +112,11 @@ def test_model_edges_of_a_box(box_model):
     segments = box_model.segments_t(np.eye(4))
     assert segments.shape == (12, 2, 3)  # its sharp edges; a face diagonal is none
     points = np.array([[30.05, 5.0, 20.0], [25.0, 5.0, 20.0], [30.0, 0.0, 17.5]])
-    assert_allclose(model_distances(points, box_model, np.eye(4)), [0.05, 5.0, 0.0],
+    kinds = [EdgeKind.DROPOUT, EdgeKind.DROPOUT, EdgeKind.STEP]
+    assert_allclose(model_distances(points, kinds, box_model, np.eye(4)), [0.05, 5.0, 0.0],
                     atol=EXACT_MM)
+    with pytest.raises(ValueError, match="kinds"):
+        model_distances(points, kinds[:2], box_model, np.eye(4))
 
 
 def test_a_rounded_rim_is_on_the_models_outline():
@@ -126,13 +129,16 @@ def test_a_rounded_rim_is_on_the_models_outline():
     pose = np.eye(4)
     pose[2, 3] = radius
     points = np.array([[radius, 0.0, radius], [radius - 0.5, 0.0, 2 * radius - 0.02]])
-    assert_allclose(model_distances(points, model, pose), [0.0, 0.5], atol=1e-3)
+    dropouts = [EdgeKind.DROPOUT] * 2
+    assert_allclose(model_distances(points, dropouts, model, pose), [0.0, 0.5], atol=1e-3)
+    # a step is measured to the sharp edges only: the end caps' rims, 10 mm away
+    assert model_distances(points[:1], [EdgeKind.STEP], model, pose)[0] > 9.0
     turn = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
     turned = trimesh.Trimesh(rod.vertices @ turn.T, rod.faces)
     back = pose.copy()
     back[:3, :3] = turn.T
-    assert_allclose(model_distances(points, ModelEdges.from_mesh(turned), back), [0.0, 0.5],
-                    atol=1e-3)
+    assert_allclose(model_distances(points, dropouts, ModelEdges.from_mesh(turned), back),
+                    [0.0, 0.5], atol=1e-3)
 
 
 def edge_scan(points, kinds) -> Scan:
