@@ -97,10 +97,10 @@ def cog(img, c, a, h, threshold, window, bg, reach):
     """
     off = threshold if math.isnan(bg) else bg
     lo = max(a - window, 0)
-    while lo > 0 and a - lo < reach and img[lo - 1, c] > threshold and img[lo, c] > threshold:
+    while img[lo, c] > threshold and lo > 0 and a - lo < reach and img[lo - 1, c] > threshold:
         lo -= 1
     hi = min(a + window, h - 1)
-    while hi < h - 1 and hi - a < reach and img[hi + 1, c] > threshold and img[hi, c] > threshold:
+    while img[hi, c] > threshold and hi < h - 1 and hi - a < reach and img[hi + 1, c] > threshold:
         hi += 1
     s0 = 0.0
     s1 = 0.0
