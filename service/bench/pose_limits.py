@@ -147,8 +147,11 @@ FACTORS = (
     Factor("noise", "read noise (reference 3 DN)", "DN", (3, 6, 10, 15, 20, 25), (3, 15, 25)),
     Factor("speed", "pass speed at 162 fps (reference 200 mm/s)", "mm/s",
            (200, 400, 700, 1000, 1500, 2500, 4000), (200, 1000, 2500)),
+    # to 800 x full scale: since the width gates follow the frame (issue 25) the clipped
+    # plateaus that continue the stripe are measured, and the pose first breaks past 200 x
     Factor("saturation", "stripe peak (full scale 255 DN, reference 200 DN)", "DN",
-           (200, 400, 1000, 2000, 3000, 5000, 10000, 20000, 50000), (200, 1000, 50000)),
+           (200, 400, 1000, 2000, 3000, 5000, 10000, 20000, 50000, 100000, 200000),
+           (200, 1000, 200000)),
     Factor("marker", "marker hidden: fraction of the pass (0-1 right mirror, 1-2 both)", "",
            (0.0, 0.5, 1.0, 1.25, 1.5, 1.75, 2.0), (0.0, 1.0, 2.0)),
     Factor("symmetry", "off-centre hole's offset from the cylinder axis", "mm",
