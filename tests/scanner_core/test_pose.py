@@ -108,7 +108,7 @@ def test_free_motions_read_as_turns_and_slides(rng):
     eigenvectors come), read as a turn about z_T and a slide along y_T, not "about z_T"
     twice; slides along x_T and y_T mixed at random, with round-off in their turn parts,
     read as those slides; one free motion is described as it is."""
-    from scanner_core.pose import _free_motions
+    from scanner_core.pose_confidence import _free_motions
 
     scale = np.array([1.0, 1.0, 1.0, 20.0, 20.0, 20.0])
     centre = np.zeros(3)
@@ -415,7 +415,8 @@ def test_a_pose_the_scan_cannot_tell_from_a_turned_one_is_flagged_not_confident(
 def test_a_rival_minimum_widens_the_sigma_to_cover_it(block):
     """The uncertainty adds each rival's difference: a rival 1 degree about z_T and 50 um
     along x_T away puts at least that into the reported sigmas."""
-    from scanner_core.pose import _fine, _Terms, _uncertainty
+    from scanner_core.pose_confidence import _uncertainty
+    from scanner_core.pose_fine import _fine, _Terms
     mesh, nominal, model, edge_model = block
     truth = misplacement(0.5, -0.5, 0.2, 1.0, -1.0, 2.0) @ nominal
     pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=4)
@@ -528,7 +529,7 @@ def test_a_step_point_is_matched_to_the_edge_it_was_found_at(block, tilt_deg):
     off by the step times the lean (0.5-0.7 mm here): the point counts as an outlier, and
     featuretype's poses were flagged poor fits and sent to the coarse search. Matched from
     half its step above and below, it finds its own edge, every time."""
-    from scanner_core.pose import _match, _Terms
+    from scanner_core.pose_fine import _match, _Terms
     mesh, nominal, model, edge_model = block
     truth = misplacement(0.5, -0.5, 0.3, 1.0, tilt_deg, 2.0) @ nominal
     pts, nrm, frames, edges, edge_frames, steps, is_step = _stepped_scan(mesh, truth, seed=5)
@@ -565,7 +566,7 @@ def _rival_plane(low=(), high=()):
     """A plane model, 2000 scan points on it in 100 profiles of 20, the points `low` 45 um
     below it and `high` 55 um above; and a pose raised 10 um, at which the low points lie
     55 um off (beyond 5 x 10 um) and the high ones 45 um."""
-    from scanner_core.pose import _Terms
+    from scanner_core.pose_fine import _Terms
     grid = np.stack(np.meshgrid(np.linspace(-20, 20, 40), np.linspace(-20, 20, 40)), -1)
     plane = np.column_stack([grid.reshape(-1, 2), np.zeros(1600)])
     model = SurfaceModel.from_points(plane, np.tile([0.0, 0.0, 1.0], (1600, 1)))
@@ -585,7 +586,7 @@ def test_a_rival_that_misses_a_few_points_more_still_fits_as_well(one_profile):
     the margin is two standard errors of the paired difference (the points only one pose
     matches), with a profile's points as one cluster. 9 points missed in 9 profiles: 2
     sqrt(9) / 2000; the same 9 in one profile: 2 x 9 / 2000."""
-    from scanner_core.pose import _RIVAL_SCORE, _rival_margin
+    from scanner_core.pose_search import _RIVAL_SCORE, _rival_margin
     terms, raised = _rival_plane(low=np.arange(9) * (1 if one_profile else 20))
     params = PoseParams()
     assert _rival_margin(terms, None, np.eye(4), np.eye(4), params) == _RIVAL_SCORE
@@ -598,7 +599,7 @@ def test_a_rival_margin_counts_each_way_and_is_capped():
     does cancel in the net count but not in McNemar's floor: 2 sqrt(10) / 2000. Three whole
     profiles missed are a worse fit whatever the clusters say: the margin stops at
     ``_PROBE_MARGIN``."""
-    from scanner_core.pose import _PROBE_MARGIN, _rival_margin
+    from scanner_core.pose_search import _PROBE_MARGIN, _rival_margin
     terms, raised = _rival_plane(low=range(5), high=range(5, 10))
     assert _rival_margin(terms, None, np.eye(4), raised, PoseParams()) == pytest.approx(
         2 * np.sqrt(10) / 2000)
@@ -610,7 +611,8 @@ def test_a_rival_margin_takes_a_profile_s_surface_and_edge_points_together():
     """2 surface points of 2000 and 1 edge point of 400, all in one profile, that only the
     fit matches: one cluster whose share is 2 / 2000 + 1 / 400 (0.007 at two standard
     errors; 0.0054 were the two kinds independent)."""
-    from scanner_core.pose import _rival_margin, _Terms
+    from scanner_core.pose_fine import _Terms
+    from scanner_core.pose_search import _rival_margin
     terms, _ = _rival_plane(low=[0, 1])
     line = np.column_stack([np.full(401, 10.0), np.linspace(-20, 20, 401), np.zeros(401)])
     model = EdgeModel(line, np.tile([0.0, 1.0, 0.0], (401, 1)))

@@ -1,0 +1,202 @@
+"""How far to trust a registered pose (``scanner_core.pose``): its covariance, the motions
+the scan leaves free, and the flags.
+
+- **covariance** (`_uncertainty`): the cluster-robust sandwich ``H^-1 (sum_f g_f g_f^T)
+  H^-1`` over the frames f (Liang and Zeger 1986): the points of one profile share that
+  frame's placement error (the marker's triangulation), so they are not independent, and
+  the sandwich takes that from the residuals themselves. It is scaled by
+  ``PoseParams.sigma_inflation`` for what it cannot see (biases shared by every profile that
+  crosses one edge), taken about the {T} origin, and widened by each rival minimum the
+  search found (``scanner_core.pose_search._probe_turns``).
+- **free motions** (`_free_motions`): the directions the scan does not pin down, in words
+  (turns first, then slides along the {T} axes where they can be); the axes they move are
+  not reported.
+- **flags** (`_flags`, `_coverage_flags`, `_rival_words`): why not to act on a pose as it
+  stands: a poor fit, large residuals, free motions, profiles too far apart, a partial scan,
+  a rival that fits as well.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from scanner_core.pose_fine import _directions, _Fit
+from scanner_core.pose_models import SurfaceModel
+
+if TYPE_CHECKING:
+    from scanner_core.pose import PoseParams
+
+_AXIS_LABELS = ("x_T", "y_T", "z_T")
+# A free motion moves the axes whose component in its unit direction exceeds this.
+_TOUCHED = 0.2
+# A fit whose residuals exceed this many times the expected scatter is flagged.
+_RMS_FLAG = 5.0
+# A free motion's turn part (scaled, of a unit motion) below this is round-off: it slides.
+_FREE_TURN = 1e-8
+
+#: Profiles farther apart than this (mm) sample a part's features too coarsely for the
+#: uncertainty to be trusted: a hole's rim crossed by two profiles pins little.
+MAX_PROFILE_SPACING_MM = 3.0
+#: A scan covering less of the part's length along the pass than this is partial.
+MIN_COVERAGE = 0.9
+
+
+def _uncertainty(fit: _Fit, params, rivals=()) -> tuple[np.ndarray, np.ndarray, list]:
+    """Covariance (cluster-robust over frames), per-axis std, and the free axes, about the
+    {T} origin. Each rival minimum (``_probe_turns``) adds its difference's outer product: the
+    scan cannot tell the fit from it, so the spread between them is uncertainty too."""
+    nan6 = np.full(6, np.nan)
+    if len(fit.residuals) < 6:
+        return np.full((6, 6), np.nan), nan6, [{"kind": "all", "axis": None,
+                                                 "label": "too few matched points"}]
+    s = np.array([1.0, 1.0, 1.0, fit.scale_mm, fit.scale_mm, fit.scale_mm])
+    js = fit.jacobian / s
+    values, vectors, strong = _directions(fit.jacobian, fit.weights, fit.frames, fit.scale_mm,
+                                          params)
+    info_inv = vectors[:, strong] @ np.diag(1.0 / values[strong]) @ vectors[:, strong].T
+    # Cluster-robust "meat": the weighted scores summed within each frame.
+    scores = js * (fit.weights * fit.residuals)[:, None]
+    _, inverse = np.unique(fit.frames, return_inverse=True)
+    per_cluster = np.zeros((inverse.max() + 1, 6))
+    np.add.at(per_cluster, inverse, scores)
+    clusters = len(per_cluster)
+    meat = per_cluster.T @ per_cluster * (clusters / max(clusters - 6, 1))
+    cov_scaled = info_inv @ meat @ info_inv * params.sigma_inflation**2
+    cov_centre = cov_scaled / np.outer(s, s)
+    # About the {T} origin: t_o = t_c + c x w.
+    c = fit.centre
+    cross = np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
+    to_origin = np.eye(6)
+    to_origin[:3, 3:] = cross
+    covariance = to_origin @ cov_centre @ to_origin.T
+    for rival in rivals:
+        m = _rival_motion(fit.pose, rival)
+        covariance = covariance + np.outer(m, m)
+    free_scaled = vectors[:, ~strong]
+    free_axes = _free_motions(free_scaled, s, c)
+    std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    std[3:] = np.degrees(std[3:])
+    if free_axes:
+        # Along a free motion the scan says nothing: the axes it moves are not reported. A
+        # free turn about an axis that misses the {T} origin carries the origin round with it:
+        # those translation axes are not reported either.
+        touched = np.zeros(6, bool)
+        for axis in free_axes:
+            direction = np.asarray(axis["axis"])
+            if axis["kind"] == "translation":
+                touched[:3] |= np.abs(direction) > _TOUCHED
+                continue
+            touched[3:] |= np.abs(direction) > _TOUCHED
+            through = np.asarray(axis["through_mm"])
+            swing = np.zeros(3)
+            for angle in (np.pi / 2, np.pi, -np.pi / 2):
+                turn = Rotation.from_rotvec(angle * direction).as_matrix()
+                swing = np.maximum(swing, np.abs(turn @ -through + through))
+            touched[:3] |= swing > 3.0 * np.nan_to_num(std[:3], nan=np.inf)
+        std[touched] = np.nan
+        covariance[touched, :] = np.nan
+        covariance[:, touched] = np.nan
+    return covariance, std, free_axes
+
+
+def _free_motions(free_scaled, s, centre) -> list[dict]:
+    """The free motions (orthonormal columns of `free_scaled`, scaled parameters) in words,
+    turns first, then slides along the {T} axes where they can be: a free subspace that
+    holds a turn and a slide can come out of the eigen-decomposition as two mixed motions
+    (ADIS16480 with y_T and its turn free read "about z_T, about z_T")."""
+    k = free_scaled.shape[1]
+    if k > 1:
+        _, sv, vt = np.linalg.svd(free_scaled[3:])  # singular values in descending order
+        rank = int(np.sum(sv > _FREE_TURN))  # unit columns: an absolute floor
+        basis = free_scaled @ vt.T  # the first `rank` turn; the rest only slide
+        basis[3:, rank:] = 0.0
+        if k - rank > 1:
+            basis[:3, rank:] = _axis_aligned(basis[:3, rank:])
+        free_scaled = basis
+    return [_describe(v / np.linalg.norm(v), s, centre) for v in free_scaled.T]
+
+
+def _axis_aligned(slides) -> np.ndarray:
+    """An orthonormal basis of the span of `slides` ((3, m), orthonormal columns) whose
+    vectors lie as close to the {T} axes as the span allows, nearest first."""
+    projector = slides @ slides.T
+    out = []
+    for _ in range(slides.shape[1]):
+        candidates = projector - sum((np.outer(b, b) for b in out), np.zeros((3, 3)))
+        axis = int(np.argmax(np.linalg.norm(candidates, axis=0)))
+        vector = candidates[:, axis]
+        out.append(vector / np.linalg.norm(vector))
+    return np.column_stack(out)
+
+
+def _describe(vector_scaled, s, centre) -> dict:
+    """A free motion (unit vector in scaled parameters) in words."""
+    motion = vector_scaled / s
+    t, w = motion[:3], motion[3:]
+    if np.linalg.norm(w) * s[3] > np.linalg.norm(t):
+        axis = w / np.linalg.norm(w)
+        kind = "rotation"
+        # The rotation's axis passes through the point where the motion leaves no translation.
+        through = centre + np.cross(axis, t) / np.linalg.norm(w)
+    else:
+        axis = t / np.linalg.norm(t)
+        kind = "translation"
+        through = None
+    axis = axis * np.sign(axis[np.argmax(np.abs(axis))])
+    main = int(np.argmax(np.abs(axis)))
+    label = (f"{'about' if kind == 'rotation' else 'along'} {_AXIS_LABELS[main]}"
+             if abs(axis[main]) > 0.9 else f"{kind} {np.round(axis, 3).tolist()}")
+    entry = {"kind": kind, "axis": np.round(axis, 6).tolist(), "label": label}
+    if through is not None:
+        entry["through_mm"] = np.round(through, 3).tolist()
+    return entry
+
+
+def _rival_motion(pose, rival) -> np.ndarray:
+    """(6,): the rival's difference from `pose` as translation of the {T} origin (mm) and
+    rotation vector (rad), the covariance's parameters."""
+    d = rival @ np.linalg.inv(pose)
+    return np.concatenate([d[:3, 3], Rotation.from_matrix(d[:3, :3]).as_rotvec()])
+
+
+def _rival_words(pose, rival) -> str:
+    m = _rival_motion(pose, rival)
+    return (f"a pose {np.degrees(np.linalg.norm(m[3:])) * 1e3:.0f} mdeg and "
+            f"{np.linalg.norm(m[:3]) * 1e3:.0f} um away")
+
+
+def _flags(fit: _Fit, free_axes, with_edges: bool, params: PoseParams) -> list[str]:
+    flags = []
+    if fit.inlier_fraction < params.good_inlier_fraction:
+        flags.append(f"poor fit: {fit.inlier_fraction:.0%} of the points match the model")
+    if with_edges and fit.edge_fraction < params.good_edge_fraction:
+        flags.append(f"poor fit: {fit.edge_fraction:.0%} of the edge points match the model's "
+                     "edges")
+    if fit.rms > _RMS_FLAG * params.surface_noise_mm:
+        flags.append(f"large residuals: {fit.rms * 1e3:.0f} um RMS")
+    if free_axes:
+        flags.append("not observable: " + ", ".join(a["label"] for a in free_axes))
+    return flags
+
+
+def _coverage_flags(scan, pose, surface_model: SurfaceModel) -> list[str]:
+    """Flags a pose cannot raise from its fit alone: profiles too far apart, and a pass that
+    saw only part of the part (the trigger started late, or the pass ended early)."""
+    flags = []
+    spacing = scan.profile_spacing_mm
+    if spacing > MAX_PROFILE_SPACING_MM:  # False for NaN: fewer than two profiles
+        flags.append(f"sparse: {spacing:.1f} mm between profiles (at most "
+                     f"{MAX_PROFILE_SPACING_MM:g})")
+    normals_t = surface_model.normals @ pose[:3, :3].T
+    facing = normals_t[:, 2] > 0.3  # the sensor looks up at the part along -z_T
+    if facing.any():
+        along = (surface_model.points[facing] @ pose[:3, :3].T + pose[:3, 3])[:, 1]
+        seen = scan.cloud[:, 1]
+        length = float(along.max() - along.min())
+        overlap = min(along.max(), seen.max()) - max(along.min(), seen.min())
+        coverage = max(0.0, float(overlap)) / length if length > 0 else 1.0
+        if coverage < MIN_COVERAGE:
+            flags.append(f"partial scan: {coverage:.0%} of the part's length along the pass")
+    return flags

@@ -1,0 +1,335 @@
+"""The fine stage of the registration (``scanner_core.pose``): a robust point-to-plane fit
+from a start near the answer.
+
+Point-to-plane Gauss-Newton (Chen and Medioni 1992; Low 2004's linearisation), robust to
+outliers (gripper fingers, reflections) through a correspondence gate, a normal agreement
+test and Tukey's biweight on the residuals (IRLS, scale from the median absolute residual).
+A surface point's residual is its distance to the plane of its model point; an edge point's,
+its distance in (x_T, y_T) to the vertical plane through its model edge, a step's point
+matched from half its step above and below it as well (`_nearest`). Motions the scan does
+not constrain (a turn about a symmetry axis, a slide along a prism) are left at their
+starting value instead of drifting: the update is solved in the observable subspace of the
+information matrix only (`_directions`, `_solve`, `_hold_free_motions`).
+
+The correspondences (`_Terms`, `_match`, `_nearest`) serve the search's scores too
+(``scanner_core.pose_search``), and the fit's information matrix the uncertainty
+(``scanner_core.pose_confidence``). Units: mm, radians.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from scanner_core.pose_models import EdgeModel, SurfaceModel
+
+# Tukey's biweight constant: 95 % efficiency under Gaussian noise.
+_TUKEY_C = 4.685
+# The median absolute deviation of a Gaussian is 0.6745 sigma.
+_MAD_TO_SIGMA = 1.0 / 0.6745
+# The fine fit's first iterations use every _WARM_STRIDE-th surface point (of at least
+# _WARM_MIN_POINTS) until its steps fall below _WARM_TOL_FACTOR times the tolerance, for
+# _WARM_MAX_ITERATIONS at most (matches to few points can cycle short of that).
+_WARM_STRIDE = 4
+_WARM_MIN_POINTS = 2000
+_WARM_TOL_FACTOR = 100.0
+_WARM_MAX_ITERATIONS = 6
+# Information below this fraction of the strongest is no information (numerical zero).
+_SINGULAR = 1e-10
+# Queries with more points than this use both cores.
+_THREADED_QUERY = 50_000
+# Floor of the robust scale, mm: no scan is better than this, and noise-free test data must
+# not make the weights infinite.
+_MIN_SIGMA_MM = 0.001
+# An edge point at half a step's height lies this far from the step's edges in 3D (up to
+# half the tallest step); the match searches that far, the residual is taken in the plane.
+_EDGE_SEARCH_MM = 15.0
+# |d x z_T| below this: the edge runs within 17 degrees of z_T.
+_MIN_EDGE_LEVEL = 0.3
+
+
+@dataclass
+class _Terms:
+    """One kind of correspondence: scan points (with normals for surfaces) and their model."""
+
+    points: np.ndarray
+    normals: np.ndarray | None
+    frames: np.ndarray
+    model: SurfaceModel | EdgeModel
+    agreement: float = -1.0     # least cosine between `normals` and a match's normal
+    steps_mm: np.ndarray | None = None  # edges: a step's height, 0 for a drop-out
+
+    def subset(self, index) -> "_Terms":
+        return _Terms(self.points[index], None if self.normals is None else self.normals[index],
+                      self.frames[index], self.model, self.agreement,
+                      None if self.steps_mm is None else self.steps_mm[index])
+
+
+@dataclass
+class _Fit:
+    pose: np.ndarray
+    rms: float
+    inlier_fraction: float
+    edge_fraction: float        # of the edge points, matched (1.0 without edges)
+    iterations: int
+    jacobian: np.ndarray        # (K, 6) of the inliers, about `centre`
+    residuals: np.ndarray       # (K,)
+    weights: np.ndarray         # (K,)
+    frames: np.ndarray          # (K,) frame of each inlier
+    centre: np.ndarray          # (3,)
+    scale_mm: float             # radius that makes rotations comparable with translations
+
+
+def _fine(surface: _Terms, edges: _Terms | None, start, params, *, iterations=None,
+          gate_mm=None) -> _Fit:
+    pose = start.copy()
+    centre = surface.points.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((surface.points - centre) ** 2, axis=1)))) or 1.0
+    gates = [params.gate_mm if gate_mm is None else gate_mm] * 2
+    max_iter = params.max_iterations if iterations is None else iterations
+    step_tol = np.array([params.tol_mm] * 3 + [np.radians(params.tol_deg)] * 3)
+    # Far from the minimum, a quarter of the points steers as well as all of them.
+    sparse = (surface.subset(slice(None, None, _WARM_STRIDE))
+              if iterations is None and len(surface.points) >= _WARM_MIN_POINTS else None)
+    it = 0
+    for it in range(1, max_iter + 1):
+        terms = surface if sparse is None else sparse
+        rows, sigmas = _linearise(terms, edges, pose, centre, gates, params)
+        jac, res, w = rows[:3]
+        if len(res) < 6:
+            break
+        delta, observed = _solve(jac, res, w, scale, params.free_std_mm)
+        pose = _apply(delta, centre) @ pose
+        if gate_mm is None:
+            gates = [max(params.min_gate_mm, min(g, 6.0 * sg)) for g, sg in zip(gates, sigmas)]
+        if sparse is not None and (it >= _WARM_MAX_ITERATIONS
+                                   or np.all(np.abs(observed) < _WARM_TOL_FACTOR * step_tol)):
+            sparse = None
+            continue
+        if sparse is None and np.all(np.abs(observed) < step_tol):
+            break
+    if iterations is None:
+        pose = _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params)
+    (jac, res, w, frames, matched), _ = _linearise(surface, edges, pose, centre, gates, params)
+    inlier_fraction = matched / max(len(surface.points), 1)
+    edge_fraction = ((len(res) - matched) / len(edges.points)) if edges is not None else 1.0
+    rms = float(np.sqrt(np.sum(w * res**2) / np.sum(w))) if len(res) else np.inf
+    return _Fit(pose, rms, inlier_fraction, edge_fraction, it, jac, res, w, frames, centre,
+                scale)
+
+
+def _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params):
+    """Take back what the fit moved along free motions, and settle the rest with them held.
+
+    A free motion is one the scan does not pin down (`_observable`); a weak constraint (the
+    facets of a turned cylinder) or the noise would otherwise leave it anywhere, and with it
+    the {T} origin of a part turned about an axis that misses the origin.
+    """
+    (jac, res, w, frames, _), _ = _linearise(surface, edges, pose, centre, gates, params)
+    if len(res) < 6:
+        return pose
+    _, vectors, strong = _directions(jac, w, frames, scale, params)
+    free = vectors[:, ~strong]
+    if free.shape[1] == 0:
+        return pose
+    s = np.array([1.0, 1.0, 1.0, scale, scale, scale])
+    moved = pose @ np.linalg.inv(start)
+    twist = np.concatenate([moved[:3, :3] @ centre + moved[:3, 3] - centre,
+                            Rotation.from_matrix(moved[:3, :3]).as_rotvec()]) * s
+    twist -= free @ (free.T @ twist)
+    pose = _apply(twist / s, centre) @ start
+    step_tol = np.array([params.tol_mm] * 3 + [np.radians(params.tol_deg)] * 3)
+    for _ in range(params.max_iterations):
+        (jac, res, w, _, _), _ = _linearise(surface, edges, pose, centre, gates, params)
+        if len(res) < 6:
+            break
+        _, observed = _solve(jac, res, w, scale, params.free_std_mm)
+        pose = _apply(observed, centre) @ pose
+        if np.all(np.abs(observed) < step_tol):
+            break
+    return pose
+
+
+def _linearise(surface, edges, pose, centre, gates, params):
+    """Residuals, Jacobian rows, robust weights and frames of all correspondences at `pose`.
+
+    Returns ``(jacobian, residuals, weights, frames, surface_inliers)`` and the robust scale
+    of each kind (surface, edges).
+    """
+    parts, sigmas = [], []
+    surface_rows = _surface_rows(surface, pose, centre, gates[0], params.surface_noise_mm)
+    parts.append(surface_rows[:4])
+    sigmas.append(surface_rows[4])
+    matched = len(surface_rows[1])
+    if edges is not None:
+        edge_rows = _edge_rows(edges, pose, centre, gates[1], params.edge_noise_mm)
+        parts.append(edge_rows[:4])
+        sigmas.append(edge_rows[4])
+    else:
+        sigmas.append(np.inf)
+    jac, res, w, frames = (np.concatenate(x) for x in zip(*parts))
+    return (jac, res, w, frames, matched), sigmas
+
+
+def _surface_rows(terms: _Terms, pose, centre, gate, noise_mm):
+    """Point-to-plane rows: the residual of scan point s matched to model point q (normal n)
+    is ``n . (s - X q)`` in {T}; a motion (t, w) about `centre` changes it by
+    ``-[n, (s - centre) x n] . (t, w)``."""
+    rotation, translation = pose[:3, :3], pose[:3, 3]
+    spacing = _spacing(terms.model)
+    idx, nearest = _match(terms, pose, gate + 2.0 * spacing)
+    n_t = terms.model.normals[nearest] @ rotation.T
+    if terms.normals is not None:
+        # Scan normals point to the sensor, model normals out of the part: the same way up.
+        scan_n = terms.normals[idx]
+        agree = np.einsum("ij,ij->i", n_t, np.nan_to_num(scan_n, nan=0.0))
+        ok = (agree >= terms.agreement) | ~np.isfinite(scan_n[:, 0])
+        idx, nearest, n_t = idx[ok], nearest[ok], n_t[ok]
+    q_t = terms.model.points[nearest] @ rotation.T + translation
+    return _robust_rows(terms.points[idx], n_t, q_t, terms.frames[idx], centre, gate, noise_mm)
+
+
+def _edge_rows(terms: _Terms, pose, centre, gate, noise_mm):
+    """Edge rows: the distance in (x_T, y_T) from the edge point to the model's edge line,
+    i.e. to the vertical plane through it (normal ``d x z_T`` for edge direction d)."""
+    rotation, translation = pose[:3, :3], pose[:3, 3]
+    idx, nearest = _match(terms, pose, gate + _spacing(terms.model) + _EDGE_SEARCH_MM)
+    d_t = terms.model.directions[nearest] @ rotation.T
+    m = np.stack([d_t[:, 1], -d_t[:, 0], np.zeros(len(d_t))], axis=1)
+    length = np.linalg.norm(m, axis=1)
+    ok = length > _MIN_EDGE_LEVEL  # an edge along z_T is no line in the (x_T, y_T) plane
+    idx, nearest, m = idx[ok], nearest[ok], m[ok] / length[ok, None]
+    q_t = terms.model.points[nearest] @ rotation.T + translation
+    return _robust_rows(terms.points[idx], m, q_t, terms.frames[idx], centre, gate, noise_mm)
+
+
+def _match(terms: _Terms, pose, bound):
+    """Indices of the scan points with a model point within `bound` mm, and those points."""
+    rotation, translation = pose[:3, :3], pose[:3, 3]
+    local = (terms.points - translation) @ rotation  # the scan in {P}
+    dist, nearest = _nearest(terms, local, rotation[2], bound)
+    idx = np.nonzero(np.isfinite(dist))[0]
+    return idx, nearest[idx]
+
+
+def _nearest(terms: _Terms, local, up, bound):
+    """Distance to and index of the nearest model point within `bound` mm (inf and the
+    model's size beyond it) of each point of `local` ((..., N, 3), the scan in {P}).
+
+    A step's edge point lies half the step's height from the edge it was found at, up or
+    down the wall (paper section II), and as far from the wall's other edge: matched from
+    where it lies, it finds either, or another edge near the wall's middle. It is matched
+    from half its step above and below it along z_T (`up`, z_T in {P}, (..., 3)) as well,
+    and keeps the nearest of the three matches: the edge it came from.
+    """
+    shape = local.shape[:-1]
+    # Threads pay off only for large queries (each call starts its own).
+    workers = -1 if int(np.prod(shape)) > _THREADED_QUERY else 1
+    query = terms.model.tree.query
+    dist, nearest = query(local.reshape(-1, 3), k=1, distance_upper_bound=bound,
+                          workers=workers)
+    dist, nearest = dist.reshape(shape), nearest.reshape(shape)
+    if terms.steps_mm is None:
+        return dist, nearest
+    stepped = np.nonzero(terms.steps_mm > 0)[0]
+    if not len(stepped):
+        return dist, nearest
+    half = 0.5 * terms.steps_mm[stepped, None]
+    for sign in (1.0, -1.0):
+        moved = local[..., stepped, :] + sign * half * up[..., None, :]
+        d, n = query(moved.reshape(-1, 3), k=1, distance_upper_bound=bound, workers=workers)
+        d, n = d.reshape(moved.shape[:-1]), n.reshape(moved.shape[:-1])
+        nearer = d < dist[..., stepped]
+        dist[..., stepped] = np.where(nearer, d, dist[..., stepped])
+        nearest[..., stepped] = np.where(nearer, n, nearest[..., stepped])
+    return dist, nearest
+
+
+def _robust_rows(s_t, n_t, q_t, frames, centre, gate, noise_mm):
+    """Rows with residual within `gate`, weighted by Tukey's biweight at their own robust
+    scale and by the inverse variance of the expected scatter `noise_mm`."""
+    res = np.einsum("ij,ij->i", n_t, s_t - q_t)
+    inside = np.abs(res) <= gate
+    s_t, n_t, res, frames = s_t[inside], n_t[inside], res[inside], frames[inside]
+    if len(res) < 3:
+        return np.zeros((0, 6)), np.zeros(0), np.zeros(0), np.zeros(0, np.int64), np.inf
+    sigma = max(_MAD_TO_SIGMA * float(np.median(np.abs(res - np.median(res)))), _MIN_SIGMA_MM)
+    u = res / (_TUKEY_C * sigma)
+    w = np.where(np.abs(u) < 1.0, (1.0 - u**2) ** 2, 0.0) / noise_mm**2
+    jac = np.hstack([n_t, np.cross(s_t - centre, n_t)])
+    keep = w > 0
+    return jac[keep], res[keep], w[keep], frames[keep], sigma
+
+
+def _spacing(model) -> float:
+    """Typical distance between a model's points, mm (for the match radius)."""
+    return float(getattr(model, "spacing_mm", 0.5))
+
+
+def _information(jac, w, scale):
+    """J^T W J with rotations scaled to arc length at `scale` mm (comparable units)."""
+    js = jac / np.array([1.0, 1.0, 1.0, scale, scale, scale])
+    return js.T @ (js * w[:, None])
+
+
+def _observable(values, free_std_mm):
+    """Which eigen-directions of the information the scan pins down better than the limit."""
+    return values > max(1.0 / free_std_mm**2, _SINGULAR * values[-1])
+
+
+def _directions(jac, w, frames, scale, params):
+    """Eigen-decomposition of the information and which directions are observable: pinned
+    down better than ``free_std_mm`` at the expected scatter, by at least ``min_frames``
+    profiles' worth of information (two points at a part's far end, in one profile, pin
+    nothing one can trust: that profile's placement error moves them together)."""
+    s = np.array([1.0, 1.0, 1.0, scale, scale, scale])
+    values, vectors = np.linalg.eigh(_information(jac, w, scale))
+    strong = _observable(values, params.free_std_mm)
+    projected = ((jac / s) @ vectors) ** 2 * w[:, None]  # (K, 6) information per row
+    _, inverse = np.unique(frames, return_inverse=True)
+    per_frame = np.zeros((inverse.max() + 1, 6))
+    np.add.at(per_frame, inverse, projected)
+    total = per_frame.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        effective = total**2 / np.sum(per_frame**2, axis=0)  # participation ratio
+    strong &= np.nan_to_num(effective) >= params.min_frames
+    return values, vectors, strong
+
+
+def _solve(jac, res, w, scale, free_std_mm):
+    """Gauss-Newton step, and its size along the observable motions only.
+
+    Every direction with information moves (early in a fit a motion may look free only for
+    want of matches); the step's size for convergence leaves out the free motions, which a
+    weak constraint (the facets of a turned cylinder) would otherwise creep along for ever.
+    """
+    s = np.array([1.0, 1.0, 1.0, scale, scale, scale])
+    info = _information(jac, w, scale)
+    rhs = (jac / s).T @ (w * res)
+    values, vectors = np.linalg.eigh(info)
+    moving = values > _SINGULAR * values[-1]
+    step_scaled = vectors[:, moving] @ ((vectors[:, moving].T @ rhs) / values[moving])
+    strong = _observable(values, free_std_mm)
+    observed = vectors[:, strong] @ (vectors[:, strong].T @ step_scaled)
+    return step_scaled / s, observed / s
+
+
+def _apply(delta, centre) -> np.ndarray:
+    """4x4 in {T}: rotate by ``delta[3:]`` about `centre`, then translate by ``delta[:3]``."""
+    m = np.eye(4)
+    rotation = Rotation.from_rotvec(delta[3:]).as_matrix()
+    m[:3, :3] = rotation
+    m[:3, 3] = centre + delta[:3] - rotation @ centre
+    return m
+
+
+def _evenly(n: int, limit: int) -> np.ndarray:
+    """At most `limit` indices spread evenly over ``range(n)``."""
+    return np.unique(np.linspace(0, n - 1, min(n, limit)).astype(np.int64)) if n else np.arange(0)
+
+
+def _subsample(n: int, limit: int, rng) -> np.ndarray:
+    if n <= limit:
+        return np.arange(n)
+    return np.sort(rng.choice(n, size=limit, replace=False))
