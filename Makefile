@@ -33,6 +33,8 @@ bench: $(BIN)/flyscan
 	$(BIN)/flyscan bench coarse --out $(OUT)/bench/coarse
 	$(BIN)/flyscan bench hardware --out $(OUT)/bench/hardware
 	$(BIN)/flyscan bench surfaces --out $(OUT)/bench/surfaces
+	$(BIN)/flyscan bench calibrate --out $(OUT)/bench/calibrate
+	$(BIN)/flyscan bench edges --out $(OUT)/bench/edges
 
 clean:
 	rm -rf $(VENV) $(OUT) *.egg-info

@@ -28,7 +28,7 @@ if TYPE_CHECKING:  # imported where used: ray casting alone needs neither trimes
     import trimesh
 
 __all__ = ["UNITS_MM", "PLAUSIBLE_SIZE_MM", "INSPECTION_VOLUME_MM", "GRIPPER_TOLERANCE_MM",
-           "PartError", "PartModel", "load_part", "part_from_mesh", "centred_grasp",
+           "PartError", "PartModel", "load_part", "part_from_mesh", "saved_part", "centred_grasp",
            "flat_grasp", "GRASPS", "named_grasp", "check_fits", "canonical_unit"]
 
 #: Length of one unit in millimetres.
@@ -226,6 +226,41 @@ def _is_text(p: Path) -> bool:
     except UnicodeDecodeError:
         return False
     return True
+
+
+def saved_part(vertices, faces, grasp, *, name: str, units: str, source: str) -> PartModel:
+    """A part model from the arrays a part model holds, as they are (not cleaned again): what
+    a recording keeps of the part its pass scanned, read back identical.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64
+        mm, in {P}.
+    faces : (F, 3) int64
+    grasp : (4, 4) float64
+        The nominal ^T X_P.
+    name, units, source : str
+        As the part had them (``units``: the unit of its original file).
+
+    Raises
+    ------
+    PartError
+        Arrays of the wrong shape, indices outside the vertices, non-finite values.
+    """
+    vertices = np.array(vertices, dtype=np.float64)
+    faces = np.array(faces, dtype=np.int64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3 \
+            or len(faces) == 0:
+        raise PartError(f"part {name!r} ({source}): vertices must be (V, 3) and faces (F, 3), "
+                        f"got {vertices.shape} and {faces.shape}")
+    if faces.min() < 0 or faces.max() >= len(vertices) or not np.all(np.isfinite(vertices)):
+        raise PartError(f"part {name!r} ({source}) has face indices outside its vertices or "
+                        "non-finite vertices")
+    grasp = _check_grasp(grasp)
+    for array in (vertices, faces, grasp):
+        array.setflags(write=False)
+    return PartModel(name=name, vertices=vertices, faces=faces, source=source,
+                     units=canonical_unit(units), grasp=grasp)
 
 
 def part_from_mesh(mesh: "trimesh.Trimesh", *, name: str, units: str = "mm",

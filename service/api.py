@@ -26,7 +26,7 @@ from service.models import (CalibrationModel, Health, PartInfo, PartList, Proble
 from service.parts import MAX_MESH_BYTES, part_info
 from service.pictures import cloud_preview_png, frame_png
 from service.settings import Settings
-from simulator.parts import GRASPS, PartError
+from scanner_core.cad import GRASPS, PartError
 
 STATIC = Path(__file__).resolve().parent / "static"
 #: Server-sent events: how often the status page is told the service's status, s.
@@ -277,7 +277,7 @@ async def events(request: Request, service: ServiceDep) -> StreamingResponse:
 def create_app(settings: Settings | None = None, *, service: Service | None = None) -> FastAPI:
     """The application; its lifespan starts the service and stops it."""
     if service is None:
-        service = Service(settings if settings is not None else Settings())
+        service = Service(settings if settings is not None else Settings())  # a real cell's
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):

@@ -5,7 +5,7 @@
   video file.
 - :class:`GenICamCamera`: a GenICam camera through harvesters (the optional extra
   ``pip install 'flyscan[genicam]'``) and the GenTL producer (.cti) of the camera's vendor.
-- replay of a recorded pass: ``service.recording`` (``Recording.camera()``).
+- replay of a recorded pass: ``scanner_core.recording`` (``Recording.camera()``).
 
 :func:`open_camera` turns the camera spec of the settings into one of them.
 
@@ -37,7 +37,7 @@ CAMERA_SPEC_FORMS = (
     "video:<file>              a video file (frame ids = frame index, t = index / fps)",
     "gstreamer:<pipeline>      a GStreamer pipeline ending in appsink",
     "genicam:<producer.cti>[#serial]  a GenICam camera through harvesters",
-    "replay:<folder>           a pass recorded by service.recording",
+    "replay:<folder>           a pass recorded by scanner_core.recording",
 )
 
 
@@ -446,8 +446,9 @@ def open_camera(spec: str, *, fps: float | None = None) -> Camera:
             if path:
                 return GenICamCamera(path, serial=serial or None, fps=fps)
         elif kind == "replay":
-            from service.recording import load_recording
-            return load_recording(rest).camera()
+            from scanner_core.recording import load_recording
+            from scanner_core.replay import ReplayCamera
+            return ReplayCamera(load_recording(rest))
     forms = "\n  ".join(CAMERA_SPEC_FORMS)
     raise ValueError(f"unknown camera spec {spec!r}; accepted forms:\n  {forms}")
 

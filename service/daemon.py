@@ -1,9 +1,10 @@
 """The service as one object: devices, engine, store, parts, publisher and metrics, wired.
 
-``Service.start``/``stop`` are what the FastAPI lifespan calls. The devices are chosen here,
-once: the simulated cell in simulated mode (``simulator.live``), the real backends otherwise;
-nothing downstream knows which. In simulated mode arming also sends the simulated robot
-through the sheet (``SimPassDriver``), as a cell controller's robot program would.
+``Service.start``/``stop`` are what the FastAPI lifespan calls. The devices are handed in
+(``Service(settings, devices=...)``) or, for a real cell, built from the settings
+(:func:`build_devices`); nothing downstream knows which. With a driver (the simulated cell's,
+``simulator.driver.SimPassDriver``) arming also sends the robot through the sheet, as a cell
+controller's robot program would. No module of this path imports the simulator.
 """
 from __future__ import annotations
 
@@ -15,12 +16,11 @@ import time
 from collections import OrderedDict
 from pathlib import Path
 
-import numpy as np
-
 from scanner_core.calibration import Calibration, load_calibration, save_calibration
 from scanner_core.exposure import ExposureParams
 from scanner_core.pipeline import PipelineParams
-from scanner_core.pose import PoseParams, scan_pose
+from scanner_core.finish import CrossCheckState
+from scanner_core.pose import PoseParams
 from scanner_core.trigger import TriggerParams
 from scanner_core.types import Scan
 from service.engine import Engine, ScanJob
@@ -29,135 +29,31 @@ from service.parts import DEMO_PART, PartLibrary
 from service.publisher import Publisher
 from service.settings import Settings
 from service.store import ScanStore
-from simulator.live import PassInProgress
-from simulator.parts import check_fits
-from simulator.session import misplacement_matrix
 
 log = logging.getLogger("flyscan.service")
 
 #: How long the finisher waits for the cloud to leave on ZeroMQ before storing, s (only to
 #: record the latency: the store never depends on the subscriber).
 PUBLISH_WAIT_S = 1.0
-#: The simulated robot finishes its previous pass (its lead-out) before starting the next, s.
-PREVIOUS_PASS_WAIT_S = 5.0
 #: Scans kept in memory (also those the store could not take), oldest dropped first.
 RECENT_JOBS = 32
 
 
-class SimPassDriver:
-    """Sends the simulated robot through the sheet when a scan is armed; with an RTDE
-    emulator (``--sim --robot ur://HOST``) the emulator serves the same track to the real
-    ur-rtde client. Every part is simulated with ``surface`` (``simulator.surfaces``)."""
-
-    def __init__(self, sim, emulator=None, surface: str = "default"):
-        self.sim = sim
-        self.emulator = emulator
-        self.surface = surface
-        self._dressed: dict[int, tuple] = {}  # id -> (the library's part, the simulated one)
-
-    def _simulated(self, part):
-        """The part as the simulator shows it (the same object every time, so that its
-        rendered pass is reused)."""
-        if self.surface == "default":
-            return part
-        from simulator.surfaces import with_surface
-
-        key = id(part)
-        if key not in self._dressed or self._dressed[key][0] is not part:
-            self._dressed[key] = (part, with_surface(part, self.surface))
-        return self._dressed[key][1]
-
-    def start(self) -> None:
-        """Start the emulator (its own process) on the cell's clock, before the robot connects."""
-        if self.emulator is None:
-            return
-        self.emulator.start()
-        try:
-            cell = self.sim.cell
-            self.emulator.set_track(self.sim.start_clock(), self.sim.robot.clock_offset_s,
-                                    cell.gripper_rotation_b, self.sim.idle_tcp_b)
-        except BaseException:
-            self.emulator.stop()
-            raise
-
-    def prepare(self, part) -> None:
-        self.sim.prepare_pass(self._simulated(part))
-
-    def start_pass(self, part, misplacement: np.ndarray | None) -> None:
-        """Start the pass once the robot has finished the previous one (its lead-out goes on
-        after the scan has ended), as a robot program would."""
-        deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
-        while True:
-            try:
-                live = self.sim.start_pass(self._simulated(part), misplacement)
-                break
-            except PassInProgress:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.01)
-        if self.emulator is not None:
-            self.emulator.add_segment(live.segment)
-
-    def close(self) -> None:
-        if self.emulator is not None:
-            self.emulator.stop()
-
-
-class NoRobot:
-    """The robot of a cell without one: never connected (scans hold the last rotation they
-    were given; without one they cannot be placed, and say so)."""
-
-    connected = False
-
-    def connect(self) -> None:
-        pass
-
-    def disconnect(self) -> None:
-        pass
-
-    def latest(self):
-        raise RuntimeError("no robot is configured (--robot ur://HOST)")
-
-    def pose_at(self, t: float):
-        raise RuntimeError("no robot is configured (--robot ur://HOST)")
-
-
 def build_devices(settings: Settings):
-    """(camera, robot, driver, calibration) for the settings.
+    """(camera, robot, driver, calibration) of a real cell: ``settings.camera``
+    (``service.cameras``) and ``settings.robot`` (``service.robots``: a UR robot, a
+    recording's samples, or none); no driver, no calibration but the one given. Simulated
+    devices are handed to the service by whoever wires them (``flyscan serve --sim``)."""
+    from service.cameras import open_camera
+    from service.robots import open_robot
 
-    Simulated mode: the reference cell's camera, and its robot, or, with ``--robot
-    ur://HOST``, an RTDE emulator started at HOST (its own process) serving the simulated
-    track to the real ur-rtde client. Otherwise ``settings.camera`` (``service.cameras``) and
-    the UR robot, or none.
-    """
-    from service.ur_robot import URRobot, parse_robot_url
-
-    host = parse_robot_url(settings.robot) if settings.robot is not None else None
-    if not settings.sim:
-        if settings.camera is None:
-            raise ValueError("no camera: give --camera SPEC (opencv:0, video:FILE, "
-                             "genicam:PRODUCER.cti, replay:FOLDER) or run with --sim")
-        from service.cameras import open_camera
-
-        camera = open_camera(settings.camera)
-        return camera, URRobot(host) if host else NoRobot(), None, None
-    if settings.camera is not None:
-        raise ValueError(f"--camera {settings.camera}: the simulated cell has its own camera")
-    from simulator.effects import simulated_cell
-    from simulator.live import LiveSimCell
-
-    cell = simulated_cell(settings.sim_perturb_seed, settings.sim_effects)
-    changes = {k: v for k, v in (("speed_mm_s", settings.sim_speed_mm_s), ("fps", settings.sim_fps))
-               if v is not None}
-    if changes:
-        cell = cell.with_pass(**changes)
-    sim = LiveSimCell(cell, seed=settings.sim_seed, clock_offset_s=settings.sim_clock_offset_s)
-    if host is None:
-        return sim.camera, sim.robot, SimPassDriver(sim, surface=settings.sim_surface), cell.calibration
-    from service.rtde_emulator import RtdeEmulator
-
-    return (sim.camera, URRobot(host), SimPassDriver(sim, RtdeEmulator(host), settings.sim_surface),
-            cell.calibration)
+    if settings.sim:
+        raise ValueError("simulated devices are wired in by the command line "
+                         "(service.cli.serve.service_for), not built here")
+    if settings.camera is None:
+        raise ValueError("no camera: give --camera SPEC (opencv:0, video:FILE, "
+                         "genicam:PRODUCER.cti, replay:FOLDER) or run with --sim")
+    return open_camera(settings.camera), open_robot(settings.robot), None, None
 
 
 class Service:
@@ -169,7 +65,8 @@ class Service:
         self.calibration_path = settings.data / "calibration.json"
         self._default_calibration = default_calibration
         self.store = ScanStore(settings.data, retention=settings.retention)
-        self.parts = PartLibrary(settings.data)
+        self.parts = PartLibrary(settings.data, builtin=(
+            self.driver.builtin_parts() if self.driver is not None else None))
         self.publisher = Publisher(settings.zmq, hwm=settings.zmq_hwm)
         self.metrics = Metrics()
         self.pose_params = PoseParams()
@@ -185,9 +82,14 @@ class Service:
                              on_recorded=self._on_recorded,
                              workers=settings.workers, queue_frames=settings.queue_frames,
                              camera_timeout_s=settings.camera_timeout_s,
-                             clock_offset_s=settings.clock_offset_s,
-                             cross_check_tolerance_mm=settings.cross_check_tolerance_mm,
-                             led_correction_t_mm=settings.led_correction_t_mm)
+                             cross_check_state=CrossCheckState(
+                                 clock_offset_s=settings.clock_offset_s,
+                                 tolerance_mm=settings.cross_check_tolerance_mm,
+                                 led_correction_t_mm=(None if settings.led_correction_t_mm is None
+                                                      else tuple(settings.led_correction_t_mm)),
+                                 led_correction_from=(None if settings.led_correction_t_mm is None
+                                                      else "settings")),
+                             pose_params=self.pose_params)
         self._jobs: OrderedDict[str, ScanJob] = OrderedDict()  # the recent ones, by arming
         self._jobs_lock = threading.Lock()
         self.started = time.time()
@@ -208,8 +110,10 @@ class Service:
         self.settings.data.mkdir(parents=True, exist_ok=True)
         self.store.open()
         self.parts.open()
-        default = self.parts.get(self.default_part)  # KeyError: an unknown default part
-        default.surface_model, default.edge_model  # built now, not at the first scan's pose
+        default = None
+        if self.default_part is not None:
+            default = self.parts.get(self.default_part)  # KeyError: an unknown default part
+            default.surface_model, default.edge_model  # built now, not at the first pose
         self.publisher.start()
         try:
             if self.driver is not None:
@@ -218,7 +122,8 @@ class Service:
                 # before the camera streams: a compiling kernel holds the GIL for a second,
                 # and the acquisition thread would lose frames meanwhile. The first scan
                 # does not wait for it either.
-                self.driver.prepare(self.parts.get(self.default_part))
+                if default is not None:
+                    self.driver.prepare(default)
             # Start-up's long-lived objects (the part's models, the prepared pass: about
             # 160 000) leave the garbage collector's care. A full collection over them takes
             # about 54 ms, 9 frames at 162 fps: it had paused the acquisition thread mid-pass,
@@ -238,8 +143,12 @@ class Service:
             self.driver.close()
 
     @property
-    def default_part(self) -> str:
-        return self.settings.default_part or DEMO_PART
+    def default_part(self) -> str | None:
+        """The part a scan that names none scans: the settings', else the demo block when
+        the cell has one (the simulated cell's), else none (a scan without a pose)."""
+        if self.settings.default_part:
+            return self.settings.default_part
+        return DEMO_PART if DEMO_PART in self.parts.names() else None
 
     # -- scans ------------------------------------------------------------------------------
 
@@ -249,13 +158,15 @@ class Service:
         that leaves the inspection volume, EngineBusy, EngineFault. With ``record`` the pass
         is also recorded into ``recordings/<scan_id>`` of the data folder."""
         name = part or self.default_part
-        held = self.parts.get(name)  # KeyError before anything is armed
-        misplacement = misplacement_matrix(misplace)
-        if misplacement is not None:
-            check_fits(held, pose=misplacement @ held.grasp)
+        held = self.parts.get(name) if name is not None else None  # KeyError before arming
+        misplacement = None
+        if misplace is not None:
+            if self.driver is None or held is None:
+                raise ValueError("misplace is for the simulated cell, and a part, only")
+            misplacement = self.driver.misplacement(held, misplace)
         if record:
             self._prune_recordings(keep=self.settings.recordings_kept - 1)
-        job = self.engine.arm(name, timeout_s, context=misplacement,
+        job = self.engine.arm(name, timeout_s, context=misplacement, part_model=held,
                               record_to=self.recordings_dir if record else None)
         if record:
             job.info_extra = {"recording": {"path": None, "state": "recording"}}
@@ -302,9 +213,10 @@ class Service:
 
         threading.Thread(target=go, name="flyscan-sim-pass", daemon=True).start()
 
-    def _on_scan(self, job: ScanJob, scan: Scan, cross_check) -> None:
-        """Finisher thread: publish, cross-check, store. A failure to store fails the scan, and
-        its info stays served from memory (``RECENT_JOBS``)."""
+    def _on_scan(self, job: ScanJob, scan: Scan, finish) -> None:
+        """Finisher thread: publish the cloud, end the pass (``finish``: verdict, cross-check,
+        pose, edges), publish the edges and the pose, store. A failure to store fails the scan,
+        and its info stays served from memory (``RECENT_JOBS``)."""
         sent = threading.Event()
 
         def on_sent(topic, when):
@@ -316,14 +228,23 @@ class Service:
         header = {"scan_id": job.scan_id, "part": job.part}
         placed = scan.frames > 0
         if placed:
-            outcome = {"state": job.state, "end_reason": scan.end_reason}
-            self.publisher.publish("cloud", {**header, **outcome}, scan.cloud, on_sent=on_sent)
-            self.publisher.publish("edges", {**header, **outcome}, scan.edges)
+            self.publisher.publish("cloud", {**header, "state": job.state,
+                                             "end_reason": scan.end_reason},
+                                   scan.cloud, on_sent=on_sent)
             sent.wait(PUBLISH_WAIT_S)
-        check = cross_check(scan, job.scan_id) if placed else None
-        report = self.engine.report(job, scan, check)
-        if job.state == "done":
-            report["pose"] = self._pose(job, scan)
+        try:
+            model = self.parts.get(job.part) if job.part is not None else None
+        except KeyError:
+            model = None
+        result = finish(model)
+        report = result.report
+        if result.state == "done" and model is None:
+            report["pose"] = {"refused": f"no CAD model for part {job.part!r}"}
+        if "pose" in result.timings_ms:
+            job.latency_ms["pose"] = result.timings_ms["pose"]
+        if placed:
+            self.publisher.publish("edges", {**header, "state": job.state,
+                                             "end_reason": scan.end_reason}, scan.edges)
         report["latency_ms"] = dict(job.latency_ms)
         info = self._info(job, report)
         try:
@@ -338,24 +259,9 @@ class Service:
                                           "reason": job.reason, "points": info["points"]})
         self.metrics.scan_finished(info)
 
-    def _pose(self, job: ScanJob, scan: Scan) -> dict:
-        """The part's pose in the gripper (``report.json`` ``pose``), or why there is none."""
-        t0 = time.perf_counter()
-        try:
-            try:
-                part = self.parts.get(job.part)
-            except KeyError:
-                raise ValueError(f"no CAD model for part {job.part!r}") from None
-            pose = scan_pose(scan, part.surface_model, part.grasp, edge_model=part.edge_model,
-                             params=self.pose_params).to_dict()
-        except ValueError as exc:
-            pose = {"refused": str(exc)}
-        job.latency_ms["pose"] = round((time.perf_counter() - t0) * 1e3, 3)
-        return pose
-
     def _info(self, job: ScanJob, report: dict) -> dict:
         keys = ("frames", "frames_dropped", "frames_unplaced", "queue_overflows", "points",
-                "edge_points", "end_reason", "timings_ms", "cross_check", "pose", "latency_ms",
+                "edge_points", "edge_kinds", "end_reason", "timings_ms", "cross_check", "pose", "latency_ms",
                 "frames_held_rotation", "marker_residual_px")
         return {"scan_id": job.scan_id, "state": job.state, "reason": job.reason, "part": job.part,
                 "created": job.created, "finished": time.time(),

@@ -6,8 +6,9 @@ the trigger. The frames of a pass go through a bounded queue to worker threads, 
 and triangulate the stripe and place the profile (``scanner_core.pipeline``: the numba kernels
 release the GIL) while the pass is still running; a full queue drops the frame and counts it,
 so acquisition never waits. When the trigger ends the pass, the finisher thread waits for the
-pass's last profiles, assembles the scan, publishes it over ZeroMQ, cross-checks it against the
-robot, and stores it. The same ``scanner_core`` functions run ``flyscan scan`` offline.
+pass's last profiles, assembles the scan and hands it on (``on_scan``: the service publishes
+the cloud, then ends the pass as every pass ends, ``scanner_core.finish``, and stores it). The
+same ``scanner_core`` functions run ``flyscan scan`` and ``flyscan replay`` offline.
 """
 from __future__ import annotations
 
@@ -23,12 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from scanner_core.calibration import Calibration
-from scanner_core.crosscheck import MAX_DRIFT_STEP_S, MAX_OFFSET_STEP_S, cross_check
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
 from scanner_core.exposure import ExposureController
+from scanner_core.finish import CrossCheckState, PassOutcome, finish_pass, pass_failure
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_in_view,
                                    measure_frame, warm_up)
-from scanner_core.report import scan_report
 from scanner_core.trigger import EndReason, Trigger, TriggerError, TriggerState
 from scanner_core.types import Frame, MarkerObservation, Scan
 from service.live_recording import LiveRecording
@@ -59,6 +59,7 @@ class ScanJob:
     accumulator: PassAccumulator | None
     state: str = "armed"
     reason: str | None = None
+    end_detail: str | None = None
     note: str | None = None
     context: object = None
     frames_dropped: int = 0
@@ -101,42 +102,42 @@ class Engine:
         The devices (simulated or real: the engine cannot tell).
     calibration : Calibration
     params : PipelineParams
-    on_scan : callable(job, scan, cross_check)
-        Called on the finisher thread when a scan is over (publish, store), with the scan
-        (empty when no frame was placed) and the function that cross-checks it.
+    on_scan : callable(job, scan, finish)
+        Called on the finisher thread when a scan is over, with the scan (empty when no frame
+        was placed) and ``finish(part_model)``, which ends the pass
+        (``scanner_core.finish.finish_pass``: verdict, cross-check, pose, report), updates the
+        job's state and the engine's cross-check state, and returns the ``PassOutcome``; the
+        caller publishes and stores.
     on_pass_armed : callable(job), optional
         Called after arming (the simulated cell sends its robot through the sheet).
     on_recorded : callable(job, info), optional
         Called on the finisher thread when a recorded pass's recording is in place (or has
         failed: ``info["error"]``), after ``on_scan``.
-    workers, queue_frames, camera_timeout_s, clock_offset_s, cross_check_tolerance_mm
+    workers, queue_frames, camera_timeout_s
         See ``service.settings.Settings``.
-    led_correction_t_mm : (3,) sequence of float, optional
-        The constant difference between the marker's and the robot's tracks in {T}, mm (what
-        the calibration's LED offset misses); None: learned from the first cross-checked pass
-        and kept (``scanner_core.crosscheck``).
+    cross_check_state : scanner_core.finish.CrossCheckState, optional
+        Where the cross-check starts (clock offset, tolerance, a known correction of the LED
+        offset); each finished pass hands the next the state it leaves
+        (``Engine.cross_check_state``).
+    pose_params : scanner_core.pose.PoseParams, optional
     """
 
     def __init__(self, camera: Camera, robot: Robot, calibration: Calibration,
                  params: PipelineParams, *, on_scan, on_pass_armed=None, on_recorded=None,
                  workers: int = 2,
                  queue_frames: int = 64, camera_timeout_s: float = 1.0,
-                 clock_offset_s: float = 0.0, cross_check_tolerance_mm: float = 0.1,
-                 led_correction_t_mm=None):
+                 cross_check_state: CrossCheckState | None = None, pose_params=None):
         self.camera, self.robot = camera, robot
         self.calibration, self.params = calibration, params
         self.on_scan, self.on_pass_armed = on_scan, on_pass_armed
         self.on_recorded = on_recorded
         self.n_workers = int(workers)
         self.camera_timeout_s = camera_timeout_s
-        self.clock_offset_s = clock_offset_s
-        self.cross_check_tolerance_mm = cross_check_tolerance_mm
-        self.clock_offset_estimated = False  # once it is, it may only drift
+        # read when a pass is armed, written by the finisher thread (one pass at a time)
+        self.cross_check_state = cross_check_state or CrossCheckState()
+        self.pose_params = pose_params
         self.last_rotation_b: np.ndarray | None = None  # held when the robot is lost
         self._newest_frame_clock: tuple[float, float] | None = None  # (camera t, monotonic)
-        self.led_correction_t_mm = (None if led_correction_t_mm is None
-                                    else [float(v) for v in led_correction_t_mm])
-        self.led_correction_from: str | None = None if led_correction_t_mm is None else "settings"
         self.trigger = Trigger(params.trigger)
         self._lock = threading.RLock()
         self._frames: queue.Queue = queue.Queue(maxsize=int(queue_frames))
@@ -198,15 +199,16 @@ class Engine:
     # -- commands ---------------------------------------------------------------------------
 
     def arm(self, part: str | None = None, timeout_s: float | None = None, context=None,
-            record_to: Path | None = None) -> ScanJob:
+            record_to: Path | None = None, part_model=None) -> ScanJob:
         """Arm the trigger for the next pass; raises EngineBusy or EngineFault. ``context``
         rides on the job to ``on_pass_armed`` (the simulated pass's misplacement). With
         ``record_to`` (a folder that must not exist: RecordingError), every frame from arming
-        to the pass's end is recorded with the robot's samples (``service.recording``)."""
-        if not self.clock_offset_estimated:
+        to the pass's end is recorded with the robot's samples and ``part_model``, the part's
+        CAD model (``scanner_core.recording``)."""
+        if not self.cross_check_state.clock_offset_estimated:
             self._coarse_clock_offset()
         with self._lock:
-            job = self._arm_locked(part, timeout_s, context, record_to)
+            job = self._arm_locked(part, timeout_s, context, record_to, part_model)
         if self.on_pass_armed is not None:
             self.on_pass_armed(job)
         return job
@@ -225,9 +227,15 @@ class Engine:
         except RuntimeError:
             return
         frame_t, received = newest_frame
-        self.clock_offset_s = robot_t - (frame_t + time.monotonic() - received)
+        self.cross_check_state = dataclasses.replace(
+            self.cross_check_state, clock_offset_s=robot_t - (frame_t + time.monotonic() - received))
 
-    def _arm_locked(self, part, timeout_s, context, record_to) -> ScanJob:
+    @property
+    def clock_offset_s(self) -> float:
+        """Robot minus camera clock, s: the one the next pass starts from."""
+        return self.cross_check_state.clock_offset_s
+
+    def _arm_locked(self, part, timeout_s, context, record_to, part_model) -> ScanJob:
         """Under ``self._lock``."""
         if self.camera_state != "streaming":
             raise EngineFault(f"the camera is {self.camera_state}"
@@ -249,9 +257,10 @@ class Engine:
             try:
                 job.recording = LiveRecording(
                     Path(record_to) / job.scan_id, camera=self.camera,
-                    calibration=self.calibration,
+                    calibration=self.calibration, part=part_model,
                     settings={"scan_id": job.scan_id, "part": part,
                               "clock_offset_s": self.clock_offset_s,
+                              "cross_check_state": self.cross_check_state.to_dict(),
                               "stripe_method": self.params.stripe_method,
                               "exposure_mode": self.params.exposure.mode,
                               "trigger": dataclasses.asdict(self.params.trigger)})
@@ -300,8 +309,9 @@ class Engine:
                 "scans_done": self.scans_done,
                 "scans_failed": self.scans_failed,
                 "clock_offset_s": self.clock_offset_s,
-                "led_correction_t_mm": self.led_correction_t_mm,
-                "led_correction_from": self.led_correction_from,
+                "led_correction_t_mm": (None if self.cross_check_state.led_correction_t_mm is None
+                                        else list(self.cross_check_state.led_correction_t_mm)),
+                "led_correction_from": self.cross_check_state.led_correction_from,
             }
 
     # -- threads ----------------------------------------------------------------------------
@@ -425,6 +435,7 @@ class Engine:
         job.end_monotonic = time.monotonic()
         job.state = "processing" if self.trigger.state is TriggerState.PROCESSING else job.state
         job.reason = reason.value + (f": {detail}" if detail else "")
+        job.end_detail = detail
         self._ended.put((job, reason))
 
     def _work(self) -> None:
@@ -487,66 +498,27 @@ class Engine:
         scan.timings_ms = {"marker": round(job.marker_ms, 3), "profiles": round(job.profiles_ms, 3),
                            "wait_workers": round((t1 - t0) * 1e3, 3),
                            "assemble": round((time.perf_counter() - t1) * 1e3, 3)}
-        failure = _failure(job, reason, scan)
-        job.state = "failed" if failure else "done"
-        job.reason = failure if failure else job.reason
         if scan.frames > scan.frames_held_rotation:  # the robot gave this pass's rotation
             self.last_rotation_b = scan.tcp_rotations_b[-1].copy()
-        self.on_scan(job, scan, self._cross_check)
+        # the verdict now (the cloud goes out with it); finish() comes to the same
+        failure = pass_failure(scan, reason, detail=job.end_detail, note=job.note,
+                               frames_lost=job.frames_dropped, queue_overflows=job.queue_overflows,
+                               worker_errors=job.worker_errors)
+        job.state = "failed" if failure else "done"
+        job.reason = failure or job.reason
 
-    def _cross_check(self, scan: Scan, scan_id: str | None = None) -> dict:
-        def check(correction, offset_s, max_step_s):
-            return cross_check(scan.tcp_times, scan.tcp_positions_b, self.robot,
-                               clock_offset_s=offset_s, max_offset_step_s=max_step_s,
-                               led_correction_t_mm=correction,
-                               tolerance_mm=self.cross_check_tolerance_mm)
+        def finish(part_model) -> PassOutcome:
+            outcome = finish_pass(
+                scan, reason, self.robot, self.cross_check_state, part_model,
+                pose_params=self.pose_params, scan_id=job.scan_id, detail=job.end_detail,
+                note=job.note, frames_lost=job.frames_dropped,
+                queue_overflows=job.queue_overflows, worker_errors=job.worker_errors,
+                part=job.part, created=job.created)
+            self.cross_check_state = outcome.cross_check_state
+            job.state, job.reason = outcome.state, outcome.reason
+            return outcome
 
-        max_step_s = MAX_DRIFT_STEP_S if self.clock_offset_estimated else MAX_OFFSET_STEP_S
-        result = check(self.led_correction_t_mm, self.clock_offset_s, max_step_s)
-        if self.led_correction_t_mm is None and result["samples"] and result["offset_estimated"]:
-            # The first pass the robot reports: its constant difference is the LED offset's
-            # error, learned once (learned every pass it would hide inconsistencies).
-            learned = result["mean_difference_t_mm"]
-            result = check(learned, result["clock_offset_s"], MAX_DRIFT_STEP_S)
-            self.led_correction_t_mm, self.led_correction_from = learned, scan_id or "a scan"
-            result["led_correction_learned"] = True
-        if result.get("offset_estimated") and not result.get("flagged"):
-            self.clock_offset_s = result["clock_offset_s"]  # the next pass starts from it
-            self.clock_offset_estimated = True
-        return result
-
-    def report(self, job: ScanJob, scan: Scan, check: dict | None) -> dict:
-        """``report.json`` of a finished job."""
-        return scan_report(scan, check, scan_id=job.scan_id, part=job.part, state=job.state,
-                           reason=job.reason, created=job.created,
-                           worker_errors=job.worker_errors[:10])
-
-
-def _failure(job: ScanJob, reason: EndReason, scan: Scan) -> str | None:
-    """Why a finished pass is a failed scan, or None."""
-    if reason is EndReason.TIMEOUT:
-        return "timeout: the marker never appeared" + (f" ({job.note})" if job.note else "")
-    if reason is EndReason.CAMERA_STOPPED:
-        return job.reason
-    if reason is EndReason.TOO_LONG:
-        return "too long: the marker did not leave the view within the maximum pass length"
-    if reason is EndReason.RESET:
-        return job.reason or "reset during the pass"
-    if scan.frames == 0 and scan.frames_without_rotation:
-        return "no profile could be placed: the robot gave no pose to take the gripper's rotation from"
-    if scan.frames == 0:
-        return "no profile could be placed (the marker was never triangulated)"
-    if len(scan.cloud) == 0:
-        lost = []
-        if job.frames_dropped:
-            lost.append(f"{job.frames_dropped} frames of the pass never arrived from the camera")
-        if job.queue_overflows:
-            lost.append(f"{job.queue_overflows} overflowed the processing queue")
-        return (f"no points: {scan.frames} profiles were placed but the stripe was found on none"
-                + (f" ({'; '.join(lost)}: the machine fell behind the camera)" if lost else ""))
-    if job.worker_errors:
-        return f"{len(job.worker_errors)} frames failed to process: {job.worker_errors[0]}"
-    return None
+        self.on_scan(job, scan, finish)
 
 
 def _robot_status(robot: Robot) -> dict:

@@ -14,23 +14,17 @@ import queue
 import threading
 from pathlib import Path
 
-import numpy as np
-
 from scanner_core.calibration import Calibration
 from scanner_core.devices import Camera, Robot
 from scanner_core.types import Frame
-from service.recording import PassRecorder
+from scanner_core.recording import ROBOT_MARGIN_S, PassRecorder, robot_samples
 
 log = logging.getLogger("flyscan.recording")
 
-#: Robot samples are read back on this grid of the robot clock, Hz (UR controllers: 500 Hz).
-ROBOT_SAMPLE_HZ = 500.0
-#: ... from this long before the first frame to this long after the last, s.
-ROBOT_MARGIN_S = 0.05
 
 
 class LiveRecording:
-    """One pass being recorded into ``folder`` (see ``service.recording`` for the format).
+    """One pass being recorded into ``folder`` (see ``scanner_core.recording`` for the format).
 
     Parameters
     ----------
@@ -41,15 +35,18 @@ class LiveRecording:
     calibration : Calibration
         The calibration the pass runs with.
     settings : dict
-        What the replay needs to run the pass as it ran (the clock offset, the pipeline's
-        parameters), JSON-serialisable.
+        What the replay needs to run the pass as it ran (the clock offset, the cross-check's
+        state, the pipeline's parameters), JSON-serialisable.
+    part : scanner_core.cad.PartModel, optional
+        The part the pass scans, kept with the recording so that a replay registers it.
     """
 
     def __init__(self, folder: Path, *, camera: Camera, calibration: Calibration,
-                 settings: dict):
+                 settings: dict, part=None):
         self.folder = Path(folder)
         self._recorder = PassRecorder(self.folder, width=camera.width, height=camera.height,
-                                      fps=camera.fps, calibration=calibration, settings=settings)
+                                      fps=camera.fps, calibration=calibration, settings=settings,
+                                      part=part)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._times: list[float] = []
         self.error: str | None = None
@@ -98,14 +95,3 @@ class LiveRecording:
         self._queue.put(None)
         self._thread.join()
         self._recorder.abort()
-
-
-def robot_samples(robot: Robot, t0: float, t1: float) -> list:
-    """The robot's poses on the sample grid between robot times t0 and t1 (what it has)."""
-    poses = []
-    for k in range(int(np.ceil(t0 * ROBOT_SAMPLE_HZ)), int(np.floor(t1 * ROBOT_SAMPLE_HZ)) + 1):
-        try:
-            poses.append(robot.pose_at(k / ROBOT_SAMPLE_HZ))
-        except (LookupError, RuntimeError):
-            continue
-    return poses

@@ -108,6 +108,9 @@ class ScanInfo(BaseModel):
     queue_overflows: int = 0
     points: int = 0
     edge_points: int = 0
+    edge_kinds: dict | None = Field(None, description="edge points per kind: in the edge cloud "
+                                    "(dropout, step) and set aside (occluded, grazing, "
+                                    "turned_away, off_model)")
     end_reason: str | None = None
     timings_ms: dict = Field(default_factory=dict)
     latency_ms: dict = Field(default_factory=dict)

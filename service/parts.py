@@ -1,4 +1,5 @@
-"""The parts the service knows: the built-in demo block and meshes uploaded with their unit.
+"""The parts the service knows: meshes uploaded with their unit, and those built in (the
+simulated cell's demo block, handed in by its driver).
 
 An uploaded part is kept as ``parts/<name>/mesh.<ext>`` with ``part.json`` (its unit and
 grasp), written into a temporary folder and renamed into place, and loaded again at start.
@@ -18,8 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from simulator.parts import (GRASPS, Part, PartError, block_with_holes_and_steps,
-                             check_fits, load_part, part_from_mesh)
+from scanner_core.cad import GRASPS, PartError, PartModel, check_fits, load_part
 
 log = logging.getLogger("flyscan.parts")
 
@@ -31,14 +31,14 @@ MESH_SUFFIXES = (".stl", ".obj", ".ply")
 MAX_MESH_BYTES = 64 * 1024 * 1024
 
 
-def part_info(part: Part) -> dict:
+def part_info(part: PartModel) -> dict:
     return {"name": part.name, "units": part.units, "faces": int(len(part.faces)),
             "source": "built-in" if part.source.startswith("procedural") else "uploaded",
             "extents_mm": np.round(part.extents, 4).tolist(),
             "nominal_grasp": np.asarray(part.grasp).tolist()}
 
 
-def _checked(load) -> Part:
+def _checked(load) -> PartModel:
     """Load a part (`load_part` refuses a size implausible for its unit) that fits the volume."""
     part = load()
     check_fits(part)
@@ -46,17 +46,26 @@ def _checked(load) -> Part:
 
 
 class PartLibrary:
-    """Parts by name. Thread-safe."""
+    """Parts by name (``scanner_core.cad.PartModel``). Thread-safe.
 
-    def __init__(self, root):
+    Parameters
+    ----------
+    root : path-like
+        The data folder: uploaded parts live in its ``parts/``.
+    builtin : dict of str to PartModel, optional
+        Parts that come with the cell (the simulated cell's demo block); not stored, not
+        replaceable by an upload.
+    """
+
+    def __init__(self, root, builtin: dict | None = None):
         self.root = Path(root) / "parts"
-        self._parts: dict[str, Part] = {}
+        self._builtin = dict(builtin or {})
+        self._parts: dict[str, PartModel] = {}
         self._lock = threading.Lock()
 
     def open(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
-        self._parts[DEMO_PART] = part_from_mesh(block_with_holes_and_steps(), name=DEMO_PART,
-                                                source="procedural:block_with_holes_and_steps")
+        self._parts.update(self._builtin)
         for folder in sorted(self.root.iterdir()):
             if folder.name.startswith(".tmp-"):
                 shutil.rmtree(folder, ignore_errors=True)  # an upload that never finished
@@ -74,16 +83,17 @@ class PartLibrary:
         with self._lock:
             return sorted(self._parts)
 
-    def get(self, name: str) -> Part:
+    def get(self, name: str) -> PartModel:
         with self._lock:
             return self._parts[name]
 
     def add(self, name: str, data: bytes, units: str, *, suffix: str = ".stl",
-            grasp: str = "centred") -> Part:
+            grasp: str = "centred") -> PartModel:
         """Check and keep an uploaded mesh; raises PartError (or ValueError) with the reason."""
-        if not PART_NAME.match(name) or name == DEMO_PART:
+        if not PART_NAME.match(name) or name in self._builtin:
             raise ValueError(f"part name must be 1-64 letters, digits, '.', '_' or '-', not start "
-                             f"with '.', and not be {DEMO_PART!r}, got {name!r}")
+                             f"with '.', and not be a built-in part's "
+                             f"({', '.join(sorted(self._builtin)) or 'none'}), got {name!r}")
         if suffix not in MESH_SUFFIXES:
             raise ValueError(f"mesh format must be one of {', '.join(MESH_SUFFIXES)}, got {suffix!r}")
         if not data:

@@ -4,7 +4,7 @@ The stage moves the LED to known positions (reported to +-``stage_accuracy_mm``,
 a little off), then the sphere of known radius across the sheet; a pass of the sphere held by
 the robot gives the clocks and the LED's offset. The frames are rendered from the cell's truth
 (``simulator.render``, ``simulator.imaging``); the session gives the scanner only the frames,
-the stage's reported positions and the robot's reports (``service.calibrate.Session``).
+the stage's reported positions and the robot's reports (``scanner_core.calsession.Session``).
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 import trimesh
 
 from scanner_core.geometry import angle_between, apply_transform
-from service.calibrate import Session
+from scanner_core.calsession import Session
 from simulator.cell import Cell
 from simulator.parts import Part, part_from_mesh
 from simulator.render import PartScene, frame_image, FrameTruth

@@ -21,7 +21,7 @@ from scanner_core.calibration import Calibration
 from scanner_core.fileio import save_json_atomic
 from scanner_core.geometry import (Mirror, PinholeCamera, Plane, apply_transform,
                                    reflection_matrix, reproject_marker, unit)
-from simulator.effects import CellEffects
+from simulator.effects import CellEffects, parse_effects, realistic_cell
 from simulator.imaging import ImageModel
 
 REFERENCE_CELL = Path(__file__).resolve().parent / "data" / "reference_cell.json"
@@ -259,3 +259,12 @@ if __name__ == "__main__":  # python -m simulator.cell: rewrite the reference ce
     REFERENCE_CELL.parent.mkdir(parents=True, exist_ok=True)
     save_cell(REFERENCE_CELL, design_reference_cell())
     print(f"wrote {REFERENCE_CELL}")
+
+
+def cell_with_effects(perturb_seed: int | None = None, effects_text: str | None = None):
+    """The simulated cell of ``--perturb-seed`` and ``--effects`` (the CLI and the service's
+    simulated mode): the reference cell, perturbed, with the real cell's effects asked for.
+    ValueError naming an unknown effect."""
+    effects = parse_effects(effects_text)
+    cell = load_cell(perturb_seed=perturb_seed)
+    return realistic_cell(cell, effects, seed=perturb_seed) if effects else cell

@@ -158,12 +158,3 @@ def realistic_cell(cell, effects=EFFECTS, *, seed: int | None = None):
                    effects=effects_now)
 
 
-def simulated_cell(perturb_seed: int | None = None, effects_text: str | None = None):
-    """The simulated cell of ``--perturb-seed`` and ``--effects`` (the CLI and the service's
-    simulated mode): the reference cell, perturbed, with the real cell's effects asked for.
-    ValueError naming an unknown effect."""
-    from simulator.cell import load_cell
-
-    effects = parse_effects(effects_text)
-    cell = load_cell(perturb_seed=perturb_seed)
-    return realistic_cell(cell, effects, seed=perturb_seed) if effects else cell

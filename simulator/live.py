@@ -90,7 +90,7 @@ def pass_frame_count(profile: PassProfile) -> int:
 class TrackSegment:
     """The robot's motion through one pass, on the camera clock: pure and picklable.
 
-    The simulated robot of the cell and the RTDE emulator (``service.rtde_emulator``, in
+    The simulated robot of the cell and the RTDE emulator (``simulator.rtde_emulator``, in
     another process) both compute the TCP from these, so that the two agree to the bit.
 
     Attributes

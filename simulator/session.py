@@ -1,9 +1,9 @@
 """A simulated pass, end to end: the simulated cell drives the same pipeline as the real one.
 
 ``flyscan scan``, the benchmarks and the tests call :func:`run_simulated_scan`; it builds the
-devices, feeds the camera's frames and the robot to ``scanner_core.pipeline.run_pass``,
-cross-checks the marker-derived gripper track against the robot
-(``scanner_core.crosscheck``), and scores the cloud against the truth.
+devices, feeds the camera's frames and the robot to ``scanner_core.pipeline.run_pass``, ends
+the pass as every pass ends (``scanner_core.finish.finish_pass``: verdict, cross-check, pose,
+edges, report), and scores the cloud against the truth.
 """
 from __future__ import annotations
 
@@ -14,11 +14,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from scanner_core.calibration import Calibration
-from scanner_core.crosscheck import cross_check
 from scanner_core.exposure import ExposureController
+from scanner_core.finish import CrossCheckState, finish_pass
 from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
-from scanner_core.pose import PoseParams, PoseResult, scan_pose
-from scanner_core.report import scan_report
+from scanner_core.pose import PoseParams, PoseResult
+from scanner_core.trigger import EndReason
 from scanner_core.types import Scan
 from simulator.cell import Cell
 from simulator.devices import SimCamera, SimClock, SimRobot
@@ -113,20 +113,14 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
         exposure = ExposureController(sim.camera, params.exposure, cell.pass_profile.fps)
         scan = run_pass(camera_frames(sim.camera), calibration, sim.robot, params,
                         exposure=exposure, clock_offset_s=calibration.clock_offset_s)
-        check = cross_check(scan.tcp_times, scan.tcp_positions_b, sim.robot,
-                            clock_offset_s=calibration.clock_offset_s)
+        outcome = finish_pass(scan, EndReason(scan.end_reason) if scan.end_reason else None,
+                              sim.robot, CrossCheckState(clock_offset_s=calibration.clock_offset_s),
+                              part if pose else None, pose_params=pose_params,
+                              detail=scan.interrupted)
     finally:
         sim.camera.close()
         sim.robot.disconnect()
-    report = scan_report(scan, check)
-    result = None
-    if pose:
-        try:
-            result = scan_pose(scan, part.surface_model, part.grasp, edge_model=part.edge_model,
-                               params=pose_params)
-            report["pose"] = result.to_dict()
-        except ValueError as exc:
-            report["pose"] = {"refused": str(exc)}
+    report, result = outcome.report, outcome.pose
     processing_ms = report["timings_ms"]["processing"]
     report["timings_ms"]["warmup"] = round(warmup_ms, 3)
     # The pass's span on the camera clock, frames lost or unplaced included.

@@ -44,15 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 #: (command, option) -> how many values the option takes: options documented ahead of the CLI.
-PENDING = {
-    ("scan", "--sim"): 0,
-    ("scan", "--recording"): 1,
-    ("scan", "--camera"): 1,
-    ("scan", "--robot"): 1,
-    ("replay", "--part"): 1,
-    ("replay", "--units"): 1,
-    ("serve", "--calibration"): 1,
-}
+PENDING: dict = {}
 PENDING_REASON = "lands with the pass finisher (issue 26)"
 #: Seconds a ``python -m MODULE --help`` may take.
 HELP_TIMEOUT_S = 60.0

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from scanner_core.geometry import angle_between
-from service.calibrate import SessionError, load_session, write_session
+from scanner_core.calsession import SessionError, load_session, write_session
 from service.cli import main
 from simulator.calsession import simulate_session
 from simulator.cell import load_cell
@@ -93,7 +93,7 @@ def test_the_scanner_never_reads_the_truth(tmp_path):
     script = textwrap.dedent(f"""
         import sys, json
         sys.modules["simulator"] = None  # any import of the simulator now fails
-        from service.calibrate import calibrate_session, load_session
+        from scanner_core.calsession import calibrate_session, load_session
         cal, report = calibrate_session(load_session({str(tmp_path / 'session')!r}))
         print(json.dumps(cal.to_dict()))
     """)
@@ -191,7 +191,7 @@ def test_the_service_runs_on_what_calibrate_learned(tmp_path):
 
 
 def test_a_figure_that_could_not_be_measured_is_null_not_nan():
-    from service.calibrate import _json_safe
+    from scanner_core.calsession import _json_safe
 
     assert _json_safe({"a": [np.float64("nan"), np.int64(3), 1.5], "b": float("inf")}) == \
         {"a": [None, 3, 1.5], "b": None}

@@ -11,7 +11,8 @@ from scanner_core.pipeline import camera_frames, run_pass, warm_up
 from scanner_core.types import Frame
 from service import cameras
 from service.cameras import CameraError, GenICamCamera, OpenCVCamera, open_camera
-from service.recording import PassRecorder, ReplayCamera
+from scanner_core.recording import PassRecorder
+from scanner_core.replay import ReplayCamera
 from simulator.session import simulated_cell
 
 

@@ -225,7 +225,7 @@ def test_serve_without_devices_says_what_to_do(tmp_path, capsys):
 
 @pytest.mark.parametrize("option", ["--misplace", "--laser", "--camera"])
 def test_number_lists_may_start_with_a_minus(option):
-    from service.cli import _join_number_lists
+    from service.cli.common import join_number_lists as _join_number_lists
     assert _join_number_lists(["simulate", option, "-1,0,-2", "--out", "x"]) == \
         ["simulate", f"{option}=-1,0,-2", "--out", "x"]
     # Another option after it is left alone, as is a value without a minus.
@@ -265,28 +265,29 @@ def test_implausible_size_is_refused_with_the_unit_hint(tmp_path, capsys, extent
     assert not out.exists()
 
 
-def _emptied(run, *, frames_too: bool):
-    """`run_simulated_scan`, with the pass's points (and frames) taken away."""
+def _emptied(run, frames_too: bool):
+    """``run_pass`` whose scan has no point (and, with ``frames_too``, no profile): what the
+    pass finisher then makes of it."""
     import dataclasses
 
     def wrapped(*args, **kwargs):
-        scan, report = run(*args, **kwargs)
+        scan = run(*args, **kwargs)
         empty = dict(cloud=scan.cloud[:0], frame_ids=scan.frame_ids[:0],
                      quality=scan.quality[:0])
         if frames_too:
             empty.update(frames=0)
-        return dataclasses.replace(scan, **empty), report
+        return dataclasses.replace(scan, **empty)
     return wrapped
 
 
 @pytest.mark.parametrize("frames_too, message", [
     (False, "no points: "),
-    (True, "the marker never triggered"),
+    (True, "no profile could be placed"),
 ])
 def test_a_scan_without_points_fails(tmp_path, capsys, monkeypatch, frames_too, message):
     import simulator.session
-    monkeypatch.setattr(simulator.session, "run_simulated_scan",
-                        _emptied(simulator.session.run_simulated_scan, frames_too=frames_too))
+    monkeypatch.setattr(simulator.session, "run_pass",
+                        _emptied(simulator.session.run_pass, frames_too=frames_too))
     out = tmp_path / "o"
     code = main(["scan", "--demo", "--fps", "60", "--no-eval", "--out", str(out)])
     assert code == 1

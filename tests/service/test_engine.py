@@ -17,7 +17,8 @@ from scanner_core.pipeline import PipelineParams
 from scanner_core.trigger import TriggerParams
 from scanner_core.types import Frame
 from service.api import create_app
-from service.daemon import Service, SimPassDriver
+from service.daemon import Service
+from simulator.driver import SimPassDriver
 from service.engine import Engine
 from service.settings import Settings
 from service.store import ScanStore
@@ -163,7 +164,8 @@ def test_a_cold_start_loses_no_frame(tmp_path):
     acquisition thread loses no frame while the service starts (it lost about 45)."""
     script = textwrap.dedent(f"""
         import time
-        from service.daemon import Service, SimPassDriver
+        from service.daemon import Service
+        from simulator.driver import SimPassDriver
         from service.settings import Settings
         from simulator.cell import load_cell
         from simulator.live import LiveSimCell
@@ -315,20 +317,3 @@ def test_a_pass_without_points_is_a_failed_scan(cell, block_part):
     assert scan.end_reason == "marker gone" and scan.frames >= 25 and len(scan.cloud) == 0
     assert job.state == "failed" and job.reason.startswith("no points")
 
-
-def test_a_pass_without_points_says_when_frames_were_lost():
-    """A pass whose stripe frames were lost (a machine far behind the camera) fails with the
-    count of frames lost, not only "the stripe was found on none"."""
-    from scanner_core.trigger import EndReason
-    from scanner_core.types import Scan
-    from service.engine import ScanJob, _failure
-
-    empty = Scan(np.zeros((0, 3), np.float32), np.zeros(0, np.int32), np.zeros(0, np.float32),
-                 np.zeros((0, 3), np.float32), np.zeros((35, 3)), np.zeros(35), 35, 0)
-    job = ScanJob("s", None, 0.0, None)
-    assert _failure(job, EndReason.MARKER_GONE, empty) == (
-        "no points: 35 profiles were placed but the stripe was found on none")
-    job.frames_dropped, job.queue_overflows = 20, 3
-    reason = _failure(job, EndReason.MARKER_GONE, empty)
-    assert reason.startswith("no points: 35 profiles")
-    assert "20 frames of the pass never arrived" in reason and "3 overflowed" in reason

@@ -3,7 +3,7 @@ exposure steered while the pass streams, and what /status says of it."""
 import pytest
 
 from service.api import create_app
-from service.daemon import Service
+from service.cli.serve import service_for
 from service.settings import Settings
 from simulator.imaging import NOMINAL_EXPOSURE_US
 from running import serve_in_thread, wait_for
@@ -17,7 +17,7 @@ def finished(client, scan_id):
 def _scan(tmp_path, mode):
     settings = Settings(sim=True, data=tmp_path / mode, zmq="tcp://127.0.0.1:0",
                         sim_surface="dark", exposure_mode=mode)
-    with serve_in_thread(create_app(service=Service(settings))) as client:
+    with serve_in_thread(create_app(service=service_for(settings))) as client:
         scan_id = client.post("/scans", json={}).json()["scan_id"]
         info = wait_for(lambda: finished(client, scan_id), timeout=60)
         camera = client.get("/status").json()["camera"]

@@ -8,9 +8,10 @@ import pytest
 from clients.ply import parse_ply, xyz_array
 from scanner_core.crosscheck import DEFAULT_TOLERANCE_MM
 from service.api import create_app
-from service.daemon import Service
-from service.recording import load_recording, replay_recording
-from service.rtde_emulator import free_loopback_host
+from service.cli.serve import service_for
+from scanner_core.recording import load_recording
+from scanner_core.replay import replay_recording
+from simulator.rtde_emulator import free_loopback_host
 from service.settings import Settings
 from running import free_port, serve_in_thread, wait_for
 
@@ -31,7 +32,7 @@ def robot_service(tmp_path_factory):
                         data=tmp_path_factory.mktemp("hil") / "data",
                         zmq=f"tcp://127.0.0.1:{free_port()}", sim_speed_mm_s=1000.0,
                         sim_clock_offset_s=CLOCK_OFFSET_S)
-    service = Service(settings)
+    service = service_for(settings)
     with serve_in_thread(create_app(service=service)) as client:
         wait_for(lambda: client.get("/status").json()["robot"]["connected"], timeout=10)
         yield client, service
@@ -56,7 +57,7 @@ def test_the_real_client_cross_checks_a_consistent_pass(robot_service):
                          ids=["across the pass", "along the pass"])
 def test_an_inconsistent_robot_is_flagged(robot_service, bias_mm):
     client, service = robot_service
-    if service.engine.led_correction_t_mm is None:
+    if service.engine.cross_check_state.led_correction_t_mm is None:
         _scan(client)  # the first pass teaches the LED correction
     service.driver.emulator.set_bias(bias_mm)
     try:

@@ -12,7 +12,7 @@ import pytest
 
 from scanner_core.geometry import Mirror
 from service import cli
-from service.bench import pose_limits as pl
+from benchmarks import pose_limits as pl
 from simulator.cell import load_cell, marker_pixels
 from simulator.motion import PassMotion
 from simulator.session import misplacement_matrix, run_simulated_scan

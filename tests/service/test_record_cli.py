@@ -4,6 +4,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from clients.http_client import FlyscanClient
 from clients.ply import parse_ply, xyz_array
@@ -14,19 +15,90 @@ def _flyscan(*args, timeout=120):
                           text=True, timeout=timeout)
 
 
-def test_record_then_replay_gives_the_live_cloud(service, tmp_path):
-    recorded = _flyscan("record", "--url", service.url)
-    assert recorded.returncode == 0, recorded.stderr
-    folder = recorded.stdout.strip().rsplit(" in ", 1)[1].split(" (on the")[0]
-    scan_id = recorded.stdout.split()[1]
+@pytest.fixture(scope="module")
+def recorded(service):
+    """A pass recorded through the running service: (its folder, its scan id)."""
+    done = _flyscan("record", "--url", service.url)
+    assert done.returncode == 0, done.stderr
+    folder = done.stdout.strip().rsplit(" in ", 1)[1].split(" (on the")[0]
+    return folder, done.stdout.split()[1]
+
+
+def _same_report(report, live):
+    """The replay's report is the live pass's: verdict, cross-check, pose, edges."""
+    assert report["state"] == live["state"] == "done"
+    assert report["points"] == live["points"] and report["edge_points"] == live["edge_points"]
+    assert report["edge_kinds"] == live["edge_kinds"]
+    for key in ("samples", "rms_mm", "max_mm", "clock_offset_s", "flagged",
+                "mean_difference_t_mm", "led_correction_t_mm"):
+        np.testing.assert_allclose(report["cross_check"][key], live["cross_check"][key],
+                                   rtol=1e-9, atol=1e-12, err_msg=key)
+    np.testing.assert_allclose(report["pose"]["matrix"], live["pose"]["matrix"], atol=1e-9)
+    assert report["pose"]["flags"] == live["pose"]["flags"]
+    assert report["pose"]["observable"] == live["pose"]["observable"]
+
+
+def test_record_then_replay_gives_the_live_report(service, recorded, tmp_path):
+    """Issue 26: the recording keeps the part and the cross-check's state the pass started
+    from, so that the replay gives the live report, pose and cross-check included."""
+    folder, scan_id = recorded
     replayed = _flyscan("replay", folder, "--out", str(tmp_path / "replay"))
     assert replayed.returncode == 0, replayed.stderr
     report = json.loads((tmp_path / "replay" / "report.json").read_text())
     assert report["replay"]["frames"] > 50 and report["replay"]["times_real_time"] > 0
     with FlyscanClient(service.url) as client:
-        live = client.cloud(scan_id)
+        live_cloud = client.cloud(scan_id)
+        live = client.scan(scan_id)
     replay = xyz_array(parse_ply((tmp_path / "replay" / "cloud.ply").read_bytes()))
-    np.testing.assert_array_equal(replay, live)
+    np.testing.assert_array_equal(replay, live_cloud)
+    assert live["cross_check"]["samples"] > 20  # one per profile of the pass
+    _same_report(report, live)
+
+
+def test_scan_of_a_recording_and_of_its_devices_give_the_live_report(service, recorded,
+                                                                    tmp_path):
+    """``flyscan scan --recording`` gives the replay's report; ``--camera replay:R --robot
+    replay:R`` runs the real cell's path (armed on a camera's stream, the robot looked up, the
+    calibration given) on the same frames and samples, and gives it too; ``--part`` replaces
+    the recording's own part."""
+    from scanner_core.recording import load_recording
+    from scanner_core.calibration import save_calibration
+
+    folder, scan_id = recorded
+    with FlyscanClient(service.url) as client:
+        live = client.scan(scan_id)
+    done = _flyscan("scan", "--recording", folder, "--out", str(tmp_path / "rec"))
+    assert done.returncode == 0, done.stderr
+    _same_report(json.loads((tmp_path / "rec" / "report.json").read_text()), live)
+    recording = load_recording(folder)
+    calibration = tmp_path / "cell.json"
+    save_calibration(calibration, recording.calibration)
+    part = tmp_path / "part.stl"
+    _write_stl(part, recording.part())
+    done = _flyscan("scan", "--camera", f"replay:{folder}", "--robot", f"replay:{folder}",
+                    "--calibration", str(calibration), "--part", str(part), "--units", "mm",
+                    "--out", str(tmp_path / "cell"))
+    assert done.returncode == 0, done.stderr
+    report = json.loads((tmp_path / "cell" / "report.json").read_text())
+    assert report["state"] == "done" and report["points"] == live["points"]
+    # its own cross-check from the calibration's clock offset (no state learned before it)
+    assert report["cross_check"]["samples"] == live["cross_check"]["samples"]
+    # the part came back through an STL file (float32 vertices): the pose agrees to a micron
+    np.testing.assert_allclose(report["pose"]["matrix"], live["pose"]["matrix"], atol=1e-3)
+    # simulated-cell options are refused with another source, and a part needs its unit
+    refused = _flyscan("scan", "--recording", folder, "--seed", "3", "--out", str(tmp_path / "x"))
+    assert refused.returncode == 2 and "--seed" in refused.stderr
+    refused = _flyscan("scan", "--recording", folder, "--part", str(part), "--out",
+                       str(tmp_path / "x"))
+    assert refused.returncode == 2 and "--units" in refused.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def _write_stl(path, part):
+    """The part model's mesh as an STL (mm), as a user's CAD file."""
+    import trimesh
+
+    trimesh.Trimesh(part.vertices, part.faces, process=False).export(path)
 
 
 def test_replay_of_a_folder_that_is_no_recording_is_a_usage_error(tmp_path):

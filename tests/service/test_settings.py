@@ -44,17 +44,20 @@ def test_the_simulated_cell_can_be_a_realistic_one(monkeypatch):
     """sim_perturb_seed and sim_effects build the service's simulated cell as ``flyscan scan
     --perturb-seed --effects`` does: its default calibration is that cell's truth, lens and
     all; an unknown effect is named."""
-    from service.daemon import build_devices
-    from simulator.effects import simulated_cell
+    from service.cli.simdevices import simulated_devices
+    from simulator.cell import cell_with_effects
 
     settings = load_settings(None, sim=True, sim_perturb_seed=3, sim_effects="lens,led")
-    camera, robot, driver, calibration = build_devices(settings)
+    camera, robot, driver, calibration = simulated_devices(settings)
     try:
-        truth = simulated_cell(3, "lens,led").calibration
+        truth = cell_with_effects(3, "lens,led").calibration
         assert calibration.camera.distorted
         assert calibration.camera.distortion == truth.camera.distortion
         np.testing.assert_allclose(calibration.marker_offset_t, truth.marker_offset_t)
     finally:
         camera.close()
+    # the settings check the form; the simulated cell, which knows its effects, the names
     with pytest.raises(ValidationError, match="sim_effects"):
-        load_settings(None, sim_effects="lens,fog")
+        load_settings(None, sim_effects="lens,,fog!")
+    with pytest.raises(ValueError, match="fog"):
+        simulated_devices(load_settings(None, sim=True, sim_effects="lens,fog"))

@@ -12,7 +12,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from scanner_core.devices import Robot
-from service.rtde_emulator import EmulatorError, RtdeEmulator
+from simulator.rtde_emulator import EmulatorError, RtdeEmulator
 from service.ur_robot import (MAX_GAP_S, RtdeProbeError, URRobot, parse_robot_url,
                               probe_rtde)
 from simulator.live import TrackSegment, pass_frame_count, tcp_on_track

@@ -1,0 +1,278 @@
+"""Benchmark of the live service: per-frame cost, consecutive passes, latency, memory, load.
+
+1. Per frame, one thread: the whole processing of a frame in a pass (tracked marker, trigger,
+   stripe, triangulation, placement: ``scanner_core.pipeline``) against a plain copy of the same
+   frame, timed frame by frame in the same run.
+2. Consecutive passes through the service in simulated mode (``service.daemon.Service`` with
+   the live simulated cell at 162 fps, its camera paced on the real clock), a ZeroMQ subscriber
+   on loopback receiving every cloud: dropped frames, queue overflows, the latency from the
+   pass's last frame to its cloud on ZeroMQ, the process's memory after every pass, and the CPU
+   the processing takes against the camera time.
+
+``run(out_dir)`` writes ``service.json`` and ``service.png`` and returns the dict.
+"""
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import socket
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, camera_frames,
+                                   feed_frame, warm_up)
+from scanner_core.trigger import Trigger
+from benchmarks.machine import machine_info
+from simulator.cell import load_cell
+from simulator.parts import block_with_holes_and_steps, part_from_mesh
+from simulator.session import simulated_cell
+
+__all__ = ["run"]
+
+PASSES, QUICK_PASSES = 100, 8
+PER_FRAME_REPEATS, QUICK_PER_FRAME_REPEATS = 5, 2
+TARGET_FRAME_RATIO = 5.0
+TARGET_LATENCY_MEDIAN_MS = 30.0
+TARGET_LATENCY_P99_MS = 100.0
+TARGET_MEMORY_GROWTH = 0.05
+#: A pass must be over within this long, s (the default pass takes about 2 s).
+PASS_TIMEOUT_S = 30.0
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _cpu_s() -> float:
+    t = os.times()
+    return t.user + t.system
+
+
+def per_frame(repeats: int) -> dict:
+    """Whole per-frame processing against a copy of the same frame, one thread."""
+    cell = load_cell()
+    part = part_from_mesh(block_with_holes_and_steps(), name="demo")
+    sim = simulated_cell(part, cell, seed=3)
+    sim.camera.open()
+    sim.robot.connect()
+    frames = list(camera_frames(sim.camera))
+    calibration, params = cell.calibration, PipelineParams()
+    warm_up(calibration, params)
+    copy_ms, frame_ms, in_pass = [], [], []
+    for _ in range(repeats):
+        tracker, trigger = MarkerTracker(calibration, params), Trigger(params.trigger)
+        accumulator = PassAccumulator(calibration, sim.robot)
+        trigger.arm()
+        for frame in frames:
+            t0 = time.perf_counter()
+            frame.image.copy()
+            t1 = time.perf_counter()
+            step = feed_frame(frame, tracker, trigger, accumulator, params)
+            t2 = time.perf_counter()
+            copy_ms.append((t1 - t0) * 1e3)
+            frame_ms.append((t2 - t1) * 1e3)
+            in_pass.append(bool(step.emit))
+    copy_ms, frame_ms, in_pass = map(np.asarray, (copy_ms, frame_ms, in_pass))
+    copy_med = float(np.median(copy_ms))
+    pass_med = float(np.median(frame_ms[in_pass]))
+    return {
+        "frames": len(frames), "repeats": repeats, "frames_in_pass": int(in_pass.sum() // repeats),
+        "copy_ms_median": copy_med,
+        "pass_frame_ms_median": pass_med,
+        "pass_frame_ms_p90": float(np.percentile(frame_ms[in_pass], 90)),
+        "idle_frame_ms_median": float(np.median(frame_ms[~in_pass])),
+        "ratio_to_copy": pass_med / copy_med,
+        "frames_per_second_one_core": 1e3 / pass_med,
+    }
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class _Receiver(threading.Thread):
+    """One thread, one SUB socket: the receipt time of every cloud, by scan id."""
+
+    def __init__(self, endpoint: str):
+        super().__init__(daemon=True, name="bench-subscriber")
+        import zmq
+
+        self.socket = zmq.Context.instance().socket(zmq.SUB)
+        self.socket.setsockopt(zmq.SUBSCRIBE, b"cloud")
+        self.socket.setsockopt(zmq.RCVTIMEO, 200)
+        self.socket.connect(endpoint)
+        self.received: dict[str, tuple[float, float, int]] = {}
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        import zmq
+
+        while not self.stop.is_set():
+            try:
+                topic, header, payload = self.socket.recv_multipart()
+            except zmq.Again:
+                continue
+            h = json.loads(header)
+            self.received[h["scan_id"]] = (time.time(), h["t"], len(payload) // 12)
+        self.socket.close(linger=0)
+
+
+def passes(count: int, *, speed_mm_s: float | None = None) -> dict:
+    """``count`` consecutive passes through the service in simulated mode."""
+    from service.cli.serve import service_for
+    from service.settings import Settings
+
+    with tempfile.TemporaryDirectory() as tmp:
+        zmq = f"tcp://127.0.0.1:{free_port()}"
+        settings = Settings(sim=True, data=pathlib.Path(tmp), zmq=zmq, retention=10,
+                            sim_speed_mm_s=speed_mm_s)
+        service = service_for(settings)
+        service.start()
+        receiver = _Receiver(zmq)
+        receiver.start()
+        time.sleep(0.5)  # the subscriber's slow join; the first pass's render
+        rows = []
+        try:
+            for k in range(count):
+                status0 = service.status()
+                cpu0, wall0 = _cpu_s(), time.monotonic()
+                job = service.arm(None, None)
+                deadline = time.monotonic() + PASS_TIMEOUT_S
+                while service.scan_info(job.scan_id)["state"] not in ("done", "failed"):
+                    if time.monotonic() > deadline:
+                        raise TimeoutError(f"pass {k} did not finish")
+                    time.sleep(0.01)
+                info = service.scan_info(job.scan_id)
+                cpu, wall = _cpu_s() - cpu0, time.monotonic() - wall0
+                status = service.status()
+                t_recv = receiver.received.get(job.scan_id)
+                timings = info["timings_ms"]
+                rows.append({
+                    "scan_id": job.scan_id, "state": info["state"], "points": info["points"],
+                    "frames": info["frames"], "frames_dropped": info["frames_dropped"],
+                    "camera_frames_lost": status["frames_dropped"] - status0["frames_dropped"],
+                    "queue_overflows": info["queue_overflows"],
+                    "latency_send_ms": info["latency_ms"].get("last_frame_to_zmq"),
+                    "latency_pass_end_to_send_ms": info["latency_ms"].get("pass_end_to_zmq"),
+                    "zmq_transit_ms": (t_recv[0] - t_recv[1]) * 1e3 if t_recv else None,
+                    "received_points": t_recv[2] if t_recv else None,
+                    "processing_ms": timings.get("marker", 0.0) + timings.get("profiles", 0.0),
+                    "camera_time_s": (info["frames"] + info["frames_unplaced"]) / service.engine.fps,
+                    "cpu_s": cpu, "wall_s": wall, "rss_mb": _rss_mb(),
+                })
+                print(f"bench service: pass {k + 1}/{count}: {info['state']}, {info['points']} points, "
+                      f"dropped {rows[-1]['frames_dropped']}, latency {rows[-1]['latency_send_ms']} ms",
+                      file=sys.stderr, flush=True)
+        finally:
+            receiver.stop.set()
+            receiver.join(2)
+            service.stop()
+    return _summarise(rows)
+
+
+def _summarise(rows: list[dict]) -> dict:
+    latency = np.array([r["latency_send_ms"] + (r["zmq_transit_ms"] or 0.0) for r in rows
+                        if r["latency_send_ms"] is not None])
+    rss = np.array([r["rss_mb"] for r in rows])
+    tenth = max(1, len(rss) // 10)
+    early, late = float(np.median(rss[tenth: 2 * tenth])), float(np.median(rss[-tenth:]))
+    processing_s = sum(r["processing_ms"] for r in rows) / 1e3
+    camera_s = sum(r["camera_time_s"] for r in rows)
+    return {
+        "passes": len(rows),
+        "failed": sum(r["state"] != "done" for r in rows),
+        "frames_dropped": int(sum(r["frames_dropped"] for r in rows)),
+        "camera_frames_lost": int(sum(r["camera_frames_lost"] for r in rows)),
+        "queue_overflows": int(sum(r["queue_overflows"] for r in rows)),
+        "clouds_received": sum(r["received_points"] == r["points"] for r in rows),
+        "latency_ms": {"median": float(np.median(latency)), "p99": float(np.percentile(latency, 99)),
+                       "max": float(latency.max()), "values": latency.round(3).tolist()},
+        "rss_mb": {"early_median": early, "late_median": late, "growth": late / early - 1.0,
+                   "values": rss.round(2).tolist()},
+        # Processing (marker on the acquisition thread, profiles on the workers) per second of
+        # camera time: cores it keeps busy at 162 fps. The simulated camera's rendering is not in it.
+        "processing_cores": processing_s / camera_s,
+        "process_cpu_cores": sum(r["cpu_s"] for r in rows) / sum(r["wall_s"] for r in rows),
+        "rows": rows,
+    }
+
+
+def run(out_dir, quick: bool = False) -> dict:
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with threadpool_limits(limits=1, user_api="blas"):
+        # The passes first: the per-frame stage holds a whole pass of frames in memory, which
+        # the allocator keeps, and the passes' memory figure is the service's alone.
+        live = passes(QUICK_PASSES if quick else PASSES)
+        frame = per_frame(QUICK_PER_FRAME_REPEATS if quick else PER_FRAME_REPEATS)
+        print(f"bench service: per frame {frame['pass_frame_ms_median']:.3f} ms, "
+              f"{frame['ratio_to_copy']:.2f} x copy", file=sys.stderr)
+    summary = {
+        "frame_ratio_to_copy": {"value": frame["ratio_to_copy"], "target_max": TARGET_FRAME_RATIO,
+                                "met": frame["ratio_to_copy"] <= TARGET_FRAME_RATIO},
+        "frames_per_second_one_core": frame["frames_per_second_one_core"],
+        "frames_dropped": {"value": live["frames_dropped"] + live["queue_overflows"],
+                           "target_max": 0,
+                           "met": live["frames_dropped"] + live["queue_overflows"] == 0},
+        "memory_growth": {"value": live["rss_mb"]["growth"], "target_max": TARGET_MEMORY_GROWTH,
+                          "met": abs(live["rss_mb"]["growth"]) <= TARGET_MEMORY_GROWTH},
+        "latency_median_ms": {"value": live["latency_ms"]["median"],
+                              "target_max": TARGET_LATENCY_MEDIAN_MS,
+                              "met": live["latency_ms"]["median"] <= TARGET_LATENCY_MEDIAN_MS},
+        "latency_p99_ms": {"value": live["latency_ms"]["p99"], "target_max": TARGET_LATENCY_P99_MS,
+                           "met": live["latency_ms"]["p99"] <= TARGET_LATENCY_P99_MS},
+        "processing_cores": {"value": live["processing_cores"], "target_max": 1.0,
+                             "met": live["processing_cores"] <= 1.0},
+        "passes_failed": live["failed"],
+    }
+    result = {"per_frame": frame, "passes": live, "summary": summary, "quick": quick,
+              "machine": machine_info()}
+    (out_dir / "service.json").write_text(json.dumps(result, indent=2))
+    _plot(result, out_dir / "service.png")
+    return result
+
+
+def _plot(result: dict, path: pathlib.Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    frame, live = result["per_frame"], result["passes"]
+    fig, (ax0, ax1, ax2) = plt.subplots(1, 3, figsize=(15, 4.5))
+    bars = {"copy": frame["copy_ms_median"], "idle frame": frame["idle_frame_ms_median"],
+            "pass frame": frame["pass_frame_ms_median"]}
+    ax0.bar(list(bars), list(bars.values()), color=["gray", "C1", "C0"])
+    ax0.axhline(TARGET_FRAME_RATIO * frame["copy_ms_median"], color="r", ls="--",
+                label=f"target: {TARGET_FRAME_RATIO:g} x copy")
+    ax0.set_ylabel("ms per 1920x1200 frame (median, one thread)")
+    ax0.set_title(f"per frame: {frame['ratio_to_copy']:.1f} x copy")
+    ax0.legend(fontsize=8)
+    latency = np.array(live["latency_ms"]["values"])
+    ax1.hist(latency, bins=30, color="C0")
+    for value, name, style in ((TARGET_LATENCY_MEDIAN_MS, "target median", "--"),
+                               (TARGET_LATENCY_P99_MS, "target p99", ":")):
+        ax1.axvline(value, color="r", ls=style, label=name)
+    ax1.axvline(live["latency_ms"]["median"], color="k", label="median")
+    ax1.set_xlabel("last frame of the pass -> cloud received over ZeroMQ, ms")
+    ax1.set_ylabel("passes")
+    ax1.set_title(f"{live['passes']} passes at 162 fps: median {live['latency_ms']['median']:.1f} ms, "
+                  f"p99 {live['latency_ms']['p99']:.1f} ms")
+    ax1.legend(fontsize=8)
+    ax2.plot(np.arange(1, live["passes"] + 1), live["rss_mb"]["values"], "o-", ms=3)
+    ax2.set_xlabel("pass")
+    ax2.set_ylabel("process RSS, MB")
+    ax2.set_title(f"memory: {100 * live['rss_mb']['growth']:+.1f} %, dropped frames "
+                  f"{live['frames_dropped'] + live['queue_overflows']}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,67 @@
+"""``flyscan bench``: the benchmarks, each writing JSON figures and PNG charts."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from service.cli.common import UsageError
+
+__all__ = ["add_parser", "run"]
+
+#: The benchmarks, with what the longer ones measure.
+BENCHMARKS = ("stripe", "scan", "simulate", "service", "pose", "coarse", "hardware", "surfaces",
+              "calibrate", "edges")
+
+
+def add_parser(command) -> None:
+    bench = command("bench", help="benchmarks: JSON figures and PNG charts")
+    bench.add_argument("what", choices=BENCHMARKS,
+                       help="pose: registration accuracy, time, basin, sigma calibration and "
+                            "the side-by-side with Open3D and small_gicp, then where pose and "
+                            "edges break; coarse: the pose's coarse stage against OpenCV's "
+                            "point-pair features (PPF); hardware: the UR cross-check through "
+                            "ur-rtde, the robot link's loss and recovery, replay against real "
+                            "time; edges: edge points per part and edge kind on creased, "
+                            "curved and walled parts")
+    bench.add_argument("--out", type=Path, required=True)
+    bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
+    bench.add_argument("--meshes", type=Path, default=None,
+                       help="folder of the reference meshes and their manifest.json (default: "
+                            "$FLYSCAN_MESHES, or ../shared/data/meshes beside a source checkout)")
+
+
+def run(args) -> int:
+    from simulator.parts import MESHES_ENV
+
+    if args.meshes is not None:
+        if not (args.meshes / "manifest.json").is_file():
+            raise UsageError(f"--meshes {args.meshes} holds no manifest.json")
+        os.environ[MESHES_ENV] = str(args.meshes)  # the benchmarks' reference-part loader reads it
+    if args.what == "stripe":
+        from benchmarks import stripe as bench
+    elif args.what == "simulate":
+        from benchmarks import simulate as bench
+    elif args.what == "service":
+        from benchmarks import service as bench
+    elif args.what == "hardware":
+        from benchmarks import hardware as bench
+    elif args.what == "surfaces":
+        from benchmarks import surfaces as bench
+    elif args.what == "calibrate":
+        from benchmarks import calibrate as bench
+    elif args.what == "coarse":
+        from benchmarks import coarse as bench
+    elif args.what == "edges":
+        from benchmarks import edges as bench
+    elif args.what == "pose":
+        from benchmarks import pose as bench
+        from benchmarks import pose_limits
+        limits = pose_limits.run(args.out, quick=args.quick)
+        print(json.dumps(limits.get("summary", {}), indent=2))
+    else:
+        from benchmarks import scan as bench
+    result = bench.run(args.out, quick=args.quick)
+    print(json.dumps(result.get("summary", {}), indent=2))
+    print(f"written to {args.out}")
+    return 0

@@ -1,0 +1,140 @@
+"""What the commands share: their errors and exit codes, argument types, and input checks
+that run before any pass (a bad input writes nothing)."""
+from __future__ import annotations
+
+import argparse
+import re
+import tempfile
+from pathlib import Path
+
+__all__ = ["UsageError", "ScanError", "ScanFailed", "EXIT_SCAN_FAILED", "MAX_SPEED_MM_S",
+           "MAX_FPS", "MIN_PROFILES", "non_negative_int", "join_number_lists", "HelpFormatter",
+           "version", "check_out_dir", "check_frame_spacing", "check_part_args",
+           "load_part_model"]
+
+
+class UsageError(ValueError):
+    """Bad command-line input."""
+
+
+class ScanError(RuntimeError):
+    """Bad input found only once the pass or sweep ran: the marker's views disagree (the
+    calibration does not fit the cell), or the simulated camera sees nothing."""
+
+
+class ScanFailed(RuntimeError):
+    """The pass ran but gave no usable scan (``scanner_core.finish.pass_failure``)."""
+
+
+#: Sanity limits on the pass: beyond them a typo (mm/s for m/s, a frame rate for a period)
+#: would simulate for hours.
+MAX_SPEED_MM_S = 5000.0
+MAX_FPS = 2000.0
+#: A pass must give at least this many profiles along the part, or it cannot be scanned.
+MIN_PROFILES = 5
+#: Options whose value is a list of numbers that may start with a minus sign.
+NUMBER_LIST_OPTIONS = ("--misplace", "--laser", "--camera")
+#: Exit status of a pass that ran and failed (bad input exits with 2).
+EXIT_SCAN_FAILED = 1
+
+
+def non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def join_number_lists(argv: list[str]) -> list[str]:
+    """``--misplace -1,0,0,...`` -> ``--misplace=-1,0,0,...``.
+
+    argparse takes a value with a leading minus for an option unless it is a single number;
+    a list of numbers is not, yet misplacements are negative half the time.
+    """
+    out = []
+    args = iter(argv)
+    for arg in args:
+        if arg in NUMBER_LIST_OPTIONS:
+            value = next(args, None)
+            if value is not None and value.startswith("-") and _NUMBER_LIST.match(value):
+                out.append(f"{arg}={value}")
+                continue
+            out.append(arg)
+            if value is not None:
+                out.append(value)
+            continue
+        out.append(arg)
+    return out
+
+
+_NUMBER_LIST = re.compile(r"^\s*-?[\d.]")
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows an option's default, unless it has none or its help already names it."""
+
+    def _get_help_string(self, action):
+        if (action.default is None or action.default is False
+                or action.default == argparse.SUPPRESS or "default" in (action.help or "")):
+            return action.help
+        return super()._get_help_string(action)
+
+
+def version() -> str:
+    from importlib.metadata import PackageNotFoundError, version as installed
+
+    try:
+        return installed("flyscan")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+def check_out_dir(out: Path) -> None:
+    """Refuse an output folder that cannot be written, before the pass runs (writes nothing)."""
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} exists and is not a directory")
+    existing = out
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise UsageError(f"--out {out}: {existing} is a file, not a directory")
+    try:  # os.access is no guide when running as root, or on a read-only mount
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as exc:
+        raise UsageError(f"--out {out} cannot be written: no file can be created in "
+                         f"{existing} ({exc.strerror})") from None
+
+
+def check_frame_spacing(part, speed_mm_s: float, fps: float) -> None:
+    """Refuse a pass whose frames are too far apart to give `MIN_PROFILES` on the part."""
+    spacing = speed_mm_s / fps
+    length = float(part.extents_t[1])  # the part moves along y_T through the light sheet
+    if length / spacing < MIN_PROFILES:
+        need = MIN_PROFILES * speed_mm_s / length
+        raise UsageError(
+            f"at {speed_mm_s:g} mm/s and {fps:g} fps the frames are {spacing:.3g} mm apart, "
+            f"too few for the part's {length:.1f} mm along the pass (at least {MIN_PROFILES} "
+            f"profiles): raise --fps to {need:.3g} or more, or lower --speed")
+
+
+def check_part_args(args) -> None:
+    if getattr(args, "demo", False) and args.units is not None:
+        raise UsageError("--units applies only to --part: the demo part is built in mm")
+    if args.part is not None and args.units is None:
+        raise UsageError("--units is required with --part: a mesh file carries no reliable unit")
+    if args.part is None and args.units is not None:
+        raise UsageError("--units applies only to --part")
+
+
+def load_part_model(args):
+    """The scanner's model of the part of ``--part``/``--units`` with its ``--grasp``
+    (``scanner_core.cad.PartModel``), or None without ``--part``."""
+    from scanner_core.cad import load_part
+
+    if args.part is None:
+        return None
+    return load_part(args.part, args.units, grasp=getattr(args, "grasp", None))

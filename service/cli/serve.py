@@ -1,0 +1,105 @@
+"""``flyscan serve``: the real-time scanning service, with real devices or, with ``--sim``,
+the simulated cell's (``service.cli.simdevices``: the only place they are wired in)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from service.cli.common import UsageError
+
+__all__ = ["add_parser", "run", "service_for"]
+
+#: Seconds a stopping service waits for open connections (server-sent events) to close.
+SHUTDOWN_GRACE_S = 3.0
+
+
+def add_parser(command) -> None:
+    serve = command("serve", help="run the real-time scanning service (REST, ZeroMQ, "
+                                  "status page)")
+    serve.add_argument("--config", type=Path, default=None, help="settings file (TOML)")
+    serve.add_argument("--sim", action="store_true", default=None,
+                       help="simulated devices: the reference cell with its camera and robot")
+    serve.add_argument("--host", default=None, help="REST bind address (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, default=None, help="REST port (default 8000)")
+    serve.add_argument("--zmq", default=None, help="ZeroMQ PUB endpoint (default tcp://127.0.0.1:5556)")
+    serve.add_argument("--robot", default=None,
+                       help="ur://HOST: the UR robot (ur-rtde); with --sim an RTDE emulator "
+                            "is started at HOST and serves the simulated robot")
+    serve.add_argument("--camera", default=None,
+                       help="opencv:0, opencv:/dev/videoN, video:FILE, gstreamer:PIPELINE, "
+                            "genicam:PRODUCER.cti[#SERIAL] or replay:FOLDER (not with --sim)")
+    serve.add_argument("--calibration", type=Path, default=None,
+                       help="calibration JSON (flyscan calibrate); default the one kept in the "
+                            "data folder (PUT /calibration), or with --sim the cell's truth")
+    serve.add_argument("--data", type=Path, default=None, help="folder for scans and parts "
+                                                               "(default ./flyscan-data)")
+    serve.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+
+
+def service_for(settings):
+    """The service of ``settings``: its devices real, or the simulated cell's with ``sim``."""
+    from service.daemon import Service
+
+    if settings.sim:
+        from service.cli.simdevices import simulated_devices
+
+        return Service(settings, devices=simulated_devices(settings))
+    return Service(settings)
+
+
+def run(args) -> int:
+    import logging
+
+    import uvicorn
+    from pydantic import ValidationError
+
+    from service.api import create_app
+    from service.settings import load_settings
+
+    try:
+        settings = load_settings(args.config, sim=args.sim, host=args.host, port=args.port,
+                                 zmq=args.zmq, robot=args.robot, camera=args.camera,
+                                 calibration=args.calibration, data=args.data)
+        service = service_for(settings)
+    except FileNotFoundError as exc:
+        raise UsageError(str(exc)) from None
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        raise UsageError(f"setting {'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    _check_addresses(settings)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
+    url = f"http://{settings.host}:{settings.port}/"
+    print(f"flyscan serve: status page {url}, REST {url}docs, ZeroMQ {settings.zmq}, "
+          f"data {settings.data.resolve()}{' (simulated cell)' if settings.sim else ''}",
+          flush=True)
+    # Open event streams (a status page left open) must not hold up a Ctrl-C for ever.
+    config = uvicorn.Config(create_app(service=service), host=settings.host, port=settings.port,
+                            log_level=args.log_level, access_log=False,
+                            timeout_graceful_shutdown=SHUTDOWN_GRACE_S)
+    server = uvicorn.Server(config)
+    try:
+        server.run()
+    except KeyboardInterrupt:  # uvicorn re-raises Ctrl-C once it has shut down cleanly
+        pass
+    return 0 if server.started else 2
+
+
+def _check_addresses(settings) -> None:
+    """Both addresses free before anything starts: a clear error, not a start-up traceback."""
+    import socket
+
+    import zmq
+
+    try:
+        with socket.create_server((settings.host, settings.port)):
+            pass
+    except OSError as exc:
+        raise UsageError(f"cannot serve HTTP on {settings.host}:{settings.port}: {exc.strerror}") from None
+    probe = zmq.Context.instance().socket(zmq.PUB)
+    try:
+        probe.bind(settings.zmq)
+    except zmq.ZMQError as exc:
+        raise UsageError(f"cannot bind the ZeroMQ publisher to {settings.zmq}: {exc}") from None
+    finally:
+        probe.close(linger=0)

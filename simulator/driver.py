@@ -1,0 +1,101 @@
+"""The simulated robot's passes, driven as a cell controller's robot program would drive a
+real one: when the service arms a scan, the simulated robot carries the part through the sheet.
+
+``flyscan serve --sim`` hands a :class:`SimPassDriver` to the service with the simulated
+camera and robot (``service.cli.simdevices``); the service only calls it, never knows what
+is behind it.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from scanner_core.cad import check_fits
+from simulator.live import PassInProgress
+from simulator.parts import simulated
+from simulator.session import misplacement_matrix
+from simulator.surfaces import with_surface
+
+__all__ = ["SimPassDriver", "PREVIOUS_PASS_WAIT_S"]
+
+#: The simulated robot finishes its previous pass (its lead-out) before starting the next, s.
+PREVIOUS_PASS_WAIT_S = 5.0
+#: The demo block's name in the service's parts (``service.parts.DEMO_PART``).
+DEMO_PART = "demo"
+
+
+class SimPassDriver:
+    """Sends the simulated robot through the sheet when a scan is armed; with an RTDE
+    emulator (``--sim --robot ur://HOST``) the emulator serves the same track to the real
+    ur-rtde client. Every part is simulated with ``surface`` (``simulator.surfaces``)."""
+
+    def __init__(self, sim, emulator=None, surface: str = "default"):
+        self.sim = sim
+        self.emulator = emulator
+        self.surface = surface
+        self._dressed: dict[int, tuple] = {}  # id -> (the library's part, the simulated one)
+
+    def _simulated(self, part):
+        """The part as the simulator shows it (the same object every time, so that its
+        rendered pass is reused): the service's model of it, with the surface asked for."""
+        key = id(part)
+        if key not in self._dressed or self._dressed[key][0] is not part:
+            shown = simulated(part)
+            if self.surface != "default":
+                shown = with_surface(shown, self.surface)
+            self._dressed[key] = (part, shown)
+        return self._dressed[key][1]
+
+    def builtin_parts(self) -> dict:
+        """The parts the simulated cell comes with: the demo block, ``service.parts.DEMO_PART``
+        (a ``scanner_core.cad.PartModel``)."""
+        from scanner_core.cad import part_from_mesh
+        from simulator.procedural import block_with_holes_and_steps
+
+        return {DEMO_PART: part_from_mesh(block_with_holes_and_steps(), name=DEMO_PART,
+                                          source="procedural:block_with_holes_and_steps")}
+
+    def misplacement(self, part, values):
+        """The misplacement ``[tx, ty, tz, rx, ry, rz]`` (mm, degrees) the simulated robot's
+        part is held with, as a transform in {T}; PartError when it leaves the inspection
+        volume, ValueError unless six finite numbers. None for None."""
+        matrix = misplacement_matrix(values)
+        if matrix is not None:
+            check_fits(part, pose=matrix @ part.grasp)
+        return matrix
+
+    def start(self) -> None:
+        """Start the emulator (its own process) on the cell's clock, before the robot connects."""
+        if self.emulator is None:
+            return
+        self.emulator.start()
+        try:
+            cell = self.sim.cell
+            self.emulator.set_track(self.sim.start_clock(), self.sim.robot.clock_offset_s,
+                                    cell.gripper_rotation_b, self.sim.idle_tcp_b)
+        except BaseException:
+            self.emulator.stop()
+            raise
+
+    def prepare(self, part) -> None:
+        self.sim.prepare_pass(self._simulated(part))
+
+    def start_pass(self, part, misplacement: np.ndarray | None) -> None:
+        """Start the pass once the robot has finished the previous one (its lead-out goes on
+        after the scan has ended), as a robot program would."""
+        deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
+        while True:
+            try:
+                live = self.sim.start_pass(self._simulated(part), misplacement)
+                break
+            except PassInProgress:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.01)
+        if self.emulator is not None:
+            self.emulator.add_segment(live.segment)
+
+    def close(self) -> None:
+        if self.emulator is not None:
+            self.emulator.stop()

@@ -1,0 +1,103 @@
+"""The pass finisher: one failure rule, the cross-check's state carried, the pose, the report."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from scanner_core.finish import CrossCheckState, finish_pass, pass_failure
+from scanner_core.trigger import EndReason
+from scanner_core.types import Scan
+
+
+def _empty_scan(frames: int, **changes) -> Scan:
+    scan = Scan(np.zeros((0, 3), np.float32), np.zeros(0, np.int32), np.zeros(0, np.float32),
+                np.zeros((0, 3), np.float32), np.zeros((frames, 3)), np.zeros(frames), frames, 0)
+    for key, value in changes.items():
+        setattr(scan, key, value)
+    return scan
+
+
+@pytest.mark.parametrize("reason, detail, expected", [
+    (EndReason.TIMEOUT, None, "timeout: the marker never appeared"),
+    (EndReason.CAMERA_STOPPED, "no frame for 1 s", "camera stopped: no frame for 1 s"),
+    (EndReason.TOO_LONG, None, "too long: the marker did not leave the view"),
+    (EndReason.RESET, "the service stopped", "reset: the service stopped"),
+    (EndReason.RESET, None, "reset during the pass"),
+])
+def test_how_a_pass_ended_decides_first(reason, detail, expected):
+    assert pass_failure(_empty_scan(35), reason, detail=detail).startswith(expected)
+
+
+def test_a_pass_without_points_says_when_frames_were_lost():
+    """A pass whose stripe frames were lost (a machine far behind the camera) fails with the
+    count of frames lost, not only "the stripe was found on none"."""
+    empty = _empty_scan(35)
+    assert pass_failure(empty, EndReason.MARKER_GONE) == (
+        "no points: 35 profiles were placed but the stripe was found on none")
+    reason = pass_failure(empty, EndReason.MARKER_GONE, frames_lost=20, queue_overflows=3)
+    assert reason.startswith("no points: 35 profiles")
+    assert "20 frames of the pass never arrived" in reason and "3 overflowed" in reason
+
+
+def test_no_profile_placed_says_why():
+    assert pass_failure(_empty_scan(0), EndReason.MARKER_GONE).startswith(
+        "no profile could be placed (the marker")
+    no_robot = _empty_scan(0, frames_without_rotation=12)
+    assert "the robot gave no pose" in pass_failure(no_robot, EndReason.MARKER_GONE)
+
+
+def test_a_timeout_with_a_note():
+    assert pass_failure(_empty_scan(0), EndReason.TIMEOUT, note="pass not started") == (
+        "timeout: the marker never appeared (pass not started)")
+
+
+def test_the_state_round_trips_through_json():
+    state = CrossCheckState(clock_offset_s=0.0125, clock_offset_estimated=True,
+                            led_correction_t_mm=(0.1, -0.2, 0.05), led_correction_from="s1",
+                            tolerance_mm=0.2)
+    assert CrossCheckState.from_dict(state.to_dict()) == state
+    # unknown keys of a later format are ignored, not fatal
+    assert CrossCheckState.from_dict({**state.to_dict(), "later": 1}) == state
+
+
+@pytest.fixture(scope="module")
+def simulated_pass():
+    from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
+    from simulator.cell import load_cell
+    from simulator.effects import CellEffects
+    from simulator.parts import block_with_holes_and_steps, part_from_mesh
+    from simulator.session import simulated_cell
+
+    cell = dataclasses.replace(load_cell(), effects=CellEffects(clock_offset_s=0.0125))
+    part = part_from_mesh(block_with_holes_and_steps(), name="demo")
+    sim = simulated_cell(part, cell, seed=2)
+    warm_up(cell.calibration)
+    sim.camera.open()
+    sim.robot.connect()
+    scan = run_pass(camera_frames(sim.camera), cell.calibration, sim.robot, PipelineParams())
+    return scan, sim, part
+
+
+def test_the_finisher_learns_the_clock_and_hands_it_on(simulated_pass):
+    """The robot's clock runs 12.5 ms ahead of the camera's: the first pass estimates the
+    offset (and learns the LED correction) and returns them in its state, never keeping them;
+    the pose registers against the part's model, the report carries verdict and pose."""
+    scan, sim, part = simulated_pass
+    start = CrossCheckState()
+    outcome = finish_pass(scan, EndReason.MARKER_GONE, sim.robot, start, part, scan_id="s1")
+    assert outcome.state == "done" and outcome.reason == "marker gone"
+    assert outcome.cross_check["samples"] > 100
+    assert outcome.cross_check_state.clock_offset_estimated
+    assert abs(outcome.cross_check_state.clock_offset_s - 0.0125) < 0.002
+    assert outcome.cross_check_state.led_correction_from == "s1"
+    assert start == CrossCheckState()  # passed in and returned, never changed in place
+    assert outcome.report["state"] == "done" and outcome.report["scan_id"] == "s1"
+    pose = outcome.report["pose"]
+    assert pose["observable"] and np.allclose(pose["matrix"], part.grasp, atol=0.05)
+    assert outcome.report["edge_kinds"]["dropout"] + outcome.report["edge_kinds"]["step"] == len(
+        outcome.scan.edges)
+    # no model: no pose; a failed pass: no pose either, and its reason
+    assert finish_pass(scan, EndReason.MARKER_GONE, sim.robot, start).report["pose"] is None
+    failed = finish_pass(scan, EndReason.TIMEOUT, None, start, part)
+    assert failed.state == "failed" and failed.report["pose"] is None
+    assert failed.cross_check is None and failed.report["reason"].startswith("timeout")
