@@ -23,7 +23,8 @@ from scanner_core.finish import CrossCheckState
 from scanner_core.pose import PoseParams
 from scanner_core.trigger import TriggerParams
 from scanner_core.types import Scan
-from service.engine import Engine, ScanJob
+from service.engine import Engine
+from service.jobs import ScanJob
 from service.metrics import Metrics
 from service.parts import DEMO_PART, PartLibrary
 from service.publisher import Publisher

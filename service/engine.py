@@ -17,8 +17,6 @@ import logging
 import queue
 import threading
 import time
-import uuid
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +28,8 @@ from scanner_core.finish import CrossCheckState, PassOutcome, finish_pass, pass_
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_in_view,
                                    measure_frame, warm_up)
 from scanner_core.trigger import EndReason, Trigger, TriggerError, TriggerState
-from scanner_core.types import Frame, MarkerObservation, Scan
+from scanner_core.types import Frame, MarkerObservation
+from service.jobs import ScanJob, new_scan_id
 from service.live_recording import LiveRecording
 
 log = logging.getLogger("flyscan.engine")
@@ -47,50 +46,6 @@ class EngineBusy(RuntimeError):
 
 class EngineFault(RuntimeError):
     """The engine cannot scan now (the camera is not streaming)."""
-
-
-@dataclass
-class ScanJob:
-    """One armed scan, from arming to its stored result."""
-
-    scan_id: str
-    part: str | None
-    created: float
-    accumulator: PassAccumulator | None
-    state: str = "armed"
-    reason: str | None = None
-    end_detail: str | None = None
-    note: str | None = None
-    context: object = None
-    frames_dropped: int = 0
-    queue_overflows: int = 0
-    worker_errors: list[str] = field(default_factory=list)
-    finished: float | None = None
-    last_frame_monotonic: float | None = None
-    end_monotonic: float | None = None
-    latency_ms: dict = field(default_factory=dict)
-    marker_ms: float = 0.0
-    profiles_ms: float = 0.0
-    info: dict = field(default_factory=dict)
-    recording: LiveRecording | None = None
-    info_extra: dict = field(default_factory=dict)
-    _in_flight: int = 0
-    _idle: threading.Condition = field(default_factory=threading.Condition)
-
-    def queued(self) -> None:
-        with self._idle:
-            self._in_flight += 1
-
-    def processed(self, elapsed_ms: float = 0.0) -> None:
-        with self._idle:
-            self.profiles_ms += elapsed_ms
-            self._in_flight -= 1
-            if self._in_flight == 0:
-                self._idle.notify_all()
-
-    def wait_processed(self, timeout: float) -> bool:
-        with self._idle:
-            return self._idle.wait_for(lambda: self._in_flight == 0, timeout)
 
 
 class Engine:
@@ -525,11 +480,6 @@ def _robot_status(robot: Robot) -> dict:
     """``connected``, and what a real robot backend tells of its link (``URRobot.status``)."""
     details = getattr(robot, "status", None)
     return {**(details() if callable(details) else {}), "connected": bool(robot.connected)}
-
-
-def new_scan_id() -> str:
-    """Time-ordered, unique, safe as a folder name."""
-    return time.strftime("%Y%m%dT%H%M%S", time.gmtime()) + "-" + uuid.uuid4().hex[:8]
 
 
 def _finite_or_none(value: float) -> float | None:

@@ -1,0 +1,62 @@
+"""One armed scan, from arming to its stored result: what the engine, the finisher and the
+REST handlers know of it (its state, its counters, its latency, its recording)."""
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+
+from scanner_core.pipeline import PassAccumulator
+from service.live_recording import LiveRecording
+
+__all__ = ["ScanJob", "new_scan_id"]
+
+
+@dataclass
+class ScanJob:
+    """One armed scan, from arming to its stored result."""
+
+    scan_id: str
+    part: str | None
+    created: float
+    accumulator: PassAccumulator | None
+    state: str = "armed"
+    reason: str | None = None
+    end_detail: str | None = None
+    note: str | None = None
+    context: object = None
+    frames_dropped: int = 0
+    queue_overflows: int = 0
+    worker_errors: list[str] = field(default_factory=list)
+    finished: float | None = None
+    last_frame_monotonic: float | None = None
+    end_monotonic: float | None = None
+    latency_ms: dict = field(default_factory=dict)
+    marker_ms: float = 0.0
+    profiles_ms: float = 0.0
+    info: dict = field(default_factory=dict)
+    recording: LiveRecording | None = None
+    info_extra: dict = field(default_factory=dict)
+    _in_flight: int = 0
+    _idle: threading.Condition = field(default_factory=threading.Condition)
+
+    def queued(self) -> None:
+        with self._idle:
+            self._in_flight += 1
+
+    def processed(self, elapsed_ms: float = 0.0) -> None:
+        with self._idle:
+            self.profiles_ms += elapsed_ms
+            self._in_flight -= 1
+            if self._in_flight == 0:
+                self._idle.notify_all()
+
+    def wait_processed(self, timeout: float) -> bool:
+        with self._idle:
+            return self._idle.wait_for(lambda: self._in_flight == 0, timeout)
+
+
+def new_scan_id() -> str:
+    """Time-ordered, unique, safe as a folder name."""
+    return time.strftime("%Y%m%dT%H%M%S", time.gmtime()) + "-" + uuid.uuid4().hex[:8]
