@@ -183,16 +183,16 @@ def test_a_robot_that_drops_out_holds_its_last_rotation(cell):
 
 def test_warm_up_frame_finds_the_marker_everywhere(cell, monkeypatch):
     """The warm-up frame must reach every kernel: a marker in all three views and a stripe."""
-    from scanner_core import pipeline
+    from scanner_core import pipeline_frame
     seen = {}
-    real = pipeline.process_frame
+    real = pipeline_frame.process_frame
 
-    def spy(frame, calibration, params=pipeline.PipelineParams(), marker=None):
+    def spy(frame, calibration, params=pipeline_frame.PipelineParams(), marker=None):
         seen["profile"] = real(frame, calibration, params, marker)
         return seen["profile"]
 
-    monkeypatch.setattr(pipeline, "process_frame", spy)
-    pipeline.warm_up(cell.calibration)
+    monkeypatch.setattr(pipeline_frame, "process_frame", spy)
+    pipeline_frame.warm_up(cell.calibration)
     profile = seen["profile"]
     assert profile.marker.views == 3
     assert len(profile.columns) > 500

@@ -5,7 +5,7 @@ import pytest
 import trimesh
 from numpy.testing import assert_allclose
 
-import scanner_core.pipeline as pipeline
+import scanner_core.pipeline_accumulate as pipeline_accumulate
 from scanner_core.edges import EdgeKind
 from scanner_core.geometry import apply_transform, base_to_tcp
 from scanner_core.pipeline import PipelineParams, process_frame
@@ -198,7 +198,7 @@ def test_a_chamfered_outline_is_placed_at_the_outline(cell, monkeypatch):
     assert acc["count"] >= 20
     assert acc["outlier_fraction"] == 0.0
     assert acc["rms_um"] < EDGE_RMS_UM
-    monkeypatch.setattr(pipeline, "chamfered_dropouts", lambda points, *args: (
+    monkeypatch.setattr(pipeline_accumulate, "chamfered_dropouts", lambda points, *args: (
         np.asarray(points, np.float64), np.full(len(points), np.nan)))
     unmoved = dropout_accuracy(*scan_chamfered_box(cell))
     assert unmoved["count"] == acc["count"]
