@@ -44,6 +44,10 @@ a tracked search of three views costs about 0.09 ms a frame.
 Image convention: pixel centres at integer coordinates, (column, row) = (x, y), full-image
 coordinates. No global state; the numba kernels are compiled on first use and cached on disk.
 
+One concern that reads best whole, over 500 lines: the public searches, their input checks,
+the candidates and the sub-pixel centre are steps 1-5 above, each feeding the next; the
+compiled per-candidate steps are apart in ``scanner_core.marker_kernels``.
+
 References
 ----------
 .. [1] Paper, section II: one LED marker on the gripper, seen directly and through two mirrors,
