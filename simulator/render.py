@@ -11,76 +11,32 @@ comes back with it.
 
 The mesh stays put in {P}; the sheet, camera and laser are moved into {P} instead (the
 paper's section III: moving the virtual setup is cheaper than moving the CAD model).
+
+The frame's ground truth, its image and the blur of an exposure are in
+``simulator.frame_truth``; the mesh section and its pixel columns in ``simulator.section``.
+This module holds the scene that computes a frame's truth (:class:`PartScene`) and gathers the
+public names of the three.
 """
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 
 from scanner_core.geometry import apply_transform
 from simulator.cell import Cell
-from simulator.imaging import render_image
+from simulator.frame_truth import BLUR_ROW_STEP_PX, FrameTruth, blur_truths, frame_image
 from simulator.parts import Part
 from simulator.raycast import Intersector
+from simulator.section import LENS_PIECE_PX, column_hits, slice_mesh
 from simulator.surfaces import mirror_directions, surface_gain
+
+__all__ = ["PartScene", "FrameTruth", "frame_image", "blur_truths", "slice_mesh", "column_hits",
+           "BOUNCE_OFFSET_MM", "BLUR_ROW_STEP_PX", "LENS_PIECE_PX"]
 
 #: A bounced ray starts this far along its way, clear of the surface it leaves (mm).
 BOUNCE_OFFSET_MM = 1e-3
-
-
-@dataclass(frozen=True)
-class FrameTruth:
-    """Exact ground truth of one rendered frame.
-
-    Attributes
-    ----------
-    tcp_b : (3,) float64
-        True TCP position, {B}, mm.
-    part_pose_b : (4, 4) float64
-        ^B X_P at this frame.
-    stripe_columns : (N,) int32
-        Image column of each stripe sample (:func:`column_hits`): one per section segment
-        overlapping the column, so a column may hold several.
-    stripe_rows : (N,) float64
-        Exact sub-pixel row of each stripe sample (before noise).
-    stripe_points_b : (N, 3) float64
-        The 3-D point of each sample, {B}, mm.
-    stripe_gain : (N,) float64
-        Relative brightness: the part's surface return (``simulator.surfaces.surface_gain``:
-        the cosine of the laser's incidence for the reference surface) times the share of the
-        pixel column the sample covers.
-    marker_b : (3,) float64
-        LED centre, {B}, mm.
-    marker_pixels : (3, 2) float64
-        LED centre in the direct, left and right views; NaN where hidden or outside its strip.
-    reflection_columns, reflection_rows, reflection_gain : (K,) int32, float64, float64
-        Where the laser mirrored by a shiny surface lights the part again (one bounce), as
-        seen in the direct view: not the stripe (the light is off the sheet), but drawn like it.
-    marker_blobs : (M, 4) float64 or None
-        The LED blobs as drawn, ``(u, v, gain, sigma_px)``, when they are not simply one blob of
-        the image model's size per view in ``marker_pixels``: an LED of finite size, or a blob
-        smeared over the exposure.
-    stripe_surfaces : (N,) int64
-        The plane of the mesh each stripe sample lies on (``PartScene.surface_ids``: coplanar
-        faces share one); empty for a blurred frame's truth.
-    """
-
-    tcp_b: np.ndarray
-    part_pose_b: np.ndarray
-    stripe_columns: np.ndarray
-    stripe_rows: np.ndarray
-    stripe_points_b: np.ndarray
-    stripe_gain: np.ndarray
-    marker_b: np.ndarray
-    marker_pixels: np.ndarray
-    reflection_columns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
-    reflection_rows: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    reflection_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    marker_blobs: np.ndarray | None = None
-    stripe_surfaces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 class PartScene:
@@ -265,281 +221,3 @@ class PartScene:
             if np.all(self.intersector.visible(starts, ends)):
                 out[k] = px
         return out
-
-
-def frame_image(cell: Cell, truth: FrameTruth | None, rng: np.random.Generator,
-                image_model=None) -> np.ndarray:
-    """The image model applied to a frame's geometry, with noise from ``rng``.
-
-    Parameters
-    ----------
-    cell : Cell
-        Gives the image size and model.
-    truth : FrameTruth or None
-        The frame's geometry (stripe, one-bounce reflections, marker); None renders
-        background only.
-    rng : numpy.random.Generator
-    image_model : simulator.imaging.ImageModel, optional
-        Instead of the cell's (a camera's exposure and gain applied to it).
-
-    Returns
-    -------
-    (H, W) uint8
-        The frame, DN.
-    """
-    cam = cell.calibration.camera
-    model = cell.image_model if image_model is None else image_model
-    if truth is None:
-        return render_image(cam.height, cam.width, model, rng)
-    cols, rows, gain = truth.stripe_columns, truth.stripe_rows, truth.stripe_gain
-    if len(truth.reflection_columns):
-        cols = np.concatenate([cols, truth.reflection_columns])
-        rows = np.concatenate([rows, truth.reflection_rows])
-        gain = np.concatenate([gain, truth.reflection_gain])
-    blobs = truth.marker_blobs
-    if blobs is None:
-        return render_image(cam.height, cam.width, model, rng, stripe_cols=cols,
-                            stripe_rows=rows, stripe_gain=gain, marker_xy=truth.marker_pixels)
-    return render_image(cam.height, cam.width, model, rng, stripe_cols=cols, stripe_rows=rows,
-                        stripe_gain=gain, marker_xy=blobs[:, :2], marker_gain=blobs[:, 2],
-                        marker_sigma=blobs[:, 3])
-
-
-#: A stripe that moves across a column during the exposure is drawn as a smear of samples
-#: at most this far apart along it, px (below the stripe's sigma: a band, not separate lines).
-BLUR_ROW_STEP_PX = 0.5
-
-
-def _merged_by_surface(t: FrameTruth, shift: np.ndarray):
-    """A frame's stripe samples merged per column and surface (two triangles of one flat face
-    meeting inside a column give one sample: their gain-weighted row and point, summed gain):
-    (keys, columns, rows, points moved by ``shift``, gains), keys sorted and unique."""
-    key = t.stripe_columns.astype(np.int64) << 32 | t.stripe_surfaces
-    keys, group = np.unique(key, return_inverse=True)
-    group = group.ravel()
-    gain = np.bincount(group, t.stripe_gain, len(keys))
-    weight = np.maximum(gain, 1e-300)
-    rows = np.bincount(group, t.stripe_gain * t.stripe_rows, len(keys)) / weight
-    points = np.stack([np.bincount(group, t.stripe_gain * t.stripe_points_b[:, i], len(keys))
-                       for i in range(3)], 1) / weight[:, None] + shift
-    return keys, (keys >> 32).astype(np.int32), rows, points, gain
-
-
-def blur_truths(truths: list[FrameTruth]) -> FrameTruth:
-    """One FrameTruth for the instants of one exposure (see ``PartScene.render_blurred``).
-
-    The exposure is integrated over the intervals between the instants (trapezoid rule): a
-    sample seen at both ends of an interval (the same column and mesh face) is smeared between
-    its two rows, in steps of at most ``BLUR_ROW_STEP_PX``, so that a face the sheet sweeps
-    during the exposure (one nearly parallel to the sheet) shows the band a real camera would;
-    a sample at one end only (the stripe leaving or reaching the column) counts for half the
-    interval. Points are moved with the gripper to the middle instant (they keep their place
-    in {T}); reflections are drawn at each instant with 1/K of their brightness. The LED is
-    strobed (``simulator.imaging.exposed_model``) at the middle of the exposure: it is the
-    middle instant's, sharp.
-    """
-    k = len(truths)
-    ref = truths[k // 2]
-    if k == 1:
-        return ref
-    shift = [ref.tcp_b - t.tcp_b for t in truths]  # the gripper's rotation is fixed in a pass
-    share = 1.0 / (k - 1)
-    merged = [_merged_by_surface(t, d) for t, d in zip(truths, shift)]
-    cols, rows, points, gains = [], [], [], []
-    for i in range(k - 1):
-        (key_a, ca, ra, pa, ga), (key_b, _, rb, pb, gb) = merged[i], merged[i + 1]
-        _, ia, ib = np.intersect1d(key_a, key_b, assume_unique=True, return_indices=True)
-        steps = np.maximum(1, np.ceil(np.abs(rb[ib] - ra[ia]) / BLUR_ROW_STEP_PX)).astype(np.int64)
-        j = np.repeat(np.arange(len(ia)), steps)
-        f = (np.arange(steps.sum()) - np.repeat(np.cumsum(steps) - steps, steps) + 0.5) / steps[j]
-        ja, jb = ia[j], ib[j]
-        cols.append(ca[ja])
-        rows.append(ra[ja] + f * (rb[jb] - ra[ja]))
-        points.append(pa[ja] + f[:, None] * (pb[jb] - pa[ja]))
-        gains.append((ga[ja] + f * (gb[jb] - ga[ja])) * share / steps[j])
-        for (keys, c, r, p, g), matched in ((merged[i], ia), (merged[i + 1], ib)):
-            alone = np.setdiff1d(np.arange(len(keys)), matched)
-            cols.append(c[alone])
-            rows.append(r[alone])
-            points.append(p[alone])
-            gains.append(g[alone] * 0.5 * share)
-    cat = np.concatenate
-    return dataclasses.replace(
-        ref,
-        stripe_columns=cat(cols).astype(np.int32),
-        stripe_rows=cat(rows),
-        stripe_points_b=cat(points),
-        stripe_gain=cat(gains),
-        stripe_surfaces=np.zeros(0, np.int64),
-        reflection_columns=cat([t.reflection_columns for t in truths]),
-        reflection_rows=cat([t.reflection_rows for t in truths]),
-        reflection_gain=cat([t.reflection_gain for t in truths]) / k)
-
-
-def slice_mesh(vertices, faces, normal, offset) -> tuple[np.ndarray, np.ndarray]:
-    """Cut a triangle mesh with the plane ``normal . x = offset``.
-
-    Parameters
-    ----------
-    vertices : (V, 3) float64
-    faces : (F, 3) int
-    normal : (3,) float64
-    offset : float
-
-    Returns
-    -------
-    segments : (K, 2, 3) float64
-        One segment per face that crosses the plane.
-    face_index : (K,) int64
-    """
-    s = vertices @ normal - offset
-    sf = s[faces]
-    above = sf >= 0.0  # a vertex on the plane counts as above: no face yields a point-segment twice
-    crossing = above.any(axis=1) & ~above.all(axis=1)
-    index = np.nonzero(crossing)[0]
-    if len(index) == 0:
-        return np.zeros((0, 2, 3)), index
-    v = vertices[faces[index]]
-    sv = sf[index]
-    av = above[index]
-    points = np.empty((len(index), 3, 3))
-    cuts = np.empty((len(index), 3), dtype=bool)
-    for e, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
-        cuts[:, e] = av[:, a] != av[:, b]
-        with np.errstate(divide="ignore", invalid="ignore"):  # uncut edges are discarded below
-            t = sv[:, a] / (sv[:, a] - sv[:, b])
-            points[:, e] = v[:, a] + t[:, None] * (v[:, b] - v[:, a])
-    # Exactly two edges of a crossing face are cut; take them in edge order.
-    order = np.argsort(~cuts, axis=1, kind="stable")[:, :2]
-    segments = np.take_along_axis(points, order[:, :, None], axis=1)
-    return segments, index
-
-
-def column_hits(segments_p, pose_b, camera, columns):
-    """Where the section segments fall in each image column, weighted by pixel coverage.
-
-    A camera integrates over each pixel's area: pixel column ``c`` covers ``u`` in
-    ``[c - 0.5, c + 0.5]``. A segment projecting to ``[u_min, u_max]`` gives one sample to
-    every column it overlaps, taken at the middle of the overlap (where that column plane,
-    through the camera centre, cuts the segment), with the overlap's share of the pixel as its
-    coverage: the last column of a stripe that ends inside it is lit in proportion to the
-    part it covers, and two segments meeting inside a column give two partial samples whose
-    coverages add up to 1 (for a straight section, their coverage-weighted row is the row at
-    the column's centre). Overlaps of zero length (a segment along a line of sight) give no
-    sample.
-
-    Parameters
-    ----------
-    segments_p : (K, 2, 3) float64
-        Section segments in {P}, mm.
-    pose_b : (4, 4) float64
-        ^B X_P.
-    camera : PinholeCamera
-    columns : (2,) int
-        The view's columns, half-open ``[c0, c1)``: coverage is counted within
-        ``[c0 - 0.5, c1 - 0.5]``.
-
-    Returns
-    -------
-    cols : (N,) int64
-    rows : (N,) float64
-        Exact sub-pixel row at the middle of the overlap.
-    points_p : (N, 3) float64
-        The 3-D point there, in {P}.
-    segment : (N,) int64
-        Which segment it came from.
-    coverage : (N,) float64
-        Share of the pixel column the segment covers, in (0, 1].
-    """
-    if len(segments_p) == 0:
-        return (np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64),
-                np.zeros(0))
-    if camera.distorted:
-        return _column_hits_through_lens(segments_p, pose_b, camera, columns)
-    seg_b = apply_transform(pose_b, segments_p.reshape(-1, 3))
-    q = camera.to_camera(seg_b).reshape(-1, 2, 3)
-    qa, qb = q[:, 0], q[:, 1]
-    front = (qa[:, 2] > 0) & (qb[:, 2] > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ua = camera.fx * qa[:, 0] / qa[:, 2] + camera.cx
-        ub = camera.fx * qb[:, 0] / qb[:, 2] + camera.cx
-    umin = np.clip(np.minimum(ua, ub), columns[0] - 0.5, columns[1] - 0.5)
-    umax = np.clip(np.maximum(ua, ub), columns[0] - 0.5, columns[1] - 0.5)
-    # Columns whose pixel [c - 0.5, c + 0.5] overlaps [umin, umax] (a span ending on a pixel
-    # boundary does not reach into the next pixel).
-    first = np.floor(umin + 0.5)
-    last = np.ceil(umax + 0.5) - 1.0
-    spans = front & (umax > umin)
-    counts = np.where(spans, last - first + 1.0, 0.0).astype(np.int64)
-    segment = np.repeat(np.arange(len(q)), counts)
-    starts = np.repeat(np.where(spans, first, 0.0).astype(np.int64), counts)
-    offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    cols = starts + offsets
-    lo = np.maximum(umin[segment], cols - 0.5)
-    hi = np.minimum(umax[segment], cols + 0.5)
-    coverage = hi - lo
-    keep = coverage > 0.0
-    cols, segment, coverage = cols[keep], segment[keep], coverage[keep]
-    u = 0.5 * (lo[keep] + hi[keep])  # the middle of the overlap
-    k = (u - camera.cx) / camera.fx
-    a, b = qa[segment], qb[segment]
-    d = b - a
-    t = (k * a[:, 2] - a[:, 0]) / (d[:, 0] - k * d[:, 2])
-    t = np.clip(t, 0.0, 1.0)
-    x = a + t[:, None] * d
-    rows = camera.fy * x[:, 1] / x[:, 2] + camera.cy
-    points_p = segments_p[segment, 0] + t[:, None] * (segments_p[segment, 1] - segments_p[segment, 0])
-    return cols, rows, points_p, segment, coverage
-
-
-#: Through a distorting lens, section segments are cut into pieces at most this long in the
-#: image (px) and each piece taken as straight there: the lens bends a 100 px stripe by pixels,
-#: a 0.5 px piece by less than 1e-4 px.
-LENS_PIECE_PX = 0.5
-
-
-def _column_hits_through_lens(segments_p, pose_b, camera, columns):
-    """:func:`column_hits` for a camera whose lens distorts: a pixel column is no longer a
-    plane through the camera centre, so the segments are cut into short pieces, each piece's
-    ends projected through the lens and the piece taken as straight in the image."""
-    seg_b = apply_transform(pose_b, segments_p.reshape(-1, 3)).reshape(-1, 2, 3)
-    ideal = camera.without_distortion()
-    ends = ideal.project(seg_b.reshape(-1, 3)).reshape(-1, 2, 2)
-    span = np.abs(ends[:, 1] - ends[:, 0]).max(axis=1)
-    ok = np.isfinite(span)
-    pieces = np.where(ok, np.ceil(np.where(ok, span, 0.0) / LENS_PIECE_PX), 0).astype(np.int64)
-    pieces = np.maximum(pieces, ok.astype(np.int64))
-    segment = np.repeat(np.arange(len(seg_b)), pieces)
-    k = np.arange(pieces.sum()) - np.repeat(np.cumsum(pieces) - pieces, pieces)
-    t0 = k / pieces[segment]
-    t1 = (k + 1) / pieces[segment]
-    a, d = segments_p[segment, 0], segments_p[segment, 1] - segments_p[segment, 0]
-    pa, pb = a + t0[:, None] * d, a + t1[:, None] * d
-    px = camera.project(apply_transform(pose_b, np.concatenate([pa, pb]))).reshape(2, -1, 2)
-    ua, va, ub, vb = px[0, :, 0], px[0, :, 1], px[1, :, 0], px[1, :, 1]
-    umin = np.clip(np.minimum(ua, ub), columns[0] - 0.5, columns[1] - 0.5)
-    umax = np.clip(np.maximum(ua, ub), columns[0] - 0.5, columns[1] - 0.5)
-    first = np.floor(umin + 0.5)
-    last = np.ceil(umax + 0.5) - 1.0
-    spans = np.isfinite(ua) & np.isfinite(ub) & (umax > umin)
-    counts = np.where(spans, last - first + 1.0, 0.0).astype(np.int64)
-    piece = np.repeat(np.arange(len(ua)), counts)
-    starts = np.repeat(np.where(spans, first, 0.0).astype(np.int64), counts)
-    cols = starts + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    lo = np.maximum(umin[piece], cols - 0.5)
-    hi = np.minimum(umax[piece], cols + 0.5)
-    coverage = hi - lo
-    keep = coverage > 0.0
-    cols, piece, coverage = cols[keep], piece[keep], coverage[keep]
-    u = 0.5 * (lo[keep] + hi[keep])
-    t = np.clip((u - ua[piece]) / (ub[piece] - ua[piece]), 0.0, 1.0)
-    rows = va[piece] + t * (vb[piece] - va[piece])
-    points_p = pa[piece] + t[:, None] * (pb[piece] - pa[piece])
-    # One sample per segment and column, as without a lens: the pieces' coverage-weighted mean.
-    seg = segment[piece]
-    key, first, group = np.unique(seg * (int(columns[1]) + 1) + cols, return_index=True,
-                                  return_inverse=True)
-    weight = np.bincount(group, coverage)
-    rows = np.bincount(group, coverage * rows) / weight
-    points_p = np.stack([np.bincount(group, coverage * points_p[:, i]) for i in range(3)], 1)
-    return cols[first], rows, points_p / weight[:, None], seg[first], weight

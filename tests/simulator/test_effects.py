@@ -10,7 +10,8 @@ from simulator.devices import SimClock, SimRobot
 from simulator.effects import (BLUR_SAMPLES, EFFECTS, REAL_LENS_DISTORTION, CellEffects,
                                parse_effects, realistic_cell)
 from simulator.motion import PassMotion
-from simulator.render import PartScene, _column_hits_through_lens, column_hits
+from simulator.render import PartScene, column_hits
+from simulator.section import _column_hits_through_lens
 from simulator.parts import part_from_mesh
 
 SEGMENTS = np.array([[[-60, 0, 40], [50, 0, 80]], [[50, 0, 80], [70, 0, 60]]], float)
