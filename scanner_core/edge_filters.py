@@ -254,15 +254,26 @@ def _on_own_profile(points, frame_ids, cloud, cloud_frames, tree, k: int = 32):
     cloud points; kept where none is)."""
     if len(frame_ids) != len(points):
         raise ValueError(f"`frame_ids` must be ({len(points)},), got {frame_ids.shape}")
-    k = min(k, len(cloud))
-    _, nearest = tree.query(points, k=k)
-    nearest = nearest.reshape(len(points), k)
-    same = cloud_frames[nearest] == frame_ids[:, None]
-    first = np.argmax(same, axis=1)
-    found = same[np.arange(len(points)), first]
+    nearest = _nearest_of_profile(points, frame_ids, cloud, cloud_frames, tree, k)
+    found = nearest >= 0
     out = points.copy()
-    out[found] = cloud[nearest[found, first[found]]]
+    out[found] = cloud[nearest[found]]
     return out
+
+
+def _nearest_of_profile(points, frame_ids, cloud, cloud_frames, tree, k: int = 32,
+                        reach_mm: float = np.inf):
+    """(M,) index of the nearest cloud point of each point's own profile within `reach_mm`
+    (among its `k` nearest cloud points; ``tree`` is over ``cloud``), -1 where none."""
+    k = min(k, len(cloud))
+    dist, nearest = tree.query(points, k=k, distance_upper_bound=reach_mm)
+    dist, nearest = dist.reshape(len(points), k), nearest.reshape(len(points), k)
+    inside = np.isfinite(dist)
+    safe = np.where(inside, nearest, 0)
+    same = inside & (cloud_frames[safe] == frame_ids[:, None])
+    first = np.argmax(same, axis=1)
+    hit = same[np.arange(len(points)), first]
+    return np.where(hit, safe[np.arange(len(points)), first], -1)
 
 
 def _points3(points, name: str) -> np.ndarray:

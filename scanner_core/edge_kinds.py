@@ -52,15 +52,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scanner_core.edge_filters import _nearest_of_profile, _points3
 from scanner_core.edges import EdgeKind, profile_axes
 from scanner_core.geometry import angle_between, apply_transform
+from scanner_core.pose_models import _boundary_edges, across_outline
 
 __all__ = ["SOFT_CREASE_DEG", "STRIPE_LOSS_DEG", "MODEL_EDGE_TOL_MM", "EDGE_KIND_NAMES",
            "AsideEdges", "sheet_range_b", "turned_away", "ModelEdges", "model_distances",
-           "reclassify_with_model", "kind_counts"]
+           "segment_distances", "reclassify_with_model", "kind_counts"]
 
 #: Faces meeting at no more than this (degrees between their normals) make no edge of the part:
-#: the feature angle of the CAD edge model (``scanner_core.pose.EdgeModel.from_mesh``) and of
+#: the feature angle of the CAD edge model (``scanner_core.pose_models.EdgeModel.from_mesh``) and of
 #: the edge evaluation. So the surface beyond a drop-out may have turned by up to this much
 #: from the one the stripe ended on, with no edge between them.
 SOFT_CREASE_DEG = 30.0
@@ -71,7 +73,7 @@ SOFT_CREASE_DEG = 30.0
 #: axis there) and lost from 82.5 degrees (cos 82 = 0.14: about 28 DN).
 STRIPE_LOSS_DEG = 82.0
 #: An edge point lies on the model's edge when it is within this of it, mm: the pose's own
-#: agreement score (``scanner_core.pose._final_score``) counts an edge point as matched
+#: agreement score (``scanner_core.pose_search._final_score``) counts an edge point as matched
 #: within 5 times the expected edge scatter (``PoseParams.edge_noise_mm``, 0.03 mm).
 MODEL_EDGE_TOL_MM = 0.15
 #: A step's or drop-out's near side is the nearest point of its own profile within this, mm:
@@ -82,9 +84,6 @@ NEAR_REACH_MM = 1.0
 PAIRS_PER_BLOCK = 1_000_000
 #: Segments shorter than this (mm) count as points.
 DEGENERATE_MM = 1e-9
-#: A face turns toward the sensor beyond this (the edge model's test,
-#: ``scanner_core.pose.outline_adjacency``).
-TOWARD_MIN = 1e-6
 
 #: Report names of ``EdgeKind`` codes.
 EDGE_KIND_NAMES = {EdgeKind.DROPOUT: "dropout", EdgeKind.STEP: "step",
@@ -215,7 +214,8 @@ def turned_away(points_t, kinds, sizes_mm, range_t, sensors_t, cloud_t, cloud_fr
     # the near side's end: a step's point lies half its height beyond it, along the range axis
     half = np.where(kinds == EdgeKind.STEP, 0.5 * np.nan_to_num(sizes), 0.0)
     ends = points - half[:, None] * axis
-    near = _nearest_of_profile(ends, frames, cloud, cloud_frames, cKDTree(cloud))
+    near = _nearest_of_profile(ends, frames, cloud, cloud_frames, cKDTree(cloud),
+                               reach_mm=NEAR_REACH_MM)
     found = near >= 0
     if found.any():
         normals = estimate_normals(cloud, sensors=cloud_sensors_t, frame_ids=cloud_frames,
@@ -229,27 +229,6 @@ def turned_away(points_t, kinds, sizes_mm, range_t, sensors_t, cloud_t, cloud_fr
     with np.errstate(invalid="ignore"):
         turned = (view < crease_deg) | (light < crease_deg)
     return turned, view, light
-
-
-def _nearest_of_profile(points, frame_ids, cloud, cloud_frames, tree, k: int = 32):
-    """(M,) index of the nearest cloud point of each point's own profile within
-    ``NEAR_REACH_MM`` (among its `k` nearest cloud points), -1 where none."""
-    k = min(k, len(cloud))
-    dist, nearest = tree.query(points, k=k, distance_upper_bound=NEAR_REACH_MM)
-    dist, nearest = dist.reshape(len(points), k), nearest.reshape(len(points), k)
-    inside = np.isfinite(dist)
-    safe = np.where(inside, nearest, 0)
-    same = inside & (cloud_frames[safe] == frame_ids[:, None])
-    first = np.argmax(same, axis=1)
-    hit = same[np.arange(len(points)), first]
-    return np.where(hit, safe[np.arange(len(points)), first], -1)
-
-
-def _points3(points, name: str) -> np.ndarray:
-    arr = np.asarray(points, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ValueError(f"`{name}` must be (N, 3), got {arr.shape}")
-    return arr
 
 
 # ---------------------------------------------------------------------------------------------
@@ -285,17 +264,13 @@ class ModelEdges:
     @classmethod
     def from_mesh(cls, mesh, *, feature_angle_deg: float = SOFT_CREASE_DEG) -> "ModelEdges":
         """From a ``trimesh.Trimesh`` in {P}, mm (sharp: faces meeting at more than
-        `feature_angle_deg`, as ``scanner_core.pose.EdgeModel.from_mesh``)."""
-        faces = np.asarray(mesh.faces, dtype=np.int64)
-        pairs = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]),
-                        axis=1)
-        unique, counts = np.unique(pairs, axis=0, return_counts=True)
+        `feature_angle_deg`, as ``scanner_core.pose_models.EdgeModel.from_mesh``)."""
         return cls(np.asarray(mesh.vertices, dtype=np.float64),
                    np.asarray(mesh.face_adjacency_edges, dtype=np.int64).reshape(-1, 2),
                    np.asarray(mesh.face_adjacency, dtype=np.int64).reshape(-1, 2),
                    np.asarray(mesh.face_normals, dtype=np.float64),
                    np.asarray(mesh.face_adjacency_angles) > math.radians(feature_angle_deg),
-                   unique[counts == 1])
+                   _boundary_edges(np.asarray(mesh.faces, dtype=np.int64)))
 
     def segments_t(self, pose, *, outline: bool = True) -> np.ndarray:
         """(S, 2, 3) float64: the sharp edges, the border and (with `outline`) the outline
@@ -303,8 +278,7 @@ class ModelEdges:
         pose = np.asarray(pose, dtype=np.float64)
         keep = self.sharp.copy()
         if outline:
-            toward = self.face_normals @ pose[2, :3] > TOWARD_MIN  # z_T in {P}: 3rd row
-            keep |= toward[self.faces[:, 0]] != toward[self.faces[:, 1]]
+            keep |= across_outline(self.face_normals, self.faces, pose[2, :3])  # z_T in {P}
         index = np.concatenate([self.edges[keep], self.boundary])
         return apply_transform(pose, self.vertices[index].reshape(-1, 3)).reshape(-1, 2, 3)
 
@@ -325,13 +299,27 @@ def model_distances(points_t, kinds, model: ModelEdges, pose) -> np.ndarray:
     for mask, outline in ((~step, True), (step, False)):
         if mask.any():
             segments = model.segments_t(pose, outline=outline)
-            out[mask] = _segment_distances(points[mask, :2], segments[:, :, :2])
+            out[mask] = segment_distances(points[mask, :2], segments[:, :, :2])
     return out
 
 
-def _segment_distances(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """(N,) distance from each point to the nearest segment, in the points' dimension,
-    by brute force in blocks (the edge evaluation's method)."""
+def segment_distances(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """Distance from each point to the nearest segment, by brute force in blocks of
+    ``PAIRS_PER_BLOCK`` point-segment pairs (this and the simulator's edge evaluation,
+    ``simulator.evaluate.edge_distances``).
+
+    Parameters
+    ----------
+    points : (N, D) float64
+        D = 2 (in a plane, such as (x_T, y_T)) or 3, mm.
+    segments : (S, 2, D) float64
+        Their two ends, mm; one shorter than ``DEGENERATE_MM`` counts as a point.
+
+    Returns
+    -------
+    (N,) float64
+        mm; inf for every point when there is no segment.
+    """
     out = np.full(len(points), np.inf)
     if len(segments) == 0 or len(points) == 0:
         return out

@@ -1,19 +1,10 @@
 """Camera, light plane and mirror geometry: the paper's Eq. (1)-(3) and triangulation.
 
-Conventions
------------
-- Pixel coordinates ``(u, v)`` = (column, row), pixel centres at integers.
-- {C}: x along image columns, y along image rows, z the optical axis: a pinhole, with the
-  lens's radial and tangential distortion (OpenCV's k1, k2, p1, p2, k3) when it has one.
-- Eq. (1): ``P_C = T (P_B - O)``; Eq. (3): ``P_B = T^-1 (P_C + T O) = T^T P_C + O``.
-- A plane is ``n . x = d`` with a unit normal ``n``; Eq. (2) writes the light plane as
-  ``n . (P_C - P_0) = 0``, so ``d = n . P_0``.
-
 The parts live in modules of their own: the model (vectors and rigid transforms, the pinhole
-camera with its lens, planes, mirrors, {B} -> {T}) in ``scanner_core.geometry_model``; what is
-measured with it (the stripe on the light plane, the marker from the direct and mirror views,
-with its compiled kernel) in ``scanner_core.triangulation``. This module gathers their public
-names.
+camera with its lens, planes, mirrors, {B} -> {T}) and its conventions (pixels, {C}, Eq. (1)-(3),
+planes) in ``scanner_core.geometry_model``; what is measured with it (the stripe on the light
+plane, the marker from the direct and mirror views, with its compiled kernel) in
+``scanner_core.triangulation``. This module gathers their public names.
 
 References
 ----------

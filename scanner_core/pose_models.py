@@ -18,8 +18,8 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["SurfaceModel", "EdgeModel", "merge_bevels", "outline_adjacency", "BEVEL_MM",
-           "TOWARD_MIN"]
+__all__ = ["SurfaceModel", "EdgeModel", "merge_bevels", "outline_adjacency", "across_outline",
+           "BEVEL_MM", "TOWARD_MIN"]
 
 #: Parallel sharp edges of the CAD closer than this (mm, about two pixels' footprint) are
 #: one edge to the scanner: a chamfer's two (`merge_bevels`).
@@ -230,9 +230,25 @@ def outline_adjacency(mesh, view) -> np.ndarray:
     """(A,) bool over ``mesh.face_adjacency`` (and its ``face_adjacency_edges``): whether the
     two faces lie on either side of the outline seen from `view`, (3,) in the mesh's frame:
     one turned toward it (beyond `TOWARD_MIN`), the other not."""
-    toward = np.asarray(mesh.face_normals, dtype=np.float64) @ np.asarray(
+    return across_outline(mesh.face_normals, mesh.face_adjacency, view)
+
+
+def across_outline(face_normals, adjacency, view) -> np.ndarray:
+    """(A,) bool: whether the two faces of each pair lie on either side of the outline seen
+    from `view`: one turned toward it (beyond `TOWARD_MIN`), the other not.
+
+    Parameters
+    ----------
+    face_normals : (F, 3) float
+        Unit face normals.
+    adjacency : (A, 2) int
+        Pairs of adjacent faces (``face_adjacency``).
+    view : (3,) float
+        Toward the sensor, in the normals' frame.
+    """
+    toward = np.asarray(face_normals, dtype=np.float64) @ np.asarray(
         view, dtype=np.float64) > TOWARD_MIN
-    adjacency = np.asarray(mesh.face_adjacency)
+    adjacency = np.asarray(adjacency)
     return toward[adjacency[:, 0]] != toward[adjacency[:, 1]]
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from scanner_core.edge_kinds import segment_distances
 from scanner_core.geometry import apply_transform, base_to_tcp
 from scanner_core.pose import outline_adjacency
 
@@ -188,27 +189,6 @@ def outline_edges(mesh: trimesh.Trimesh, true_grasp: np.ndarray) -> np.ndarray:
     return apply_transform(grasp, segments.reshape(-1, 3)).reshape(-1, 2, 3)
 
 
-def _segment_distances(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """(N,) distance from each point to the nearest segment, in the points' dimension
-    (2 or 3), by brute force in blocks."""
-    out = np.full(len(points), np.inf)
-    if len(segments) == 0:
-        return out
-    a = segments[:, 0]
-    ab = segments[:, 1] - a
-    length2 = np.einsum("sk,sk->s", ab, ab)
-    tiny = EDGE_DEGENERATE_MM**2
-    inv = np.where(length2 > tiny, 1.0 / np.maximum(length2, tiny), 0.0)
-    block = max(1, EDGE_PAIRS_PER_BLOCK // len(segments))
-    for i0 in range(0, len(points), block):
-        p = points[i0:i0 + block, None, :]
-        ap = p - a[None]
-        t = np.clip(np.einsum("nsk,sk->ns", ap, ab) * inv, 0.0, 1.0)
-        diff = ap - t[..., None] * ab[None]
-        out[i0:i0 + block] = np.sqrt(np.einsum("nsk,nsk->ns", diff, diff).min(axis=1))
-    return out
-
-
 def _wall_distances(points: np.ndarray, segments: np.ndarray, face_normals: np.ndarray):
     """(N,) distance from each step point to the nearest wall through a sharp edge, taken
     across the wall (and beyond the edge's ends along it), for points within
@@ -288,8 +268,8 @@ def edge_distances(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, ki
     grasp = np.asarray(true_grasp, dtype=np.float64)
     edges_p, faces = sharp_edges(mesh, feature_angle_deg, faces=True)
     segments = apply_transform(grasp, edges_p.reshape(-1, 3)).reshape(-1, 2, 3)
-    d_xy = _segment_distances(points[:, :2], segments[:, :, :2])
-    d_3d = _segment_distances(points, segments)
+    d_xy = segment_distances(points[:, :2], segments[:, :, :2])
+    d_3d = segment_distances(points, segments)
     dropout = np.ones(len(points), bool)
     if kinds is not None:
         step = np.asarray(kinds).reshape(-1) == STEP_KIND
@@ -299,7 +279,7 @@ def edge_distances(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, ki
             d_xy[step] = np.minimum(d_xy[step],
                                     _wall_distances(points[step], segments, normals_t))
     outline = outline_edges(mesh, grasp)
-    to_outline = _segment_distances(points[dropout, :2], outline[:, :, :2])
+    to_outline = segment_distances(points[dropout, :2], outline[:, :, :2])
     off_sharp = int(np.sum(to_outline < d_xy[dropout] - OUTLINE_COUNTED_MM))
     d_xy[dropout] = np.minimum(d_xy[dropout], to_outline)
     return d_xy, d_3d, {"sharp_edges": int(len(segments)), "outline_edges": int(len(outline)),
