@@ -411,10 +411,10 @@ def test_the_ply_file_is_the_one_write_ply_gives_for_the_same_values(
     """The cloud's PLY rows are written straight from its rays and faces, block by block:
     the very file the general writer gives from its float64 arrays."""
     from scanner_core.ply import write_ply
-    from simulator import virtual_setup
+    from simulator import sweep_cloud
 
     if block_rows is not None:
-        monkeypatch.setattr(virtual_setup, "_PLY_BLOCK_ROWS", block_rows)
+        monkeypatch.setattr(sweep_cloud, "_PLY_BLOCK_ROWS", block_rows)
     cloud = predict_cloud(block_part, reference_setup(cell, step_mm=0.5, rays_per_line=200,
                                                       mirrors=True))
     assert len(cloud) > 10 * 1000  # many blocks of 1000 rows, the last one partial
