@@ -55,7 +55,7 @@ import numpy as np
 from scanner_core.edge_filters import _nearest_of_profile, _points3
 from scanner_core.edges import EdgeKind, profile_axes
 from scanner_core.geometry import angle_between, apply_transform
-from scanner_core.pose_models import _boundary_edges, across_outline
+from scanner_core.mesh_edges import across_outline, boundary_edges
 
 __all__ = ["SOFT_CREASE_DEG", "STRIPE_LOSS_DEG", "MODEL_EDGE_TOL_MM", "EDGE_KIND_NAMES",
            "AsideEdges", "sheet_range_b", "turned_away", "ModelEdges", "model_distances",
@@ -270,7 +270,7 @@ class ModelEdges:
                    np.asarray(mesh.face_adjacency, dtype=np.int64).reshape(-1, 2),
                    np.asarray(mesh.face_normals, dtype=np.float64),
                    np.asarray(mesh.face_adjacency_angles) > math.radians(feature_angle_deg),
-                   _boundary_edges(np.asarray(mesh.faces, dtype=np.int64)))
+                   boundary_edges(np.asarray(mesh.faces, dtype=np.int64)))
 
     def segments_t(self, pose, *, outline: bool = True) -> np.ndarray:
         """(S, 2, 3) float64: the sharp edges, the border and (with `outline`) the outline

@@ -6,7 +6,8 @@ its sharp edges, sampled in {P}.
   cloud of the same pass (`SurfaceModel.from_points`).
 - `EdgeModel`: points along the sharp edges with the edge's direction; the two edges of a
   chamfer narrower than ``BEVEL_MM`` made one line (`merge_bevels`), the one on the outline
-  seen from the sensor where there is one (`outline_adjacency`).
+  seen from the sensor where there is one (`outline_adjacency`, with the mesh's other edge
+  tests in ``scanner_core.mesh_edges``).
 
 Each keeps a KD-tree over its points, built on first use. Units: mm.
 """
@@ -18,17 +19,14 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["SurfaceModel", "EdgeModel", "merge_bevels", "outline_adjacency", "across_outline",
-           "BEVEL_MM", "TOWARD_MIN"]
+from scanner_core.mesh_edges import TOWARD_MIN, boundary_edges, outline_adjacency
+
+__all__ = ["SurfaceModel", "EdgeModel", "merge_bevels", "outline_adjacency", "BEVEL_MM",
+           "TOWARD_MIN"]
 
 #: Parallel sharp edges of the CAD closer than this (mm, about two pixels' footprint) are
 #: one edge to the scanner: a chamfer's two (`merge_bevels`).
 BEVEL_MM = 0.4
-
-#: A face is turned toward the sensor when its unit normal's component along the view
-#: exceeds this: a wall side-on to it (0, give or take float noise: a float32 STL's walls
-#: carry +-1e-7) is not.
-TOWARD_MIN = 1e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,7 +132,7 @@ class EdgeModel:
         vertices = np.asarray(mesh.vertices, dtype=np.float64)
         is_sharp = mesh.face_adjacency_angles > np.radians(feature_angle_deg)
         sharp = mesh.face_adjacency_edges[is_sharp]
-        boundary = _boundary_edges(np.asarray(mesh.faces))
+        boundary = boundary_edges(np.asarray(mesh.faces))
         segments = np.concatenate([sharp.reshape(-1, 2), boundary.reshape(-1, 2)])
         on_outline = np.zeros(len(segments), bool)
         if view is not None:
@@ -226,32 +224,6 @@ def merge_bevels(points, directions, width_mm: float = BEVEL_MM, spacing_mm: flo
     return points[keep], directions[keep]
 
 
-def outline_adjacency(mesh, view) -> np.ndarray:
-    """(A,) bool over ``mesh.face_adjacency`` (and its ``face_adjacency_edges``): whether the
-    two faces lie on either side of the outline seen from `view`, (3,) in the mesh's frame:
-    one turned toward it (beyond `TOWARD_MIN`), the other not."""
-    return across_outline(mesh.face_normals, mesh.face_adjacency, view)
-
-
-def across_outline(face_normals, adjacency, view) -> np.ndarray:
-    """(A,) bool: whether the two faces of each pair lie on either side of the outline seen
-    from `view`: one turned toward it (beyond `TOWARD_MIN`), the other not.
-
-    Parameters
-    ----------
-    face_normals : (F, 3) float
-        Unit face normals.
-    adjacency : (A, 2) int
-        Pairs of adjacent faces (``face_adjacency``).
-    view : (3,) float
-        Toward the sensor, in the normals' frame.
-    """
-    toward = np.asarray(face_normals, dtype=np.float64) @ np.asarray(
-        view, dtype=np.float64) > TOWARD_MIN
-    adjacency = np.asarray(adjacency)
-    return toward[adjacency[:, 0]] != toward[adjacency[:, 1]]
-
-
 def _bevel_pairs(points, directions, width_mm, spacing_mm):
     """Pairs (i, j) of samples on parallel lines (within 10 degrees) closer than `width_mm`,
     and the offset across from i's line to j (K, 3)."""
@@ -263,10 +235,3 @@ def _bevel_pairs(points, directions, width_mm, spacing_mm):
                    > np.cos(np.radians(10.0)))
                   & (np.linalg.norm(across, axis=1) > spacing_mm / 2))
     return i[other_line], j[other_line], across[other_line]
-
-
-def _boundary_edges(faces: np.ndarray) -> np.ndarray:
-    """(B, 2) vertex pairs used by one face only."""
-    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    unique, counts = np.unique(edges, axis=0, return_counts=True)
-    return unique[counts == 1]
