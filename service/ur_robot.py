@@ -40,19 +40,18 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from scanner_core import rtde
 from scanner_core.devices import TcpPose
+from scanner_core.rtde import MAX_FREQUENCY_HZ, RTDE_PORT
 
 __all__ = ["URRobot", "parse_robot_url", "probe_rtde", "RtdeProbeError", "RTDE_PORT",
            "RTDE_VARIABLES"]
 
 log = logging.getLogger(__name__)
 
-#: The RTDE port; ur-rtde's receive interface cannot use another.
-RTDE_PORT = 30004
 #: What the reader asks the controller for (ur-rtde's default list has about 58 variables).
 RTDE_VARIABLES = ("timestamp", "actual_TCP_pose")
 _M_TO_MM = 1000.0
-_HEADER = struct.Struct(">HB")
 #: Two samples further apart than this are not interpolated between (the link was down).
 MAX_GAP_S = 0.1
 
@@ -97,25 +96,25 @@ def _recv_packet(sock: socket.socket, deadline: float) -> tuple[int, bytes]:
             data += chunk
         return data
 
-    size, kind = _HEADER.unpack(exactly(_HEADER.size))
-    if size < _HEADER.size:
+    size, kind = rtde.HEADER.unpack(exactly(rtde.HEADER.size))
+    if size < rtde.HEADER.size:
         raise RtdeProbeError(f"sent a malformed RTDE packet (size {size})")
-    return kind, exactly(size - _HEADER.size)
+    return kind, exactly(size - rtde.HEADER.size)
 
 
-def _request(sock: socket.socket, kind: str, payload: bytes, deadline: float) -> bytes:
+def _request(sock: socket.socket, kind: int, payload: bytes, deadline: float) -> bytes:
     """Send one RTDE request and return the payload of its answer (text messages skipped)."""
-    sock.sendall(_HEADER.pack(_HEADER.size + len(payload), ord(kind)) + payload)
+    sock.sendall(rtde.packet(kind, payload))
     while True:
         got, body = _recv_packet(sock, deadline)
-        if got == ord(kind):
+        if got == kind:
             return body
-        if got not in (ord("M"), ord("U")):
-            raise RtdeProbeError(f"answered {kind!r} with packet type {got}")
+        if got not in (rtde.TEXT_MESSAGE, rtde.DATA_PACKAGE):
+            raise RtdeProbeError(f"answered {chr(kind)!r} with packet type {got}")
 
 
 def probe_rtde(host: str, *, port: int = RTDE_PORT, timeout_s: float = 1.0,
-               frequency: float = 500.0) -> None:
+               frequency: float = MAX_FREQUENCY_HZ) -> None:
     """Check with a plain socket that ``host`` serves RTDE and streams data.
 
     Runs the handshake ur-rtde runs (protocol version 2, an output setup of ``timestamp``,
@@ -133,16 +132,18 @@ def probe_rtde(host: str, *, port: int = RTDE_PORT, timeout_s: float = 1.0,
         with socket.create_connection((host, port), timeout=timeout_s) as sock:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             stage = f"waiting for {where} to answer the RTDE handshake"
-            if _request(sock, "V", struct.pack(">H", 2), deadline)[:1] != b"\x01":
-                raise RtdeProbeError("refused RTDE protocol version 2")
-            answer = _request(sock, "O", struct.pack(">d", frequency) + b"timestamp", deadline)
+            version = struct.pack(">H", rtde.PROTOCOL_VERSION)
+            if _request(sock, rtde.REQUEST_PROTOCOL_VERSION, version, deadline)[:1] != b"\x01":
+                raise RtdeProbeError(f"refused RTDE protocol version {rtde.PROTOCOL_VERSION}")
+            answer = _request(sock, rtde.SETUP_OUTPUTS,
+                              rtde.output_setup(frequency, ["timestamp"]), deadline)
             if answer[:1] in (b"", b"\x00"):
                 raise RtdeProbeError("refused the output setup "
                                      f"({answer[1:].decode(errors='replace')})")
-            if _request(sock, "S", b"", deadline)[:1] != b"\x01":
+            if _request(sock, rtde.START, b"", deadline)[:1] != b"\x01":
                 raise RtdeProbeError("refused to start the data stream")
             stage = f"waiting for data from {where}"
-            while _recv_packet(sock, deadline)[0] != ord("U"):
+            while _recv_packet(sock, deadline)[0] != rtde.DATA_PACKAGE:
                 pass
     except RtdeProbeError as exc:
         raise RtdeProbeError(f"{where} {exc}") from None
@@ -205,7 +206,7 @@ class URRobot:
     queryable (its samples remain true); after :meth:`disconnect` it raises RuntimeError.
     """
 
-    def __init__(self, host: str, *, frequency: float = 500.0, history_s: float = 10.0,
+    def __init__(self, host: str, *, frequency: float = MAX_FREQUENCY_HZ, history_s: float = 10.0,
                  stale_s: float = 0.5, probe_timeout_s: float = 1.0, backoff_s: float = 0.25,
                  max_backoff_s: float = 2.0, first_sample_s: float = 1.0,
                  client_factory=None):
@@ -216,8 +217,8 @@ class URRobot:
                             ("backoff_s", backoff_s), ("max_backoff_s", max_backoff_s)):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"`{name}` must be finite and > 0, got {value}")
-        if frequency > 500.0:
-            raise ValueError(f"`frequency` must be <= 500 Hz, got {frequency}")
+        if frequency > MAX_FREQUENCY_HZ:
+            raise ValueError(f"`frequency` must be <= {MAX_FREQUENCY_HZ:g} Hz, got {frequency}")
         self.host = host
         self.frequency = float(frequency)
         self.history_s = float(history_s)

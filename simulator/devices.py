@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from scanner_core.devices import CameraClosed, TcpPose
+from scanner_core.rtde import MAX_FREQUENCY_HZ
 from scanner_core.types import Frame
 from simulator.effects import BLUR_SAMPLES, CellEffects
 from simulator.imaging import (EXPOSURE_RANGE_US, GAIN_RANGE, NOMINAL_EXPOSURE_US,
@@ -20,7 +21,7 @@ from simulator.motion import PassMotion
 from simulator.render import PartScene
 
 #: Robot reporting rate (UR controllers with major version > 3 stream RTDE at 500 Hz).
-ROBOT_RATE_HZ = 500.0
+ROBOT_RATE_HZ = MAX_FREQUENCY_HZ
 #: How much pose history the robot keeps for look-ups by time.
 ROBOT_HISTORY_S = 10.0
 
