@@ -36,17 +36,23 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
-from scanner_core.fileio import save_json_atomic
 from scanner_core.scanio import scan_normals
-from benchmarks import pose as bench_pose
-from benchmarks.machine import machine_info
+from benchmarks.parts import (DEMO_PART, MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG,
+                              MISPLACEMENT_UP_TO_MM, REFERENCE_PARTS, bench_part,
+                              random_misplacement)
+from benchmarks.pose import DIGITS
+from benchmarks.pose.basin import BASIN_TARGET_LEVEL
+from benchmarks.pose.scans import simulate_scan
+from benchmarks.pose.trials import DEFAULT_CONFIG, register, score
+from benchmarks.results import json_safe, pyplot, save_figure, write_json
+from benchmarks.stats import fraction
 from simulator.cell import load_cell
 from simulator.session import misplacement_matrix
 
 __all__ = ["run", "ppf_detector", "ppf_poses"]
 
 SCANS_PER_PART, QUICK_SCANS_PER_PART = 4, 2
-START_LEVEL = bench_pose.BASIN_TARGET_LEVEL  # mm, degrees
+START_LEVEL = BASIN_TARGET_LEVEL  # mm, degrees
 # PPF's sampling relative to the model's diameter (OpenCV's defaults) and the model size: its
 # training grows quickly with both (idler_riser: 5k points 42 s, 20k points 112 s, at 0.04
 # instead of 0.05 187 s; 2 cores).
@@ -91,12 +97,12 @@ def _error(matrix, truth) -> tuple[float, float]:
 def _registration(part, scan, start):
     """`bench pose`'s default registration from `start`, and its time with the normals of the
     points it uses (ms)."""
-    result = bench_pose._register(part, scan, start, bench_pose.DEFAULT_CONFIG, None)
+    result = register(part, scan, start, DEFAULT_CONFIG, None)
     return result, result.time_ms + result.normals_ms
 
 
 def _row(method, result, truth, register_ms, extra=None) -> dict:
-    row = {"method": method, **bench_pose._score(result, truth), "register_ms": register_ms,
+    row = {"method": method, **score(result, truth), "register_ms": register_ms,
            **(extra or {})}
     row["time_ms"] = register_ms + row.get("normals_ms", 0.0) + row.get("match_ms", 0.0)
     row["confident_wrong"] = not row["success"] and not row["flags"]
@@ -139,24 +145,24 @@ def run(out_dir, quick: bool = False, *, progress=None) -> dict:
     say = progress or (lambda line: print(line, file=sys.stderr, flush=True))
     t_start = time.perf_counter()
     cell = load_cell()
-    names = (bench_pose.BLOCK_PART,) if quick else bench_pose.REFERENCE_PARTS
+    names = (DEMO_PART,) if quick else REFERENCE_PARTS
     n_scans = QUICK_SCANS_PER_PART if quick else SCANS_PER_PART
     parts, trials = {}, []
     with threadpool_limits(limits=1, user_api="blas"):
         for p_index, name in enumerate(names):
-            part = bench_pose._part(name)
+            part = bench_part(name)
             model_points = min(QUICK_PPF_MODEL_POINTS if quick else PPF_MODEL_POINTS,
                                len(part.surface_model.points))
             detector, train_s = ppf_detector(part.surface_model, points=model_points)
             parts[name] = {"ppf_train_s": round(train_s, 2), "model_points": model_points}
             say(f"{name}: PPF trained in {train_s:.1f} s")
-            rng = np.random.default_rng([bench_pose._SEED, p_index])
-            start_rng = np.random.default_rng([bench_pose._SEED, p_index, 1])
+            rng = np.random.default_rng([MISPLACEMENT_SEED, p_index])
+            start_rng = np.random.default_rng([MISPLACEMENT_SEED, p_index, 1])
             for i in range(n_scans):
-                values = bench_pose._random_misplacement(
-                    rng, bench_pose.ACCURACY_MAX_MM, bench_pose.ACCURACY_MAX_DEG, up_to=True)
-                scan, truth, info = bench_pose._scan(part, cell, values, seed=i)
-                offset = bench_pose._random_misplacement(start_rng, *START_LEVEL, up_to=False)
+                values = random_misplacement(rng, MISPLACEMENT_UP_TO_MM, MISPLACEMENT_UP_TO_DEG,
+                                             up_to=True)
+                scan, truth, info = simulate_scan(part, cell, values, seed=i)
+                offset = random_misplacement(start_rng, *START_LEVEL, up_to=False)
                 start = np.linalg.inv(misplacement_matrix(offset)) @ truth
                 rows = _trials(part, scan, truth, start, detector, info["normals_ms"])
                 for r in rows:
@@ -166,7 +172,7 @@ def run(out_dir, quick: bool = False, *, progress=None) -> dict:
                     f"{r['method']} " + (f"refused ({r['refused']})" if r.get("refused") else
                                          f"{'ok' if r['success'] else 'FAILED'} "
                                          f"{r['time_ms']:.0f} ms") for r in rows))
-    result = {"machine": machine_info(), "quick": quick,
+    result = {"quick": quick,
               "settings": {"parts": list(names), "scans_per_part": n_scans,
                            "start_offset": list(START_LEVEL), "top_k": TOP_K,
                            "ppf": {"relative_sampling": PPF_RELATIVE_SAMPLING,
@@ -177,9 +183,9 @@ def run(out_dir, quick: bool = False, *, progress=None) -> dict:
                            "blas_threads": 1, "cpu_count": os.cpu_count()},
               "parts": parts, "trials": trials,
               "elapsed_s": round(time.perf_counter() - t_start, 1)}
-    result = bench_pose._clean(result)  # a free axis's sigma is NaN: None in JSON
+    result = json_safe(result, digits=DIGITS)  # a free axis's sigma is NaN: None in JSON
     result["summary"] = _summary(result)
-    save_json_atomic(out_dir / "coarse.json", result)
+    result = write_json(out_dir / "coarse.json", result)
     _plot(result, out_dir / "coarse.png")
     say(f"coarse bench done in {result['elapsed_s']:.0f} s: {out_dir / 'coarse.json'}")
     return result
@@ -195,10 +201,9 @@ def _summary(result: dict) -> dict:
         times = [r["time_ms"] for r in rows if r.get("time_ms") is not None]
         out[method] = {
             "trials": len(rows),
-            "success_rate": bench_pose._fraction([r["success"] for r in rows]),
+            "success_rate": fraction([r["success"] for r in rows]),
             "confident_wrong": sum(r["confident_wrong"] for r in rows),
-            "per_part": {name: bench_pose._fraction([r["success"] for r in rows
-                                                     if r["part"] == name])
+            "per_part": {name: fraction([r["success"] for r in rows if r["part"] == name])
                          for name in result["parts"]},
             "time_ms_median": float(np.median(times)) if times else None}
     ppf = [r for r in result["trials"] if r["method"] == METHODS[1] and "match_ms" in r]
@@ -215,9 +220,7 @@ def _summary(result: dict) -> dict:
 
 
 def _plot(result: dict, path: pathlib.Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     s = result["summary"]
     names = list(result["parts"])
@@ -242,6 +245,4 @@ def _plot(result: dict, path: pathlib.Path) -> None:
     ax_time.set_ylabel("time per scan, ms (median)")
     ax_time.set_title("PPF's training, once per part (not included):\n" + ", ".join(
         f"{n} {t:.0f} s" for n, t in s["ppf_train_s"].items()), fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

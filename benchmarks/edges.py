@@ -43,10 +43,12 @@ from threadpoolctl import threadpool_limits
 from scanner_core.edge_kinds import EDGE_KIND_NAMES, kind_counts, reclassify_with_model
 from scanner_core.edges import EdgeKind
 from scanner_core.exposure import ExposureController
-from scanner_core.fileio import save_json_atomic
 from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
 from scanner_core.pose import scan_pose
-from benchmarks.machine import machine_info
+from benchmarks.parts import (MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG, MISPLACEMENT_UP_TO_MM,
+                              REFERENCE_PARTS, random_misplacement)
+from benchmarks.results import pyplot, save_figure, write_json
+from benchmarks.targets import EDGE_OUTLIER_MM, TARGET_EDGE_OUTLIERS, TARGET_EDGE_RMS_UM
 from simulator.cell import load_cell
 from simulator.evaluate import dropout_causes, edge_distances, edge_kind_accuracy
 from simulator.parts import (Part, block_with_holes_and_steps, bracket_with_two_holes,
@@ -56,7 +58,6 @@ from simulator.session import misplacement_matrix, simulated_cell
 
 __all__ = ["run", "PROCEDURAL_PARTS", "REFERENCE_PARTS"]
 
-REFERENCE_PARTS = ("idler_riser", "featuretype", "ADIS16480", "cycloidal")
 #: name -> (mesh builder, the nominal grasp's turn before centring: a rotation vector, deg)
 PROCEDURAL_PARTS = {
     "faceted_dome": (lambda: faceted_dome(), None),
@@ -76,14 +77,10 @@ QUICK_PARTS = ("faceted_dome", "faceted_dome_plinth", "bracket")
 #: Passes per procedural part: the nominal grasp, then random misplacements.
 SCANS_PER_PART, QUICK_SCANS = 4, 1
 #: Passes per reference part: those of ``flyscan bench pose`` (its seed, misplacements up to
-#: 5 mm and 10 degrees in random directions, seeds 0..7).
+#: 5 mm and 10 degrees in random directions, seeds 0..7: ``benchmarks.parts``).
 REFERENCE_SCANS = 8
-MISPLACE_MM, MISPLACE_DEG = 5.0, 10.0
-POSE_BENCH_SEED = 20261  # benchmarks.pose._SEED: the same scans
+#: The procedural parts' misplacements: the same range, their own seed.
 SEED = 25
-#: The issue's target for the model-free edge cloud.
-TARGET_RMS_UM, TARGET_FALSE = 30.0, 0.05
-FALSE_MM = 0.5
 CLOUDS = ("before", "model_free", "with_model")
 
 
@@ -115,19 +112,13 @@ def _centred(vertices, turn) -> np.ndarray:
 def _misplacements(name: str, count: int) -> list:
     """The misplacement (tx, ty, tz mm, rotation vector deg) of each pass of a part."""
     if name in REFERENCE_PARTS:
-        from benchmarks.pose import _random_misplacement
-
-        rng = np.random.default_rng([POSE_BENCH_SEED, REFERENCE_PARTS.index(name)])
-        return [_random_misplacement(rng, MISPLACE_MM, MISPLACE_DEG, up_to=True)
-                for _ in range(count)]
+        rng = np.random.default_rng([MISPLACEMENT_SEED, REFERENCE_PARTS.index(name)])
+        return [random_misplacement(rng, MISPLACEMENT_UP_TO_MM, MISPLACEMENT_UP_TO_DEG,
+                                    up_to=True) for _ in range(count)]
+    # the nominal grasp first
     rng = np.random.default_rng([SEED, list(PROCEDURAL_PARTS).index(name)])
-    out = [None]
-    while len(out) < count:
-        direction, axis = rng.normal(size=3), rng.normal(size=3)
-        t = rng.uniform(0.0, MISPLACE_MM) * direction / np.linalg.norm(direction)
-        r = rng.uniform(0.0, MISPLACE_DEG) * axis / np.linalg.norm(axis)
-        out.append([round(float(v), 6) for v in np.concatenate([t, r])])
-    return out
+    return [None] + [random_misplacement(rng, MISPLACEMENT_UP_TO_MM, MISPLACEMENT_UP_TO_DEG,
+                                         up_to=True) for _ in range(count - 1)]
 
 
 def _pass(part: Part, cell, values, seed: int):
@@ -158,7 +149,7 @@ def scan_row(part: Part, cell, values, seed: int) -> dict:
     t0 = time.perf_counter()
     scan, sim = _pass(part, cell, values, seed)
     truth = sim.true_grasp
-    kinds = edge_kind_accuracy(scan, part.mesh, truth, outlier_mm=FALSE_MM)
+    kinds = edge_kind_accuracy(scan, part.mesh, truth, outlier_mm=EDGE_OUTLIER_MM)
     row = {"part": part.name, "seed": seed, "misplacement": values,
            "points": int(len(scan.cloud)), "frames": int(scan.frames),
            "counts": kind_counts(scan),
@@ -175,7 +166,7 @@ def scan_row(part: Part, cell, values, seed: int) -> dict:
         row["pose_flags"] = list(pose.flags)
         row["off_model"] = reclassify_with_model(scan, part.model_edges, pose.matrix)
         row["counts_with_model"] = kind_counts(scan)
-        after = edge_kind_accuracy(scan, part.mesh, truth, outlier_mm=FALSE_MM)
+        after = edge_kind_accuracy(scan, part.mesh, truth, outlier_mm=EDGE_OUTLIER_MM)
         row["with_model"] = _figures(after["edges"])
         row["off_model_points"] = _figures(after["aside"]["off_model"])
     except ValueError as exc:  # too few points for a pose
@@ -199,7 +190,7 @@ def _causes(scan, sim, cell, part) -> dict:
     if len(points) == 0:
         return out
     d_xy, _, _ = edge_distances(points, part.mesh, sim.true_grasp, kinds=kinds)
-    false = d_xy > FALSE_MM
+    false = d_xy > EDGE_OUTLIER_MM
     out["turned_away_true_edges"] = int((is_turned & ~false).sum())
     dropout = kinds == EdgeKind.DROPOUT
     explain = dropout & (false | is_turned)
@@ -260,26 +251,16 @@ def _summary(rows: list[dict]) -> dict:
         entry["turned_away_true_edges"] = true_turned
         mf = entry["model_free"]
         entry["within_target"] = bool(
-            (mf["rms_inliers_um_worst"] is None or mf["rms_inliers_um_worst"] <= TARGET_RMS_UM)
-            and (mf["false_fraction_worst"] is None or mf["false_fraction_worst"] < TARGET_FALSE))
+            (mf["rms_inliers_um_worst"] is None
+             or mf["rms_inliers_um_worst"] <= TARGET_EDGE_RMS_UM)
+            and (mf["false_fraction_worst"] is None
+                 or mf["false_fraction_worst"] < TARGET_EDGE_OUTLIERS))
         parts[name] = entry
-    return {"target": {"rms_inliers_um": TARGET_RMS_UM, "false_fraction_below": TARGET_FALSE,
-                       "false_mm": FALSE_MM, "cloud": "model_free"},
+    return {"target": {"rms_inliers_um": TARGET_EDGE_RMS_UM,
+                       "false_fraction_below": TARGET_EDGE_OUTLIERS,
+                       "false_mm": EDGE_OUTLIER_MM, "cloud": "model_free"},
             "met": all(p["within_target"] for p in parts.values()),
             "parts": parts}
-
-
-def _json_safe(value):
-    """JSON has no NaN: non-finite floats become None (an empty set's RMS)."""
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 def _worst(values):
@@ -303,22 +284,17 @@ def run(out_dir, quick: bool = False) -> dict:
             for seed, values in enumerate(_misplacements(name, count)):
                 rows.append(scan_row(part, cell, values, seed))
                 _progress(rows[-1])
-    result = {"machine": machine_info(), "quick": quick, "seed": SEED,
+    result = {"quick": quick, "seed": SEED,
               "kinds": {int(k): v for k, v in EDGE_KIND_NAMES.items()},
               "scans": rows, "wall_s": round(time.perf_counter() - t_start, 1)}
     result["summary"] = _summary(rows)
-    result = _json_safe(result)
-    save_json_atomic(out_dir / "edges.json", result)
+    result = write_json(out_dir / "edges.json", result)  # an empty set's RMS is NaN: null
     _plot(result, out_dir / "edges.png")
     return result
 
 
 def _plot(result: dict, path: pathlib.Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     parts = result["summary"]["parts"]
     names = list(parts)
     x = np.arange(len(names))
@@ -332,12 +308,12 @@ def _plot(result: dict, path: pathlib.Path) -> None:
         axes[0].bar(x + (k - 1) * width, rms, width, color=colors[cloud], label=labels[cloud])
         false = [100 * (parts[n][cloud]["false_fraction_worst"] or 0.0) for n in names]
         axes[1].bar(x + (k - 1) * width, false, width, color=colors[cloud], label=labels[cloud])
-    axes[0].axhline(TARGET_RMS_UM, color="k", ls=":", lw=1)
+    axes[0].axhline(TARGET_EDGE_RMS_UM, color="k", ls=":", lw=1)
     axes[0].set_yscale("log")  # the faceted domes' 330 um before beside 15-30 um
     axes[0].set_ylabel("worst scan's RMS to the true edges, um, log\n(inliers; none: no "
                        "points)")
-    axes[1].axhline(100 * TARGET_FALSE, color="k", ls=":", lw=1)
-    axes[1].set_ylabel(f"worst scan's points beyond {FALSE_MM:g} mm, %")
+    axes[1].axhline(100 * TARGET_EDGE_OUTLIERS, color="k", ls=":", lw=1)
+    axes[1].set_ylabel(f"worst scan's points beyond {EDGE_OUTLIER_MM:g} mm, %")
     kinds = [k for k in result["kinds"].values() if k != "off_model"]
     bottom = np.zeros(len(names))
     cmap = plt.get_cmap("tab10")
@@ -356,6 +332,4 @@ def _plot(result: dict, path: pathlib.Path) -> None:
         ax.set_xticklabels(names, rotation=30, ha="right", fontsize=8)
         ax.legend(fontsize=7)
     axes[0].set_title("Edges at soft creases and on walls: per part (dotted: the target)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)

@@ -2,6 +2,7 @@
 import json
 
 from benchmarks import edges as bench
+from benchmarks.targets import TARGET_EDGE_RMS_UM
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -22,7 +23,7 @@ def test_quick_bench_writes_figures_per_part_and_kind(tmp_path):
     assert dome["kinds"]["turned_away"] > 0
     assert set(dome["causes"]["false_before"]) <= {"faint", "unseen"}
     plinth = parts["faceted_dome_plinth"]
-    assert plinth["before"]["rms_inliers_um_worst"] > bench.TARGET_RMS_UM
+    assert plinth["before"]["rms_inliers_um_worst"] > TARGET_EDGE_RMS_UM
     assert plinth["within_target"] and plinth["model_free"]["points"] >= 100
     bracket = parts["bracket"]
     assert bracket["within_target"] and bracket["kinds"]["turned_away"] == 0

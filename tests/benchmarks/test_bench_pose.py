@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from benchmarks import pose as bench
+from benchmarks.pose.calibration import max_abs_z, result_key
+from benchmarks.pose.trials import recommend
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 # The demo block with its edges (the default configuration): well inside these, or broken.
@@ -134,10 +136,10 @@ def test_calibration_is_consistent(quick_bench):
         sum(w <= bench.SIGMA_BOUND for w in basin_worst) / len(basin))
     assert registrations["worst_axis_z_max"] == pytest.approx(max(basin_worst))
     assert 1 <= registrations["distinct_results"] <= len(basin)
-    unflagged = {bench._result_key(r): r for r in basin if not r["flags"]}
+    unflagged = {result_key(r): r for r in basin if not r["flags"]}
     if unflagged:
         assert registrations["unflagged_distinct_results_within"] == pytest.approx(
-            np.mean([bench._max_abs_z(r) <= bench.SIGMA_BOUND for r in unflagged.values()]))
+            np.mean([max_abs_z(r) <= bench.SIGMA_BOUND for r in unflagged.values()]))
 
 
 def test_side_by_side_has_every_method_or_a_note(quick_bench):
@@ -192,10 +194,10 @@ def test_model_choice_compares_times_on_the_same_scans():
                              "time_ms": ms * pred_factor, "refused": False})
         return rows
 
-    slower = bench._recommend(configs, trials(1.1))
+    slower = recommend(configs, trials(1.1))
     assert slower["keep"] == "mesh"
     assert slower["time_ratio_predicted_to_mesh"] == pytest.approx(1.1)
-    faster = bench._recommend(configs, trials(0.5))
+    faster = recommend(configs, trials(0.5))
     assert faster["keep"] == "predicted"
     assert faster["time_ratio_predicted_to_mesh"] == pytest.approx(0.5)
 
