@@ -2,7 +2,7 @@
 import json
 
 from benchmarks import stripe as bench
-from benchmarks.stripe_scenes import SCENES, TARGET_MEASURED
+from benchmarks.stripe.scenes import SCENES, TARGET_MEASURED
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

@@ -10,6 +10,9 @@
    the pipeline's stripe call on each frame that holds a stripe (its settings: noise floors,
    continuity, the saturation fit, the direct view's columns, the geometric window of the
    frame's TCP) against a copy of the frame, timed frame by frame in the same run.
+
+`scenes_target` holds the first to issue 25's target; `demo_cell_frames` times the second on
+the demo block's pass.
 """
 from __future__ import annotations
 
@@ -20,9 +23,11 @@ import numpy as np
 from scanner_core import stripe
 from scanner_core.pipeline import PipelineParams, camera_frames
 from scanner_core.window import volume_rows
+from benchmarks.parts import demo_pass
 from simulator.line_photos import LinePhoto, render_line_photo
 
-__all__ = ["SCENES", "photographed", "cell_frames", "TARGET_MEASURED", "TARGET_CELL_RATIO"]
+__all__ = ["SCENES", "photographed", "cell_frames", "demo_cell_frames", "scenes_target",
+           "TARGET_MEASURED", "TARGET_CELL_RATIO"]
 
 #: Issue 25: at least this share of the columns holding a stripe measured, none false ...
 TARGET_MEASURED = 0.99
@@ -125,30 +130,18 @@ def cell_frames(sim, params: PipelineParams, repeats: int = 3) -> dict:
             "call": "threshold auto, direct view, continuity, saturation fit, geometric window"}
 
 
-def plot_scenes(scenes: dict, ax_measured, ax_rms) -> None:
-    """Measured share and RMS error per scene, fixed and noise-derived thresholds."""
-    names = list(scenes)
-    y = np.arange(len(names))
-    for i, (key, label) in enumerate((("fixed_20dn", "threshold 20 DN"), ("auto", "auto"))):
-        m = [scenes[n][key]["measured_fraction"] for n in names]
-        r = [scenes[n][key]["rms_in_sigmas"] or np.nan for n in names]
-        ax_measured.barh(y + (i - 0.5) * 0.38, m, 0.38, color=f"C{i}", label=label)
-        ax_rms.barh(y + (i - 0.5) * 0.38, r, 0.38, color=f"C{i}", label=label)
-        for k, n in enumerate(names):
-            f = scenes[n][key]["false_columns"]
-            if f:
-                ax_measured.text(1.005, k + (i - 0.5) * 0.38, f"{f} false", va="center",
-                                 fontsize=7, color=f"C{i}")
-    labels = [n + ("" if scenes[n]["held_to_target"] else " (not held)") for n in names]
-    for ax in (ax_measured, ax_rms):
-        ax.set_yticks(y)
-        ax.set_yticklabels(labels, fontsize=8)
-        ax.invert_yaxis()
-        ax.legend(fontsize=7, loc="lower left")
-    ax_measured.axvline(TARGET_MEASURED, color="k", ls=":", label="target 99 %")
-    ax_measured.set_xlim(0.0, 1.12)
-    ax_measured.set_xlabel("share of the columns holding a stripe measured")
-    ax_measured.set_title("lines as photographs show them (640 x 480, 3 frames each)")
-    ax_rms.set_xscale("log")
-    ax_rms.set_xlabel("RMS error, in the line's own sigmas")
-    ax_rms.set_title("error of the measured columns")
+def demo_cell_frames(repeats: int) -> dict:
+    """`cell_frames` on the demo block's pass through the reference cell
+    (``benchmarks.parts.demo_pass``), the pipeline's default settings."""
+    return cell_frames(demo_pass(), PipelineParams(), repeats=repeats)
+
+
+def scenes_target(scenes: dict) -> dict:
+    """The worst measured share and the false columns over the scenes held to the target,
+    with either threshold."""
+    held = [d[k] for d in scenes.values() if d["held_to_target"] for k in ("fixed_20dn", "auto")]
+    worst = min(h["measured_fraction"] for h in held)
+    false = sum(h["false_columns"] for h in held)
+    return {"worst_measured_fraction": worst, "false_columns": false,
+            "target_min_measured": TARGET_MEASURED, "target_false": 0,
+            "met": worst >= TARGET_MEASURED and false == 0}
