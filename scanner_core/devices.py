@@ -90,3 +90,34 @@ class Robot(Protocol):
         Raises LookupError when ``t`` lies outside the history.
         """
         ...
+
+
+class RobotConnection:
+    """The connection of a robot that has nothing to open: a flag that ``connect`` sets and
+    ``disconnect`` clears, read by ``connected``, and checked by the robot's look-ups.
+
+    The base of the robots whose link cannot fail: a replayed recording's
+    (``scanner_core.replay.ReplayRobot``) and the simulated ones (``simulator.devices.SimRobot``,
+    ``simulator.live_devices.LiveSimRobot``). A real robot's link is its own
+    (``service.ur_robot.URRobot``). A subclass names itself in ``_not_connected``, the text of
+    the RuntimeError that :meth:`_require_connected` raises before it connects or after it
+    disconnects.
+    """
+
+    _not_connected = "the robot is not connected"
+    _connected = False
+
+    def connect(self) -> None:
+        self._connected = True
+
+    def disconnect(self) -> None:
+        self._connected = False
+
+    @property
+    def connected(self) -> bool:
+        return self._connected
+
+    def _require_connected(self) -> None:
+        """RuntimeError (``_not_connected``) unless connected."""
+        if not self._connected:
+            raise RuntimeError(self._not_connected)

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from scanner_core.devices import CameraClosed, CameraTimeout, TcpPose
+from scanner_core.devices import CameraClosed, CameraTimeout, RobotConnection, TcpPose
 from scanner_core.types import Frame
 from scanner_core.recording import ROBOT_COLUMNS, Recording
 
@@ -76,7 +76,7 @@ class ReplayCamera:
                      float(exposure_us), float(gain))
 
 
-class ReplayRobot:
+class ReplayRobot(RobotConnection):
     """A Robot answering from recorded samples.
 
     It knows the whole recording from the start (a live robot only knows the past): its
@@ -89,6 +89,8 @@ class ReplayRobot:
         See the module docstring (robot.npy).
     """
 
+    _not_connected = "ReplayRobot is not connected"
+
     def __init__(self, samples: np.ndarray):
         samples = np.asarray(samples, dtype=np.float64)
         if samples.ndim != 2 or samples.shape[1] != ROBOT_COLUMNS:
@@ -96,21 +98,9 @@ class ReplayRobot:
         self._t = samples[:, 0].copy()
         self._p = samples[:, 1:4].copy()
         self._r = samples[:, 4:].reshape(-1, 3, 3).copy()
-        self._connected = False
-
-    def connect(self) -> None:
-        self._connected = True
-
-    def disconnect(self) -> None:
-        self._connected = False
-
-    @property
-    def connected(self) -> bool:
-        return self._connected
 
     def _check(self) -> None:
-        if not self._connected:
-            raise RuntimeError("ReplayRobot is not connected")
+        self._require_connected()
         if not len(self._t):
             raise RuntimeError("the recording holds no robot sample")
 
@@ -129,8 +119,7 @@ class ReplayRobot:
         LookupError
             ``t`` is outside the recorded samples.
         """
-        if not self._connected:
-            raise RuntimeError("ReplayRobot is not connected")
+        self._require_connected()
         ts = self._t
         if not len(ts):
             raise LookupError("the recording holds no robot sample")

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scanner_core.devices import CameraClosed, TcpPose
+from scanner_core.devices import CameraClosed, RobotConnection, TcpPose
 from scanner_core.rtde import MAX_FREQUENCY_HZ
 from scanner_core.types import Frame
 from simulator.effects import BLUR_SAMPLES, CellEffects
@@ -122,7 +122,7 @@ class SimCamera:
 
 
 @dataclass
-class SimRobot:
+class SimRobot(RobotConnection):
     """Reports the TCP pose of the pass at 500 Hz, up to the shared clock's "now".
 
     With ``effects`` (``simulator.effects.CellEffects``) it reports as a real robot does: on
@@ -135,19 +135,10 @@ class SimRobot:
     clock: SimClock = field(default_factory=SimClock)
     effects: CellEffects = field(default_factory=CellEffects)
 
+    _not_connected = "SimRobot is not connected"
+
     def __post_init__(self):
-        self._connected = False
         self._reported_rotation = self.effects.robot_rotation_error @ self.rotation
-
-    def connect(self) -> None:
-        self._connected = True
-
-    def disconnect(self) -> None:
-        self._connected = False
-
-    @property
-    def connected(self) -> bool:
-        return self._connected
 
     def _position(self, t_robot: float) -> np.ndarray:
         """The reported position at a sample time on the robot's clock."""
@@ -171,8 +162,7 @@ class SimRobot:
         return float(math.ceil(first * ROBOT_RATE_HZ)), float(math.floor(now * ROBOT_RATE_HZ))
 
     def latest(self) -> TcpPose:
-        if not self._connected:
-            raise RuntimeError("SimRobot is not connected")
+        self._require_connected()
         k_first, k_last = self._sample_range()
         if k_last < k_first:
             raise RuntimeError("no pose has arrived yet")
@@ -180,8 +170,7 @@ class SimRobot:
 
     def pose_at(self, t: float) -> TcpPose:
         """Linear interpolation between the 500 Hz samples around ``t``."""
-        if not self._connected:
-            raise RuntimeError("SimRobot is not connected")
+        self._require_connected()
         k_first, k_last = self._sample_range()
         if k_last < k_first or not k_first / ROBOT_RATE_HZ <= t <= k_last / ROBOT_RATE_HZ:
             raise LookupError(f"t = {t:.4f} s is outside the robot's history")

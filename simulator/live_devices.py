@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from scanner_core.devices import CameraClosed, CameraTimeout, TcpPose
+from scanner_core.devices import CameraClosed, CameraTimeout, RobotConnection, TcpPose
 from scanner_core.types import Frame
 from simulator.cell import Cell
 from simulator.frame_truth import frame_image
@@ -184,7 +184,7 @@ class LiveSimCamera:
         return Frame(image, frame_id, frame_id / self.fps, exposure_us, gain)
 
 
-class LiveSimRobot:
+class LiveSimRobot(RobotConnection):
     """The simulated robot on the live clock (``scanner_core.devices.Robot``).
 
     Samples the TCP every ``1 / rate_hz`` s of its clock (the camera clock plus
@@ -194,6 +194,8 @@ class LiveSimRobot:
     :class:`LiveSimCell`.
     """
 
+    _not_connected = "the simulated robot is not connected"
+
     def __init__(self, sim: LiveSimCell, *, clock_offset_s: float, rate_hz: float,
                  history_s: float):
         self.clock_offset_s = clock_offset_s
@@ -201,24 +203,16 @@ class LiveSimRobot:
         self.history_s = history_s
         self._sim = sim
         self._rotation = np.array(sim.cell.gripper_rotation_b, dtype=np.float64)
-        self._connected = False
 
     def connect(self) -> None:
+        """Start the cell's clock if needed, and report from now on."""
         with self._sim._lock:
             self._sim._start_clock_locked()
-            self._connected = True
-
-    def disconnect(self) -> None:
-        self._connected = False
-
-    @property
-    def connected(self) -> bool:
-        return self._connected
+            super().connect()
 
     def _history(self) -> tuple[int, int, tuple]:
         """Sample indices ``k_lo..k_hi`` (robot time ``k / rate_hz``) and the schedule."""
-        if not self._connected:
-            raise RuntimeError("the simulated robot is not connected")
+        self._require_connected()
         now, passes = self._sim._trajectory()
         now_r = now + self.clock_offset_s
         k_hi = math.floor(now_r * self.rate_hz)
