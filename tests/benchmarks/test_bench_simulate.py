@@ -8,6 +8,7 @@ import pytest
 import trimesh
 
 from benchmarks import simulate as bench
+from benchmarks.simulate.plots import plot_side_by_side
 from simulator.parts import part_from_mesh
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -125,7 +126,7 @@ def test_side_by_side_runs_the_same_sweep_in_both_tools(quick_bench):
 
 def test_side_by_side_is_skipped_with_a_note_without_open3d(monkeypatch, tmp_path, cell):
     real = importlib.util.find_spec
-    monkeypatch.setattr(bench.importlib.util, "find_spec",
+    monkeypatch.setattr(importlib.util, "find_spec",
                         lambda name, *a: None if name == "open3d" else real(name, *a))
     part = part_from_mesh(trimesh.creation.box(extents=(20.0, 20.0, 20.0)), name="cube")
     side = bench.side_by_side(part, cell, rays=10_000, runs=1)
@@ -136,7 +137,7 @@ def test_side_by_side_is_skipped_with_a_note_without_open3d(monkeypatch, tmp_pat
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots()
-    bench._plot_side_by_side(ax, side)  # a note instead of bars
+    plot_side_by_side(ax, side)  # a note instead of bars
     fig.savefig(tmp_path / "skipped.png")
     plt.close(fig)
     assert (tmp_path / "skipped.png").read_bytes()[:8] == PNG_MAGIC
