@@ -28,12 +28,12 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from benchmarks.machine import machine_info
 from scanner_core.calsession import calibrate_session
+from benchmarks.parts import REFERENCE_PART, bench_part, demo_part
+from benchmarks.results import pyplot, save_figure, write_json
 from simulator.calsession import evaluate_calibration, simulate_session
 from simulator.cell import load_cell
 from simulator.effects import EFFECTS, realistic_cell
-from simulator.parts import block_with_holes_and_steps, load_reference_part, part_from_mesh
 from simulator.session import run_simulated_scan
 
 TARGETS = {"views_heldout_px": 0.05, "plane_normal_deg": 0.005, "plane_offset_um": 10.0,
@@ -95,9 +95,9 @@ def run(out_dir, quick: bool = False) -> dict:
                 print(f"bench calibrate: stage +-{noise * 1e3:.1f} um, seed {seed}: views "
                       f"{row['views_heldout_px']:.4f} px, plane {row['plane_normal_deg']:.4f} deg "
                       f"{row['plane_offset_um']:.1f} um", flush=True)
-        parts = [part_from_mesh(block_with_holes_and_steps(), name="block")]
+        parts = [demo_part()]
         if not quick:
-            parts.append(load_reference_part("idler_riser"))
+            parts.append(bench_part(REFERENCE_PART))
         seed = seeds[0]
         base = load_cell(perturb_seed=seed)
         for effect in ("none", "lens", "all") if quick else ("none",) + EFFECTS + ("all",):
@@ -128,9 +128,8 @@ def run(out_dir, quick: bool = False) -> dict:
                   f"calibrated, {_um(row['truth_rms_um'])} on the truth", flush=True)
     summary = _summary(rows)
     result = {"quick": quick, "targets": TARGETS, "rows": rows, "summary": summary,
-              "elapsed_s": round(time.perf_counter() - t_start, 1), "machine": machine_info()}
-    import json
-    (out / "calibrate.json").write_text(json.dumps(result, indent=1, default=float))
+              "elapsed_s": round(time.perf_counter() - t_start, 1)}
+    result = write_json(out / "calibrate.json", result)
     _chart(rows, out / "calibrate.png")
     return result
 
@@ -172,11 +171,7 @@ def _summary(rows) -> dict:
 
 
 def _chart(rows, path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, ax = plt.subplots(1, 3, figsize=(16, 4.8))
     for key, label, target in (("views_heldout_px", "views held out, px", 0.05),
                                ("plane_normal_deg", "plane normal, 1/100 deg", 0.005)):
@@ -216,6 +211,4 @@ def _chart(rows, path) -> None:
     ax[2].set_ylabel(f"cloud RMS, um ({eff[0]['part']})")
     ax[2].set_title("each effect of a real cell alone")
     ax[2].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -14,7 +14,6 @@ robot link's loss and recovery, and the replay of a recorded pass against real t
 """
 from __future__ import annotations
 
-import json
 import pathlib
 import sys
 import tempfile
@@ -22,8 +21,8 @@ import time
 
 import numpy as np
 
-from benchmarks.machine import machine_info
-from benchmarks.service import free_port
+from benchmarks.live import finished_scan, free_port, running_service, wait_for
+from benchmarks.results import pyplot, save_figure, write_json
 from simulator.rtde_emulator import free_loopback_host
 
 #: Passes of each kind (consistent, shifted across, shifted along); fewer with --quick.
@@ -39,41 +38,24 @@ TARGET_DETECT_S, TARGET_RECOVER_S = 3.0, 5.0
 TARGET_REPLAY_X = 5.0
 
 
-def _wait(predicate, timeout: float, poll: float = 0.01):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(poll)
-    return None
-
-
 def _scan(service, **kwargs) -> dict:
     job = service.arm(None, 30.0, **kwargs)
-
-    def over():
-        info = service.scan_info(job.scan_id)
-        return info if info["state"] in ("done", "failed") else None
-
-    return _wait(over, 60.0, 0.05) or {"state": "timeout", "scan_id": job.scan_id}
+    return (finished_scan(service, job.scan_id, 60.0, 0.05)
+            or {"state": "timeout", "scan_id": job.scan_id})
 
 
 def cross_checks(passes: int, data: pathlib.Path) -> dict:
     """Consistent and inconsistent passes through the service with the real client; and a
     recorded pass, replayed."""
-    from service.cli.serve import service_for
     from scanner_core.recording import load_recording
     from scanner_core.replay import replay_recording
     from service.settings import Settings
 
     settings = Settings(sim=True, robot=f"ur://{free_loopback_host(130)}", data=data,
                         zmq=f"tcp://127.0.0.1:{free_port()}", sim_clock_offset_s=3.5)
-    service = service_for(settings)
-    service.start()
     rows, replays = [], []
-    try:
-        _wait(lambda: service.engine.robot.connected, 10.0)
+    with running_service(settings) as service:
+        wait_for(lambda: service.engine.robot.connected, 10.0)
         kinds = [("consistent", [0.0, 0.0, 0.0]), ("across", [INCONSISTENCY_MM, 0.0, 0.0]),
                  ("along", [0.0, INCONSISTENCY_MM, 0.0])]
         _scan(service)  # the first pass learns the clock offset and the LED correction
@@ -90,8 +72,8 @@ def cross_checks(passes: int, data: pathlib.Path) -> dict:
                       f"{check.get('flagged')}", file=sys.stderr, flush=True)
         service.driver.emulator.set_bias([0.0, 0.0, 0.0])
         recorded = _scan(service, record=True)
-        path = _wait(lambda: (service.scan_info(recorded["scan_id"]).get("recording") or {})
-                     .get("path"), 60.0, 0.1)
+        path = wait_for(lambda: (service.scan_info(recorded["scan_id"]).get("recording") or {})
+                        .get("path"), 60.0, 0.1)
         recording = load_recording(path)
         camera_s = recording.frame_count / recording.fps
         for _ in range(REPLAY_REPEATS):
@@ -101,8 +83,6 @@ def cross_checks(passes: int, data: pathlib.Path) -> dict:
             replays.append({"wall_s": wall, "times_real_time": camera_s / wall,
                             "points": int(len(scan.cloud))})
         live_points = recorded.get("points")
-    finally:
-        service.stop()
     return {"rows": rows, "replay": {"frames": recording.frame_count, "camera_s": camera_s,
                                      "live_points": live_points, "runs": replays}}
 
@@ -118,17 +98,17 @@ def link_trials(trials: int) -> list[dict]:
         robot = URRobot(emulator.host)
         robot.connect()
         try:
-            _wait(lambda: robot.connected, 10.0)
+            wait_for(lambda: robot.connected, 10.0)
             for fault in ("drop", "stall"):
                 for _ in range(trials):
                     cut = time.monotonic()
                     getattr(emulator, fault)()
-                    lost = _wait(lambda: not robot.connected, 10.0)
+                    lost = wait_for(lambda: not robot.connected, 10.0)
                     detect = time.monotonic() - cut if lost else None
                     time.sleep(max(OUTAGE_S - (time.monotonic() - cut), 0.0))
                     emulator.restore()
                     back_at = time.monotonic()
-                    back = _wait(lambda: robot.connected, 15.0)
+                    back = wait_for(lambda: robot.connected, 15.0)
                     rows.append({"fault": fault, "detect_s": detect,
                                  "recover_s": time.monotonic() - back_at if back else None})
                     print(f"bench hardware: {fault}: lost after {detect} s, back after "
@@ -168,19 +148,14 @@ def run(out_dir, quick: bool = False) -> dict:
         "replay_times_real_time_min": {"value": replay_x, "target_min": TARGET_REPLAY_X,
                                        "met": replay_x >= TARGET_REPLAY_X},
     }
-    result = {"cross_check": checks, "link": links, "summary": summary, "quick": quick,
-              "machine": machine_info()}
-    (out_dir / "hardware.json").write_text(json.dumps(result, indent=2))
+    result = {"cross_check": checks, "link": links, "summary": summary, "quick": quick}
+    result = write_json(out_dir / "hardware.json", result)
     _plot(result, out_dir / "hardware.png")
     return result
 
 
 def _plot(result: dict, path: pathlib.Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, (ax0, ax1, ax2) = plt.subplots(1, 3, figsize=(15, 4.5))
     rows = result["cross_check"]["rows"]
     for i, (kind, colour) in enumerate((("consistent", "C0"), ("across", "C3"), ("along", "C1"))):
@@ -215,6 +190,4 @@ def _plot(result: dict, path: pathlib.Path) -> None:
     ax2.set_ylabel("times real time")
     ax2.set_title(f"replay of a {replay['frames']}-frame recorded pass")
     ax2.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)

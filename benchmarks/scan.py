@@ -16,7 +16,6 @@ single-threaded), after an untimed warm-up pass so that no JIT compile time land
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import pathlib
@@ -28,19 +27,17 @@ from threadpoolctl import threadpool_info, threadpool_limits
 
 from scanner_core import stripe
 from scanner_core.pipeline import PipelineParams
-from benchmarks.machine import machine_info
+from benchmarks.parts import DEMO_PART, REFERENCE_PART, REFERENCE_PARTS, bench_part
+from benchmarks.results import pyplot, save_figure, write_json
 from simulator.cell import PASS_PRESETS, Cell, load_cell
-from simulator.parts import Part, block_with_holes_and_steps, load_reference_part, part_from_mesh
+from simulator.parts import Part
 from simulator.session import run_simulated_scan
 
 __all__ = ["run"]
 
-REFERENCE_PARTS = ("idler_riser", "featuretype", "ADIS16480", "cycloidal")
-#: Name of the procedural part of the quick set.
-BLOCK_PART = "block"
-QUICK_PARTS = (BLOCK_PART,)  # tests build their parts procedurally
+QUICK_PARTS = (DEMO_PART,)  # tests build their parts procedurally
 QUICK_METHODS = ("cog", "lsq_gauss")
-PRESET_PART = "idler_riser"
+PRESET_PART = REFERENCE_PART
 PRESET_METHOD = "cog"
 PRESETS = ("fast", "slow")
 # Targets checked per part with "cog" (the pipeline's default method).
@@ -53,13 +50,6 @@ TARGET_UNMATCHED_PER_10K = 1.0
 TARGET_REALTIME_FACTOR = 1.0
 ACCURACY_FIELDS = ("rms_um", "p99_um", "max_um", "mean_signed_um", "unmatched_points")
 STAGES = ("marker", "profiles", "scan")
-
-
-def _part(name: str) -> Part:
-    if name == BLOCK_PART:
-        return part_from_mesh(block_with_holes_and_steps(), name=BLOCK_PART,
-                              source="procedural:block_with_holes_and_steps")
-    return load_reference_part(name)
 
 
 def _finite_or_none(x):
@@ -242,7 +232,7 @@ def run(out_dir: pathlib.Path, *, quick: bool = False, seed: int = 0) -> dict:
     with threadpool_limits(limits=1):
         pools = [{k: p.get(k) for k in ("user_api", "internal_api", "num_threads")}
                  for p in threadpool_info()]
-        parts = [_part(name) for name in part_names]
+        parts = [bench_part(name) for name in part_names]
         warm_s = _warm_up(parts[0], cell, seed)
         print(f"bench scan: warm-up {warm_s:.1f} s (untimed)", file=sys.stderr)
         rows = []
@@ -307,9 +297,8 @@ def run(out_dir: pathlib.Path, *, quick: bool = False, seed: int = 0) -> dict:
         "elapsed_s": time.perf_counter() - t_start,
         # Other work on the machine inflates the timings: see also each row's cpu_share.
         "loadavg_1min": {"before": load_before[0], "after": os.getloadavg()[0]},
-        "machine": machine_info(),
     }
-    (out_dir / "scan.json").write_text(json.dumps(result, indent=2, allow_nan=False))
+    result = write_json(out_dir / "scan.json", result)
     _plot(result, out_dir / "scan.png")
     return result
 
@@ -318,10 +307,7 @@ _METHOD_MARKERS = ("o", "s", "^", "D", "v", "P", "X")
 
 
 def _plot(result: dict, path: pathlib.Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.lines import Line2D
 
     rows = result["rows"]
@@ -393,6 +379,4 @@ def _plot(result: dict, path: pathlib.Path) -> None:
     ax1.set_title("realtime factor per part\nbars left to right: " + ", ".join(methods)
                   + " (cog solid, labelled)", fontsize=10)
     ax1.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)

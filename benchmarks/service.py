@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import os
 import pathlib
-import socket
 import sys
 import tempfile
 import threading
@@ -28,10 +27,9 @@ from threadpoolctl import threadpool_limits
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, camera_frames,
                                    feed_frame, warm_up)
 from scanner_core.trigger import Trigger
-from benchmarks.machine import machine_info
-from simulator.cell import load_cell
-from simulator.parts import block_with_holes_and_steps, part_from_mesh
-from simulator.session import simulated_cell
+from benchmarks.live import finished_scan, free_port, running_service
+from benchmarks.parts import demo_pass
+from benchmarks.results import pyplot, save_figure, write_json
 
 __all__ = ["run"]
 
@@ -57,13 +55,11 @@ def _cpu_s() -> float:
 
 def per_frame(repeats: int) -> dict:
     """Whole per-frame processing against a copy of the same frame, one thread."""
-    cell = load_cell()
-    part = part_from_mesh(block_with_holes_and_steps(), name="demo")
-    sim = simulated_cell(part, cell, seed=3)
+    sim = demo_pass()
     sim.camera.open()
     sim.robot.connect()
     frames = list(camera_frames(sim.camera))
-    calibration, params = cell.calibration, PipelineParams()
+    calibration, params = sim.cell.calibration, PipelineParams()
     warm_up(calibration, params)
     copy_ms, frame_ms, in_pass = [], [], []
     for _ in range(repeats):
@@ -91,12 +87,6 @@ def per_frame(repeats: int) -> dict:
         "ratio_to_copy": pass_med / copy_med,
         "frames_per_second_one_core": 1e3 / pass_med,
     }
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class _Receiver(threading.Thread):
@@ -128,55 +118,55 @@ class _Receiver(threading.Thread):
 
 def passes(count: int, *, speed_mm_s: float | None = None) -> dict:
     """``count`` consecutive passes through the service in simulated mode."""
-    from service.cli.serve import service_for
     from service.settings import Settings
 
     with tempfile.TemporaryDirectory() as tmp:
         zmq = f"tcp://127.0.0.1:{free_port()}"
         settings = Settings(sim=True, data=pathlib.Path(tmp), zmq=zmq, retention=10,
                             sim_speed_mm_s=speed_mm_s)
-        service = service_for(settings)
-        service.start()
-        receiver = _Receiver(zmq)
-        receiver.start()
-        time.sleep(0.5)  # the subscriber's slow join; the first pass's render
-        rows = []
-        try:
-            for k in range(count):
-                status0 = service.status()
-                cpu0, wall0 = _cpu_s(), time.monotonic()
-                job = service.arm(None, None)
-                deadline = time.monotonic() + PASS_TIMEOUT_S
-                while service.scan_info(job.scan_id)["state"] not in ("done", "failed"):
-                    if time.monotonic() > deadline:
-                        raise TimeoutError(f"pass {k} did not finish")
-                    time.sleep(0.01)
-                info = service.scan_info(job.scan_id)
-                cpu, wall = _cpu_s() - cpu0, time.monotonic() - wall0
-                status = service.status()
-                t_recv = receiver.received.get(job.scan_id)
-                timings = info["timings_ms"]
-                rows.append({
-                    "scan_id": job.scan_id, "state": info["state"], "points": info["points"],
-                    "frames": info["frames"], "frames_dropped": info["frames_dropped"],
-                    "camera_frames_lost": status["frames_dropped"] - status0["frames_dropped"],
-                    "queue_overflows": info["queue_overflows"],
-                    "latency_send_ms": info["latency_ms"].get("last_frame_to_zmq"),
-                    "latency_pass_end_to_send_ms": info["latency_ms"].get("pass_end_to_zmq"),
-                    "zmq_transit_ms": (t_recv[0] - t_recv[1]) * 1e3 if t_recv else None,
-                    "received_points": t_recv[2] if t_recv else None,
-                    "processing_ms": timings.get("marker", 0.0) + timings.get("profiles", 0.0),
-                    "camera_time_s": (info["frames"] + info["frames_unplaced"]) / service.engine.fps,
-                    "cpu_s": cpu, "wall_s": wall, "rss_mb": _rss_mb(),
-                })
-                print(f"bench service: pass {k + 1}/{count}: {info['state']}, {info['points']} points, "
-                      f"dropped {rows[-1]['frames_dropped']}, latency {rows[-1]['latency_send_ms']} ms",
-                      file=sys.stderr, flush=True)
-        finally:
-            receiver.stop.set()
-            receiver.join(2)
-            service.stop()
+        with running_service(settings) as service:
+            rows = _passes(service, zmq, count)
     return _summarise(rows)
+
+
+def _passes(service, zmq: str, count: int) -> list[dict]:
+    """The passes through a running service, a subscriber on its ZeroMQ endpoint `zmq`."""
+    receiver = _Receiver(zmq)
+    receiver.start()
+    time.sleep(0.5)  # the subscriber's slow join; the first pass's render
+    rows = []
+    try:
+        for k in range(count):
+            status0 = service.status()
+            cpu0, wall0 = _cpu_s(), time.monotonic()
+            job = service.arm(None, None)
+            info = finished_scan(service, job.scan_id, PASS_TIMEOUT_S, 0.01)
+            if info is None:
+                raise TimeoutError(f"pass {k} did not finish")
+            cpu, wall = _cpu_s() - cpu0, time.monotonic() - wall0
+            status = service.status()
+            t_recv = receiver.received.get(job.scan_id)
+            timings = info["timings_ms"]
+            rows.append({
+                "scan_id": job.scan_id, "state": info["state"], "points": info["points"],
+                "frames": info["frames"], "frames_dropped": info["frames_dropped"],
+                "camera_frames_lost": status["frames_dropped"] - status0["frames_dropped"],
+                "queue_overflows": info["queue_overflows"],
+                "latency_send_ms": info["latency_ms"].get("last_frame_to_zmq"),
+                "latency_pass_end_to_send_ms": info["latency_ms"].get("pass_end_to_zmq"),
+                "zmq_transit_ms": (t_recv[0] - t_recv[1]) * 1e3 if t_recv else None,
+                "received_points": t_recv[2] if t_recv else None,
+                "processing_ms": timings.get("marker", 0.0) + timings.get("profiles", 0.0),
+                "camera_time_s": (info["frames"] + info["frames_unplaced"]) / service.engine.fps,
+                "cpu_s": cpu, "wall_s": wall, "rss_mb": _rss_mb(),
+            })
+            print(f"bench service: pass {k + 1}/{count}: {info['state']}, {info['points']} points, "
+                  f"dropped {rows[-1]['frames_dropped']}, latency {rows[-1]['latency_send_ms']} ms",
+                  file=sys.stderr, flush=True)
+    finally:
+        receiver.stop.set()
+        receiver.join(2)
+    return rows
 
 
 def _summarise(rows: list[dict]) -> dict:
@@ -234,19 +224,14 @@ def run(out_dir, quick: bool = False) -> dict:
                              "met": live["processing_cores"] <= 1.0},
         "passes_failed": live["failed"],
     }
-    result = {"per_frame": frame, "passes": live, "summary": summary, "quick": quick,
-              "machine": machine_info()}
-    (out_dir / "service.json").write_text(json.dumps(result, indent=2))
+    result = {"per_frame": frame, "passes": live, "summary": summary, "quick": quick}
+    result = write_json(out_dir / "service.json", result)
     _plot(result, out_dir / "service.png")
     return result
 
 
 def _plot(result: dict, path: pathlib.Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     frame, live = result["per_frame"], result["passes"]
     fig, (ax0, ax1, ax2) = plt.subplots(1, 3, figsize=(15, 4.5))
     bars = {"copy": frame["copy_ms_median"], "idle frame": frame["idle_frame_ms_median"],
@@ -273,6 +258,4 @@ def _plot(result: dict, path: pathlib.Path) -> None:
     ax2.set_ylabel("process RSS, MB")
     ax2.set_title(f"memory: {100 * live['rss_mb']['growth']:+.1f} %, dropped frames "
                   f"{live['frames_dropped'] + live['queue_overflows']}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)

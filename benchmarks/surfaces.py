@@ -40,11 +40,11 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from scanner_core.exposure import EXPOSURE_MODES, ExposureParams
-from scanner_core.fileio import save_json_atomic
 from scanner_core.pipeline import PipelineParams
-from benchmarks.machine import machine_info
+from benchmarks.parts import DEMO_PART, REFERENCE_PART, bench_part
+from benchmarks.results import pyplot, save_figure, write_json
 from simulator.cell import load_cell
-from simulator.parts import Part, block_with_holes_and_steps, load_reference_part, part_from_mesh
+from simulator.parts import Part
 from simulator.session import run_simulated_scan
 from simulator.surfaces import SURFACES, Surface, with_surface
 
@@ -55,8 +55,7 @@ REFERENCE_PRESET = "matte"
 #: The pipeline's stripe settings before issue 12, for the ratio.
 BEFORE_ISSUE_12 = dict(stripe_floor="fixed", stripe_policy="reject", stripe_saturation="reject",
                        geometric_window=False)
-BLOCK_PART = "block"
-FULL_PARTS = (BLOCK_PART, "idler_riser")
+FULL_PARTS = (DEMO_PART, REFERENCE_PART)
 ALBEDOS = (1.0, 0.5, 0.25, 0.12, 0.06, 0.03, 0.015)
 QUICK_ALBEDOS = (1.0, 0.12, 0.03)
 SPECULARS = (0.0, 2.0, 5.0, 10.0, 20.0, 50.0)
@@ -66,13 +65,6 @@ SWEEP_LOBE_DEG = 15.0
 TARGET_POINT_RATIO = 0.95
 TARGET_RMS_RATIO = 1.5
 SEED = 0
-
-
-def _part(name: str) -> Part:
-    if name == BLOCK_PART:
-        return part_from_mesh(block_with_holes_and_steps(), name=BLOCK_PART,
-                              source="procedural:block_with_holes_and_steps")
-    return load_reference_part(name)
 
 
 def _finite(x):
@@ -141,7 +133,7 @@ def run(out_dir, quick: bool = False) -> dict:
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     cell = load_cell()
-    part_names = (BLOCK_PART,) if quick else FULL_PARTS
+    part_names = (DEMO_PART,) if quick else FULL_PARTS
     albedos = QUICK_ALBEDOS if quick else ALBEDOS
     speculars = QUICK_SPECULARS if quick else SPECULARS
     shiny = SURFACES["shiny"]
@@ -150,14 +142,14 @@ def run(out_dir, quick: bool = False) -> dict:
         "+ specular lobe": dataclasses.replace(shiny, mirror=0.0),
         "+ one bounce (shiny)": shiny,
     }
-    result = {"machine": machine_info(), "seed": SEED, "quick": quick,
+    result = {"seed": SEED, "quick": quick,
               "surfaces": {k: dataclasses.asdict(v) for k, v in SURFACES.items()},
               "parts": {}}
     t_start = time.perf_counter()
     with threadpool_limits(1):
-        run_simulated_scan(_part(BLOCK_PART), cell, pose=False, evaluate=False)  # warm-up
+        run_simulated_scan(bench_part(DEMO_PART), cell, pose=False, evaluate=False)  # warm-up
         for name in part_names:
-            part = _part(name)
+            part = bench_part(name)
             presets = []
             for preset in PRESETS:
                 for mode in EXPOSURE_MODES:
@@ -217,17 +209,13 @@ def run(out_dir, quick: bool = False) -> dict:
                    for p in result["parts"].values()),
         "breaks": {name: p["breaks"] for name, p in result["parts"].items()},
     }
-    save_json_atomic(out_dir / "surfaces.json", result)
+    result = write_json(out_dir / "surfaces.json", result)
     _plot(result, out_dir / "surfaces.png")
     return result
 
 
 def _plot(result: dict, path: pathlib.Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     parts = list(result["parts"])
     fig, axes = plt.subplots(len(parts), 4, figsize=(20, 4.6 * len(parts)), squeeze=False)
     colors = {"fixed": "tab:gray", "dynamic": "tab:blue", "multiple": "tab:orange"}
@@ -242,9 +230,7 @@ def _plot(result: dict, path: pathlib.Path) -> None:
             _plot_sweep(ax, key, sweep, data["breaks"][key], colors, xlabel)
     fig.suptitle("Real surfaces: the cloud of each surface under each exposure mode (bars: RMS; "
                  "numbers, solid lines: points relative to the reference; dashed: RMS relative)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
 
 
 def _bar(ax, x, row, color, width=0.8, label=None):
