@@ -12,7 +12,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from scanner_core.devices import Robot
-from simulator.rtde_emulator import EmulatorError, RtdeEmulator
+from simulator.rtde_emulator import EmulatorError, RtdeEmulator, free_loopback_host
 from service.ur_robot import (MAX_GAP_S, RtdeProbeError, URRobot, parse_robot_url,
                               probe_rtde)
 from simulator.live import TrackSegment, pass_frame_count, tcp_on_track
@@ -325,7 +325,9 @@ def test_silent_server_is_probed_not_constructed():
 
     made = []
     with socket.socket() as silent:
-        host = next(f"127.0.0.{n}" for n in range(200, 250) if _refused(f"127.0.0.{n}"))
+        # an address whose port binds: one that only refuses connections may still hold the
+        # port in TIME_WAIT from this test's last run
+        host = free_loopback_host(first=200, count=50)
         silent.bind((host, 30004))
         silent.listen(8)
         robot = URRobot(host, probe_timeout_s=0.2, first_sample_s=0.5,
