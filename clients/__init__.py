@@ -4,6 +4,8 @@
   manage parts and calibration), errors raised as :class:`FlyscanError` with the service's reason.
 - :class:`CloudSubscriber`: the ZeroMQ publisher's clouds, edge clouds, poses and status as
   :class:`Message` objects (JSON header + numpy array), lost messages counted.
+- :func:`place_correction`: the TCP place pose that corrects the part's measured misplacement
+  (``clients.placement``: frames, units, the equation), and UR pose vector conversions.
 - ``python -m clients.cell_controller``: the loop a robot cell runs, as an example program.
 
 Light on purpose: the standard library, numpy, httpx and pyzmq; nothing of the service. The
@@ -11,6 +13,8 @@ two sides meet only on the wire formats of ARCHITECTURE.md (REST, ZeroMQ, binary
 """
 from .http_client import (BadRequest, Conflict, FlyscanClient, FlyscanError, NotFound, ScanFailed,
                           ServiceUnavailable, ServiceUnreachable, Unauthorized, Unprocessable)
+from .placement import (PlaceCorrection, PoseNotActionable, corrected_tcp_place,
+                        matrix_to_ur_pose, place_correction, pose_actionable, ur_pose_to_matrix)
 from .ply import PlyError, parse_ply, xyz_array
 from .subscriber import TOPICS, CloudSubscriber, Message, MessageError, load_message
 
@@ -19,4 +23,6 @@ __all__ = [
     "NotFound", "Conflict", "Unprocessable", "ServiceUnavailable", "ScanFailed",
     "CloudSubscriber", "Message", "MessageError", "load_message", "TOPICS",
     "PlyError", "parse_ply", "xyz_array",
+    "place_correction", "corrected_tcp_place", "PlaceCorrection", "PoseNotActionable",
+    "pose_actionable", "ur_pose_to_matrix", "matrix_to_ur_pose",
 ]
