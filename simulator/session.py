@@ -123,6 +123,7 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
     report, result = outcome.report, outcome.pose
     processing_ms = report["timings_ms"]["processing"]
     report["timings_ms"]["warmup"] = round(warmup_ms, 3)
+    report["timings_ms"].update(outcome.timings_ms)  # finish_pass's cross-check and pose
     # The pass's span on the camera clock, frames lost or unplaced included.
     camera_time_s = (scan.frames + scan.frames_unplaced + scan.frames_dropped) / cell.pass_profile.fps
     report["camera_time_s"] = camera_time_s

@@ -11,7 +11,7 @@ __all__ = ["add_parser", "run"]
 
 #: The benchmarks, with what the longer ones measure.
 BENCHMARKS = ("stripe", "scan", "simulate", "service", "pose", "coarse", "hardware", "surfaces",
-              "calibrate", "edges")
+              "calibrate", "edges", "place")
 
 
 def add_parser(command) -> None:
@@ -23,9 +23,12 @@ def add_parser(command) -> None:
                             "point-pair features (PPF); hardware: the UR cross-check through "
                             "ur-rtde, the robot link's loss and recovery, replay against real "
                             "time; edges: edge points per part and edge kind on creased, "
-                            "curved and walled parts")
+                            "curved and walled parts; place: the closed loop (pick, scan, "
+                            "correct, place) in the calibrated realistic cell")
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
+    bench.add_argument("--picks", type=int, default=None,
+                       help="place: picks per part (default 50; --quick 4)")
     bench.add_argument("--meshes", type=Path, default=None,
                        help="folder of the reference meshes and their manifest.json (default: "
                             "$FLYSCAN_MESHES, or ../shared/data/meshes beside a source checkout)")
@@ -54,6 +57,8 @@ def run(args) -> int:
         from benchmarks import coarse as bench
     elif args.what == "edges":
         from benchmarks import edges as bench
+    elif args.what == "place":
+        from benchmarks import place as bench
     elif args.what == "pose":
         from benchmarks import pose as bench
         from benchmarks import pose_limits
@@ -61,7 +66,12 @@ def run(args) -> int:
         print(json.dumps(limits.get("summary", {}), indent=2))
     else:
         from benchmarks import scan as bench
-    result = bench.run(args.out, quick=args.quick)
+    if args.picks is not None and args.what != "place":
+        raise UsageError("--picks is for bench place only")
+    if args.picks is not None and args.picks < 1:
+        raise UsageError(f"--picks must be at least 1, got {args.picks}")
+    extra = {"picks": args.picks} if args.what == "place" else {}
+    result = bench.run(args.out, quick=args.quick, **extra)
     print(json.dumps(result.get("summary", {}), indent=2))
     print(f"written to {args.out}")
     return 0
