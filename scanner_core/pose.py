@@ -47,7 +47,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from scanner_core.pose_confidence import (MAX_PROFILE_SPACING_MM, MIN_COVERAGE,
-                                          _coverage_flags, _flags, _rival_words, _uncertainty)
+                                          _coverage_flags, _flags, _rival_words, _uncertainty,
+                                          judge)
 from scanner_core.pose_fine import _fine, _subsample, _Terms
 from scanner_core.pose_models import (BEVEL_MM, TOWARD_MIN, EdgeModel, SurfaceModel,
                                       merge_bevels, outline_adjacency)
@@ -134,6 +135,18 @@ class PoseParams:
         degrees off, while converged fits turned at most 30 degrees, the bench's farthest
         start). It is not accepted: the coarse search runs from the start, and a pose that
         still lies this far from it is flagged implausible.
+    act_tolerance_mm, act_tolerance_deg : float
+        The placement tolerance the cell needs. A pose is acted on (`PoseResult.act`) only
+        when every axis's 3 sigma lies within it (translations of the {T} origin, mm;
+        rotations about the {T} axes, degrees), no rival minimum that fits as well lies
+        beyond it, no motion is free, and nothing else flags the pose; it is observable when
+        the first three hold. Defaults: 0.1 mm and 0.1 degrees, a precise placing cell
+        (fixtures and press fits with a tenth of a millimetre of play).
+    prior_mm, prior_deg : float
+        What a pick can leave the part misplaced by (``flyscan bench place`` draws up to 10
+        mm and 20 degrees): along a free motion the pose keeps its start, so its error there
+        is bounded by this alone, and the other axes' sigmas take it in
+        (``scanner_core.pose_confidence._free_prior``).
     seed : int
         Seed of the subsampling.
     """
@@ -159,7 +172,17 @@ class PoseParams:
     coarse_sweep_deg: float = 1.0
     probe_weakness: float = 0.015
     max_fine_turn_deg: float = 45.0
+    act_tolerance_mm: float = 0.1
+    act_tolerance_deg: float = 0.1
+    prior_mm: float = 10.0
+    prior_deg: float = 20.0
     seed: int = 0
+
+    def __post_init__(self):
+        for name in ("act_tolerance_mm", "act_tolerance_deg", "prior_mm", "prior_deg"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"PoseParams.{name} must be finite and > 0, got {value!r}")
 
 
 @dataclass
@@ -190,8 +213,22 @@ class PoseResult:
     time_ms : float
         The registration's time; `normals_ms` before it (`scan_pose`) estimated the normals.
     flags : list of str
-        Why not to trust the pose as it stands (a poor fit, too few edges, free motions);
-        empty for a pose to act on.
+        What the fit itself says against the pose (a poor fit, large residuals, free
+        motions, a rival minimum, a partial scan).
+    rivals : list of (4, 4) float64
+        Other minima that fit the scan as well (``scanner_core.pose_search._probe_turns``).
+    observable : bool
+        Every axis pinned within the act tolerance: no free motion, every axis's 3 sigma
+        within ``PoseParams.act_tolerance_mm`` / ``act_tolerance_deg``, no rival beyond it.
+    act : bool
+        The one verdict a robot acts on: observable and no flag. False: do not place.
+    act_reasons : list of str
+        Why not to act; empty when `act`.
+    symmetry : dict or None
+        The near symmetry that leaves a rotation loose, when one is found
+        (``scanner_core.pose_symmetry.name_symmetry``): ``{"label": "87-fold about z_T",
+        "axis": [x, y, z] in {T}, "fold": 87 or None, "period_deg", "continuous",
+        "matched_fraction"}``.
     """
 
     matrix: np.ndarray
@@ -206,10 +243,11 @@ class PoseResult:
     time_ms: float = 0.0
     flags: list = field(default_factory=list)
     normals_ms: float = 0.0
-
-    @property
-    def observable(self) -> bool:
-        return not self.free_axes
+    rivals: list = field(default_factory=list)
+    observable: bool = False
+    act: bool = False
+    act_reasons: list = field(default_factory=list)
+    symmetry: dict | None = None
 
     def misplacement_vector(self) -> np.ndarray:
         """(6,) float64: translation mm and rotation vector degrees of `misplacement`."""
@@ -229,8 +267,11 @@ class PoseResult:
                              "rotation_deg": clean(vector[3:])},
             "rms_mm": round(float(self.rms_mm), 6),
             "inlier_fraction": round(float(self.inlier_fraction), 4),
-            "observable": self.observable,
+            "act": bool(self.act),
+            "act_reasons": list(self.act_reasons),
+            "observable": bool(self.observable),
             "free_axes": self.free_axes,
+            "symmetry": self.symmetry,
             "std": dict(zip(("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg"),
                             clean(self.std))),
             "iterations": self.iterations,
@@ -325,11 +366,14 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
     if rivals:
         flags.append("ambiguous: " + "; ".join(_rival_words(fit.pose, r) for r in rivals)
                      + " fits as well")
-    return PoseResult(
+    result = PoseResult(
         matrix=fit.pose, misplacement=fit.pose @ np.linalg.inv(nominal), rms_mm=fit.rms,
         inlier_fraction=fit.inlier_fraction, std=std, free_axes=free_axes,
-        covariance=covariance, iterations=fit.iterations, coarse=coarse,
-        time_ms=(time.perf_counter() - t0) * 1e3, flags=flags)
+        covariance=covariance, iterations=fit.iterations, coarse=coarse, flags=flags,
+        rivals=list(rivals))
+    judge(result, model, params)
+    result.time_ms = (time.perf_counter() - t0) * 1e3
+    return result
 
 
 def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeModel | None = None,
@@ -363,7 +407,10 @@ def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeMod
                       edge_frame_ids=edge_frames if use_edges else None,
                       edge_model=edge_model if use_edges else None,
                       edge_steps_mm=_scan_steps(scan) if use_edges else None, params=params)
-    result.flags += _coverage_flags(scan, result.matrix, surface_model)
+    coverage = _coverage_flags(scan, result.matrix, surface_model)
+    if coverage:
+        result.flags += coverage
+        judge(result, surface_model, params)
     result.normals_ms = (time.perf_counter() - t0) * 1e3 - result.time_ms
     return result
 

@@ -64,7 +64,7 @@ def _uncertainty(fit: _Fit, params, rivals=()) -> tuple[np.ndarray, np.ndarray, 
     clusters = len(per_cluster)
     meat = per_cluster.T @ per_cluster * (clusters / max(clusters - 6, 1))
     cov_scaled = info_inv @ meat @ info_inv * params.sigma_inflation**2
-    cov_centre = cov_scaled / np.outer(s, s)
+    cov_centre = cov_scaled / np.outer(s, s) + _free_prior(vectors[:, ~strong], s, params)
     # About the {T} origin: t_o = t_c + c x w.
     c = fit.centre
     cross = np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
@@ -99,6 +99,26 @@ def _uncertainty(fit: _Fit, params, rivals=()) -> tuple[np.ndarray, np.ndarray, 
         covariance[touched, :] = np.nan
         covariance[:, touched] = np.nan
     return covariance, std, free_axes
+
+
+def _free_prior(free_scaled, s, params) -> np.ndarray:
+    """(6, 6) covariance (mm, rad, about the fit's centre) of the motions the scan leaves
+    free: along each, the pose keeps its start, so its error is the misplacement along it,
+    bounded only by what a pick can leave (``PoseParams.prior_mm``, ``prior_deg``).
+
+    A free slide along a prism's length tilted 0.5 degrees from y_T moves x_T by 9 um per mm
+    it slides: the L-block of issue 27, 5 mm off along its free axis, came out 44 um off in
+    x_T and 26 um in z_T with sigmas of 3 and 0.5 um. With this prior those axes' sigmas are
+    87 and 52 um: they bound their errors, and the pose is not acted on.
+    """
+    covariance = np.zeros((6, 6))
+    for v in free_scaled.T:
+        motion = v / s
+        turn, slide = np.linalg.norm(motion[3:]), np.linalg.norm(motion[:3])
+        size = (np.radians(params.prior_deg) / turn if turn * s[3] > slide
+                else params.prior_mm / max(slide, 1e-12))
+        covariance += size**2 * np.outer(motion, motion)
+    return covariance
 
 
 def _free_motions(free_scaled, s, centre) -> list[dict]:
@@ -200,3 +220,58 @@ def _coverage_flags(scan, pose, surface_model: SurfaceModel) -> list[str]:
         if coverage < MIN_COVERAGE:
             flags.append(f"partial scan: {coverage:.0%} of the part's length along the pass")
     return flags
+
+
+_AXIS_WORDS = ("tx", "ty", "tz", "rx", "ry", "rz")
+
+
+def judge(result, model: SurfaceModel, params: PoseParams) -> None:
+    """The verdict a robot acts on, set on `result` (a ``PoseResult``): ``observable``,
+    ``act``, ``act_reasons`` and ``symmetry``.
+
+    Observable: no free motion, every axis's 3 sigma within the act tolerance
+    (``PoseParams.act_tolerance_mm`` for translations of the {T} origin,
+    ``act_tolerance_deg`` for rotations), and no rival minimum beyond it that fits as well.
+    Act: observable, and no other flag (a poor fit, large residuals, profiles too sparse, a
+    partial scan, an implausible turn). A rotation left loose (free, beyond the tolerance, or
+    with a rival beyond it) has its near symmetry named (``scanner_core.pose_symmetry``).
+
+    The tolerance bounds 3 sigma, not 1: a pose acted on then lands within the tolerance
+    unless its error exceeds 3 of its sigmas, which ``flyscan bench pose`` and ``flyscan
+    bench place`` count (never, over their trials, on the reference parts).
+    """
+    from scanner_core.pose_symmetry import name_symmetry
+
+    tolerance = np.array([params.act_tolerance_mm] * 3 + [params.act_tolerance_deg] * 3)
+    reasons = []
+    if result.free_axes:
+        reasons.append("not observable: " + ", ".join(a["label"] for a in result.free_axes))
+    loose = [i for i in range(6)
+             if np.isfinite(result.std[i]) and 3.0 * result.std[i] > tolerance[i]]
+    for i in loose:
+        unit = "mm" if i < 3 else "degrees"
+        reasons.append(f"{_AXIS_WORDS[i]}: 3 sigma {3.0 * result.std[i]:.3g} {unit}, beyond the "
+                       f"act tolerance {tolerance[i]:g} {unit}")
+    far = []
+    for rival in result.rivals:
+        m = _rival_motion(result.matrix, rival)
+        if (np.linalg.norm(m[:3]) > params.act_tolerance_mm
+                or np.degrees(np.linalg.norm(m[3:])) > params.act_tolerance_deg):
+            far.append(rival)
+    if far:
+        reasons.append(f"ambiguous: {len(far)} other minim{'um' if len(far) == 1 else 'a'} "
+                       "beyond the act tolerance fit the scan as well ("
+                       + "; ".join(_rival_words(result.matrix, r) for r in far[:4])
+                       + ("; ..." if len(far) > 4 else "") + ")")
+    result.symmetry = None
+    if far or any(i >= 3 for i in loose) or any(a["kind"] == "rotation"
+                                                for a in result.free_axes):
+        result.symmetry = name_symmetry(result.matrix, result.covariance, far,
+                                        result.free_axes, model, params)
+        if result.symmetry is not None:
+            reasons.insert(0, "near symmetry: " + result.symmetry["label"])
+    result.observable = not (result.free_axes or loose or far)
+    others = [f for f in result.flags
+              if not f.startswith(("not observable: ", "ambiguous: "))]
+    result.act_reasons = reasons + others
+    result.act = result.observable and not others
