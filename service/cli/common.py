@@ -138,3 +138,45 @@ def load_part_model(args):
     if args.part is None:
         return None
     return load_part(args.part, args.units, grasp=getattr(args, "grasp", None))
+
+
+def add_act_tolerance(parser) -> None:
+    """``--act-tolerance-mm`` and ``--act-tolerance-deg``: the placement tolerance the pose's
+    ``act`` verdict holds it to (``scanner_core.pose.PoseParams``)."""
+    from scanner_core.pose import PoseParams
+
+    defaults = PoseParams()
+    parser.add_argument("--act-tolerance-mm", type=float, default=defaults.act_tolerance_mm,
+                        help="placement tolerance, mm: the pose is acted on only when every "
+                             "translation's 3 sigma lies within it")
+    parser.add_argument("--act-tolerance-deg", type=float, default=defaults.act_tolerance_deg,
+                        help="placement tolerance, degrees, for the rotations")
+
+
+def pose_params(args):
+    """The ``PoseParams`` of ``--act-tolerance-mm``/``--act-tolerance-deg``; a usage error
+    for a tolerance that is not finite and positive."""
+    from scanner_core.pose import PoseParams
+
+    try:
+        return PoseParams(act_tolerance_mm=args.act_tolerance_mm,
+                          act_tolerance_deg=args.act_tolerance_deg)
+    except ValueError as exc:
+        raise UsageError(str(exc).replace("PoseParams.act_tolerance_", "--act-tolerance-")
+                         .replace("_", "-")) from None
+
+
+def print_pose(report: dict) -> None:
+    """One line on the pose's verdict: act, or why not."""
+    pose = report.get("pose")
+    if not pose:
+        return
+    if "refused" in pose:
+        print(f"pose: refused: {pose['refused']}")
+        return
+    move = pose["misplacement"]
+    words = (f"misplacement {move['translation_mm']} mm, {move['rotation_deg']} degrees")
+    if pose.get("act"):
+        print(f"pose: act: {words}")
+    else:
+        print(f"pose: do not act: {'; '.join(pose.get('act_reasons') or [])}")

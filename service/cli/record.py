@@ -6,8 +6,9 @@ import sys
 import time
 from pathlib import Path
 
-from service.cli.common import (ScanError, ScanFailed, UsageError, check_out_dir,
-                                check_part_args, load_part_model)
+from service.cli.common import (ScanError, ScanFailed, UsageError, add_act_tolerance,
+                                check_out_dir, check_part_args, load_part_model, pose_params,
+                                print_pose)
 
 __all__ = ["add_parsers", "run_record", "run_replay"]
 
@@ -31,6 +32,7 @@ def add_parsers(command) -> None:
                         help="mesh file to register against (default: the part the recording "
                              "holds)")
     replay.add_argument("--units", default=None, help="unit of --part: mm, cm, m or inch")
+    add_act_tolerance(replay)
     replay.add_argument("--out", type=Path, required=True,
                         help="folder for cloud.ply, edges.ply and report.json")
 
@@ -78,7 +80,7 @@ def run_replay(args) -> int:
         raise UsageError(str(exc)) from None
     part = load_part_model(args)
     t0 = time.perf_counter()
-    outcome = replay_pass(recording, part)
+    outcome = replay_pass(recording, part, pose_params=pose_params(args))
     wall_s = time.perf_counter() - t0
     recorded_s = recording.frame_count / recording.fps
     report, scan = outcome.report, outcome.scan
@@ -91,6 +93,7 @@ def run_replay(args) -> int:
     print(f"replayed {recording.frame_count} frames ({recorded_s:.2f} s of camera time) in "
           f"{wall_s:.2f} s, {recorded_s / wall_s:.1f} x real time: {scan.frames} profiles, "
           f"{len(scan.cloud)} points")
+    print_pose(report)
     for key, path in paths.items():
         print(f"{key}: {path}")
     if outcome.state == "failed":

@@ -20,8 +20,9 @@ import time
 from pathlib import Path
 
 from service.cli.common import (MAX_FPS, MAX_SPEED_MM_S, ScanError, ScanFailed, UsageError,
-                                check_frame_spacing, check_out_dir, check_part_args,
-                                load_part_model, non_negative_int)
+                                add_act_tolerance, check_frame_spacing, check_out_dir,
+                                check_part_args, load_part_model, non_negative_int,
+                                pose_params, print_pose)
 
 __all__ = ["add_parser", "run"]
 
@@ -64,6 +65,7 @@ def add_parser(command) -> None:
                            "turned a quarter so its smallest extent hangs along z_T (held by its "
                            "broadest side, as a suction cup holds it), then centred; 'identity': "
                            "the CAD origin at the TCP")
+    add_act_tolerance(scan)
     scan.add_argument("--calibration", type=Path, default=None,
                       help="calibration JSON the scanner uses (simulated cell: default the "
                            "cell's truth; a recording: default the one it was made with)")
@@ -163,7 +165,7 @@ def _simulated(args) -> int:
     scan, report = run_simulated_scan(part, cell, calibration=calibration,
                                       misplacement=misplacement, seed=args.seed,
                                       drop_rate=args.drop_rate, params=params,
-                                      evaluate=not args.no_eval)
+                                      evaluate=not args.no_eval, pose_params=pose_params(args))
     _check_marker(scan, params)
     report["wall_s"] = round(time.perf_counter() - t0, 3)
     paths = _write(args.out, scan, report)
@@ -194,7 +196,7 @@ def _from_recording(args) -> int:
         calibration.check_image_size(recording.width, recording.height)
         recording = dataclasses.replace(recording, calibration=calibration)
     t0 = time.perf_counter()
-    outcome = replay_pass(recording, part, params=params,
+    outcome = replay_pass(recording, part, params=params, pose_params=pose_params(args),
                           source={"recording": str(args.recording)})
     wall_s = time.perf_counter() - t0
     outcome.report["wall_s"] = round(wall_s, 3)
@@ -241,7 +243,7 @@ def _from_cell(args) -> int:
         _check_marker(scan, params)
         outcome = finish_pass(scan, EndReason(scan.end_reason) if scan.end_reason else None,
                               robot, CrossCheckState(clock_offset_s=calibration.clock_offset_s),
-                              part, detail=scan.interrupted,
+                              part, pose_params=pose_params(args), detail=scan.interrupted,
                               source={"camera": args.camera, "robot": args.robot})
     finally:
         camera.close()
@@ -290,7 +292,9 @@ def _write(out, scan, report) -> dict:
         out.mkdir(parents=True, exist_ok=True)
         save_json_atomic(out / "report.json", report)
         raise ScanFailed(f"{report['reason']}; the pass's report: {out / 'report.json'}")
-    return save_scan(out, scan, report)
+    paths = save_scan(out, scan, report)
+    print_pose(report)
+    return paths
 
 
 def _done(paths: dict) -> int:

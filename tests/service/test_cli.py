@@ -370,3 +370,29 @@ def test_unknown_method_lists_the_choices(tmp_path, capsys):
         main(["scan", "--demo", "--method", "magic", "--out", str(tmp_path / "o")])
     assert exc.value.code == 2
     assert "invalid choice: 'magic'" in capsys.readouterr().err
+
+
+def test_the_act_tolerance_decides_the_verdict_not_the_pose(tmp_path, capsys):
+    """The demo part's pose is acted on at the default tolerance (0.1 mm, 0.1 degrees); held
+    to 1 um, the same pose is not, and the report and the terminal say which axes failed."""
+    loose, tight = tmp_path / "loose", tmp_path / "tight"
+    assert main(["scan", "--demo", "--no-eval", "--out", str(loose)]) == 0
+    assert "pose: act: misplacement" in capsys.readouterr().out
+    assert main(["scan", "--demo", "--no-eval", "--act-tolerance-mm", "0.001",
+                 "--out", str(tight)]) == 0
+    out = capsys.readouterr().out
+    assert "pose: do not act: tx: 3 sigma" in out
+    first = json.loads((loose / "report.json").read_text())["pose"]
+    second = json.loads((tight / "report.json").read_text())["pose"]
+    assert first["act"] is True and first["act_reasons"] == [] and first["observable"] is True
+    assert second["act"] is False and second["observable"] is False
+    assert any("beyond the act tolerance 0.001 mm" in r for r in second["act_reasons"])
+    assert np.allclose(first["matrix"], second["matrix"], atol=1e-12)
+
+
+@pytest.mark.parametrize("value", ["0", "-0.1", "nan", "inf"])
+def test_a_tolerance_that_is_no_tolerance_is_a_usage_error(tmp_path, capsys, value):
+    code = main(["scan", "--demo", "--act-tolerance-deg", value, "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert "--act-tolerance-deg must be finite and > 0" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
