@@ -9,10 +9,20 @@
    pass's last frame to its cloud on ZeroMQ, the process's memory after every pass, and the CPU
    the processing takes against the camera time.
 
+3. The pose's latency (issue 27): passes of every part (the quick set: the demo block) at
+   several pass speeds, so several point counts, at random misplacements (the issue's target
+   set, seeded), through the same service with each reference part uploaded to it: from the
+   pass's last frame to the pose's message on ZeroMQ (``latency_ms.pose_published``), its
+   path stage by stage (``latency_ms.pose_path``) and the registration's own stages (fine,
+   the turn check, coarse, probes: timed around ``scanner_core.pose``'s calls to them), by
+   part and point count, against the target: p95 within 150 ms up to 20 000 points.
+
 ``run(out_dir)`` writes ``service.json`` and ``service.png`` and returns the dict.
 """
 from __future__ import annotations
 
+import contextlib
+import functools
 import json
 import os
 import pathlib
@@ -28,7 +38,9 @@ from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParam
                                    feed_frame, warm_up)
 from scanner_core.trigger import Trigger
 from benchmarks.live import finished_scan, free_port, running_service
-from benchmarks.parts import demo_pass
+from benchmarks.parts import (DEMO_PART, MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG,
+                              MISPLACEMENT_UP_TO_MM, REFERENCE_PARTS, bench_part, demo_pass,
+                              random_misplacement)
 from benchmarks.results import pyplot, save_figure, write_json
 
 __all__ = ["run"]
@@ -41,6 +53,20 @@ TARGET_LATENCY_P99_MS = 100.0
 TARGET_MEMORY_GROWTH = 0.05
 #: A pass must be over within this long, s (the default pass takes about 2 s).
 PASS_TIMEOUT_S = 30.0
+#: The pose's target (issue 27): from the pass's last frame to the pose on ZeroMQ, p95 at
+#: most this, ms, for scans of up to `TARGET_POSE_POINTS` points, one worker core.
+TARGET_POSE_P95_MS = 150.0
+TARGET_POSE_POINTS = 20_000
+#: Pass speeds of the pose's passes, mm/s: the point count goes as their inverse (the demo
+#: block: about 5 000, 10 000 and 20 000 points; featuretype three times as many).
+POSE_SPEEDS, QUICK_POSE_SPEEDS = (400.0, 200.0, 100.0), (200.0,)
+#: Passes per part and speed.
+POSE_PASSES, QUICK_POSE_PASSES = 4, 2
+#: Point counts the latencies are grouped by (upper bounds).
+POINT_BINS = (5_000, 10_000, 20_000, 40_000, 80_000)
+#: The registration's stages timed in the service's passes: ``scanner_core.pose``'s names.
+POSE_STAGES = {"_fine": "fine", "_better_turn": "turn_check", "_coarse": "coarse",
+               "_probe_turns": "probes"}
 
 
 def _rss_mb() -> float:
@@ -196,6 +222,139 @@ def _summarise(rows: list[dict]) -> dict:
     }
 
 
+@contextlib.contextmanager
+def _pose_stages():
+    """``scanner_core.pose``'s calls to its stages timed (wall, ms, summed per stage) into
+    the dict yielded, until the block ends; the passes are serial, the finisher thread the
+    one caller."""
+    import scanner_core.pose as pose_module
+
+    spent: dict[str, float] = {}
+    saved = {name: getattr(pose_module, name) for name in POSE_STAGES
+             if hasattr(pose_module, name)}
+
+    def timed(function, label):
+        @functools.wraps(function)
+        def call(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                spent[label] = spent.get(label, 0.0) + (time.perf_counter() - t0) * 1e3
+        return call
+
+    for name, function in saved.items():
+        setattr(pose_module, name, timed(function, POSE_STAGES[name]))
+    try:
+        yield spent
+    finally:
+        for name, function in saved.items():
+            setattr(pose_module, name, function)
+
+
+def _upload(service, name: str) -> str:
+    """The reference part `name` added to the service's library (as ``PUT /parts/{name}``
+    does: its mesh file and unit); the demo block is the service's own."""
+    if name == DEMO_PART:
+        return "demo"
+    part = bench_part(name)
+    source = pathlib.Path(part.source)
+    service.parts.add(name, source.read_bytes(), part.units, suffix=source.suffix.lower())
+    return name
+
+
+def pose_latency(quick: bool = False) -> dict:
+    """The pose's latency from the pass's last frame to its message on ZeroMQ, by part and
+    pass speed (so point count): one service per speed, every part uploaded to it."""
+    from service.settings import Settings
+
+    names = (DEMO_PART,) if quick else (DEMO_PART, *REFERENCE_PARTS)
+    speeds = QUICK_POSE_SPEEDS if quick else POSE_SPEEDS
+    count = QUICK_POSE_PASSES if quick else POSE_PASSES
+    rows = []
+    for s_index, speed in enumerate(speeds):
+        with tempfile.TemporaryDirectory() as tmp:
+            settings = Settings(sim=True, data=pathlib.Path(tmp), zmq=f"tcp://127.0.0.1:{free_port()}",
+                                retention=10, sim_speed_mm_s=speed)
+            with running_service(settings) as service, _pose_stages() as spent:
+                for p_index, name in enumerate(names):
+                    in_library = _upload(service, name)
+                    rng = np.random.default_rng([MISPLACEMENT_SEED, p_index, s_index])
+                    done = 0
+                    while done < count:
+                        values = random_misplacement(rng, MISPLACEMENT_UP_TO_MM,
+                                                     MISPLACEMENT_UP_TO_DEG, up_to=True)
+                        spent.clear()
+                        try:
+                            job = service.arm(in_library, None, values)
+                        except ValueError:  # leaves the inspection volume (PartError): another
+                            continue
+                        info = finished_scan(service, job.scan_id, PASS_TIMEOUT_S, 0.01)
+                        if info is None:
+                            raise TimeoutError(f"{name} at {speed:g} mm/s did not finish")
+                        done += 1
+                        rows.append(_pose_row(name, speed, values, info, dict(spent)))
+                        r = rows[-1]
+                        print(f"bench service: pose {name} {speed:g} mm/s: {r['points']} points, "
+                              f"pose published {r['pose_published_ms']} ms (pose "
+                              f"{r['pose_ms']} ms){' coarse' if r['coarse'] else ''}"
+                              f"{' ambiguous' if r['ambiguous'] else ''}",
+                              file=sys.stderr, flush=True)
+    return {"parts": list(names), "speeds_mm_s": list(speeds), "passes_per_part_and_speed": count,
+            "rows": rows, **_pose_summary(rows)}
+
+
+def _pose_row(name: str, speed: float, values, info: dict, stages: dict) -> dict:
+    latency, pose = info.get("latency_ms") or {}, info.get("pose") or {}
+    flags = pose.get("flags") or []
+    return {"part": name, "speed_mm_s": speed, "misplacement": values, "state": info["state"],
+            "points": info["points"], "edge_points": info["edge_points"],
+            "pose_published_ms": latency.get("pose_published"), "pose_ms": latency.get("pose"),
+            "pose_path_ms": latency.get("pose_path"), "stages_ms": stages,
+            "coarse": bool(pose.get("coarse")), "flags": len(flags),
+            "ambiguous": any(str(f).startswith("ambiguous") for f in flags),
+            "refused": pose.get("refused")}
+
+
+def _stats(values) -> dict:
+    values = np.asarray([v for v in values if v is not None], dtype=float)
+    if not len(values):
+        return {"n": 0}
+    return {"n": int(len(values)), "median": float(np.median(values)),
+            "p95": float(np.percentile(values, 95)), "max": float(values.max())}
+
+
+def _pose_summary(rows: list[dict]) -> dict:
+    by_part, by_points = {}, {}
+    for name in dict.fromkeys(r["part"] for r in rows):
+        mine = [r for r in rows if r["part"] == name]
+        within = [r["pose_published_ms"] for r in mine if r["points"] <= TARGET_POSE_POINTS]
+        by_part[name] = {"points_median": float(np.median([r["points"] for r in mine])),
+                         "pose_published_ms": _stats(r["pose_published_ms"] for r in mine),
+                         "pose_published_ms_up_to_target_points": _stats(within),
+                         "coarse": sum(r["coarse"] for r in mine),
+                         "ambiguous": sum(r["ambiguous"] for r in mine),
+                         "path_ms_median": _median_dict([r["pose_path_ms"] for r in mine]),
+                         "stages_ms_median": _median_dict([r["stages_ms"] for r in mine])}
+    low = 0
+    for high in (*POINT_BINS, np.inf):
+        mine = [r["pose_published_ms"] for r in rows if low < r["points"] <= high]
+        if mine:
+            by_points[f"{low}-{high if np.isfinite(high) else 'more'}"] = _stats(mine)
+        low = high
+    within = _stats(r["pose_published_ms"] for r in rows if r["points"] <= TARGET_POSE_POINTS)
+    return {"by_part": by_part, "by_points": by_points,
+            "pose_published_ms_up_to_target_points": within,
+            "target": {"p95_ms_max": TARGET_POSE_P95_MS, "points_up_to": TARGET_POSE_POINTS,
+                       "met": within.get("n", 0) > 0 and within["p95"] <= TARGET_POSE_P95_MS}}
+
+
+def _median_dict(dicts) -> dict:
+    dicts = [d for d in dicts if d]
+    keys = dict.fromkeys(k for d in dicts for k in d)
+    return {k: float(np.median([d.get(k, 0.0) for d in dicts])) for k in keys}
+
+
 def run(out_dir, quick: bool = False) -> dict:
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -203,6 +362,7 @@ def run(out_dir, quick: bool = False) -> dict:
         # The passes first: the per-frame stage holds a whole pass of frames in memory, which
         # the allocator keeps, and the passes' memory figure is the service's alone.
         live = passes(QUICK_PASSES if quick else PASSES)
+        pose = pose_latency(quick)
         frame = per_frame(QUICK_PER_FRAME_REPEATS if quick else PER_FRAME_REPEATS)
         print(f"bench service: per frame {frame['pass_frame_ms_median']:.3f} ms, "
               f"{frame['ratio_to_copy']:.2f} x copy", file=sys.stderr)
@@ -223,8 +383,15 @@ def run(out_dir, quick: bool = False) -> dict:
         "processing_cores": {"value": live["processing_cores"], "target_max": 1.0,
                              "met": live["processing_cores"] <= 1.0},
         "passes_failed": live["failed"],
+        "pose_published_p95_ms": {
+            "value": pose["pose_published_ms_up_to_target_points"].get("p95"),
+            "target_max": TARGET_POSE_P95_MS, "up_to_points": TARGET_POSE_POINTS,
+            "met": pose["target"]["met"],
+            "by_part": {name: part["pose_published_ms_up_to_target_points"].get("p95")
+                        for name, part in pose["by_part"].items()}},
     }
-    result = {"per_frame": frame, "passes": live, "summary": summary, "quick": quick}
+    result = {"per_frame": frame, "passes": live, "pose": pose, "summary": summary,
+              "quick": quick}
     result = write_json(out_dir / "service.json", result)
     _plot(result, out_dir / "service.png")
     return result
@@ -233,7 +400,8 @@ def run(out_dir, quick: bool = False) -> dict:
 def _plot(result: dict, path: pathlib.Path) -> None:
     plt = pyplot()
     frame, live = result["per_frame"], result["passes"]
-    fig, (ax0, ax1, ax2) = plt.subplots(1, 3, figsize=(15, 4.5))
+    fig, axes = plt.subplots(2, 3, figsize=(15, 9.5))
+    (ax0, ax1, ax2), (ax3, ax4, ax5) = axes
     bars = {"copy": frame["copy_ms_median"], "idle frame": frame["idle_frame_ms_median"],
             "pass frame": frame["pass_frame_ms_median"]}
     ax0.bar(list(bars), list(bars.values()), color=["gray", "C1", "C0"])
@@ -258,4 +426,43 @@ def _plot(result: dict, path: pathlib.Path) -> None:
     ax2.set_ylabel("process RSS, MB")
     ax2.set_title(f"memory: {100 * live['rss_mb']['growth']:+.1f} %, dropped frames "
                   f"{live['frames_dropped'] + live['queue_overflows']}")
+    _plot_pose(result["pose"], ax3, ax4, ax5)
     save_figure(fig, path, dpi=100)
+
+
+def _plot_pose(pose: dict, ax_points, ax_path, ax_stages) -> None:
+    """The pose's latency against the point count per part; its path and the registration's
+    stages per part (medians)."""
+    rows = [r for r in pose["rows"] if r["pose_published_ms"] is not None]
+    for k, name in enumerate(pose["parts"]):
+        mine = [r for r in rows if r["part"] == name]
+        ax_points.scatter([r["points"] for r in mine], [r["pose_published_ms"] for r in mine],
+                          s=18, color=f"C{k}", label=name)
+        coarse = [r for r in mine if r["coarse"] or r["ambiguous"]]
+        ax_points.scatter([r["points"] for r in coarse], [r["pose_published_ms"] for r in coarse],
+                          s=60, facecolors="none", edgecolors=f"C{k}")
+    ax_points.axhline(TARGET_POSE_P95_MS, color="r", ls="--",
+                      label=f"target p95 {TARGET_POSE_P95_MS:g} ms")
+    ax_points.axvline(TARGET_POSE_POINTS, color="gray", ls=":")
+    ax_points.set_xscale("log")
+    ax_points.set_yscale("log")
+    ax_points.set_xlabel("points in the scan")
+    ax_points.set_ylabel("last frame -> pose on ZeroMQ, ms")
+    within = pose["pose_published_ms_up_to_target_points"]
+    ax_points.set_title(f"pose latency (ringed: coarse or ambiguous); p95 up to "
+                        f"{TARGET_POSE_POINTS // 1000}k points {within.get('p95', float('nan')):.0f} ms",
+                        fontsize=9)
+    ax_points.legend(fontsize=7)
+    for ax, key, title in ((ax_path, "path_ms_median", "the pose's path (median per part)"),
+                           (ax_stages, "stages_ms_median", "registration's stages (median)")):
+        names = list(pose["by_part"])
+        stages = list(dict.fromkeys(k for p in pose["by_part"].values() for k in p[key]))
+        bottom = np.zeros(len(names))
+        for j, stage in enumerate(stages):
+            values = np.array([pose["by_part"][n][key].get(stage, 0.0) for n in names])
+            ax.bar(names, values, bottom=bottom, label=stage, color=f"C{j % 10}")
+            bottom += values
+        ax.set_ylabel("ms")
+        ax.set_title(title, fontsize=9)
+        ax.legend(fontsize=7)
+        ax.tick_params(axis="x", labelrotation=20, labelsize=8)

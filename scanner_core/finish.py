@@ -98,7 +98,9 @@ class PassOutcome:
     cross_check_state : CrossCheckState
         The state to hand the next pass.
     timings_ms : dict
-        ``cross_check`` and ``pose`` (wall, ms).
+        Wall, ms: ``cross_check``; with a pose, ``pose`` (the whole of it), of which
+        ``normals`` (the scan's normals) and ``registration`` (``PoseResult.time_ms``), and
+        ``reclassify`` (the edge points by the model, after it); ``report``.
     """
 
     state: str
@@ -200,7 +202,7 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
                 state: CrossCheckState, part_model=None, *, pose_params=None,
                 scan_id: str | None = None, detail: str | None = None, note: str | None = None,
                 frames_lost: int = 0, queue_overflows: int = 0, worker_errors=(),
-                **report_extra) -> PassOutcome:
+                on_pose=None, **report_extra) -> PassOutcome:
     """A finished pass's verdict, cross-check, pose, edges and report.
 
     Parameters
@@ -219,6 +221,13 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
         Named in the report, and as where a learned LED correction came from.
     detail, note, frames_lost, queue_overflows, worker_errors
         As for :func:`pass_failure`.
+    on_pose : callable(pose_report, timings_ms), optional
+        Called as soon as the pose is known (or refused), before anything the robot does not
+        need (the edge points' reclassification, the report): the service publishes the pose
+        from it, so the robot never waits for those. ``pose_report`` is what the outcome's
+        ``pose_report`` will be; ``timings_ms`` the timings so far (``cross_check``, ``pose``,
+        ``normals``, ``registration``). Not called when no pose is asked for (no model, a
+        failed pass).
     **report_extra
         Further ``report.json`` entries (the service's scan id and times, a replay's source).
 
@@ -245,10 +254,17 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
         except ValueError as exc:
             pose_report = {"refused": str(exc)}
         else:
-            if pose.observable:
-                reclassify_with_model(scan, part_model.model_edges, pose.matrix)
             pose_report = pose.to_dict()
+            timings["normals"] = round(pose.normals_ms, 3)
+            timings["registration"] = round(pose.time_ms, 3)
         timings["pose"] = round((time.perf_counter() - t0) * 1e3, 3)
+        if on_pose is not None:
+            on_pose(pose_report, dict(timings))
+        if pose is not None and pose.observable:
+            t0 = time.perf_counter()
+            reclassify_with_model(scan, part_model.model_edges, pose.matrix)
+            timings["reclassify"] = round((time.perf_counter() - t0) * 1e3, 3)
+    t0 = time.perf_counter()
     state_name = "failed" if failure else "done"
     ended = None if end_reason is None else end_reason.value + (f": {detail}" if detail else "")
     if scan_id is not None:
@@ -258,6 +274,7 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
     report = scan_report(scan, check, state=state_name, reason=failure or ended,
                          **report_extra)
     report["pose"] = pose_report
+    timings["report"] = round((time.perf_counter() - t0) * 1e3, 3)
     return PassOutcome(state=state_name, reason=failure or ended, scan=scan, cross_check=check,
                        pose=pose, pose_report=pose_report, report=report,
                        cross_check_state=state, timings_ms=timings)

@@ -33,8 +33,8 @@ from service.store import ScanStore
 
 log = logging.getLogger("flyscan.service")
 
-#: How long the finisher waits for the cloud to leave on ZeroMQ before storing, s (only to
-#: record the latency: the store never depends on the subscriber).
+#: How long the finisher waits for the cloud and the pose to leave on ZeroMQ before storing, s
+#: (only to record their latency: the store never depends on the subscriber).
 PUBLISH_WAIT_S = 1.0
 #: Scans kept in memory (also those the store could not take), oldest dropped first.
 RECENT_JOBS = 32
@@ -114,7 +114,7 @@ class Service:
         default = None
         if self.default_part is not None:
             default = self.parts.get(self.default_part)  # KeyError: an unknown default part
-            default.surface_model, default.edge_model  # built now, not at the first pose
+            default.prepare()  # its models and their trees built now, not at the first pose
         self.publisher.start()
         try:
             if self.driver is not None:
@@ -165,6 +165,10 @@ class Service:
             if self.driver is None or held is None:
                 raise ValueError("misplace is for the simulated cell, and a part, only")
             misplacement = self.driver.misplacement(held, misplace)
+        if held is not None:
+            # What the pose needs of the part beyond the scan, built before its first pass
+            # rather than after it, while the robot waits (only the first arm of a part pays).
+            held.prepare()
         if record:
             self._prune_recordings(keep=self.settings.recordings_kept - 1)
         job = self.engine.arm(name, timeout_s, context=misplacement, part_model=held,
@@ -216,15 +220,27 @@ class Service:
 
     def _on_scan(self, job: ScanJob, scan: Scan, finish) -> None:
         """Finisher thread: publish the cloud, end the pass (``finish``: verdict, cross-check,
-        pose, edges), publish the edges and the pose, store. A failure to store fails the scan,
-        and its info stays served from memory (``RECENT_JOBS``)."""
-        sent = threading.Event()
+        pose, edges), publish the pose as soon as it is known (before the edge points'
+        reclassification, the report and the store: the robot waits for it alone), then the
+        edges, store. A failure to store fails the scan (on ``status`` and REST; the pose has
+        gone out by then), and its info stays served from memory (``RECENT_JOBS``)."""
+        entered = time.monotonic()
+        finisher = job.latency_ms.pop("finisher_monotonic", None)
+        sent, pose_sent = threading.Event(), threading.Event()
+        path: dict[str, float] = {}  # the pose's path, ms (``latency_ms.pose_path``)
 
         def on_sent(topic, when):
             if job.last_frame_monotonic is not None:
-                job.latency_ms["last_frame_to_zmq"] = round((when - job.last_frame_monotonic) * 1e3, 3)
-            job.latency_ms["pass_end_to_zmq"] = round((when - job.end_monotonic) * 1e3, 3)
+                job.latency_ms["last_frame_to_zmq"] = _ms(when - job.last_frame_monotonic)
+            job.latency_ms["pass_end_to_zmq"] = _ms(when - job.end_monotonic)
             sent.set()
+
+        def on_pose_sent(topic, when):
+            if job.last_frame_monotonic is not None:
+                job.latency_ms["pose_published"] = _ms(when - job.last_frame_monotonic)
+            job.latency_ms["pass_end_to_pose"] = _ms(when - job.end_monotonic)
+            path["publish"] = _ms(when - path.pop("handed"))
+            pose_sent.set()
 
         header = {"scan_id": job.scan_id, "part": job.part}
         placed = scan.frames > 0
@@ -232,12 +248,34 @@ class Service:
             self.publisher.publish("cloud", {**header, "state": job.state,
                                              "end_reason": scan.end_reason},
                                    scan.cloud, on_sent=on_sent)
-            sent.wait(PUBLISH_WAIT_S)
         try:
             model = self.parts.get(job.part) if job.part is not None else None
         except KeyError:
             model = None
-        result = finish(model)
+        called = time.monotonic()
+
+        def on_pose(pose_report, timings):
+            # the pose's path from the pass's last frame, each stage once, in order: they sum
+            # to at most ``pose_published`` (the rest: hand-overs between them)
+            if job.last_frame_monotonic is not None:
+                path["pass_end"] = _ms(job.end_monotonic - job.last_frame_monotonic)
+            if finisher is not None:
+                path["handoff"] = _ms(finisher - job.end_monotonic)
+            for key in ("wait_workers", "assemble"):
+                if key in scan.timings_ms:
+                    path[key] = scan.timings_ms[key]
+            path["cloud"] = _ms(called - entered)
+            for key in ("cross_check", "normals", "registration"):
+                if key in timings:
+                    path[key] = timings[key]
+            path["pose_checks"] = max(round(timings["pose"] - timings.get("normals", 0.0)
+                                            - timings.get("registration", 0.0), 3), 0.0)
+            path["handed"] = time.monotonic()
+            if not self.publisher.publish("pose", {**header, "pose": pose_report,
+                                                   "state": job.state}, on_sent=on_pose_sent):
+                pose_sent.set()  # the queue was full: counted as dropped, nothing to wait for
+
+        result = finish(model, on_pose=on_pose)
         report = result.report
         if result.state == "done" and model is None:
             report["pose"] = {"refused": f"no CAD model for part {job.part!r}"}
@@ -246,6 +284,13 @@ class Service:
         if placed:
             self.publisher.publish("edges", {**header, "state": job.state,
                                              "end_reason": scan.end_reason}, scan.edges)
+        # only to record the latency: the store never depends on the subscriber
+        if placed:
+            sent.wait(PUBLISH_WAIT_S)
+        if result.pose_report is not None:
+            pose_sent.wait(PUBLISH_WAIT_S)
+            if "publish" in path:
+                job.latency_ms["pose_path"] = dict(path)
         report["latency_ms"] = dict(job.latency_ms)
         info = self._info(job, report)
         try:
@@ -255,7 +300,8 @@ class Service:
             job.state, job.reason = "failed", f"could not store the scan: {exc}"
             info = self._info(job, report)
         job.info = info
-        self.publisher.publish("pose", {**header, "pose": info["pose"], "state": job.state})
+        if result.pose_report is None:  # no pose was asked for: said once the scan is stored
+            self.publisher.publish("pose", {**header, "pose": info["pose"], "state": job.state})
         self.publisher.publish("status", {**header, **self.status(), "scan_state": job.state,
                                           "reason": job.reason, "points": info["points"]})
         self.metrics.scan_finished(info)
@@ -326,3 +372,6 @@ class Service:
         status["simulated"] = self.driver is not None
         return status
 
+
+def _ms(seconds: float) -> float:
+    return round(seconds * 1e3, 3)

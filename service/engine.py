@@ -59,8 +59,9 @@ class Engine:
     params : PipelineParams
     on_scan : callable(job, scan, finish)
         Called on the finisher thread when a scan is over, with the scan (empty when no frame
-        was placed) and ``finish(part_model)``, which ends the pass
-        (``scanner_core.finish.finish_pass``: verdict, cross-check, pose, report), updates the
+        was placed) and ``finish(part_model, on_pose=None)``, which ends the pass
+        (``scanner_core.finish.finish_pass``: verdict, cross-check, pose, report; ``on_pose``
+        as there: called as soon as the pose is known), updates the
         job's state and the engine's cross-check state, and returns the ``PassOutcome``; the
         caller publishes and stores.
     on_pass_armed : callable(job), optional
@@ -444,6 +445,7 @@ class Engine:
 
     def _finish(self, job: ScanJob, reason: EndReason) -> None:
         t0 = time.perf_counter()
+        job.latency_ms["finisher_monotonic"] = time.monotonic()  # the daemon's breakdown
         if not job.wait_processed(timeout=FINISH_WAIT_S):
             job.worker_errors.append(f"frames still processing after {FINISH_WAIT_S:g} s: left out")
         t1 = time.perf_counter()
@@ -462,13 +464,13 @@ class Engine:
         job.state = "failed" if failure else "done"
         job.reason = failure or job.reason
 
-        def finish(part_model) -> PassOutcome:
+        def finish(part_model, on_pose=None) -> PassOutcome:
             outcome = finish_pass(
                 scan, reason, self.robot, self.cross_check_state, part_model,
                 pose_params=self.pose_params, scan_id=job.scan_id, detail=job.end_detail,
                 note=job.note, frames_lost=job.frames_dropped,
                 queue_overflows=job.queue_overflows, worker_errors=job.worker_errors,
-                part=job.part, created=job.created)
+                on_pose=on_pose, part=job.part, created=job.created)
             self.cross_check_state = outcome.cross_check_state
             job.state, job.reason = outcome.state, outcome.reason
             return outcome
