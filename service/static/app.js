@@ -153,12 +153,11 @@ function fmtMisplacement(m) {
   return String(m);
 }
 
-// The misplacement, and why not to act on it (flags), or why there is no pose.
+// The verdict first (act, or why not), then the misplacement; or why there is no pose.
 function fmtPose(p) {
   if (p.refused) return "no pose: " + p.refused;
-  let text = fmtMisplacement(p.misplacement);
-  if (p.flags && p.flags.length) text += "\n" + p.flags.join("; ");
-  return text;
+  const verdict = p.act ? "act" : "do not act: " + (p.act_reasons || p.flags || []).join("; ");
+  return verdict + "\n" + fmtMisplacement(p.misplacement);
 }
 
 function cell(tr, text, cls) {
@@ -192,7 +191,7 @@ function renderScans(scans) {
     const flagCell = cell(tr, flagged === null ? "\u2013" : flagged ? "yes" : "no", flagged ? "flag-yes" : "");
     if (cc && cc.reason) flagCell.title = cc.reason;
     const poseCell = cell(tr, pose ? fmtPose(pose) : "\u2013", "mono misplacement");
-    if (pose && (pose.refused || (pose.flags && pose.flags.length))) poseCell.classList.add("flag-yes");
+    if (pose && (pose.refused || !pose.act)) poseCell.classList.add("flag-yes");
     cell(tr, fmtNum(latency, 1), "num");
     rows.push(tr);
   }

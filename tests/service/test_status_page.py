@@ -105,6 +105,14 @@ def test_the_page_shows_the_live_status_and_a_scan_armed_from_it(page, service):
     shown = row.locator("td.misplacement").inner_text()
     tx = info["pose"]["misplacement"]["translation_mm"][0]
     assert "translation_mm" in shown and f"{tx:.2f}" in shown.replace("\u2212", "-"), shown
+    # The verdict first: act, or why not (and the cell marked).
+    verdict = shown.splitlines()[0]
+    if info["pose"]["act"]:
+        assert verdict == "act", shown
+        assert "flag-yes" not in (row.locator("td.misplacement").get_attribute("class") or "")
+    else:
+        assert verdict == "do not act: " + "; ".join(info["pose"]["act_reasons"]), shown
+        assert "flag-yes" in row.locator("td.misplacement").get_attribute("class")
     assert page.locator("#scans tr[data-scan-id]").first.get_attribute("data-scan-id") == scan_id
 
     # The cloud picture is the new scan's.
