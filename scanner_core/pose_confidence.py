@@ -225,7 +225,7 @@ def _coverage_flags(scan, pose, surface_model: SurfaceModel) -> list[str]:
 _AXIS_WORDS = ("tx", "ty", "tz", "rx", "ry", "rz")
 
 
-def judge(result, model: SurfaceModel, params: PoseParams) -> None:
+def judge(result, model: SurfaceModel | None, params: PoseParams) -> None:
     """The verdict a robot acts on, set on `result` (a ``PoseResult``): ``observable``,
     ``act``, ``act_reasons`` and ``symmetry``.
 
@@ -264,8 +264,8 @@ def judge(result, model: SurfaceModel, params: PoseParams) -> None:
                        + "; ".join(_rival_words(result.matrix, r) for r in far[:4])
                        + ("; ..." if len(far) > 4 else "") + ")")
     result.symmetry = None
-    if far or any(i >= 3 for i in loose) or any(a["kind"] == "rotation"
-                                                for a in result.free_axes):
+    if model is not None and (far or any(i >= 3 for i in loose)
+                              or any(a["kind"] == "rotation" for a in result.free_axes)):
         result.symmetry = name_symmetry(result.matrix, result.covariance, far,
                                         result.free_axes, model, params)
         if result.symmetry is not None:
