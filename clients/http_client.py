@@ -1,15 +1,24 @@
 """HTTP client for the flyscan service's REST API: what a robot cell controller calls.
 
-    from clients import FlyscanClient, ScanFailed
+    from clients import FlyscanClient, PoseNotActionable, place_correction, ur_pose_to_matrix
 
+    taught_place = ur_pose_to_matrix([0.4, -0.2, 0.1, 0.0, 3.1416, 0.0])  # ^B X_T,place, mm
     with FlyscanClient("http://127.0.0.1:8000", token="...") as api:
         api.health()                                  # {"status": "ok"}
+        nominal = {p["name"]: p["nominal_grasp"] for p in api.parts()}["bracket"]
         scan_id = api.arm(part="bracket")             # 202: the trigger is armed
         info = api.wait(scan_id, timeout=30.0)        # polls until done; ScanFailed if failed
-        if info["pose"] is not None:
-            misplacement = info["pose"]["misplacement"]
+        # info["pose"]: None (no part), {"refused": why}, or the pose with "act" and "matrix"
+        try:
+            place = place_correction(taught_place, info["pose"], nominal)
+            target = place.ur_pose                    # [x, y, z (m), rx, ry, rz (rad)] in {B}
+        except PoseNotActionable as exc:              # refused, or act false: do not place
+            print("not placing:", exc.reasons)
         xyz = api.cloud(scan_id)                      # (N, 3) float32, mm in the gripper frame {T}
         fields = api.cloud_fields(scan_id)            # {"x": ..., "frame_id": ..., "quality": ...}
+
+``arm(..., taught_place=...)`` has the service compute the same correction: the scan's info then
+carries ``correction`` (``act``, ``reasons``, ``tcp_place_mm``, ``ur_pose``).
 
 Every error the service reports raises a :class:`FlyscanError` carrying the HTTP status and the
 service's reason (``detail``); 401, 404, 409, 422 and 503 have their own subclasses. A service that
@@ -168,12 +177,16 @@ class FlyscanClient:
 
     # -- scans --------------------------------------------------------------------------------
     def arm(self, part: str | None = None, timeout_s: float | None = None,
-            misplace=None, record: bool = False) -> str:
+            misplace=None, record: bool = False, taught_place=None) -> str:
         """``POST /scans``: arm the trigger for the next pass; return the new scan id.
 
         ``misplace`` ([tx, ty, tz, rx, ry, rz], mm and degrees) moves the part in the gripper
         for the pass: honoured by a simulated cell only. ``record`` also records the pass on
         the service's side (its ScanInfo's ``recording.path``, once written).
+        ``taught_place``, the TCP pose in the robot base at which a nominally held part lands
+        right (^B X_T,place: a UR pose [x, y, z (m), rx, ry, rz (rad)] or a 4x4 in mm), has
+        the finished scan's info carry ``correction``: the corrected TCP place pose, or why
+        not to place (``clients.placement``). Unprocessable (422) unless a rigid transform.
 
         Raises Conflict (409) when a scan is in progress, NotFound (404) for an unknown part,
         ServiceUnavailable (503) when the camera is not streaming.
@@ -183,6 +196,8 @@ class FlyscanClient:
             request["record"] = True
         if misplace is not None:
             request["misplace"] = [float(v) for v in misplace]
+        if taught_place is not None:
+            request["taught_place"] = np.asarray(taught_place, dtype=np.float64).tolist()
         body = self._json("POST", "/scans", json=request)
         try:
             return str(body["scan_id"])
@@ -247,16 +262,22 @@ class FlyscanClient:
         """``GET /parts``: the known parts (name, units, faces, ...)."""
         return self._json("GET", "/parts")["parts"]
 
-    def upload_part(self, name: str, path: str | os.PathLike, units: str) -> dict:
-        """``PUT /parts/{name}?units=...&format=...``: upload a mesh file (STL, OBJ or PLY, told
-        by its suffix) as a part.
+    def upload_part(self, name: str, path: str | os.PathLike, units: str,
+                    grasp: str | None = None) -> dict:
+        """``PUT /parts/{name}?units=...&format=...[&grasp=...]``: upload a mesh file (STL, OBJ
+        or PLY, told by its suffix) as a part; returns its PartInfo (``nominal_grasp``: the
+        ^T X_P the place correction starts from).
 
         A mesh file carries no reliable unit, so `units` (mm, cm, m, inch) is required.
-        Raises Unprocessable (422) for a bad unit or mesh.
+        `grasp` names the nominal grasp (``centred``, ``flat`` or ``identity``: see
+        ARCHITECTURE.md); None: the service's default, ``centred``.
+        Raises Unprocessable (422) for a bad unit, grasp or mesh.
         """
         with open(path, "rb") as f:
             content = f.read()
         params = {"units": units, "format": os.path.splitext(os.fspath(path))[1][1:].lower()}
+        if grasp is not None:
+            params["grasp"] = str(grasp)
         return self._json("PUT", f"/parts/{_segment(name)}", params=params,
                           content=content,
                           headers={"Content-Type": "application/octet-stream"})

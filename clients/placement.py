@@ -39,7 +39,7 @@ import numpy as np
 
 __all__ = ["PlaceCorrection", "PoseNotActionable", "place_correction", "corrected_tcp_place",
            "correction_entry", "pose_actionable", "ur_pose_to_matrix", "matrix_to_ur_pose",
-           "rotvec_to_matrix", "matrix_to_rotvec", "FRAMES"]
+           "rotvec_to_matrix", "matrix_to_rotvec", "rigid_transform", "FRAMES"]
 
 #: What the correction maps between, stated wherever it is handed out.
 FRAMES = ("^B X_T: the TCP {T} in the robot base {B}, mm; the corrected place pose = "
@@ -162,15 +162,19 @@ def correction_entry(taught_place, pose, nominal_grasp) -> dict:
     """The ``correction`` entry of a scan's info: the move when the pose is to act on, else
     no move (``tcp_place_mm`` and ``ur_pose`` None) and the reasons.
 
-    Parameters as :func:`place_correction`; ``pose`` may be None (no pose). ValueError for a
-    matrix that is not a rigid transform.
+    Parameters as :func:`place_correction`; ``pose`` may be None (no pose). A pose matrix or
+    nominal grasp that is not a rigid transform is a reason not to act; a `taught_place` that
+    is not one raises ValueError.
     """
+    taught = _rigid(taught_place, "taught_place")
     try:
-        return place_correction(taught_place, pose, nominal_grasp).to_dict()
+        return place_correction(taught, pose, nominal_grasp).to_dict()
     except PoseNotActionable as exc:
-        return {"act": False, "reasons": exc.reasons, "tcp_place_mm": None, "ur_pose": None,
-                "taught_place_mm": _rigid(taught_place, "taught_place").tolist(),
-                "frames": FRAMES}
+        reasons = exc.reasons
+    except ValueError as exc:
+        reasons = [f"no correction: {exc}"]
+    return {"act": False, "reasons": reasons, "tcp_place_mm": None, "ur_pose": None,
+            "taught_place_mm": taught.tolist(), "frames": FRAMES}
 
 
 def pose_actionable(pose) -> tuple[bool, list[str]]:
@@ -306,6 +310,13 @@ def _inverse(m: np.ndarray) -> np.ndarray:
     out[:3, :3] = m[:3, :3].T
     out[:3, 3] = -m[:3, :3].T @ m[:3, 3]
     return out
+
+
+def rigid_transform(matrix, name: str = "matrix") -> np.ndarray:
+    """`matrix` as a (4, 4) float64 rigid transform (mm); ValueError naming it (`name`)
+    unless finite, last row [0, 0, 0, 1], and its rotation block orthonormal with determinant
+    +1 within `ORTHONORMAL_TOL`."""
+    return _rigid(matrix, name)
 
 
 def _rigid(matrix, name: str) -> np.ndarray:

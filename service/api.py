@@ -121,7 +121,7 @@ def arm_scan(service: ServiceDep, request: ScanRequest | None = None) -> ScanAcc
         raise HTTPException(422, "misplace is for simulated mode only")
     try:
         job = service.arm(request.part, request.timeout_s, request.misplace,
-                          record=request.record)
+                          record=request.record, taught_place=request.taught_place)
     except KeyError:
         raise HTTPException(404, f"unknown part {request.part!r}: see GET /parts") from None
     except PartError as exc:  # a misplacement out of the inspection volume

@@ -16,6 +16,7 @@ import time
 from collections import OrderedDict
 from pathlib import Path
 
+from clients.placement import correction_entry
 from scanner_core.calibration import Calibration, load_calibration, save_calibration
 from scanner_core.exposure import ExposureParams
 from scanner_core.pipeline import PipelineParams
@@ -26,6 +27,7 @@ from scanner_core.types import Scan
 from service.engine import Engine
 from service.jobs import ScanJob
 from service.metrics import Metrics
+from service.models import taught_place_matrix
 from service.parts import DEMO_PART, PartLibrary
 from service.publisher import Publisher
 from service.settings import Settings
@@ -154,10 +156,15 @@ class Service:
     # -- scans ------------------------------------------------------------------------------
 
     def arm(self, part: str | None, timeout_s: float | None, misplace=None, *,
-            record: bool = False) -> ScanJob:
+            record: bool = False, taught_place=None) -> ScanJob:
         """Arm a scan of ``part``; KeyError for an unknown part, PartError for a misplacement
         that leaves the inspection volume, EngineBusy, EngineFault. With ``record`` the pass
-        is also recorded into ``recordings/<scan_id>`` of the data folder."""
+        is also recorded into ``recordings/<scan_id>`` of the data folder. ``taught_place``
+        (a UR pose vector, m and rad, or a 4x4 in mm; default the settings') is the taught
+        place pose the finished scan's ``correction`` starts from (ValueError unless rigid)."""
+        if taught_place is None:
+            taught_place = self.settings.taught_place
+        taught = None if taught_place is None else taught_place_matrix(taught_place)
         name = part or self.default_part
         held = self.parts.get(name) if name is not None else None  # KeyError before arming
         misplacement = None
@@ -173,6 +180,7 @@ class Service:
             self._prune_recordings(keep=self.settings.recordings_kept - 1)
         job = self.engine.arm(name, timeout_s, context=misplacement, part_model=held,
                               record_to=self.recordings_dir if record else None)
+        job.taught_place = taught  # read by the finisher, a pass (>= 0.1 s) later
         if record:
             job.info_extra = {"recording": {"path": None, "state": "recording"}}
         with self._jobs_lock:
@@ -271,14 +279,20 @@ class Service:
             path["pose_checks"] = max(round(timings["pose"] - timings.get("normals", 0.0)
                                             - timings.get("registration", 0.0), 3), 0.0)
             path["handed"] = time.monotonic()
+            correction = self._correction(job, pose_report, model)
             if not self.publisher.publish("pose", {**header, "pose": pose_report,
-                                                   "state": job.state}, on_sent=on_pose_sent):
+                                                   "state": job.state,
+                                                   **({"correction": correction}
+                                                      if correction is not None else {})},
+                                          on_sent=on_pose_sent):
                 pose_sent.set()  # the queue was full: counted as dropped, nothing to wait for
 
         result = finish(model, on_pose=on_pose)
         report = result.report
         if result.state == "done" and model is None:
             report["pose"] = {"refused": f"no CAD model for part {job.part!r}"}
+        if result.state == "done" and job.taught_place is not None:
+            report["correction"] = self._correction(job, report.get("pose"), model)
         if "pose" in result.timings_ms:
             job.latency_ms["pose"] = result.timings_ms["pose"]
         if placed:
@@ -301,14 +315,24 @@ class Service:
             info = self._info(job, report)
         job.info = info
         if result.pose_report is None:  # no pose was asked for: said once the scan is stored
-            self.publisher.publish("pose", {**header, "pose": info["pose"], "state": job.state})
+            self.publisher.publish("pose", {**header, "pose": info["pose"], "state": job.state,
+                                            **({"correction": info["correction"]}
+                                               if info.get("correction") else {})})
         self.publisher.publish("status", {**header, **self.status(), "scan_state": job.state,
                                           "reason": job.reason, "points": info["points"]})
         self.metrics.scan_finished(info)
 
+    @staticmethod
+    def _correction(job: ScanJob, pose: dict | None, model) -> dict | None:
+        """The scan's ``correction`` entry (``clients.placement.correction_entry``): the TCP
+        place pose that corrects the pose, or why not to place; None without a taught place."""
+        if job.taught_place is None:
+            return None
+        return correction_entry(job.taught_place, pose, None if model is None else model.grasp)
+
     def _info(self, job: ScanJob, report: dict) -> dict:
         keys = ("frames", "frames_dropped", "frames_unplaced", "queue_overflows", "points",
-                "edge_points", "edge_kinds", "end_reason", "timings_ms", "cross_check", "pose", "latency_ms",
+                "edge_points", "edge_kinds", "end_reason", "timings_ms", "cross_check", "pose", "correction", "latency_ms",
                 "frames_held_rotation", "marker_residual_px")
         return {"scan_id": job.scan_id, "state": job.state, "reason": job.reason, "part": job.part,
                 "created": job.created, "finished": time.time(),

@@ -38,6 +38,8 @@ class ScanJob:
     info: dict = field(default_factory=dict)
     recording: LiveRecording | None = None
     info_extra: dict = field(default_factory=dict)
+    #: ^B X_T,place (4, 4) mm: the taught place pose the finished scan's correction starts from.
+    taught_place: object = None
     _in_flight: int = 0
     _idle: threading.Condition = field(default_factory=threading.Condition)
 

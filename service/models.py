@@ -3,7 +3,11 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+import numpy as np
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+
+from clients.placement import rigid_transform, ur_pose_to_matrix
 
 RunState = Literal["idle", "armed", "scanning", "processing", "fault"]
 ScanState = Literal["armed", "scanning", "processing", "done", "failed"]
@@ -74,6 +78,37 @@ class Status(BaseModel):
     simulated: bool
 
 
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+#: A UR pose: [x, y, z (m), rx, ry, rz (rotation vector, rad)].
+UrPose = Annotated[list[Finite], Field(min_length=6, max_length=6)]
+#: A 4x4 homogeneous transform, row-major, mm.
+Matrix4 = Annotated[list[Annotated[list[Finite], Field(min_length=4, max_length=4)]],
+                    Field(min_length=4, max_length=4)]
+
+
+def taught_place_matrix(value) -> np.ndarray:
+    """A taught place pose as given (a UR pose vector, m and rad, or a 4x4 in mm) -> ^B X_T,
+    (4, 4) float64, mm; ValueError unless a rigid transform."""
+    if len(value) == 6:
+        return ur_pose_to_matrix(value)
+    return rigid_transform(value, "taught_place")
+
+
+def _rigid_taught_place(value):
+    if value is not None:
+        taught_place_matrix(value)
+    return value
+
+
+#: The TCP pose in the robot base at which a nominally held part lands right: what the place
+#: correction starts from (``clients.placement``).
+TaughtPlace = Annotated[UrPose | Matrix4, AfterValidator(_rigid_taught_place)]
+TAUGHT_PLACE_DESCRIPTION = (
+    "the taught place pose ^B X_T,place: the TCP pose in the robot base at which a part held at "
+    "its nominal grasp lands right, as a UR pose [x, y, z (m), rx, ry, rz (rotation vector, "
+    "rad)] or a 4x4 row-major transform in mm; with it, a scan with a pose carries `correction`")
+
+
 class ScanRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -86,6 +121,24 @@ class ScanRequest(BaseModel):
                     "[tx, ty, tz (mm), rx, ry, rz (rotation vector, degrees)]")
     record: bool = Field(False, description="also record the pass (every frame, the robot's "
                                             "samples) for replay: see the scan's `recording`")
+    taught_place: TaughtPlace | None = Field(
+        None, description=TAUGHT_PLACE_DESCRIPTION + "; default the service's setting")
+
+
+class PlaceCorrection(BaseModel):
+    """Where to place the part: the TCP place pose that corrects the measured misplacement
+    (``clients.placement.place_correction``). No move when ``act`` is false."""
+
+    act: bool = Field(description="whether the robot may act on the pose; false: do not place")
+    reasons: list[str] = Field(description="why not to act; empty when act")
+    tcp_place_mm: Matrix4 | None = Field(
+        description="^B X_T,corrected = taught_place @ nominal_grasp @ inv(pose.matrix): the "
+                    "TCP pose in the robot base, 4x4 row-major, mm; null when not act")
+    ur_pose: UrPose | None = Field(
+        description="the same as a UR pose [x, y, z (m), rx, ry, rz (rotation vector, rad)] "
+                    "in the robot base; null when not act")
+    taught_place_mm: Matrix4 = Field(description="^B X_T,place as given, 4x4 row-major, mm")
+    frames: str = Field(description="the frames and the equation, in words")
 
 
 class ScanAccepted(BaseModel):
@@ -116,6 +169,9 @@ class ScanInfo(BaseModel):
     latency_ms: dict = Field(default_factory=dict)
     cross_check: dict | None = None
     pose: dict | None = None
+    correction: PlaceCorrection | None = Field(
+        None, description="with a taught place pose (the request's or the settings') and a "
+                          "finished scan: the corrected TCP place pose, or why not to place")
 
 
 class ScanList(BaseModel):

@@ -11,6 +11,8 @@ from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import (BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict,
                                TomlConfigSettingsSource)
 
+from service.models import TAUGHT_PLACE_DESCRIPTION, TaughtPlace
+
 
 class Settings(BaseSettings):
     """Everything ``flyscan serve`` can be told.
@@ -68,6 +70,8 @@ class Settings(BaseSettings):
     led_correction_t_mm: tuple[float, float, float] | None = Field(
         None, description="marker minus robot track in {T}, mm, what the calibration's LED "
                           "offset misses; unset: learned from the first cross-checked pass")
+    taught_place: TaughtPlace | None = Field(
+        None, description=TAUGHT_PLACE_DESCRIPTION + "; used when a scan's request gives none")
     sim_seed: int = Field(0, ge=0)
     sim_clock_offset_s: float = Field(0.0, ge=-1e6, le=1e6,
                                       description="the simulated robot's clock minus the camera's, s")

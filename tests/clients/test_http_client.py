@@ -67,6 +67,8 @@ class FakeService:
             return httpx.Response(401, json={"detail": "missing or wrong bearer token"})
         if path == "/health":
             return httpx.Response(200, json={"status": "ok"})
+        if path == "/status":
+            return httpx.Response(200, json={"state": "idle", "simulated": False})
         if (method, path) == ("POST", "/scans"):
             if self.on_arm is not None:
                 self.on_arm("scan-1")
@@ -130,6 +132,30 @@ def test_requests_paths_bodies_and_bearer(tmp_path):
     assert delete.url.raw_path == b"/scans/a%2Fb"          # an id is one path segment
     assert (put_cal.method, json.loads(put_cal.content)) == ("PUT", {"camera": {"f": 16.0}})
     assert all(r.headers["authorization"] == f"Bearer {TOKEN}" for r in seen)
+
+
+def test_arm_sends_the_taught_place_and_upload_the_grasp(tmp_path):
+    seen = []
+
+    def handler(request):
+        seen.append(request)
+        if request.method == "POST":
+            return httpx.Response(202, json={"scan_id": "a1", "state": "armed"})
+        return httpx.Response(201, json={"name": "bracket", "nominal_grasp": np.eye(4).tolist()})
+
+    mesh = tmp_path / "bracket.ply"
+    mesh.write_bytes(b"ply\n")
+    ur_pose = [0.4, -0.2, 0.1, 0.0, np.pi, 0.0]
+    with client_for(handler) as api:
+        api.arm(part="bracket", taught_place=np.array(ur_pose))
+        api.arm(taught_place=np.eye(4))
+        api.upload_part("bracket", mesh, "mm", grasp="flat")
+        api.upload_part("bracket", mesh, "mm")
+    vector, matrix, flat, default = seen
+    assert json.loads(vector.content)["taught_place"] == ur_pose
+    assert json.loads(matrix.content)["taught_place"] == np.eye(4).tolist()
+    assert dict(flat.url.params) == {"units": "mm", "format": "ply", "grasp": "flat"}
+    assert "grasp" not in default.url.params
 
 
 def test_no_token_no_authorization_header():
@@ -336,7 +362,7 @@ def test_cell_controller_scans_and_compares_the_two_clouds(publisher, rng, monke
     assert len(lines) == 2
     assert lines[0].startswith("#1 scan-1 done: 4 points")
     assert "no pose," in lines[0] and '{"rms_mm":0.012}' in lines[0]
-    assert lines[0].endswith("zmq cloud == rest cloud")
+    assert lines[0].endswith("zmq cloud == rest cloud; do not place: no part, so no nominal grasp")
 
 
 def test_cell_controller_exits_non_zero_with_the_reason(capsys):

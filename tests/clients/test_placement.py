@@ -104,6 +104,14 @@ def test_a_pose_not_to_act_on_gives_no_move(pose, reason):
     assert any(reason in r for r in entry["reasons"])
 
 
+def test_a_pose_matrix_that_is_not_rigid_is_a_reason_not_to_act():
+    entry = correction_entry(np.eye(4), pose_entry(np.diag([2.0, 1.0, 1.0, 1.0])), np.eye(4))
+    assert entry["act"] is False and entry["tcp_place_mm"] is None
+    assert "orthonormal" in entry["reasons"][0]
+    with pytest.raises(ValueError, match="taught_place"):
+        correction_entry(np.zeros(6), pose_entry(np.eye(4)), np.eye(4))
+
+
 def test_an_old_style_pose_that_is_observable_and_unflagged_acts():
     assert pose_actionable({"matrix": np.eye(4).tolist(), "observable": True, "flags": []}) \
         == (True, [])

@@ -1,0 +1,123 @@
+"""The place correction end to end: ``flyscan serve --sim`` at the reference pass (200 mm/s, a
+pose to act on), the scan's ``correction`` over REST, ZeroMQ and report.json, the example cell
+controller placing misplaced parts, each against the simulated truth."""
+import io
+import json
+import re
+import time
+
+import httpx
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from clients import (CloudSubscriber, FlyscanClient, place_correction, ur_pose_to_matrix)
+from clients import cell_controller
+from clients.cell_controller import misplacement_matrix, placed_error
+from running import RunningService
+from service.settings import Settings
+
+#: The taught place pose of the service's settings: a UR pose (m, rad), the TCP pointing down.
+SETTINGS_PLACE = [0.5, 0.1, 0.05, 0.0, np.pi, 0.0]
+#: What the cell needs of a placed part (the pose's act tolerance): 0.1 mm, 0.1 degree.
+PLACED_TOLERANCE_UM = 100.0
+PLACED_TOLERANCE_MDEG = 100.0
+#: The service's correction and the client's: one function, the same doubles, up to JSON.
+SAME_MM = 1e-9
+SLOW_JOINER_S = 0.3
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    running = RunningService(tmp_path_factory.mktemp("place") / "data",
+                             env={"FLYSCAN_TAUGHT_PLACE": json.dumps(SETTINGS_PLACE)})
+    yield running
+    running.stop()
+
+
+def nominal_of(client, part):
+    return np.asarray({p["name"]: p["nominal_grasp"] for p in client.parts()}[part])
+
+
+def test_the_scan_carries_the_correction_over_rest_zeromq_and_its_report(cell):
+    misplace = [0.6, -0.4, 0.2, 1.0, -0.5, 1.5]
+    taught = np.eye(4)
+    taught[:3, :3] = [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]
+    taught[:3, 3] = [350.0, 250.0, 80.0]
+    with FlyscanClient(cell.url) as client, \
+            CloudSubscriber(cell.zmq, topics=("pose",)) as poses:
+        time.sleep(SLOW_JOINER_S)
+        scan_id = client.arm(misplace=misplace, taught_place=taught)
+        info = client.wait(scan_id, timeout=60)
+        message = poses.receive(timeout=5)
+        while message.scan_id != scan_id:
+            message = poses.receive(timeout=5)
+        nominal = nominal_of(client, info["part"])
+    correction = info["correction"]
+    assert info["pose"]["act"] is True and correction["act"] is True, info["pose"]
+    assert correction["reasons"] == [] and "{B}" in correction["frames"]
+    assert_allclose(correction["taught_place_mm"], taught, atol=SAME_MM)
+    # The client's function on the scan's pose: the same move.
+    mine = place_correction(taught, info["pose"], nominal)
+    assert_allclose(correction["tcp_place_mm"], mine.tcp_place_mm, atol=SAME_MM)
+    assert_allclose(ur_pose_to_matrix(correction["ur_pose"]), mine.tcp_place_mm, atol=SAME_MM)
+    # Published with the pose, stored with the report.
+    assert message.header["correction"] == correction
+    report = json.loads((cell.data / "scans" / scan_id / "report.json").read_text())
+    assert report["correction"] == correction
+    # The truly held part, placed by the corrected move, lands where the nominal one belongs.
+    truth = misplacement_matrix(misplace) @ nominal
+    error_um, error_mdeg = placed_error(np.asarray(correction["tcp_place_mm"]) @ truth,
+                                        taught @ nominal)
+    assert error_um < PLACED_TOLERANCE_UM and error_mdeg < PLACED_TOLERANCE_MDEG, \
+        (error_um, error_mdeg)
+    # Uncorrected, it would have been off by the misplacement.
+    assert placed_error(taught @ truth, taught @ nominal)[0] > 500.0
+
+
+def test_without_a_taught_place_in_the_request_the_settings_one_is_used(cell):
+    with FlyscanClient(cell.url) as client:
+        info = client.wait(client.arm(), timeout=60)
+    assert_allclose(info["correction"]["taught_place_mm"], ur_pose_to_matrix(SETTINGS_PLACE),
+                    atol=SAME_MM)
+    assert info["correction"]["act"] is True
+
+
+@pytest.mark.parametrize("taught_place, message", [
+    ([0.4, 0.0, 0.1, 0.0, 3.14], "at least 6"),
+    ([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.1, 0], [0, 0, 0, 1.0]], "orthonormal"),
+    ([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 1.0, 1.0]], "last row"),
+])
+def test_a_taught_place_that_is_no_rigid_transform_is_refused(cell, taught_place, message):
+    response = httpx.post(f"{cell.url}/scans", json={"taught_place": taught_place})
+    assert response.status_code == 422 and message in response.text, response.text
+    nan = httpx.post(f"{cell.url}/scans", headers={"Content-Type": "application/json"},
+                     content=b'{"taught_place": [0.4, 0, 0.1, 0, NaN, 0]}')
+    assert nan.status_code == 422
+    assert httpx.get(f"{cell.url}/status").json()["state"] == "idle"
+
+
+def test_the_cell_controller_places_misplaced_parts(cell, monkeypatch):
+    monkeypatch.setattr(cell_controller, "SUBSCRIBE_SETTLE_S", 0.0)
+    out = io.StringIO()
+    place = [0.45, -0.25, 0.12, np.pi, 0.0, 0.0]
+    with FlyscanClient(cell.url) as client, cell_controller.CloudCollector(cell.zmq) as clouds:
+        assert cell_controller.run(client, clouds, count=2, part=None, timeout=60.0, out=out,
+                                   taught_place=place, seed=7) == 2
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 2
+    for line in lines:
+        found = re.search(r"place at \[([-0-9.,]+)\], placed part off by ([0-9.]+) um, "
+                          r"([0-9.]+) mdeg \(truth\)$", line)
+        assert found, line
+        assert float(found[2]) < PLACED_TOLERANCE_UM and float(found[3]) < PLACED_TOLERANCE_MDEG
+        # Near the taught pose: the correction is the misplacement's size (mm, degrees).
+        target = ur_pose_to_matrix([float(v) for v in found[1].split(",")])
+        assert np.linalg.norm(target[:3, 3] - ur_pose_to_matrix(place)[:3, 3]) < 10.0
+
+
+def test_settings_take_a_taught_place_as_a_ur_pose_or_a_matrix():
+    assert Settings(taught_place=SETTINGS_PLACE).taught_place == SETTINGS_PLACE
+    assert Settings(taught_place=np.eye(4).tolist()).taught_place == np.eye(4).tolist()
+    with pytest.raises(ValueError, match="orthonormal"):
+        Settings(taught_place=np.diag([1.0, 1.0, 2.0, 1.0]).tolist())
