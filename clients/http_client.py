@@ -263,21 +263,29 @@ class FlyscanClient:
         return self._json("GET", "/parts")["parts"]
 
     def upload_part(self, name: str, path: str | os.PathLike, units: str,
-                    grasp: str | None = None) -> dict:
+                    grasp=None) -> dict:
         """``PUT /parts/{name}?units=...&format=...[&grasp=...]``: upload a mesh file (STL, OBJ
         or PLY, told by its suffix) as a part; returns its PartInfo (``nominal_grasp``: the
         ^T X_P the place correction starts from).
 
         A mesh file carries no reliable unit, so `units` (mm, cm, m, inch) is required.
-        `grasp` names the nominal grasp (``centred``, ``flat`` or ``identity``: see
-        ARCHITECTURE.md); None: the service's default, ``centred``.
-        Raises Unprocessable (422) for a bad unit, grasp or mesh.
+        `grasp` is the nominal grasp: a name (``centred``, ``flat`` or ``identity``: see
+        ARCHITECTURE.md), or the taught ^T X_P itself, a (4, 4) rigid transform in mm of the
+        part's CAD frame in the TCP (sent as ``grasp_matrix``); None: the service's default,
+        ``centred``. Raises Unprocessable (422) for a bad unit, grasp or mesh, ValueError for a
+        grasp that is neither a name nor a 4x4.
         """
+        params = {"units": units, "format": os.path.splitext(os.fspath(path))[1][1:].lower()}
+        if isinstance(grasp, str):
+            params["grasp"] = grasp
+        elif grasp is not None:
+            matrix = np.asarray(grasp, dtype=np.float64)
+            if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+                raise ValueError(f"`grasp` must be a name or a finite 4x4 (mm), got shape "
+                                 f"{matrix.shape}")
+            params["grasp_matrix"] = ",".join(repr(float(v)) for v in matrix.ravel())
         with open(path, "rb") as f:
             content = f.read()
-        params = {"units": units, "format": os.path.splitext(os.fspath(path))[1][1:].lower()}
-        if grasp is not None:
-            params["grasp"] = str(grasp)
         return self._json("PUT", f"/parts/{_segment(name)}", params=params,
                           content=content,
                           headers={"Content-Type": "application/octet-stream"})

@@ -23,7 +23,7 @@ from service.daemon import Service
 from service.engine import EngineBusy, EngineFault
 from service.models import (CalibrationModel, Health, PartInfo, PartList, Problem, ScanAccepted, ScanInfo, ScanList,
                             ScanRequest, Status)
-from service.parts import MAX_MESH_BYTES, part_info
+from service.parts import MAX_MESH_BYTES, grasp_from_query, part_info
 from service.pictures import cloud_preview_png, frame_png
 from service.settings import Settings
 from scanner_core.cad import GRASPS, PartError
@@ -214,14 +214,27 @@ def list_parts(service: ServiceDep) -> dict:
 async def put_part(name: str, request: Request, service: ServiceDep,
                    units: Annotated[str, Query(description="unit of the mesh: mm, cm, m or inch")],
                    format: Annotated[str, Query(pattern="^(stl|obj|ply)$")] = "stl",
-                   grasp: Annotated[str, Query(pattern=f"^({'|'.join(GRASPS)})$")] = "centred") -> dict:
+                   grasp: Annotated[str | None, Query(
+                       pattern=f"^({'|'.join(GRASPS)})$",
+                       description="the nominal grasp by name; default centred")] = None,
+                   grasp_matrix: Annotated[str | None, Query(
+                       max_length=1000,
+                       description="the nominal grasp ^T X_P instead, as taught: 16 comma-"
+                                   "separated numbers, a 4x4 row-major rigid transform, mm")]
+                   = None) -> dict:
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > MAX_MESH_BYTES:
         raise HTTPException(413, f"the mesh file is larger than {MAX_MESH_BYTES >> 20} MiB")
+    if grasp is not None and grasp_matrix is not None:
+        raise HTTPException(422, "give grasp (a name) or grasp_matrix (a 4x4), not both")
+    try:
+        chosen = (grasp or "centred") if grasp_matrix is None else grasp_from_query(grasp_matrix)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
     data = await request.body()
     try:
         part = await asyncio.to_thread(service.parts.add, name, data, units,
-                                       suffix=f".{format}", grasp=grasp)
+                                       suffix=f".{format}", grasp=chosen)
     except (PartError, ValueError) as exc:
         raise HTTPException(422, str(exc)) from None
     return part_info(part)

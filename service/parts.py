@@ -88,8 +88,9 @@ class PartLibrary:
             return self._parts[name]
 
     def add(self, name: str, data: bytes, units: str, *, suffix: str = ".stl",
-            grasp: str = "centred") -> PartModel:
-        """Check and keep an uploaded mesh; raises PartError (or ValueError) with the reason."""
+            grasp="centred") -> PartModel:
+        """Check and keep an uploaded mesh; raises PartError (or ValueError) with the reason.
+        ``grasp``: a name of ``GRASPS``, or the nominal ^T X_P itself, (4, 4) mm."""
         if not PART_NAME.match(name) or name in self._builtin:
             raise ValueError(f"part name must be 1-64 letters, digits, '.', '_' or '-', not start "
                              f"with '.', and not be a built-in part's "
@@ -109,8 +110,9 @@ class PartLibrary:
             except PartError as exc:  # said of the upload, not of a path on the server
                 raise PartError(str(exc).replace(f" ({mesh_path})", "").replace(str(mesh_path),
                                                                                 "the upload")) from None
-            (tmp / "part.json").write_text(json.dumps({"file": mesh_path.name, "units": part.units,
-                                                       "grasp": grasp}))
+            (tmp / "part.json").write_text(json.dumps({
+                "file": mesh_path.name, "units": part.units,
+                "grasp": grasp if isinstance(grasp, str) else np.asarray(part.grasp).tolist()}))
             final = self.root / name
             if final.resolve().parent != self.root.resolve():
                 raise ValueError(f"part name {name!r} is not a plain folder name")
@@ -123,7 +125,23 @@ class PartLibrary:
         return part
 
 
-def _grasp(kind: str) -> str:
+def _grasp(kind):
+    """A grasp name of ``GRASPS``, or a 4x4 (``load_part`` checks it is rigid)."""
+    if not isinstance(kind, str):
+        return np.asarray(kind, dtype=np.float64)
     if kind not in GRASPS:
         raise ValueError(f"grasp must be one of {', '.join(GRASPS)}, got {kind!r}")
     return kind
+
+
+def grasp_from_query(text: str) -> np.ndarray:
+    """``grasp_matrix`` of ``PUT /parts``: 16 comma-separated numbers -> (4, 4) float64 (row-
+    major, mm); ValueError unless 16 finite numbers (rigidity is ``load_part``'s check)."""
+    try:
+        values = np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        raise ValueError(f"grasp_matrix must be 16 comma-separated numbers, got {text!r}") from None
+    if values.shape != (16,) or not np.all(np.isfinite(values)):
+        raise ValueError(f"grasp_matrix must be 16 finite numbers (a 4x4, row-major), got "
+                         f"{values.size}")
+    return values.reshape(4, 4)

@@ -151,11 +151,18 @@ def test_arm_sends_the_taught_place_and_upload_the_grasp(tmp_path):
         api.arm(taught_place=np.eye(4))
         api.upload_part("bracket", mesh, "mm", grasp="flat")
         api.upload_part("bracket", mesh, "mm")
-    vector, matrix, flat, default = seen
+        taught_grasp = np.eye(4)
+        taught_grasp[:3, 3] = [0.1, -2.0, 12.5]
+        api.upload_part("bracket", mesh, "mm", grasp=taught_grasp)
+        with pytest.raises(ValueError, match="4x4"):
+            api.upload_part("bracket", mesh, "mm", grasp=np.eye(3))
+    vector, matrix, flat, default, taught = seen
     assert json.loads(vector.content)["taught_place"] == ur_pose
     assert json.loads(matrix.content)["taught_place"] == np.eye(4).tolist()
     assert dict(flat.url.params) == {"units": "mm", "format": "ply", "grasp": "flat"}
-    assert "grasp" not in default.url.params
+    assert "grasp" not in default.url.params and "grasp_matrix" not in default.url.params
+    sent = [float(v) for v in taught.url.params["grasp_matrix"].split(",")]
+    assert sent == taught_grasp.ravel().tolist() and "grasp" not in taught.url.params
 
 
 def test_no_token_no_authorization_header():

@@ -116,6 +116,43 @@ def test_the_cell_controller_places_misplaced_parts(cell, monkeypatch):
         assert np.linalg.norm(target[:3, 3] - ur_pose_to_matrix(place)[:3, 3]) < 10.0
 
 
+def test_a_part_is_uploaded_with_its_taught_grasp(cell, tmp_path):
+    import trimesh
+
+    mesh_path = tmp_path / "plate.stl"
+    trimesh.creation.box(extents=(40.0, 30.0, 10.0)).export(mesh_path)
+    grasp = np.eye(4)
+    grasp[:3, :3] = ur_pose_to_matrix([0, 0, 0, 0, 0, np.radians(3.0)])[:3, :3]
+    grasp[:3, 3] = [0.5, -1.0, 5.0]                      # the box's top face at the TCP
+    with FlyscanClient(cell.url) as client:
+        info = client.upload_part("taught-plate", mesh_path, "mm", grasp=grasp)
+        assert_allclose(info["nominal_grasp"], grasp, atol=1e-12)
+        assert_allclose(nominal_of(client, "taught-plate"), grasp, atol=1e-12)
+    for query, message in [({"grasp_matrix": "1,0,0"}, "16"),
+                           ({"grasp_matrix": ",".join(["2"] * 16)}, "rigid"),
+                           ({"grasp": "flat", "grasp_matrix": ",".join(["0"] * 16)}, "not both")]:
+        response = httpx.put(f"{cell.url}/parts/bad-grasp", params={"units": "mm", **query},
+                             content=mesh_path.read_bytes())
+        assert response.status_code == 422 and message in response.text, response.text
+
+
+def test_a_taught_grasp_is_kept_across_restarts(tmp_path):
+    import trimesh
+
+    from service.parts import PartLibrary
+
+    mesh = tmp_path / "plate.stl"
+    trimesh.creation.box(extents=(40.0, 30.0, 10.0)).export(mesh)
+    grasp = np.eye(4)
+    grasp[:3, 3] = [1.0, 2.0, 5.0]
+    library = PartLibrary(tmp_path / "data")
+    library.open()
+    library.add("plate", mesh.read_bytes(), "mm", grasp=grasp)
+    again = PartLibrary(tmp_path / "data")
+    again.open()
+    assert_allclose(again.get("plate").grasp, grasp)
+
+
 def test_settings_take_a_taught_place_as_a_ur_pose_or_a_matrix():
     assert Settings(taught_place=SETTINGS_PLACE).taught_place == SETTINGS_PLACE
     assert Settings(taught_place=np.eye(4).tolist()).taught_place == np.eye(4).tolist()
