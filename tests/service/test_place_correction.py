@@ -14,7 +14,7 @@ from numpy.testing import assert_allclose
 from clients import (CloudSubscriber, FlyscanClient, place_correction, ur_pose_to_matrix)
 from clients import cell_controller
 from clients.cell_controller import misplacement_matrix, placed_error
-from running import RunningService
+from running import FAST_PASS, RunningService
 from service.settings import Settings
 
 #: The taught place pose of the service's settings: a UR pose (m, rad), the TCP pointing down.
@@ -37,6 +37,28 @@ def cell(tmp_path_factory):
 
 def nominal_of(client, part):
     return np.asarray({p["name"]: p["nominal_grasp"] for p in client.parts()}[part])
+
+
+def test_a_pose_not_to_act_on_gives_no_move(tmp_path, monkeypatch):
+    # First in the module: its own fast cell comes and goes before the module's cell starts.
+    # At 1 m/s profiles lie 6 mm apart: the pose is flagged sparse, and act is false.
+    monkeypatch.setattr(cell_controller, "SUBSCRIBE_SETTLE_S", 0.0)
+    fast = RunningService(tmp_path / "data", env=FAST_PASS)
+    try:
+        with FlyscanClient(fast.url) as client, \
+                cell_controller.CloudCollector(fast.zmq) as clouds:
+            info = client.wait(client.arm(taught_place=SETTINGS_PLACE), timeout=60)
+            out = io.StringIO()
+            cell_controller.run(client, clouds, count=1, part=None, timeout=60.0, out=out)
+    finally:
+        fast.stop()
+    pose, correction = info["pose"], info["correction"]
+    assert pose["act"] is False and pose["act_reasons"], pose
+    assert correction["act"] is False and correction["reasons"] == pose["act_reasons"]
+    assert correction["tcp_place_mm"] is None and correction["ur_pose"] is None
+    assert_allclose(correction["taught_place_mm"], ur_pose_to_matrix(SETTINGS_PLACE), atol=SAME_MM)
+    line = out.getvalue().strip()
+    assert "NOT TO ACT ON" in line and "; do not place: " in line and "sparse" in line, line
 
 
 def test_the_scan_carries_the_correction_over_rest_zeromq_and_its_report(cell):
