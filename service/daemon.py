@@ -72,7 +72,8 @@ class Service:
             self.driver.builtin_parts() if self.driver is not None else None))
         self.publisher = Publisher(settings.zmq, hwm=settings.zmq_hwm)
         self.metrics = Metrics()
-        self.pose_params = PoseParams()
+        self.pose_params = PoseParams(act_tolerance_mm=settings.act_tolerance_mm,
+                                      act_tolerance_deg=settings.act_tolerance_deg)
         params = PipelineParams(stripe_method=settings.stripe_method,
                                 exposure=ExposureParams(mode=settings.exposure_mode,
                                                         target_peak_dn=settings.exposure_target_dn,

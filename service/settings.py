@@ -67,6 +67,12 @@ class Settings(BaseSettings):
     default_part: str | None = Field(None, description="part used when a scan names none")
     clock_offset_s: float = Field(0.0, description="robot minus camera clock, s, until estimated")
     cross_check_tolerance_mm: float = Field(0.1, gt=0)
+    act_tolerance_mm: float = Field(
+        0.1, gt=0, le=100, description="the placement tolerance, mm: a pose is acted on "
+        "(pose.act) only when every translation's 3 sigma lies within it")
+    act_tolerance_deg: float = Field(
+        0.1, gt=0, le=180, description="the placement tolerance, degrees: as act_tolerance_mm "
+        "for rotations")
     led_correction_t_mm: tuple[float, float, float] | None = Field(
         None, description="marker minus robot track in {T}, mm, what the calibration's LED "
                           "offset misses; unset: learned from the first cross-checked pass")

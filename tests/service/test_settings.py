@@ -61,3 +61,24 @@ def test_the_simulated_cell_can_be_a_realistic_one(monkeypatch):
         load_settings(None, sim_effects="lens,,fog!")
     with pytest.raises(ValueError, match="fog"):
         simulated_devices(load_settings(None, sim=True, sim_effects="lens,fog"))
+
+
+def test_the_act_tolerance_reaches_the_pose_and_must_be_one(tmp_path):
+    """The cell's placement tolerance (settings) is what the service's poses are judged by;
+    none that is not positive is accepted."""
+    from service.cli.simdevices import simulated_devices
+    from service.daemon import Service
+
+    settings = load_settings(None, sim=True, data=tmp_path / "data", act_tolerance_mm=0.02,
+                             act_tolerance_deg=0.03)
+    devices = simulated_devices(settings)
+    try:
+        service = Service(settings, devices=devices)
+        assert service.pose_params.act_tolerance_mm == 0.02
+        assert service.pose_params.act_tolerance_deg == 0.03
+    finally:
+        devices[0].close()
+    for field, value in (("act_tolerance_mm", 0.0), ("act_tolerance_deg", -1.0),
+                         ("act_tolerance_mm", float("nan"))):
+        with pytest.raises(ValidationError, match=field):
+            load_settings(None, **{field: value})
