@@ -276,6 +276,10 @@ def _percentiles(values) -> dict:
     return out
 
 
+def _mean(values) -> float | None:
+    return float(np.mean(values)) if values else None
+
+
 def _z_max(rows) -> dict:
     """The largest |z| per axis (None: no finite z) over `rows`."""
     out = {}
@@ -303,6 +307,14 @@ def _by_level(rows) -> list[dict]:
     return out
 
 
+def _reason_kind(reason: str) -> str:
+    """A reason that blocked act, without its figures: the words before its colon ("poor
+    fit", "partial scan", "not observable"), an axis's 3 sigma as "3 sigma beyond the act
+    tolerance"."""
+    kind = reason.split(":")[0]
+    return "3 sigma beyond the act tolerance" if kind in AXES else kind
+
+
 def _part_summary(rows) -> dict:
     acted = [r for r in rows if r["act"]]
     observable = [r for r in rows if r.get("observable")]
@@ -310,8 +322,7 @@ def _part_summary(rows) -> dict:
     for r in rows:
         if not r["act"]:
             for reason in r["act_reasons"]:
-                key = reason.split(":")[0]
-                reasons[key] = reasons.get(key, 0) + 1
+                reasons[_reason_kind(reason)] = reasons.get(_reason_kind(reason), 0) + 1
     outside = [r for r in acted if r.get("outside_tolerance")]
     return {
         "picks": len(rows),
@@ -329,6 +340,11 @@ def _part_summary(rows) -> dict:
         "acted_outside_tolerance_picks": [
             {"seed": r["seed"], "misplacement": r["misplacement"], "placed": r["placed"]}
             for r in outside],
+        # The pose's error in {T} of the picks acted on, signed, per axis (um, mdeg): a bias
+        # common to the picks (the calibration's) shows here.
+        "pose_error_mean_acted": {axis: _mean([(r["translation_um"] + r["rotation_mdeg"])[i]
+                                               for r in acted])
+                                  for i, axis in enumerate(AXES)},
         "max_abs_z_acted": _z_max(acted),
         "max_abs_z_observable": _z_max(observable),
         "beyond_3_sigma_acted_or_observable": _beyond([r for r in rows
