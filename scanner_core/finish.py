@@ -7,14 +7,15 @@ live pass reported.
 
 1. **Verdict** (:func:`pass_failure`): the one rule that makes a finished pass a failed scan
    (it timed out, the camera stopped, no profile was placed, no point was found...).
-2. **Cross-check** (:func:`check_against_robot`): the marker-derived TCP track against the
+2. **Pose** (``scanner_core.pose.scan_pose``) against the part's CAD model
+   (``scanner_core.cad.PartModel``), when the pass is a scan and a model is given, handed
+   at once to ``on_pose`` (the service publishes it: the robot waits for it alone); with a
+   pose that constrains every axis the edge points off the model's edges are then set aside
+   (``scanner_core.edge_kinds.reclassify_with_model``: the model says where its edges are).
+3. **Cross-check** (:func:`check_against_robot`): the marker-derived TCP track against the
    robot's reports, with the clock offset and the LED offset's correction it learns. What it
    carries from pass to pass is a :class:`CrossCheckState`, passed in and returned, never
-   hidden in the finisher.
-3. **Pose** (``scanner_core.pose.scan_pose``) against the part's CAD model
-   (``scanner_core.cad.PartModel``), when the pass is a scan and a model is given; with a
-   pose that constrains every axis the edge points off the model's edges are set aside
-   (``scanner_core.edge_kinds.reclassify_with_model``: the model says where its edges are).
+   hidden in the finisher. After the pose, which does not use it.
 4. **Report** (``scanner_core.report.scan_report``): ``report.json``, with the verdict.
 
 Pure: no threads, sockets or files. The caller publishes and stores.
@@ -225,9 +226,9 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
         Called as soon as the pose is known (or refused), before anything the robot does not
         need (the edge points' reclassification, the report): the service publishes the pose
         from it, so the robot never waits for those. ``pose_report`` is what the outcome's
-        ``pose_report`` will be; ``timings_ms`` the timings so far (``cross_check``, ``pose``,
-        ``normals``, ``registration``). Not called when no pose is asked for (no model, a
-        failed pass).
+        ``pose_report`` will be; ``timings_ms`` the timings so far (``pose``, ``normals``,
+        ``registration``: the cross-check comes after the pose, which does not use it). Not
+        called when no pose is asked for (no model, a failed pass).
     **report_extra
         Further ``report.json`` entries (the service's scan id and times, a replay's source).
 
@@ -240,11 +241,6 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
     timings = {}
     failure = pass_failure(scan, end_reason, detail=detail, note=note, frames_lost=frames_lost,
                            queue_overflows=queue_overflows, worker_errors=worker_errors)
-    check = None
-    t0 = time.perf_counter()
-    if robot is not None and scan.frames > 0:
-        check, state = check_against_robot(scan, robot, state, scan_id=scan_id)
-    timings["cross_check"] = round((time.perf_counter() - t0) * 1e3, 3)
     pose = pose_report = None
     if failure is None and part_model is not None:
         t0 = time.perf_counter()
@@ -264,6 +260,13 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
             t0 = time.perf_counter()
             reclassify_with_model(scan, part_model.model_edges, pose.matrix)
             timings["reclassify"] = round((time.perf_counter() - t0) * 1e3, 3)
+    # After the pose, which does not use it: the robot need not wait for it (it judges the
+    # track the pass was placed by, and hands the next pass its clock offset).
+    check = None
+    t0 = time.perf_counter()
+    if robot is not None and scan.frames > 0:
+        check, state = check_against_robot(scan, robot, state, scan_id=scan_id)
+    timings["cross_check"] = round((time.perf_counter() - t0) * 1e3, 3)
     t0 = time.perf_counter()
     state_name = "failed" if failure else "done"
     ended = None if end_reason is None else end_reason.value + (f": {detail}" if detail else "")

@@ -109,9 +109,12 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, iterations=No
             continue
         if sparse is None and np.all(np.abs(observed) < step_tol):
             break
+    rows = None
     if iterations is None:
-        pose = _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params)
-    (jac, res, w, frames, matched), _ = _linearise(surface, edges, pose, centre, gates, params)
+        pose, rows = _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params)
+    if rows is None:
+        rows, _ = _linearise(surface, edges, pose, centre, gates, params)
+    jac, res, w, frames, matched = rows
     inlier_fraction = matched / max(len(surface.points), 1)
     edge_fraction = ((len(res) - matched) / len(edges.points)) if edges is not None else 1.0
     rms = float(np.sqrt(np.sum(w * res**2) / np.sum(w))) if len(res) else np.inf
@@ -125,14 +128,18 @@ def _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params
     A free motion is one the scan does not pin down (`_observable`); a weak constraint (the
     facets of a turned cylinder) or the noise would otherwise leave it anywhere, and with it
     the {T} origin of a part turned about an axis that misses the origin.
+
+    Returns the pose and, when it is the pose given (nothing free), its linearisation
+    (`_linearise`'s first value), else None: the caller need not linearise there again.
     """
-    (jac, res, w, frames, _), _ = _linearise(surface, edges, pose, centre, gates, params)
+    rows, _ = _linearise(surface, edges, pose, centre, gates, params)
+    jac, res, w, frames, _ = rows
     if len(res) < 6:
-        return pose
+        return pose, rows
     _, vectors, strong = _directions(jac, w, frames, scale, params)
     free = vectors[:, ~strong]
     if free.shape[1] == 0:
-        return pose
+        return pose, rows
     s = np.array([1.0, 1.0, 1.0, scale, scale, scale])
     moved = pose @ np.linalg.inv(start)
     twist = np.concatenate([moved[:3, :3] @ centre + moved[:3, 3] - centre,
@@ -148,7 +155,7 @@ def _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params
         pose = _apply(observed, centre) @ pose
         if np.all(np.abs(observed) < step_tol):
             break
-    return pose
+    return pose, None
 
 
 def _linearise(surface, edges, pose, centre, gates, params):

@@ -173,9 +173,11 @@ class Service:
             if self.driver is None or held is None:
                 raise ValueError("misplace is for the simulated cell, and a part, only")
             misplacement = self.driver.misplacement(held, misplace)
-        if held is not None:
+        if held is not None and self.engine.trigger.state.value in ("idle", "fault"):
             # What the pose needs of the part beyond the scan, built before its first pass
-            # rather than after it, while the robot waits (only the first arm of a part pays).
+            # rather than after it, while the robot waits (only the first arm of a part pays,
+            # 0.1-3 s for the reference parts); never while a pass is acquired or finished
+            # (the arm is refused then anyway).
             held.prepare()
         if record:
             self._prune_recordings(keep=self.settings.recordings_kept - 1)
@@ -274,7 +276,7 @@ class Service:
                 if key in scan.timings_ms:
                     path[key] = scan.timings_ms[key]
             path["cloud"] = _ms(called - entered)
-            for key in ("cross_check", "normals", "registration"):
+            for key in ("normals", "registration"):
                 if key in timings:
                     path[key] = timings[key]
             path["pose_checks"] = max(round(timings["pose"] - timings.get("normals", 0.0)

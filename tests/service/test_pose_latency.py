@@ -11,8 +11,8 @@ from running import FAST_PASS, RunningService
 SLOW_JOINER_S = 0.5
 #: Each stage is rounded to 1 us: their sum may exceed the total by that much per stage.
 ROUNDING_MS = 0.001
-STAGES = {"pass_end", "handoff", "wait_workers", "assemble", "cloud", "cross_check", "normals",
-          "registration", "pose_checks", "publish"}
+STAGES = {"pass_end", "handoff", "wait_workers", "assemble", "cloud", "normals", "registration",
+          "pose_checks", "publish"}
 
 
 def test_the_pose_latency_and_its_path(tmp_path):
