@@ -26,6 +26,8 @@ from scanner_core.geometry import (NO_DISTORTION, MarkerViews, Mirror, PinholeCa
 ROTATION_TOL = 1e-6
 #: The version this code writes, and the versions it reads.
 CALIBRATION_VERSION = 2
+#: A marker offset known no better than this (mm) is no calibration.
+MAX_MARKER_STD_MM = 10.0
 READABLE_VERSIONS = (1, 2)
 
 
@@ -53,6 +55,12 @@ class Calibration:
     provenance : dict
         How the calibration was made (``flyscan calibrate``): ``date``, ``cell``,
         ``observations``, ``models`` and their ``residuals``. Empty for a hand-made one.
+    marker_offset_std_mm : (3,) float64 or None
+        Standard deviation of `marker_offset_t` along the {T} axes, mm, as the calibration
+        measured it (``scanner_core.crosscheck.estimate_led_and_clock``). Every profile of a
+        scan shares its marker offset's error, so a pose's translation carries it whole
+        (``scanner_core.pose.scan_pose``). None: not measured (a hand-made or a true cell's
+        calibration), taken as 0.
     """
 
     camera: PinholeCamera
@@ -62,6 +70,7 @@ class Calibration:
     marker_offset_t: np.ndarray
     clock_offset_s: float = 0.0
     provenance: dict = field(default_factory=dict, compare=False, repr=False)
+    marker_offset_std_mm: np.ndarray | None = None
 
     @property
     def strips(self) -> tuple[tuple[int, int], ...]:
@@ -104,6 +113,8 @@ class Calibration:
             "marker_offset_t_mm": self.marker_offset_t.tolist(),
             "clock_offset_s": self.clock_offset_s,
             "provenance": self.provenance,
+            **({} if self.marker_offset_std_mm is None
+               else {"marker_offset_std_mm": np.asarray(self.marker_offset_std_mm).tolist()}),
         }
 
     @classmethod
@@ -149,7 +160,13 @@ class Calibration:
         _check(camera, plane, tuple(mirrors), direct, marker)
         if not np.isfinite(clock):
             raise CalibrationError(f"`clock_offset_s` must be finite, got {clock}")
-        return cls(camera, plane, tuple(mirrors), direct, marker, clock, provenance)
+        marker_std = None
+        if data.get("marker_offset_std_mm") is not None:
+            marker_std = _array(data, "", "marker_offset_std_mm", (3,))
+            if not (np.all(marker_std >= 0) and np.all(marker_std <= MAX_MARKER_STD_MM)):
+                raise CalibrationError(f"`marker_offset_std_mm` must be 3 numbers in [0, "
+                                       f"{MAX_MARKER_STD_MM:g}] mm, got {marker_std.tolist()}")
+        return cls(camera, plane, tuple(mirrors), direct, marker, clock, provenance, marker_std)
 
 
 def _columns(obj, where: str, key: str = "columns") -> tuple[int, int]:

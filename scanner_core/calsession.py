@@ -39,7 +39,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 from scanner_core.calibration import Calibration, CalibrationError
-from scanner_core.crosscheck import estimate_led_and_clock
+from scanner_core.crosscheck import estimate_led_and_clock, led_offset_spread
 from scanner_core.geometry import Plane
 from scanner_core.marker import find_markers
 from scanner_core.pipeline import PipelineParams, camera_frames, frame_stripe, run_pass
@@ -181,11 +181,15 @@ def _led_and_clock(session: Session, calibration: Calibration,
                                                     calibration.marker_offset_t)
         led, offset, rms = estimate_led_and_clock(scan.tcp_times, marker_b, robot,
                                                   initial_offset_s=calibration.clock_offset_s)
+        spread = led_offset_spread(scan.tcp_times, marker_b, robot, offset)
     finally:
         camera.close()
         robot.disconnect()
-    return (replace(calibration, marker_offset_t=led, clock_offset_s=offset),
+    led_std = None if not np.isfinite(spread).all() else spread
+    return (replace(calibration, marker_offset_t=led, clock_offset_s=offset,
+                    marker_offset_std_mm=led_std),
             {"clock_offset_s": offset, "led_t_mm": led.tolist(), "rms_mm": rms,
+             "led_std_t_mm": None if led_std is None else led_std.tolist(),
              "frames": int(len(scan.tcp_times))})
 
 

@@ -215,6 +215,7 @@ class PassAccumulator:
             marker_residual_px=float(np.median(residuals)) if residuals else float("nan"),
         )
         scan.points_partly_lit = partly_lit_points
+        scan.placement_std_mm = self.calibration.marker_offset_std_mm
         scan.frames_held_rotation = held
         scan.frames_without_rotation = no_rotation
         scan.tcp_frame_ids = np.array([p.frame_id for p in placed], dtype=np.int64)

@@ -184,6 +184,9 @@ class Scan:
     normals : (N, 3) float32 or None
         Unit normals of the cloud toward the camera; computed once, on first use, by
         ``scanner_core.scanio.scan_normals``.
+    placement_std_mm : (3,) float64 or None
+        Standard deviation, mm along the {T} axes, of the error every profile's placement
+        shares: the calibration's ``marker_offset_std_mm`` (None: not measured).
     """
 
     cloud: np.ndarray
@@ -213,6 +216,7 @@ class Scan:
     edges_grazing: int = 0
     edges_aside: object = None
     points_partly_lit: int = 0
+    placement_std_mm: np.ndarray | None = None
     normals: np.ndarray | None = None
 
     @property

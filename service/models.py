@@ -229,3 +229,8 @@ class CalibrationModel(BaseModel):
     clock_offset_s: float = Field(default=0.0, description="robot clock minus camera clock, s")
     provenance: dict = Field(default={}, description="how it was made: date, cell, models, "
                                                      "residuals, observations")
+    marker_offset_std_mm: Vector3 | None = Field(
+        None, min_length=3, max_length=3,
+        description="standard deviation of marker_offset_t_mm along the {T} axes, mm, as "
+                    "flyscan calibrate measured it (0 to 10); every pose's translation "
+                    "carries it. Null: not measured")

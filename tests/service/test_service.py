@@ -173,6 +173,12 @@ def test_calibration_round_trip_and_a_bad_one_refused(service):
         back = client.put_calibration(lens)
         assert back["camera"]["distortion"] == lens["camera"]["distortion"]
         assert back["clock_offset_s"] == 0.0125 and back["provenance"] == {"cell": "test"}
+        # ... and one that says how well its marker offset is known (issue 27) keeps it.
+        measured = client.put_calibration({**calibration, "marker_offset_std_mm": [0.001, 0.01, 0.002]})
+        assert measured["marker_offset_std_mm"] == [0.001, 0.01, 0.002]
+        assert client.calibration()["marker_offset_std_mm"] == [0.001, 0.01, 0.002]
+        with pytest.raises(Unprocessable, match="marker_offset_std_mm"):
+            client.put_calibration({**calibration, "marker_offset_std_mm": [0.0, -1.0, 0.0]})
         client.put_calibration(calibration)
         assert client.calibration() == calibration
 
