@@ -452,8 +452,19 @@ def _plot_pose(pose: dict, ax_points, ax_path, ax_stages) -> None:
     ax_points.axhline(TARGET_POSE_P95_MS, color="r", ls="--",
                       label=f"target p95 {TARGET_POSE_P95_MS:g} ms")
     ax_points.axvline(TARGET_POSE_POINTS, color="gray", ls=":")
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullLocator
+
     ax_points.set_xscale("log")
     ax_points.set_yscale("log")
+    for axis, ticks, label in (
+            (ax_points.xaxis, (500, 1_000, 2_000, 5_000, 10_000, 20_000, 50_000, 100_000),
+             lambda v, _: f"{v / 1000:g}k"),
+            (ax_points.yaxis, (50, 100, 150, 200, 500, 1_000, 2_000, 5_000, 10_000, 20_000),
+             lambda v, _: f"{v:g}")):
+        axis.set_major_locator(FixedLocator(ticks))
+        axis.set_minor_locator(NullLocator())
+        axis.set_major_formatter(FuncFormatter(label))
+    ax_points.set_ylim(bottom=min([100.0] + [0.8 * r["pose_published_ms"] for r in rows]))
     ax_points.set_xlabel("points in the scan")
     ax_points.set_ylabel("last frame -> pose on ZeroMQ, ms")
     within = pose["pose_published_ms_up_to_target_points"]
