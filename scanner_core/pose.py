@@ -147,6 +147,14 @@ class PoseParams:
         mm and 20 degrees): along a free motion the pose keeps its start, so its error there
         is bounded by this alone, and the other axes' sigmas take it in
         (``scanner_core.pose_confidence._free_prior``).
+    robot_rotation_std_deg : float
+        How far off the robot reports its orientation during the pass (its accuracy), degrees
+        per axis: every profile is placed with the reported rotation, so the whole cloud turns
+        by that error about the TCP, and the pose with it, however many profiles it has
+        (``scan_pose`` adds it to the rotations' variance). Default 0.005 degrees; take the
+        robot's datasheet or its own calibration. The realistic simulated cell's robot
+        reports 0.002 degrees off; without this term ``flyscan bench place`` saw poses acted
+        on 3.0 to 3.8 of their sigmas off about y_T.
     seed : int
         Seed of the subsampling.
     """
@@ -176,6 +184,7 @@ class PoseParams:
     act_tolerance_deg: float = 0.1
     prior_mm: float = 10.0
     prior_deg: float = 20.0
+    robot_rotation_std_deg: float = 0.005
     seed: int = 0
 
     def __post_init__(self):
@@ -183,6 +192,9 @@ class PoseParams:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"PoseParams.{name} must be finite and > 0, got {value!r}")
+        if not (np.isfinite(self.robot_rotation_std_deg) and self.robot_rotation_std_deg >= 0):
+            raise ValueError(f"PoseParams.robot_rotation_std_deg must be finite and >= 0, got "
+                             f"{self.robot_rotation_std_deg!r}")
 
 
 @dataclass
@@ -407,31 +419,38 @@ def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeMod
                       edge_frame_ids=edge_frames if use_edges else None,
                       edge_model=edge_model if use_edges else None,
                       edge_steps_mm=_scan_steps(scan) if use_edges else None, params=params)
-    coverage = _coverage_flags(scan, result.matrix, surface_model)
+    result.flags += _coverage_flags(scan, result.matrix, surface_model)
     placement = getattr(scan, "placement_std_mm", None)
-    if coverage or placement is not None:
-        result.flags += coverage
-        if placement is not None:
-            _add_placement_error(result, placement)
-        judge(result, surface_model, params)
+    _add_placement_error(result, np.zeros(3) if placement is None else placement,
+                         params.robot_rotation_std_deg)
+    judge(result, surface_model, params)
     result.normals_ms = (time.perf_counter() - t0) * 1e3 - result.time_ms
     return result
 
 
-def _add_placement_error(result: PoseResult, std_mm) -> None:
-    """The error every profile's placement shares (the calibration's marker offset,
-    ``Scan.placement_std_mm``: (3,) mm along the {T} axes) added to the pose's translation
-    covariance: it shifts the whole cloud in {T}, so the pose's translation carries it whole,
-    however many profiles average their own errors away. In ``flyscan bench place``'s
-    calibrated cell, the marker offset 19 um off its truth put every pose acted on 17-18 um
-    off along y_T against sigmas of 4 um."""
+def _add_placement_error(result: PoseResult, std_mm, rotation_std_deg: float = 0.0) -> None:
+    """The errors every profile's placement shares, added to the pose's covariance: they
+    move the whole cloud in {T}, so the pose carries them whole, however many profiles
+    average their own errors away.
+
+    - `std_mm` (3,): the calibration's marker offset (``Scan.placement_std_mm``), mm along
+      the {T} axes, onto the translations. In ``flyscan bench place``'s calibrated cell the
+      marker offset 19 um off its truth put every pose acted on 17-18 um off along y_T
+      against sigmas of 4 um.
+    - `rotation_std_deg`: the robot's orientation report (``PoseParams
+      .robot_rotation_std_deg``), onto each rotation: a turn of the cloud about the TCP, the
+      {T} origin, which moves no translation of it.
+    """
     std = np.asarray(std_mm, dtype=np.float64).reshape(3)
     if not (np.isfinite(std).all() and np.all(std >= 0)):
         raise ValueError(f"placement_std_mm must be 3 finite numbers >= 0, got {std.tolist()}")
     result.covariance = result.covariance.copy()
     result.covariance[:3, :3] += np.diag(std**2)
+    result.covariance[3:, 3:] += np.eye(3) * np.radians(rotation_std_deg) ** 2
     with np.errstate(invalid="ignore"):
-        result.std[:3] = np.sqrt(np.diag(result.covariance)[:3])
+        variance = np.diag(result.covariance)
+        result.std[:3] = np.sqrt(variance[:3])
+        result.std[3:] = np.degrees(np.sqrt(variance[3:]))
 
 
 def _scan_steps(scan) -> np.ndarray | None:

@@ -73,7 +73,8 @@ class Service:
         self.publisher = Publisher(settings.zmq, hwm=settings.zmq_hwm)
         self.metrics = Metrics()
         self.pose_params = PoseParams(act_tolerance_mm=settings.act_tolerance_mm,
-                                      act_tolerance_deg=settings.act_tolerance_deg)
+                                      act_tolerance_deg=settings.act_tolerance_deg,
+                                      robot_rotation_std_deg=settings.robot_rotation_std_deg)
         params = PipelineParams(stripe_method=settings.stripe_method,
                                 exposure=ExposureParams(mode=settings.exposure_mode,
                                                         target_peak_dn=settings.exposure_target_dn,

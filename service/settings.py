@@ -73,6 +73,9 @@ class Settings(BaseSettings):
     act_tolerance_deg: float = Field(
         0.1, gt=0, le=180, description="the placement tolerance, degrees: as act_tolerance_mm "
         "for rotations")
+    robot_rotation_std_deg: float = Field(
+        0.005, ge=0, le=1, description="how far off the robot reports its orientation (its "
+        "accuracy), degrees: it turns every profile alike, so every pose's rotations carry it")
     led_correction_t_mm: tuple[float, float, float] | None = Field(
         None, description="marker minus robot track in {T}, mm, what the calibration's LED "
                           "offset misses; unset: learned from the first cross-checked pass")

@@ -97,8 +97,8 @@ def test_the_pose_carries_the_placement_error_whole():
     """A pose whose profiles average their own errors to 4 um along y_T is still off by the
     calibration's marker offset: 10 um of it makes y_T's sigma sqrt(4^2 + 10^2); a free axis
     stays unknown; a tolerance the sum exceeds is not acted on."""
-    std = np.array([0.002, 0.004, np.nan, 0.003, 0.003, 0.003])
-    covariance = np.diag(np.nan_to_num(std, nan=0.0) ** 2)
+    std = np.array([0.002, 0.004, np.nan, 0.003, 0.003, 0.003])  # mm, degrees
+    covariance = np.diag(np.nan_to_num(np.r_[std[:3], np.radians(std[3:])], nan=0.0) ** 2)
     covariance[2, :] = covariance[:, 2] = np.nan
     result = PoseResult(matrix=np.eye(4), misplacement=np.eye(4), rms_mm=0.01,
                         inlier_fraction=0.99, std=std.copy(), covariance=covariance)
@@ -114,3 +114,16 @@ def test_the_pose_carries_the_placement_error_whole():
     assert result.act
     with pytest.raises(ValueError, match="placement_std_mm"):
         _add_placement_error(result, [0.0, -1.0, 0.0])
+
+
+def test_the_robot_s_orientation_report_turns_the_pose_too():
+    """The robot reports its orientation 4 mdeg off (PoseParams.robot_rotation_std_deg): each
+    rotation's sigma grows to sqrt(3^2 + 4^2) = 5 mdeg, no translation's does."""
+    std = np.array([0.002, 0.002, 0.002, 0.003, 0.003, 0.003])
+    covariance = np.diag(np.r_[std[:3], np.radians(std[3:])] ** 2)
+    result = PoseResult(matrix=np.eye(4), misplacement=np.eye(4), rms_mm=0.01,
+                        inlier_fraction=0.99, std=std.copy(), covariance=covariance)
+    _add_placement_error(result, np.zeros(3), 0.004)
+    np.testing.assert_allclose(result.std, [0.002, 0.002, 0.002, 0.005, 0.005, 0.005])
+    with pytest.raises(ValueError, match="robot_rotation_std_deg"):
+        PoseParams(robot_rotation_std_deg=-0.001)

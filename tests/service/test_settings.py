@@ -70,15 +70,16 @@ def test_the_act_tolerance_reaches_the_pose_and_must_be_one(tmp_path):
     from service.daemon import Service
 
     settings = load_settings(None, sim=True, data=tmp_path / "data", act_tolerance_mm=0.02,
-                             act_tolerance_deg=0.03)
+                             act_tolerance_deg=0.03, robot_rotation_std_deg=0.01)
     devices = simulated_devices(settings)
     try:
         service = Service(settings, devices=devices)
         assert service.pose_params.act_tolerance_mm == 0.02
         assert service.pose_params.act_tolerance_deg == 0.03
+        assert service.pose_params.robot_rotation_std_deg == 0.01
     finally:
         devices[0].close()
     for field, value in (("act_tolerance_mm", 0.0), ("act_tolerance_deg", -1.0),
-                         ("act_tolerance_mm", float("nan"))):
+                         ("act_tolerance_mm", float("nan")), ("robot_rotation_std_deg", -0.1)):
         with pytest.raises(ValidationError, match=field):
             load_settings(None, **{field: value})
