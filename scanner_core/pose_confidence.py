@@ -36,6 +36,8 @@ _RMS_FLAG = 5.0
 # A free motion's turn part (scaled, of a unit motion) below this is round-off: it slides.
 _FREE_TURN = 1e-8
 
+#: A flag that informs and does not stop a robot acting on the pose (``judge``).
+EDGES_NOTE = "edges: "
 #: Profiles farther apart than this (mm) sample a part's features too coarsely for the
 #: uncertainty to be trusted: a hole's rim crossed by two profiles pins little.
 MAX_PROFILE_SPACING_MM = 3.0
@@ -191,9 +193,12 @@ def _flags(fit: _Fit, free_axes, with_edges: bool, params: PoseParams) -> list[s
     flags = []
     if fit.inlier_fraction < params.good_inlier_fraction:
         flags.append(f"poor fit: {fit.inlier_fraction:.0%} of the points match the model")
-    if with_edges and fit.edge_fraction < params.good_edge_fraction:
+    if with_edges and fit.edge_fraction < params.act_edge_fraction:
         flags.append(f"poor fit: {fit.edge_fraction:.0%} of the edge points match the model's "
                      "edges")
+    elif with_edges and fit.edge_fraction < params.good_edge_fraction:
+        flags.append(f"{EDGES_NOTE}{fit.edge_fraction:.0%} of the edge points match the "
+                     "model's edges")
     if fit.rms > _RMS_FLAG * params.surface_noise_mm:
         flags.append(f"large residuals: {fit.rms * 1e3:.0f} um RMS")
     if free_axes:
@@ -272,6 +277,6 @@ def judge(result, model: SurfaceModel | None, params: PoseParams) -> None:
             reasons.insert(0, "near symmetry: " + result.symmetry["label"])
     result.observable = not (result.free_axes or loose or far)
     others = [f for f in result.flags
-              if not f.startswith(("not observable: ", "ambiguous: "))]
+              if not f.startswith(("not observable: ", "ambiguous: ", EDGES_NOTE))]
     result.act_reasons = reasons + others
     result.act = result.observable and not others
