@@ -142,15 +142,13 @@ def load_part_model(args):
 
 def add_act_tolerance(parser) -> None:
     """``--act-tolerance-mm`` and ``--act-tolerance-deg``: the placement tolerance the pose's
-    ``act`` verdict holds it to (``scanner_core.pose.PoseParams``)."""
-    from scanner_core.pose import PoseParams
-
-    defaults = PoseParams()
-    parser.add_argument("--act-tolerance-mm", type=float, default=defaults.act_tolerance_mm,
+    ``act`` verdict holds it to (``scanner_core.pose.PoseParams``; not imported here: every
+    command's parser is built at start, and the pose's imports are not light)."""
+    parser.add_argument("--act-tolerance-mm", type=float, default=None,
                         help="placement tolerance, mm: the pose is acted on only when every "
-                             "translation's 3 sigma lies within it")
-    parser.add_argument("--act-tolerance-deg", type=float, default=defaults.act_tolerance_deg,
-                        help="placement tolerance, degrees, for the rotations")
+                             "translation's 3 sigma lies within it (default 0.1)")
+    parser.add_argument("--act-tolerance-deg", type=float, default=None,
+                        help="placement tolerance, degrees, for the rotations (default 0.1)")
 
 
 def pose_params(args):
@@ -158,9 +156,11 @@ def pose_params(args):
     for a tolerance that is not finite and positive."""
     from scanner_core.pose import PoseParams
 
+    given = {name: value for name, value in (("act_tolerance_mm", args.act_tolerance_mm),
+                                              ("act_tolerance_deg", args.act_tolerance_deg))
+             if value is not None}
     try:
-        return PoseParams(act_tolerance_mm=args.act_tolerance_mm,
-                          act_tolerance_deg=args.act_tolerance_deg)
+        return PoseParams(**given)
     except ValueError as exc:
         raise UsageError(str(exc).replace("PoseParams.act_tolerance_", "--act-tolerance-")
                          .replace("_", "-")) from None
