@@ -102,7 +102,10 @@ def test_it_runs_flyscan_serve_simulated_as_a_user():
     assert int(option(argv, "--port")) == REST_PORT
     assert option(argv, "--zmq") == f"tcp://0.0.0.0:{ZMQ_PORT}"
     assert option(argv, "--data") == "/data"
-    assert instruction("FROM")[0].startswith("python:3.11-slim")
+    # The base is an argument (docker/build_local.py builds on a local one), python:3.11-slim
+    # unless told otherwise.
+    assert instruction("FROM")[0] == "${BASE_IMAGE}"
+    assert instructions()[0] == ("ARG", "BASE_IMAGE=python:3.11-slim")
     user = instruction("USER")[-1].split(":")[0]
     assert user not in ("root", "0")
     assert "/data" in exec_form(instruction("VOLUME")[-1])
