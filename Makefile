@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 OUT ?= out
 
-.PHONY: run scan-demo test bench clean
+.PHONY: run scan-demo test bench image clean
 
 $(BIN)/flyscan: pyproject.toml
 	bash scripts/system-deps.sh
@@ -35,6 +35,11 @@ bench: $(BIN)/flyscan
 	$(BIN)/flyscan bench surfaces --out $(OUT)/bench/surfaces
 	$(BIN)/flyscan bench calibrate --out $(OUT)/bench/calibrate
 	$(BIN)/flyscan bench edges --out $(OUT)/bench/edges
+
+# docker/Dockerfile built with buildah on a debootstrapped base, run, and a scan through it; as
+# root, installs buildah and debootstrap when missing (docs/docker.md). No .venv needed.
+image:
+	$(PYTHON) docker/build_local.py
 
 clean:
 	rm -rf $(VENV) $(OUT) *.egg-info

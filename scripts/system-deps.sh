@@ -4,9 +4,14 @@
 #   chromium: the status page's browser test (playwright drives Debian's chromium; it cannot
 #     download a browser of its own here).
 #   libusb-1.0-0 (with the argument "bench"): Open3D, the benchmarks' yardstick, links to it.
+#   buildah, debootstrap (with the argument "docker"): docker/build_local.py builds and runs the
+#     Docker image without a Docker engine or a registry (docs/docker.md).
 set -euo pipefail
 packages=(libgl1 chromium)
-[ "${1:-}" = bench ] && packages+=(libusb-1.0-0)
+case "${1:-}" in
+    bench) packages+=(libusb-1.0-0) ;;
+    docker) packages+=(buildah debootstrap) ;;
+esac
 missing=()
 for pkg in "${packages[@]}"; do
     dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
@@ -25,5 +30,7 @@ if [ "$(id -u)" -ne 0 ]; then
     run=(sudo)
 fi
 echo "system-deps: installing ${missing[*]}" >&2
-"${run[@]}" apt-get update -qq
-DEBIAN_FRONTEND=noninteractive "${run[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}"
+# Another apt-get (another user's install) may hold dpkg's lock: wait for it rather than fail.
+"${run[@]}" apt-get update -qq -o DPkg::Lock::Timeout=300
+DEBIAN_FRONTEND=noninteractive "${run[@]}" apt-get install -y -qq --no-install-recommends \
+    -o DPkg::Lock::Timeout=300 "${missing[@]}"
