@@ -63,6 +63,12 @@ class Failed(RuntimeError):
     """A step that did not do its job, with what it printed."""
 
 
+def _stopped(signum, _frame):
+    """SIGTERM (a test's timeout): fail where the run is, so that it cleans up; once only."""
+    signal.signal(signum, signal.SIG_IGN)
+    raise Failed(f"stopped by signal {signum}")
+
+
 def log(message: str) -> None:
     print(f"build_local: {message}", file=sys.stderr, flush=True)
 
@@ -301,7 +307,8 @@ def unmount_under(work: Path) -> list[str]:
 
 def run_all(args, work: Path) -> dict:
     buildah = Buildah(work)
-    result: dict = {}
+    # The machine's load when the run starts: the times below depend on it.
+    result: dict = {"load_1min": round(os.getloadavg()[0], 1)}
     server = None
     t_start = time.monotonic()
     try:
@@ -401,8 +408,7 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, help="also write the result to this file")
     args = parser.parse_args(argv)
 
-    # Ended by a signal (a test's timeout), still clean up: finally blocks run on SystemExit.
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+    signal.signal(signal.SIGTERM, _stopped)
     try:
         ensure_tools()
     except Failed as exc:
