@@ -113,12 +113,16 @@ def free_ports(count: int) -> list[int]:
             s.close()
 
 
+#: The server is on the loopback: never through a proxy the environment may name.
+_OPENER = urllib.request.build_opener(urllib.request.ProxyHandler({}))
+
+
 def http(method: str, url: str, body: dict | None = None, timeout: float = 10.0):
     """(status, parsed JSON or raw bytes) of one request."""
     data = None if body is None else json.dumps(body).encode()
     request = urllib.request.Request(url, data=data, method=method,
                                      headers={"Content-Type": "application/json"})
-    with urllib.request.urlopen(request, timeout=timeout) as response:
+    with _OPENER.open(request, timeout=timeout) as response:
         raw = response.read()
         kind = response.headers.get("Content-Type", "")
         return response.status, (json.loads(raw) if "json" in kind else raw)
@@ -240,11 +244,15 @@ def descendants(pid: int) -> list[int]:
 
 
 def uids(pid: int) -> tuple[str, set[int]]:
-    """(command line, {real, effective, saved, filesystem uid}) of a process."""
-    cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode().strip()
-    line = next(l for l in Path(f"/proc/{pid}/status").read_text().splitlines()
-                if l.startswith("Uid:"))
-    return cmdline, {int(u) for u in line.split()[1:]}
+    """(command line, {real, effective, saved, filesystem uid}) of a process; ("", set()) for
+    one that has gone."""
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+        status = Path(f"/proc/{pid}/status").read_text().splitlines()
+    except OSError:
+        return "", set()
+    line = next(l for l in status if l.startswith("Uid:"))
+    return cmdline.strip(), {int(u) for u in line.split()[1:]}
 
 
 def wait_for(what: str, check, timeout: float, server: subprocess.Popen, serve_log: Path):
