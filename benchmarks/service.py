@@ -41,7 +41,7 @@ from benchmarks.live import finished_scan, free_port, running_service
 from benchmarks.parts import (DEMO_PART, MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG,
                               MISPLACEMENT_UP_TO_MM, REFERENCE_PARTS, bench_part, demo_pass,
                               random_misplacement)
-from benchmarks.results import pyplot, save_figure, write_json
+from benchmarks.results import machine_info, pyplot, save_figure, write_json
 
 __all__ = ["run"]
 
@@ -366,6 +366,7 @@ def _median_dict(dicts) -> dict:
 def run(out_dir, quick: bool = False) -> dict:
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    load_before = os.getloadavg()  # the machine's other work shows in every figure here
     with threadpool_limits(limits=1, user_api="blas"):
         # The passes first: the per-frame stage holds a whole pass of frames in memory, which
         # the allocator keeps, and the passes' memory figure is the service's alone.
@@ -399,7 +400,10 @@ def run(out_dir, quick: bool = False) -> dict:
                         for name, part in pose["by_part"].items()}},
     }
     result = {"per_frame": frame, "passes": live, "pose": pose, "summary": summary,
-              "quick": quick}
+              "quick": quick,
+              "machine": dict(machine_info(),
+                              load_average_before=[round(v, 2) for v in load_before],
+                              load_average_after=[round(v, 2) for v in os.getloadavg()])}
     result = write_json(out_dir / "service.json", result)
     _plot(result, out_dir / "service.png")
     return result
