@@ -177,7 +177,9 @@ def check_against_robot(scan: Scan, robot: Robot, state: CrossCheckState, *,
     -------
     check : dict
         ``scanner_core.crosscheck.cross_check``'s, with ``led_correction_learned`` when it
-        learned the correction.
+        learned the correction; when frames were placed on a held rotation (the robot lost
+        for part of the pass) ``frames_held_rotation``, ``held_rotation_fraction`` (of the
+        frames placed) and ``flagged``.
     state : CrossCheckState
     """
     def check(correction, offset_s, max_step_s):
@@ -193,6 +195,16 @@ def check_against_robot(scan: Scan, robot: Robot, state: CrossCheckState, *,
         state = dataclasses.replace(state, led_correction_t_mm=learned,
                                     led_correction_from=scan_id or "a scan")
         result["led_correction_learned"] = True
+    held = int(getattr(scan, "frames_held_rotation", 0))
+    if held and scan.frames:
+        # Frames placed on a held rotation (the robot lost for part of the pass) were never
+        # checked against it, and their placement is a guess: the check says so, and how much.
+        result["frames_held_rotation"] = held
+        result["held_rotation_fraction"] = round(held / scan.frames, 4)
+        if not result.get("flagged"):
+            result["reason"] = (f"the robot gave no pose for {held} of {scan.frames} frames "
+                                f"({held / scan.frames:.0%}): their rotation was held")
+        result["flagged"] = True
     if result.get("offset_estimated") and not result.get("flagged"):
         state = dataclasses.replace(state, clock_offset_s=float(result["clock_offset_s"]),
                                     clock_offset_estimated=True)

@@ -218,9 +218,19 @@ class PassRecorder:
         """Drop the partial recording (nothing is left on disk). Idempotent."""
         if self._state == "finished":
             return
-        self._close_files()
-        shutil.rmtree(self._tmp, ignore_errors=True)
-        self._state = "aborted"
+        try:
+            self._close_files()  # may raise (a full disk refuses the buffered rest)
+        except OSError:
+            pass  # the files are dropped anyway: what they could not write does not matter
+        finally:
+            for fh in (self._frames, self._index):
+                if not fh.closed:  # a close that raised leaves the file open on some systems
+                    try:
+                        fh.close()
+                    except OSError:
+                        pass
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._state = "aborted"
 
     def __enter__(self) -> "PassRecorder":
         return self

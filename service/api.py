@@ -2,12 +2,16 @@
 
 ``create_app(settings)`` builds the FastAPI application; its lifespan starts and stops the
 service. Tests build the app with a service of their own (``create_app(service=...)``).
+In front of the routes, ``service.edge.EdgeGuard`` checks the token and the body's size
+before FastAPI reads a byte of it. A disk that refuses (full, read-only) is a 507 with the
+reason, its paths relative to the data folder (``service.problems``).
 """
 from __future__ import annotations
 
 import asyncio
 import json
 import secrets
+import shutil
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Annotated
@@ -17,13 +21,17 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from fastapi_offline import FastAPIOffline
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from fastapi.exception_handlers import http_exception_handler
 
 from scanner_core.calibration import Calibration, CalibrationError
 from service.daemon import Service
 from service.engine import EngineBusy, EngineFault
 from service.models import (CalibrationModel, Health, PartInfo, PartList, Problem, ScanAccepted, ScanInfo, ScanList,
                             ScanRequest, Status)
-from service.parts import MAX_MESH_BYTES, grasp_from_query, part_info
+from service.edge import EdgeGuard
+from service.parts import PartInUse, PartQuotaExceeded, grasp_from_query, part_info
+from service.problems import disk_reason
 from service.pictures import cloud_preview_png, frame_png
 from service.settings import Settings
 from scanner_core.cad import GRASPS, PartError
@@ -56,10 +64,25 @@ def require_token(service: ServiceDep,
 Auth = [Depends(require_token)]
 UNAUTHORIZED = {401: {"model": Problem, "description": "token missing or wrong"}}
 NOT_FOUND = {404: {"model": Problem, "description": "no such scan or part"}}
+#: What the edge (``service.edge``) may answer on any route: 401 on a protected one (every
+#: change with a token set; the reads too with ``protect_reads``), 413 for a body past the
+#: route's limit, 503 when too many bodies are being read at once.
+EDGE = {401: {"model": Problem, "description": "token missing or wrong (reads: with "
+                                              "protect_reads)"},
+        413: {"model": Problem, "description": "the request body is larger than the route's "
+                                              "limit (max_body_bytes, max_part_bytes)"},
+        503: {"model": Problem, "description": "the service is busy (too many request "
+                                              "bodies at once: retry), or a device is not ready"}}
+NO_ROOM = {507: {"model": Problem, "description": "the disk refused (full or read-only): the "
+                                                 "reason, relative to the data folder"}}
+
+
+def _disk_error(service: Service, exc: OSError, what: str) -> HTTPException:
+    return HTTPException(507, f"{what}: {disk_reason(exc, service.settings.data)}")
 
 
 # ---------------------------------------------------------------------------------------------
-system = APIRouter(tags=["system"])
+system = APIRouter(tags=["system"], responses=EDGE)
 
 
 @system.get("/health", response_model=Health)
@@ -87,9 +110,10 @@ def get_calibration(service: ServiceDep) -> dict:
 @system.put("/calibration", response_model=CalibrationModel, dependencies=Auth,
             responses={**UNAUTHORIZED,
                        409: {"model": Problem, "description": "a scan is in progress"},
-                       422: {"model": Problem, "description": "not a valid calibration, or not "
-                                                              "for this camera's images"},
-                       507: {"model": Problem, "description": "it could not be saved"}})
+                       422: {"model": Problem, "description": "not a valid calibration (each "
+                                                              "field bounded, none unknown), or "
+                                                              "not for this camera's images"},
+                       **NO_ROOM})
 def put_calibration(body: CalibrationModel, service: ServiceDep) -> dict:
     try:
         calibration = Calibration.from_dict(body.model_dump())
@@ -102,19 +126,20 @@ def put_calibration(body: CalibrationModel, service: ServiceDep) -> dict:
     except EngineBusy as exc:
         raise HTTPException(409, str(exc)) from None
     except OSError as exc:
-        raise HTTPException(507, f"the calibration could not be saved: {exc}") from None
+        raise _disk_error(service, exc, "the calibration could not be saved") from None
     return calibration.to_dict()
 
 
 # ---------------------------------------------------------------------------------------------
-scans = APIRouter(prefix="/scans", tags=["scans"])
+scans = APIRouter(prefix="/scans", tags=["scans"], responses=EDGE)
 
 
 @scans.post("", status_code=202, response_model=ScanAccepted, dependencies=Auth,
             responses={**UNAUTHORIZED, **NOT_FOUND,
                        409: {"model": Problem, "description": "a scan is already in progress"},
                        422: {"model": Problem, "description": "malformed request"},
-                       503: {"model": Problem, "description": "the camera is not streaming"}})
+                       503: {"model": Problem, "description": "the camera is not streaming"},
+                       **NO_ROOM})
 def arm_scan(service: ServiceDep, request: ScanRequest | None = None) -> ScanAccepted:
     request = request or ScanRequest()
     if request.misplace is not None and service.driver is None:
@@ -131,7 +156,7 @@ def arm_scan(service: ServiceDep, request: ScanRequest | None = None) -> ScanAcc
     except EngineFault as exc:
         raise HTTPException(503, str(exc)) from None
     except OSError as exc:  # the recording's folder cannot be made
-        raise HTTPException(503, f"cannot record the pass: {exc}") from None
+        raise _disk_error(service, exc, "cannot record the pass") from None
     return ScanAccepted(scan_id=job.scan_id, state=job.state)
 
 
@@ -184,7 +209,8 @@ def get_preview(scan_id: str, service: ServiceDep) -> Response:
 
 @scans.delete("/{scan_id}", status_code=204, response_class=Response, dependencies=Auth,
               responses={**UNAUTHORIZED, **NOT_FOUND,
-                         409: {"model": Problem, "description": "the scan is in progress"}})
+                         409: {"model": Problem, "description": "the scan is in progress"},
+                         **NO_ROOM})
 def delete_scan(scan_id: str, service: ServiceDep) -> Response:
     try:
         service.delete_scan(scan_id)
@@ -192,11 +218,13 @@ def delete_scan(scan_id: str, service: ServiceDep) -> Response:
         raise HTTPException(404, f"no scan {scan_id!r}") from None
     except ValueError as exc:
         raise HTTPException(409, str(exc)) from None
+    except OSError as exc:
+        raise _disk_error(service, exc, f"scan {scan_id} could not be deleted") from None
     return Response(status_code=204)
 
 
 # ---------------------------------------------------------------------------------------------
-parts = APIRouter(prefix="/parts", tags=["parts"])
+parts = APIRouter(prefix="/parts", tags=["parts"], responses=EDGE)
 
 
 @parts.get("", response_model=PartList)
@@ -207,8 +235,14 @@ def list_parts(service: ServiceDep) -> dict:
 
 @parts.put("/{name}", status_code=201, response_model=PartInfo, dependencies=Auth,
            responses={**UNAUTHORIZED,
-                      413: {"model": Problem, "description": "the mesh file is too large"},
-                      422: {"model": Problem, "description": "bad unit, name or mesh"}},
+                      413: {"model": Problem, "description": "the mesh file is too large "
+                                                             "(max_part_bytes)"},
+                      422: {"model": Problem, "description": "bad unit, name or mesh (counts "
+                                                             "the file cannot hold, no "
+                                                             "thickness or volume, too large "
+                                                             "for its unit, out of the volume)"},
+                      507: {"model": Problem, "description": "no room: max_parts parts are "
+                                                             "stored, or the disk refused"}},
            openapi_extra={"requestBody": {"required": True, "content": {
                "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
 async def put_part(name: str, request: Request, service: ServiceDep,
@@ -222,26 +256,60 @@ async def put_part(name: str, request: Request, service: ServiceDep,
                        description="the nominal grasp ^T X_P instead, as taught: 16 comma-"
                                    "separated numbers, a 4x4 row-major rigid transform, mm")]
                    = None) -> dict:
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > MAX_MESH_BYTES:
-        raise HTTPException(413, f"the mesh file is larger than {MAX_MESH_BYTES >> 20} MiB")
+    library = service.parts
     if grasp is not None and grasp_matrix is not None:
         raise HTTPException(422, "give grasp (a name) or grasp_matrix (a 4x4), not both")
-    try:
+    try:  # the cheap refusals before a byte of the body is read
         chosen = (grasp or "centred") if grasp_matrix is None else grasp_from_query(grasp_matrix)
+        library.check_name(name)
+        library.check_room(name)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
-    data = await request.body()
+    except PartQuotaExceeded as exc:
+        raise HTTPException(507, str(exc)) from None
+    # Streamed to disk as it arrives (the edge stops it past max_part_bytes): a large upload
+    # never sits in memory whole.
     try:
-        part = await asyncio.to_thread(service.parts.add, name, data, units,
+        staging = await asyncio.to_thread(library.staging)
+    except OSError as exc:
+        raise _disk_error(service, exc, "the mesh could not be stored") from None
+    try:
+        with open(staging / f"mesh.{format}", "wb") as mesh:
+            async for chunk in request.stream():
+                mesh.write(chunk)
+        part = await asyncio.to_thread(library.add_staged, name, staging, units,
                                        suffix=f".{format}", grasp=chosen)
     except (PartError, ValueError) as exc:
         raise HTTPException(422, str(exc)) from None
+    except PartQuotaExceeded as exc:
+        raise HTTPException(507, str(exc)) from None
+    except OSError as exc:
+        raise _disk_error(service, exc, "the mesh could not be stored") from None
+    finally:
+        await asyncio.to_thread(shutil.rmtree, staging, True)  # moved into place, or dropped
     return part_info(part)
 
 
+@parts.delete("/{name}", status_code=204, response_class=Response, dependencies=Auth,
+              responses={**UNAUTHORIZED, **NOT_FOUND,
+                         409: {"model": Problem, "description": "a built-in part, the default "
+                                                                "part, or one a pending scan "
+                                                                "uses"},
+                         **NO_ROOM})
+def delete_part(name: str, service: ServiceDep) -> Response:
+    try:
+        service.delete_part(name)
+    except KeyError:
+        raise HTTPException(404, f"unknown part {name!r}: see GET /parts") from None
+    except PartInUse as exc:
+        raise HTTPException(409, str(exc)) from None
+    except OSError as exc:
+        raise _disk_error(service, exc, f"part {name!r} could not be deleted") from None
+    return Response(status_code=204)
+
+
 # ---------------------------------------------------------------------------------------------
-page = APIRouter(tags=["status page"])
+page = APIRouter(tags=["status page"], responses=EDGE)
 
 
 @page.get("/", response_class=HTMLResponse, include_in_schema=False)
@@ -307,6 +375,19 @@ def create_app(settings: Settings | None = None, *, service: Service | None = No
     app.state.service = service
     for router in (system, scans, parts, page):
         app.include_router(router)
+    # Outside every route, inside Starlette's error middleware: the token and the body's size
+    # are checked before FastAPI reads the body (it reads it before solving dependencies).
+    app.add_middleware(EdgeGuard, settings=service.settings)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_problem(request: Request, exc: StarletteHTTPException) -> Response:
+        # FastAPI answers 400 for a body json.loads cannot take (invalid UTF-8, nesting past
+        # the interpreter's recursion limit): a malformed request like any other, 422.
+        if exc.status_code == 400 and request.method not in ("GET", "HEAD"):
+            return JSONResponse(status_code=422, content={
+                "detail": "the body is not a JSON document (UTF-8, nested a few hundred deep "
+                          "at most)"})
+        return await http_exception_handler(request, exc)
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import math
 import shutil
 import threading
 import time
@@ -29,6 +30,7 @@ from service.jobs import ScanJob
 from service.metrics import Metrics
 from service.models import taught_place_matrix
 from service.parts import DEMO_PART, PartLibrary
+from service.problems import disk_reason, relative_path, relative_text
 from service.publisher import Publisher
 from service.settings import Settings
 from service.store import ScanStore
@@ -69,7 +71,8 @@ class Service:
         self._default_calibration = default_calibration
         self.store = ScanStore(settings.data, retention=settings.retention)
         self.parts = PartLibrary(settings.data, builtin=(
-            self.driver.builtin_parts() if self.driver is not None else None))
+            self.driver.builtin_parts() if self.driver is not None else None),
+            max_parts=settings.max_parts)
         self.publisher = Publisher(settings.zmq, hwm=settings.zmq_hwm)
         self.metrics = Metrics()
         self.pose_params = PoseParams(act_tolerance_mm=settings.act_tolerance_mm,
@@ -115,6 +118,7 @@ class Service:
         self.settings.data.mkdir(parents=True, exist_ok=True)
         self.store.open()
         self.parts.open()
+        self._remove_partial_recordings()
         default = None
         if self.default_part is not None:
             default = self.parts.get(self.default_part)  # KeyError: an unknown default part
@@ -197,6 +201,14 @@ class Service:
     def recordings_dir(self) -> Path:
         return self.settings.data / "recordings"
 
+    def _remove_partial_recordings(self) -> None:
+        """What a recording killed (or failed) mid-write left: ``.<scan_id>.*.partial``."""
+        if not self.recordings_dir.is_dir():
+            return
+        for leftover in self.recordings_dir.iterdir():
+            if leftover.name.startswith(".") and leftover.is_dir():
+                shutil.rmtree(leftover, ignore_errors=True)
+
     def _prune_recordings(self, keep: int) -> None:
         """Recordings are large (2.3 MB a frame): only the newest ``keep`` stay."""
         if not self.recordings_dir.is_dir():
@@ -209,6 +221,11 @@ class Service:
     def _on_recorded(self, job: ScanJob, recording: dict) -> None:
         """The recording is in place (or failed): the scan's info says where."""
         recording = {**recording, "state": "failed" if recording.get("error") else "done"}
+        data = self.settings.data
+        if recording.get("path"):  # said relative to the data folder: no server paths out
+            recording["path"] = relative_path(recording["path"], data)
+        if recording.get("error"):
+            recording["error"] = relative_text(recording["error"], data)
         job.info_extra = {"recording": recording}
         if job.info:
             job.info = {**job.info, "recording": recording}
@@ -231,6 +248,29 @@ class Service:
         threading.Thread(target=go, name="flyscan-sim-pass", daemon=True).start()
 
     def _on_scan(self, job: ScanJob, scan: Scan, finish) -> None:
+        """Finisher thread: `_finish_scan`; whatever it raises fails the scan with the reason,
+        and the scan is then served (from memory if the store cannot take it) and deletable:
+        never ``processing`` for ever."""
+        try:
+            self._finish_scan(job, scan, finish)
+        except Exception as exc:
+            log.exception("scan %s could not be finished", job.scan_id)
+            job.state = "failed"
+            job.reason = (f"could not be finished: {type(exc).__name__}: "
+                          f"{relative_text(str(exc), self.settings.data)}")
+            job.info = {**self._info(job, {}), "frames": scan.frames,
+                        "frames_dropped": job.frames_dropped, "frames_unplaced": 0,
+                        "queue_overflows": job.queue_overflows, "points": 0, "edge_points": 0,
+                        "timings_ms": {}, "latency_ms": {}}
+            try:
+                self.store.save(job.scan_id, job.info)
+            except Exception as stored:  # served from memory (RECENT_JOBS) all the same
+                log.error("scan %s not stored: %s", job.scan_id, stored)
+            self.publisher.publish("status", {"scan_id": job.scan_id, "part": job.part,
+                                              **self.status(), "scan_state": job.state,
+                                              "reason": job.reason, "points": 0})
+
+    def _finish_scan(self, job: ScanJob, scan: Scan, finish) -> None:
         """Finisher thread: publish the cloud, end the pass (``finish``: verdict, cross-check,
         pose, edges), publish the pose as soon as it is known (before the edge points'
         reclassification, the report and the store: the robot waits for it alone), then the
@@ -315,6 +355,11 @@ class Service:
             self.store.save(job.scan_id, info, scan if placed else None, report)
         except OSError as exc:
             log.error("scan %s not stored: %s", job.scan_id, exc)
+            job.state = "failed"
+            job.reason = f"could not store the scan: {disk_reason(exc, self.settings.data)}"
+            info = self._info(job, report)
+        except ValueError as exc:  # a report JSON cannot hold (a value not finite)
+            log.error("scan %s not stored: %s", job.scan_id, exc)
             job.state, job.reason = "failed", f"could not store the scan: {exc}"
             info = self._info(job, report)
         job.info = info
@@ -338,16 +383,18 @@ class Service:
         keys = ("frames", "frames_dropped", "frames_unplaced", "queue_overflows", "points",
                 "edge_points", "edge_kinds", "end_reason", "timings_ms", "cross_check", "pose", "correction", "latency_ms",
                 "frames_held_rotation", "marker_residual_px")
-        return {"scan_id": job.scan_id, "state": job.state, "reason": job.reason, "part": job.part,
-                "created": job.created, "finished": time.time(),
-                **{k: report.get(k) for k in keys}, **job.info_extra}
+        return _finite({"scan_id": job.scan_id, "state": job.state, "reason": job.reason,
+                        "part": job.part, "created": job.created, "finished": time.time(),
+                        **{k: report.get(k) for k in keys}, **job.info_extra})
 
     @staticmethod
     def _live_info(job: ScanJob) -> dict:
         if job.finished is not None and job.info:
             return job.info
-        # Finished but not yet handed back (stored, the trigger idle): still processing.
-        state = "processing" if job.state in ("done", "failed") else job.state
+        # Finished but not yet handed back (stored, the trigger idle): still processing; a
+        # job the finisher gave up on (no info) is what it says, never processing for ever.
+        state = ("processing" if job.state in ("done", "failed") and job.finished is None
+                 else job.state)
         return {"scan_id": job.scan_id, "state": state, "reason": job.reason, "part": job.part,
                 "created": job.created,
                 "frames": job.accumulator.frames_seen if job.accumulator is not None else 0,
@@ -366,12 +413,14 @@ class Service:
         if info["state"] not in ("done", "failed"):
             raise ValueError(f"scan {scan_id} is {info['state']}")
         with self._jobs_lock:
-            recent = self._jobs.pop(scan_id, None)
+            recent = self._jobs.get(scan_id)
         try:
-            self.store.delete(scan_id)
-        except KeyError:
+            self.store.delete(scan_id)  # OSError: the disk refused; the scan stays
+        except KeyError:  # one the store never took: served from memory alone
             if recent is None:
                 raise
+        with self._jobs_lock:
+            self._jobs.pop(scan_id, None)
 
     def list_scans(self) -> list[dict]:
         """Recent and stored scans, each once, newest first."""
@@ -379,6 +428,20 @@ class Service:
             recent = {j.scan_id: self._live_info(j) for j in self._jobs.values()}
         stored = [i for i in self.store.list() if i["scan_id"] not in recent]
         return sorted([*recent.values(), *stored], key=lambda i: i["created"], reverse=True)
+
+    # -- parts ------------------------------------------------------------------------------
+
+    def delete_part(self, name: str) -> None:
+        """Delete an uploaded part: KeyError when unknown, PartInUse when built in, the
+        default part or the part of a scan not yet finished, OSError when the disk refuses."""
+        in_use = {}
+        if self.default_part is not None:
+            in_use[self.default_part] = "the default part (settings.default_part)"
+        with self._jobs_lock:
+            for job in self._jobs.values():
+                if job.finished is None and job.part is not None:
+                    in_use[job.part] = f"scanned by scan {job.scan_id} ({job.state})"
+        self.parts.remove(name, in_use=in_use)
 
     # -- calibration ------------------------------------------------------------------------
 
@@ -399,6 +462,18 @@ class Service:
                          "dropped": self.publisher.dropped}
         status["simulated"] = self.driver is not None
         return status
+
+
+def _finite(value):
+    """``value`` with every float that is not finite made None: JSON (and the REST answer)
+    cannot carry it, and a scan's info must always be servable."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
 
 
 def _ms(seconds: float) -> float:

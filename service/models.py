@@ -5,7 +5,7 @@ from typing import Annotated, Literal
 
 import numpy as np
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 from clients.placement import rigid_transform, ur_pose_to_matrix
 
@@ -110,7 +110,8 @@ TAUGHT_PLACE_DESCRIPTION = (
 
 
 class ScanRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # strict: "5" is no number and "yes" no boolean; a client that sends them has a bug
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     part: str | None = Field(None, description="a part of GET /parts; default the service's")
     timeout_s: float | None = Field(None, gt=0, le=600,
@@ -192,41 +193,103 @@ class PartList(BaseModel):
     default: str | None
 
 
+# -- the calibration ------------------------------------------------------------------------
+# Bounds: what a camera and a cell can be, so that an absurd calibration is refused at the
+# edge, naming its field, rather than producing non-finite clouds and reports. The lens's
+# optical checks (a rotation that is one, a unit normal, columns that tile the image) are the
+# calibration's own (scanner_core.calibration), after these.
+
+#: The largest image side, pixels (a 150-megapixel sensor is 14 204 wide).
+MAX_IMAGE_PX = 20_000
+#: Focal length, pixels: a fisheye on a small sensor to a long lens on a large one.
+FOCAL_PX = (10.0, 1e6)
+#: Any position in the cell, mm: a robot cell is a few metres across.
+CELL_MM = 10_000.0
+#: The marker (the LED on the gripper) from the TCP, mm, each axis.
+MARKER_MM = 1_000.0
+#: OpenCV's radial (k1, k2, k3) and tangential (p1, p2) coefficients, each at most this in
+#: magnitude: real lenses are under 1, strong fisheyes a few.
+MAX_DISTORTION = 10.0
+#: Mirrors beside the direct view: the cell has one or two; more than this is no cell.
+MAX_MIRRORS = 8
+#: Robot clock minus camera clock, s: two clocks counting from 1970 or from a boot differ by
+#: less than this (317 years).
+MAX_CLOCK_OFFSET_S = 1e10
+
+_strict = ConfigDict(extra="forbid", strict=True)
+
+
+def _bounded(low: float, high: float, what: str, **extra):
+    return Field(ge=low, le=high, allow_inf_nan=False, description=f"{what}; {low:g} to {high:g}",
+                 **extra)
+
+
 Vector3 = list[float]
+CellPoint = Annotated[float, Field(ge=-CELL_MM, le=CELL_MM, allow_inf_nan=False)]
+UnitComponent = Annotated[float, Field(ge=-1.0, le=1.0, allow_inf_nan=False)]
+Column = Annotated[int, Field(ge=0, le=MAX_IMAGE_PX)]
 
 
 class CameraModel(BaseModel):
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    rotation: list[Vector3] = Field(min_length=3, max_length=3, description="{C} axes in {B}, row-major")
-    origin_mm: Vector3 = Field(min_length=3, max_length=3)
-    distortion: list[float] = Field(default=[0.0] * 5, min_length=5, max_length=5,
-                                    description="lens distortion k1, k2, p1, p2, k3 (OpenCV)")
+    model_config = _strict
+
+    fx: float = _bounded(*FOCAL_PX, "focal length along x, pixels")
+    fy: float = _bounded(*FOCAL_PX, "focal length along y, pixels")
+    cx: float = _bounded(0.0, MAX_IMAGE_PX, "principal point x, pixels, within the image")
+    cy: float = _bounded(0.0, MAX_IMAGE_PX, "principal point y, pixels, within the image")
+    width: int = Field(ge=1, le=MAX_IMAGE_PX, description=f"pixels; 1 to {MAX_IMAGE_PX}")
+    height: int = Field(ge=1, le=MAX_IMAGE_PX, description=f"pixels; 1 to {MAX_IMAGE_PX}")
+    rotation: list[Annotated[list[UnitComponent], Field(min_length=3, max_length=3)]] = Field(
+        min_length=3, max_length=3, description="{C} axes in {B}, row-major; each entry -1 to 1")
+    origin_mm: list[CellPoint] = Field(min_length=3, max_length=3,
+                                       description=f"mm; each -{CELL_MM:g} to {CELL_MM:g}")
+    distortion: list[Annotated[float, Field(ge=-MAX_DISTORTION, le=MAX_DISTORTION,
+                                            allow_inf_nan=False)]] = Field(
+        default=[0.0] * 5, min_length=5, max_length=5,
+        description=f"lens distortion k1, k2, p1, p2, k3 (OpenCV); each -{MAX_DISTORTION:g} to "
+                    f"{MAX_DISTORTION:g}")
+
+    @model_validator(mode="after")
+    def _principal_point_in_image(self):
+        if not (self.cx <= self.width and self.cy <= self.height):
+            raise ValueError(f"the principal point ({self.cx}, {self.cy}) lies outside the "
+                             f"{self.width} x {self.height} image")
+        return self
 
 
 class PlaneModel(BaseModel):
-    normal: Vector3 = Field(min_length=3, max_length=3, description="unit normal")
-    offset_mm: float
+    model_config = _strict
+
+    normal: list[UnitComponent] = Field(min_length=3, max_length=3,
+                                        description="unit normal; each entry -1 to 1")
+    offset_mm: float = _bounded(-CELL_MM, CELL_MM, "mm")
 
 
 class MirrorModel(PlaneModel):
-    columns: list[int] = Field(min_length=2, max_length=2, description="[c0, c1) of its view")
+    columns: list[Column] = Field(min_length=2, max_length=2,
+                                  description=f"[c0, c1) of its view; 0 to {MAX_IMAGE_PX}")
 
 
 class CalibrationModel(BaseModel):
-    """What the scanner knows of its cell (``scanner_core.calibration.Calibration``)."""
+    """What the scanner knows of its cell (``scanner_core.calibration.Calibration``): every
+    field required but those with a default, none other allowed, each value within what a
+    camera and a cell can be (its description says the bounds)."""
+
+    model_config = _strict
 
     camera: CameraModel
     light_plane_c: PlaneModel
-    mirrors: list[MirrorModel]
-    direct_columns: list[int] = Field(min_length=2, max_length=2)
-    marker_offset_t_mm: Vector3 = Field(min_length=3, max_length=3)
-    version: int = Field(default=2, description="calibration file version (1 or 2)")
-    clock_offset_s: float = Field(default=0.0, description="robot clock minus camera clock, s")
+    mirrors: list[MirrorModel] = Field(min_length=1, max_length=MAX_MIRRORS,
+                                       description=f"1 to {MAX_MIRRORS} mirrors")
+    direct_columns: list[Column] = Field(min_length=2, max_length=2,
+                                         description=f"[c0, c1); 0 to {MAX_IMAGE_PX}")
+    marker_offset_t_mm: list[Annotated[float, Field(ge=-MARKER_MM, le=MARKER_MM,
+                                                    allow_inf_nan=False)]] = Field(
+        min_length=3, max_length=3, description=f"the marker in {{T}}, mm; each -{MARKER_MM:g} "
+                                                f"to {MARKER_MM:g}")
+    version: Literal[1, 2] = Field(default=2, description="calibration file version (1 or 2)")
+    clock_offset_s: float = _bounded(-MAX_CLOCK_OFFSET_S, MAX_CLOCK_OFFSET_S,
+                                     "robot clock minus camera clock, s", default=0.0)
     provenance: dict = Field(default={}, description="how it was made: date, cell, models, "
                                                      "residuals, observations")
     marker_offset_std_mm: Vector3 | None = Field(

@@ -7,7 +7,7 @@ import re
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict,
                                TomlConfigSettingsSource)
 
@@ -30,6 +30,11 @@ class Settings(BaseSettings):
         Where scans and uploaded parts are stored.
     token : SecretStr or None
         When set, mutating endpoints require ``Authorization: Bearer <token>``.
+    protect_reads : bool
+        The reads too (scans, parts, status, calibration, metrics), for a cell whose network
+        is shared; needs ``token``. Health, the status page's shell and the API's docs stay open.
+    max_body_bytes, max_part_bytes : int
+        The largest request body, bytes: JSON requests, and mesh uploads (``PUT /parts``).
     """
 
     model_config = SettingsConfigDict(env_prefix="FLYSCAN_", extra="forbid")
@@ -45,6 +50,17 @@ class Settings(BaseSettings):
                                                  "genicam:PRODUCER.cti[#SERIAL], replay:FOLDER")
     data: Path = Path("flyscan-data")
     token: SecretStr | None = None
+    protect_reads: bool = Field(False, description="the reads need the token too (needs token)")
+    # Limits at the edge (service.edge): a JSON request is a few kB (a calibration with its
+    # provenance, tens); a bin-picking part's mesh, a few MB.
+    max_body_bytes: int = Field(1 << 20, ge=1024, le=1 << 30,
+                                description="largest JSON request body, bytes (413 beyond)")
+    max_part_bytes: int = Field(64 << 20, ge=1024, le=1 << 30,
+                                description="largest mesh upload, bytes (413 beyond)")
+    max_concurrent_bodies: int = Field(2, ge=1, le=64,
+                                       description="request bodies read at once (503 beyond)")
+    max_parts: int = Field(100, ge=1, le=10_000,
+                           description="uploaded parts kept, at most (507 beyond)")
     calibration: Path | None = Field(None, description="calibration JSON; default the reference cell's")
     workers: int = Field(2, ge=1, le=16, description="frame-processing threads")
     queue_frames: int = Field(64, ge=1, description="frames waiting for a worker, at most")
@@ -101,6 +117,12 @@ class Settings(BaseSettings):
     @classmethod
     def _empty_token_is_none(cls, value):
         return None if value == "" else value
+
+    @model_validator(mode="after")
+    def _reads_need_a_token(self):
+        if self.protect_reads and self.token is None:
+            raise ValueError("protect_reads needs a token")
+        return self
 
     @field_validator("sim_effects")
     @classmethod

@@ -1,0 +1,174 @@
+"""The service's edge against ``flyscan serve --sim`` in its own process: the token before the
+body, bodies stopped at their limit while they stream, strict and bounded request models.
+
+Large bodies are sent as users' programs would send them (httpx, from a generator: chunked,
+and with a Content-Length), while a pass runs; the service's peak memory is read from
+``/proc`` (``VmHWM``, reset before through ``clear_refs``)."""
+import json
+import threading
+from pathlib import Path
+
+import httpx
+import pytest
+
+from running import FAST_PASS, RunningService, wait_for
+
+TOKEN = "s3cret"
+#: A body far past every limit, bytes (200 MB), sent in chunks of 1 MiB.
+BIG = 200 * 10**6
+CHUNK = 1 << 20
+#: The service's peak memory may grow by less than this while it refuses BIG bodies, bytes.
+MAX_GROWTH = 50 * 2**20
+
+
+@pytest.fixture(scope="module")
+def guarded(tmp_path_factory):
+    running = RunningService(tmp_path_factory.mktemp("edge") / "data",
+                             env={**FAST_PASS, "FLYSCAN_TOKEN": TOKEN,
+                                  "FLYSCAN_PROTECT_READS": "true"})
+    yield running
+    running.stop()
+
+
+def _auth(token=TOKEN):
+    return {"Authorization": f"Bearer {token}"}
+
+
+def _body(total=BIG, first=b"{\"part\": \""):
+    """``total`` bytes: the start of a JSON object, then a string that never ends."""
+    yield first
+    sent = len(first)
+    chunk = b"x" * CHUNK
+    while sent < total:
+        piece = chunk[:min(CHUNK, total - sent)]
+        sent += len(piece)
+        yield piece
+
+
+def _wait(client, scan_id) -> dict:
+    return wait_for(lambda: (lambda i: i if i["state"] in ("done", "failed") else None)(
+        client.get(f"/scans/{scan_id}").json()), timeout=60)
+
+
+def _memory(pid: int, key: str) -> int:
+    """``VmRSS`` or ``VmHWM`` (peak) of a process, bytes."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) * 1024
+    raise KeyError(key)
+
+
+def _reset_peak(pid: int) -> None:
+    Path(f"/proc/{pid}/clear_refs").write_text("5")  # VmHWM := VmRSS (Linux 4.0 and up)
+
+
+def test_big_bodies_are_refused_before_they_are_read_while_a_pass_runs(guarded):
+    pid = guarded.process.pid
+    url = guarded.url
+    # warm: the first pass of a process and the first requests of each route build what
+    # they keep (about 34 MB for the first pass)
+    with httpx.Client(base_url=url, timeout=30, headers=_auth()) as client:
+        _wait(client, client.post("/scans", json={}).json()["scan_id"])
+        client.put("/parts/warm", params={"units": "mm"}, content=b"x")
+    baseline = _memory(pid, "VmRSS")
+    _reset_peak(pid)
+    cases = [  # (method, path, token, with Content-Length, expected status)
+        ("POST", "/scans", None, False, 401), ("POST", "/scans", None, True, 401),
+        ("PUT", "/calibration", None, False, 401), ("PUT", "/parts/big?units=mm", None, True, 401),
+        ("POST", "/scans", TOKEN, False, 413), ("POST", "/scans", TOKEN, True, 413),
+        ("PUT", "/calibration", TOKEN, False, 413),
+        ("PUT", "/parts/big?units=mm", TOKEN, False, 413),
+        ("PUT", "/parts/big?units=mm", TOKEN, True, 413),
+    ]
+    answers = []
+
+    def send_all():
+        with httpx.Client(base_url=url, timeout=120) as client:
+            for method, path, token, sized, _ in cases:
+                headers = {"Content-Type": "application/json", **(_auth(token) if token else {})}
+                if sized:
+                    headers["Content-Length"] = str(BIG)
+                response = client.request(method, path, content=_body(), headers=headers)
+                answers.append((response.status_code, response.json()["detail"]))
+
+    with httpx.Client(base_url=url, timeout=30, headers=_auth()) as client:
+        scan_id = client.post("/scans", json={}).json()["scan_id"]
+        sender = threading.Thread(target=send_all)
+        sender.start()
+        sender.join(600)
+        info = _wait(client, scan_id)
+        parts = [p["name"] for p in client.get("/parts").json()["parts"]]
+    growth = _memory(pid, "VmHWM") - baseline
+    print(f"peak RSS growth {growth / 2**20:.1f} MiB over {len(cases)} bodies of {BIG / 1e6:g} MB; "
+          f"scan {info['state']}, {info['frames']} frames, {info['frames_dropped']} dropped, "
+          f"{info['queue_overflows']} overflows")
+    assert [status for status, _ in answers] == [expected for *_, expected in cases], answers
+    assert all("bearer token" in detail for status, detail in answers if status == 401)
+    assert all("larger than" in detail for status, detail in answers if status == 413)
+    assert growth < MAX_GROWTH, growth
+    assert info["state"] == "done", info["reason"]
+    assert info["frames_dropped"] == 0 and info["queue_overflows"] == 0
+    assert "big" not in parts
+    leftovers = [p.name for p in (guarded.data / "parts").iterdir() if p.name.startswith(".")]
+    assert leftovers == []
+
+
+def test_the_token_comes_before_the_body_and_reads_are_protected(guarded):
+    url = guarded.url
+    malformed = httpx.post(f"{url}/scans", content=b"{not json",
+                           headers={"Content-Type": "application/json"})
+    assert malformed.status_code == 401 and malformed.headers["www-authenticate"] == "Bearer"
+    wrong = httpx.post(f"{url}/scans", json={}, headers=_auth("wrong"))
+    assert wrong.status_code == 401
+    for path in ("/scans", "/status", "/parts", "/calibration", "/metrics", "/frame.png"):
+        assert httpx.get(f"{url}{path}").status_code == 401, path
+        assert httpx.get(f"{url}{path}", headers=_auth()).status_code in (200, 404), path
+    for path in ("/health", "/", "/openapi.json", "/docs"):
+        assert httpx.get(f"{url}{path}").status_code == 200, path
+
+
+@pytest.mark.parametrize("body, problem", [
+    (b"\xff\xfe{\"part\": 1}", "body"),
+    (b"[" * 100_000 + b"]" * 100_000, "body"),
+    (b'{"timeout_s": "5"}', "timeout_s"),
+    (b'{"record": "yes"}', "record"),
+    (b'{"misplace": [true, 0, 0, 0, 0, 0]}', "misplace"),
+    (b'{"part": 7}', "part"),
+], ids=["invalid UTF-8", "nested deep", "a string for a number", "a string for a boolean",
+        "a boolean for a number", "a number for a string"])
+def test_malformed_requests_are_422_naming_the_field(service, body, problem):
+    response = httpx.post(f"{service.url}/scans", content=body,
+                          headers={"Content-Type": "application/json"})
+    assert response.status_code == 422, response.text
+    assert problem in json.dumps(response.json()["detail"])
+
+
+def _absurd(calibration: dict) -> list:
+    """(name, calibration, the field the 422 must name): the issue's list."""
+    camera = calibration["camera"]
+    mirror = calibration["mirrors"][0]
+    return [
+        ("cx = 1e308", {**calibration, "camera": {**camera, "cx": 1e308}}, "cx"),
+        ("0 mirrors", {**calibration, "mirrors": []}, "mirrors"),
+        ("2000 mirrors", {**calibration, "mirrors": [mirror] * 2000}, "mirrors"),
+        ("marker offset 1e308", {**calibration, "marker_offset_t_mm": [1e308, 0.0, 0.0]},
+         "marker_offset_t_mm"),
+        ("clock offset 1e308", {**calibration, "clock_offset_s": 1e308}, "clock_offset_s"),
+        ("distortion 1e10", {**calibration, "camera": {**camera,
+                                                      "distortion": [1e10, 0, 0, 0, 0]}},
+         "distortion"),
+        ("an unknown field", {**calibration, "lens_model": "fisheye"}, "lens_model"),
+        ("a string for a focal length", {**calibration, "camera": {**camera, "fx": "2730"}},
+         "fx"),
+        ("cx outside the image", {**calibration, "camera": {**camera, "cx": 5000.0}}, "camera"),
+    ]
+
+
+def test_each_absurd_calibration_is_refused_naming_the_field(service):
+    calibration = httpx.get(f"{service.url}/calibration").json()
+    for name, absurd, field in _absurd(calibration):
+        response = httpx.put(f"{service.url}/calibration", json=absurd)
+        assert response.status_code == 422, (name, response.text)
+        locations = [".".join(map(str, e["loc"])) for e in response.json()["detail"]]
+        assert any(field in loc for loc in locations), (name, locations)
+    assert httpx.get(f"{service.url}/calibration").json() == calibration  # none was taken
