@@ -201,9 +201,9 @@ def check_against_robot(scan: Scan, robot: Robot, state: CrossCheckState, *,
         # checked against it, and their placement is a guess: the check says so, and how much.
         result["frames_held_rotation"] = held
         result["held_rotation_fraction"] = round(held / scan.frames, 4)
-        if not result.get("flagged"):
-            result["reason"] = (f"the robot gave no pose for {held} of {scan.frames} frames "
-                                f"({held / scan.frames:.0%}): their rotation was held")
+        held_reason = (f"the robot gave no pose for {held} of {scan.frames} frames "
+                       f"({held / scan.frames:.0%}): their rotation was held")
+        result["reason"] = "; ".join(filter(None, (result.get("reason"), held_reason)))
         result["flagged"] = True
     if result.get("offset_estimated") and not result.get("flagged"):
         state = dataclasses.replace(state, clock_offset_s=float(result["clock_offset_s"]),

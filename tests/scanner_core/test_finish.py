@@ -1,4 +1,5 @@
 """The pass finisher: one failure rule, the cross-check's state carried, the pose, the report."""
+import copy
 import dataclasses
 
 import numpy as np
@@ -101,3 +102,22 @@ def test_the_finisher_learns_the_clock_and_hands_it_on(simulated_pass):
     failed = finish_pass(scan, EndReason.TIMEOUT, None, start, part)
     assert failed.state == "failed" and failed.report["pose"] is None
     assert failed.cross_check is None and failed.report["reason"].startswith("timeout")
+
+
+def test_frames_on_a_held_rotation_flag_the_check_with_their_fraction(simulated_pass):
+    """A robot lost for part of a pass (issue 28: 81 of 225 frames on a held rotation, and a
+    check over the other frames' samples that passed): the check is flagged, says how many
+    frames and what fraction, and teaches the next pass nothing."""
+    scan, sim, part = simulated_pass
+    whole = finish_pass(scan, EndReason.MARKER_GONE, sim.robot, CrossCheckState())
+    assert not whole.cross_check["flagged"] and "held_rotation_fraction" not in whole.cross_check
+    held = copy.copy(scan)
+    held.frames_held_rotation = round(scan.frames * 81 / 225)
+    outcome = finish_pass(held, EndReason.MARKER_GONE, sim.robot, CrossCheckState())
+    check = outcome.cross_check
+    assert check["samples"] > 100 and check["max_mm"] < check["tolerance_mm"]
+    assert check["flagged"] and check["frames_held_rotation"] == held.frames_held_rotation
+    assert check["held_rotation_fraction"] == round(held.frames_held_rotation / scan.frames, 4)
+    assert f"{held.frames_held_rotation} of {scan.frames} frames" in check["reason"]
+    assert not outcome.cross_check_state.clock_offset_estimated
+    assert outcome.report["cross_check"]["held_rotation_fraction"] == check["held_rotation_fraction"]

@@ -172,3 +172,56 @@ def test_each_absurd_calibration_is_refused_naming_the_field(service):
         locations = [".".join(map(str, e["loc"])) for e in response.json()["detail"]]
         assert any(field in loc for loc in locations), (name, locations)
     assert httpx.get(f"{service.url}/calibration").json() == calibration  # none was taken
+
+
+def test_meshes_that_are_no_part_are_refused(service, tmp_path):
+    import trimesh
+
+    triangle = trimesh.Trimesh([[0, 0, 0], [30, 0, 0], [0, 30, 0]], [[0, 1, 2]], process=False)
+    ply = triangle.export(file_type="ply", encoding="binary")
+    claims = ply.replace(b"element face 1\n", b"element face 100000000\n")
+    cases = [(triangle.export(file_type="stl"), "stl", "no thickness"),
+             (claims, "ply", "face 100000000"), (ply, "ply", "no thickness")]
+    for content, fmt, problem in cases:
+        response = httpx.put(f"{service.url}/parts/flat", params={"units": "mm", "format": fmt},
+                             content=content)
+        assert response.status_code == 422 and problem in response.json()["detail"], response.text
+        assert str(service.data.parent) not in response.json()["detail"]  # no server path
+
+
+def test_parts_are_deleted_unless_built_in_or_in_use(service):
+    import trimesh
+
+    stl = trimesh.creation.box(extents=(30.0, 20.0, 10.0)).export(file_type="stl")
+    url = service.url
+    assert httpx.put(f"{url}/parts/spare", params={"units": "mm"}, content=stl).status_code == 201
+    assert httpx.delete(f"{url}/parts/demo").status_code == 409  # built in
+    assert httpx.delete(f"{url}/parts/nothing").status_code == 404
+    scan_id = httpx.post(f"{url}/scans", json={"part": "spare"}).json()["scan_id"]
+    busy = httpx.delete(f"{url}/parts/spare")
+    with httpx.Client(base_url=url) as client:
+        info = _wait(client, scan_id)
+    assert busy.status_code == 409 and scan_id in busy.json()["detail"], busy.text
+    assert info["state"] == "done" and info["part"] == "spare"
+    assert httpx.delete(f"{url}/parts/spare").status_code == 204
+    assert "spare" not in [p["name"] for p in httpx.get(f"{url}/parts").json()["parts"]]
+    assert not (service.data / "parts" / "spare").exists()
+
+
+def test_the_number_of_parts_is_bounded(tmp_path):
+    import trimesh
+
+    from service.parts import PartLibrary, PartQuotaExceeded
+
+    stl = trimesh.creation.box(extents=(30.0, 20.0, 10.0)).export(file_type="stl")
+    library = PartLibrary(tmp_path, max_parts=2)
+    library.open()
+    library.add("a", stl, "mm")
+    library.add("b", stl, "mm")
+    library.add("a", stl, "mm")  # a replacement takes no more room
+    with pytest.raises(PartQuotaExceeded, match="2 parts"):
+        library.add("c", stl, "mm")
+    library.remove("a")
+    library.add("c", stl, "mm")
+    assert library.names() == ["b", "c"]
+    assert sorted(p.name for p in (tmp_path / "parts").iterdir()) == ["b", "c"]

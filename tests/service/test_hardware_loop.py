@@ -91,6 +91,27 @@ def test_a_dropped_robot_degrades_the_cross_check_never_the_scan(robot_service):
     assert after["robot_connected"] and not after["flagged"]
 
 
+def test_a_robot_lost_mid_pass_flags_the_cross_check_with_the_fraction(robot_service):
+    client, service = robot_service
+    _scan(client)  # the robot has given the pass's rotation once
+    emulator = service.driver.emulator
+    scan_id = client.post("/scans", json={}).json()["scan_id"]
+    try:
+        wait_for(lambda: client.get(f"/scans/{scan_id}").json()["state"] != "armed", poll=0.005)
+        emulator.drop()  # mid-pass: the rest of its frames have no robot pose
+        info = wait_for(lambda: (lambda i: i if i["state"] in ("done", "failed") else None)(
+            client.get(f"/scans/{scan_id}").json()))
+    finally:
+        emulator.restore()
+    held, frames = info["frames_held_rotation"], info["frames"]
+    check = info["cross_check"]
+    assert info["state"] == "done" and 0 < held < frames, (held, frames)
+    assert check["flagged"] and check["frames_held_rotation"] == held
+    assert check["held_rotation_fraction"] == round(held / frames, 4)
+    assert f"{held} of {frames} frames" in check["reason"]
+    wait_for(lambda: client.get("/status").json()["robot"]["connected"], timeout=5.0)
+
+
 def test_a_recorded_pass_replays_to_the_same_cloud(robot_service):
     client, service = robot_service
     info = _scan(client, record=True)
@@ -98,6 +119,7 @@ def test_a_recorded_pass_replays_to_the_same_cloud(robot_service):
     recording = wait_for(lambda: client.get(f"/scans/{info['scan_id']}").json()
                          .get("recording", {}).get("path"))
     live = xyz_array(parse_ply(client.get(f"/scans/{info['scan_id']}/cloud.ply").content))
-    replayed = replay_recording(load_recording(recording))
+    assert not recording.startswith("/")  # relative to the data folder: no server paths out
+    replayed = replay_recording(load_recording(service.settings.data / recording))
     np.testing.assert_array_equal(replayed.cloud, live)
     assert replayed.frames == info["frames"]
