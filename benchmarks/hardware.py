@@ -74,7 +74,7 @@ def cross_checks(passes: int, data: pathlib.Path) -> dict:
         recorded = _scan(service, record=True)
         path = wait_for(lambda: (service.scan_info(recorded["scan_id"]).get("recording") or {})
                         .get("path"), 60.0, 0.1)
-        recording = load_recording(path)
+        recording = load_recording(service.settings.data / path)  # said relative to it
         camera_s = recording.frame_count / recording.fps
         for _ in range(REPLAY_REPEATS):
             t0 = time.perf_counter()

@@ -63,7 +63,7 @@ def run_record(args) -> int:
                         f"{recording.get('error', 'the service gave no recording')}")
     print(f"recorded {scan_id} ({info['state']}): {recording['frames']} frames, "
           f"{recording['robot_samples']} robot samples, {recording['bytes'] / 1e6:.0f} MB in "
-          f"{recording['path']} (on the service's machine)")
+          f"{recording['path']} (in the service's data folder, on its machine)")
     return 0
 
 

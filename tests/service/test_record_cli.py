@@ -20,7 +20,9 @@ def recorded(service):
     """A pass recorded through the running service: (its folder, its scan id)."""
     done = _flyscan("record", "--url", service.url)
     assert done.returncode == 0, done.stderr
-    folder = done.stdout.strip().rsplit(" in ", 1)[1].split(" (on the")[0]
+    relative = done.stdout.strip().rsplit(" in ", 1)[1].split(" (in the")[0]
+    assert not relative.startswith("/")  # no server path: relative to the data folder
+    folder = str(service.data / relative)
     return folder, done.stdout.split()[1]
 
 
