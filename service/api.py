@@ -23,6 +23,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from fastapi.exception_handlers import http_exception_handler
+from fastapi.routing import APIRoute
 
 from scanner_core.calibration import Calibration, CalibrationError
 from service.daemon import Service
@@ -387,6 +388,14 @@ def create_app(settings: Settings | None = None, *, service: Service | None = No
             return JSONResponse(status_code=422, content={
                 "detail": "the body is not a JSON document (UTF-8, nested a few hundred deep "
                           "at most)"})
+        if exc.status_code == 405:
+            # Starlette's Allow names the methods of the first route whose path matched
+            # (GET of /scans/{id}); the resource also has the others' (its DELETE)
+            allowed = sorted({method for route in app.routes
+                              if isinstance(route, APIRoute)
+                              and route.path_regex.match(request.url.path)
+                              for method in route.methods})
+            exc = StarletteHTTPException(405, exc.detail, headers={"Allow": ", ".join(allowed)})
         return await http_exception_handler(request, exc)
 
     @app.exception_handler(RequestValidationError)

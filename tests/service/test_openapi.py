@@ -4,7 +4,8 @@ and without a token, and with the reads behind it."""
 import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
-from schemathesis.checks import (content_type_conformance, negative_data_rejection,
+from schemathesis.checks import (allow_header_conformance, content_type_conformance,
+                                 ignored_auth, missing_required_header, negative_data_rejection,
                                  not_a_server_error, response_headers_conformance,
                                  response_schema_conformance, status_code_conformance)
 
@@ -16,6 +17,8 @@ EXAMPLES = 15
 #: rotation, or a part name that exists nowhere, is rightly refused (422, 404).
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,
           response_headers_conformance, response_schema_conformance, negative_data_rejection]
+#: With a token set, also: a request without it, or with a wrong one, is refused (401).
+AUTH_CHECKS = [*CHECKS, allow_header_conformance, ignored_auth, missing_required_header]
 TOKEN = "s3cret"
 
 
@@ -28,7 +31,7 @@ def guarded(tmp_path_factory):
     running.stop()
 
 
-def _check_every_operation(url: str, headers: dict | None = None) -> None:
+def _check_every_operation(url: str, headers: dict | None = None, checks=CHECKS) -> None:
     schema = schemathesis.openapi.from_url(f"{url}/openapi.json")
     operations = [result.ok() for result in schema.get_all_operations()]
     assert len(operations) >= 15
@@ -37,7 +40,7 @@ def _check_every_operation(url: str, headers: dict | None = None) -> None:
         @settings(max_examples=EXAMPLES, deadline=None, database=None,
                   suppress_health_check=list(HealthCheck))
         def check(case):
-            case.call_and_validate(headers=headers, checks=CHECKS)
+            case.call_and_validate(headers=headers, checks=checks)
 
         try:
             check()
@@ -51,7 +54,8 @@ def test_every_endpoint_answers_as_documented(service):
 
 @pytest.mark.parametrize("token", [TOKEN, None], ids=["with the token", "without"])
 def test_every_endpoint_answers_as_documented_behind_a_token(guarded, token):
-    _check_every_operation(guarded.url, {"Authorization": f"Bearer {token}"} if token else None)
+    _check_every_operation(guarded.url, {"Authorization": f"Bearer {token}"} if token else None,
+                           AUTH_CHECKS if token else CHECKS)
 
 
 def test_every_status_the_edge_gives_is_declared(service):
