@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from scanner_core.geometry import apply_transform, check_rigid
-from scanner_core.meshfile import clean_triangles, is_binary_stl, read_mesh
+from scanner_core.meshfile import check_ply_counts, clean_triangles, is_binary_stl, read_mesh
 
 if TYPE_CHECKING:  # imported where used: ray casting alone needs neither trimesh nor scipy
     import trimesh
@@ -230,67 +230,10 @@ def _check_content(p: Path) -> None:
     elif suffix == ".obj" and not _is_text(p):
         raise PartError(f"cannot read part file {p}: an OBJ file must be text, this one is binary")
     elif suffix == ".ply":
-        _check_ply_counts(p)
-
-
-#: Bytes of a PLY scalar type, by its names in the header.
-_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
-              "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4,
-              "float32": 4, "double": 8, "float64": 8}
-#: A PLY header longer than this is not one (a real one is a few hundred bytes).
-_PLY_MAX_HEADER = 65536
-
-
-def _check_ply_counts(p: Path) -> None:
-    """Refuse a PLY whose header claims more elements than the file can hold, before a reader
-    allocates for them (a header claiming 100 million faces with one present)."""
-    with open(p, "rb") as fh:
-        head = fh.read(_PLY_MAX_HEADER)
-    end = head.find(b"end_header")
-    newline = head.find(b"\n", end)
-    if not head.startswith(b"ply") or end < 0 or newline < 0:
-        raise PartError(f"cannot read part file {p}: not a PLY file (no 'ply' ... 'end_header' "
-                        f"header in its first {_PLY_MAX_HEADER} bytes)")
-    body_bytes = p.stat().st_size - (newline + 1)
-    fmt, elements = None, []  # [name, count, minimum bytes of one]
-    for line in head[:end].decode("ascii", "replace").splitlines():
-        words = line.split()
-        if len(words) >= 2 and words[0] == "format":
-            fmt = words[1]
-        elif len(words) == 3 and words[0] == "element":
-            if not words[2].isdigit():
-                raise PartError(f"cannot read part file {p}: PLY element {words[1]!r} has count "
-                                f"{words[2]!r}")
-            elements.append([words[1], int(words[2]), 0])
-        elif len(words) >= 3 and words[0] == "property" and elements:
-            one = elements[-1]
-            if words[1] == "list" and len(words) >= 5:
-                # a face lists at least three vertices; another list may be empty
-                items = 3 if one[0] == "face" else 0
-                one[2] += _PLY_SIZES.get(words[2], 1) + items * _PLY_SIZES.get(words[3], 1)
-            else:
-                one[2] += _PLY_SIZES.get(words[1], 1)
-    if fmt is None or fmt == "ascii":
-        # one line per element at least
-        have = head[newline + 1:].count(b"\n") if body_bytes < len(head) else _count_lines(p, newline + 1)
-        need = sum(count for _, count, _ in elements)
-        what = "lines"
-    else:
-        have, need = body_bytes, sum(count * size for _, count, size in elements)
-        what = "bytes"
-    if need > have + (what == "lines"):  # an ASCII file's last line may lack its newline
-        claimed = ", ".join(f"{name} {count}" for name, count, _ in elements)
-        raise PartError(f"cannot read part file {p}: its PLY header claims {claimed}, which "
-                        f"need at least {need} {what}; the file has {have}")
-
-
-def _count_lines(p: Path, offset: int) -> int:
-    count = 0
-    with open(p, "rb") as fh:
-        fh.seek(offset)
-        while chunk := fh.read(1 << 20):
-            count += chunk.count(b"\n")
-    return count
+        try:
+            check_ply_counts(p)
+        except ValueError as exc:
+            raise PartError(f"cannot read part file {p}: {exc}") from None
 
 
 def _is_text(p: Path) -> bool:

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MERGE_TOL", "read_mesh", "read_binary_stl", "is_binary_stl", "clean_triangles"]
+__all__ = ["MERGE_TOL", "read_mesh", "read_binary_stl", "is_binary_stl", "clean_triangles",
+           "check_ply_counts"]
 
 #: Vertices closer than this (in the mesh's unit, per coordinate, after rounding) are one,
 #: and a triangle thinner than this is degenerate: trimesh's ``tol.merge``.
@@ -142,3 +143,66 @@ def _merge(vertices: np.ndarray, faces: np.ndarray, tol: float):
     index = np.empty(len(order), dtype=np.int64)
     index[order] = new_id[group]
     return vertices[np.sort(first)], index[faces]
+
+
+#: Bytes of a PLY scalar type, by its names in the header.
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
+              "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4,
+              "float32": 4, "double": 8, "float64": 8}
+#: A PLY header longer than this is not one (a real one is a few hundred bytes).
+_PLY_MAX_HEADER = 65536
+
+
+def check_ply_counts(path) -> None:
+    """ValueError when a PLY's header claims more elements than the file can hold: checked
+    before a reader allocates for them (a header claiming 100 million faces with one present).
+    Each element needs at least its fixed-size properties (a face at least three indices):
+    bytes in a binary file, a line in an ASCII one."""
+    p = Path(path)
+    with open(p, "rb") as fh:
+        head = fh.read(_PLY_MAX_HEADER)
+    end = head.find(b"end_header")
+    newline = head.find(b"\n", end)
+    if not head.startswith(b"ply") or end < 0 or newline < 0:
+        return  # no header to hold to its counts: the reader refuses the file ("Not a ply file")
+    size = p.stat().st_size
+    body_bytes = size - (newline + 1)
+    fmt, elements = None, []  # [name, count, minimum bytes of one]
+    for line in head[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if len(words) >= 2 and words[0] == "format":
+            fmt = words[1]
+        elif len(words) == 3 and words[0] == "element":
+            if not words[2].isdigit():
+                raise ValueError(f"PLY element {words[1]!r} has count {words[2]!r}")
+            elements.append([words[1], int(words[2]), 0])
+        elif len(words) >= 3 and words[0] == "property" and elements:
+            one = elements[-1]
+            if words[1] == "list" and len(words) >= 5:
+                # a face lists at least three vertices; another list may be empty
+                items = 3 if one[0] == "face" else 0
+                one[2] += _PLY_SIZES.get(words[2], 1) + items * _PLY_SIZES.get(words[3], 1)
+            else:
+                one[2] += _PLY_SIZES.get(words[1], 1)
+    if fmt is None or fmt == "ascii":
+        # one line per element at least
+        whole = size <= len(head)  # the file was read whole with its header
+        have = head[newline + 1:].count(b"\n") if whole else _count_lines(p, newline + 1)
+        need = sum(count for _, count, _ in elements)
+        what = "lines"
+    else:
+        have, need = body_bytes, sum(count * size for _, count, size in elements)
+        what = "bytes"
+    if need > have + (what == "lines"):  # an ASCII file's last line may lack its newline
+        claimed = ", ".join(f"{name} {count}" for name, count, _ in elements)
+        raise ValueError(f"its PLY header claims {claimed}, which need at least {need} {what}; "
+                         f"the file has {have}")
+
+
+def _count_lines(p: Path, offset: int) -> int:
+    count = 0
+    with open(p, "rb") as fh:
+        fh.seek(offset)
+        while chunk := fh.read(1 << 20):
+            count += chunk.count(b"\n")
+    return count
