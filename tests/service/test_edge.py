@@ -5,6 +5,8 @@ Large bodies are sent as users' programs would send them (httpx, from a generato
 and with a Content-Length), while a pass runs; the service's peak memory is read from
 ``/proc`` (``VmHWM``, reset before through ``clear_refs``)."""
 import json
+import select
+import socket
 import threading
 from pathlib import Path
 
@@ -225,3 +227,51 @@ def test_the_number_of_parts_is_bounded(tmp_path):
     library.add("c", stl, "mm")
     assert library.names() == ["b", "c"]
     assert sorted(p.name for p in (tmp_path / "parts").iterdir()) == ["b", "c"]
+
+
+def _held_upload(url: str) -> socket.socket:
+    """A chunked ``PUT /parts/held`` whose body has begun and does not end (raw HTTP: the test
+    decides when it ends)."""
+    host, port = url.removeprefix("http://").split(":")
+    sock = socket.create_connection((host, int(port)))
+    chunk = b"solid held open\n"
+    sock.sendall(f"PUT /parts/held?units=mm HTTP/1.1\r\nHost: {host}\r\n"
+                 f"Authorization: Bearer {TOKEN}\r\nTransfer-Encoding: chunked\r\n\r\n"
+                 f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n")
+    return sock
+
+
+def _answered(sock: socket.socket) -> bool:
+    """Whether the service has answered on ``sock`` already (without waiting)."""
+    return bool(select.select([sock], [], [], 0)[0])
+
+
+def _status(sock: socket.socket) -> int:
+    sock.settimeout(30)
+    return int(sock.recv(4096).split(b" ", 2)[1])
+
+
+def test_bodies_read_at_once_are_bounded(guarded):
+    """Two uploads held open take both body slots (``max_concurrent_bodies``, 2): one more
+    request with a body is refused with 503 and Retry-After; requests without one pass."""
+    uploads = [_held_upload(guarded.url), _held_upload(guarded.url)]
+
+    def probe():
+        for k, upload in enumerate(uploads):
+            if _answered(upload):  # refused while a probe held a slot: open it again
+                upload.close()
+                uploads[k] = _held_upload(guarded.url)
+        response = httpx.post(f"{guarded.url}/scans", content=b"{}",
+                              headers={**_auth(), "Content-Type": "application/json"})
+        return response if response.status_code == 503 else None
+
+    try:
+        refused = wait_for(probe, timeout=30)
+        assert refused.headers["retry-after"] == "1" and "bodies" in refused.json()["detail"]
+        assert httpx.get(f"{guarded.url}/status", headers=_auth()).status_code == 200
+        for upload in uploads:
+            upload.sendall(b"0\r\n\r\n")  # the body ends: read whole, not a mesh
+        assert [_status(upload) for upload in uploads] == [422, 422]
+    finally:
+        for upload in uploads:
+            upload.close()
