@@ -70,22 +70,25 @@ class EdgeGuard:
         settings = self.settings
         method, path = scope["method"], scope["path"]
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
+        declared = headers.get("content-length", "")
+        has_body = (declared.isdigit() and int(declared) > 0) or "transfer-encoding" in headers
+        # A body refused unread: the connection is closed after the answer, so that the
+        # server does not go on receiving (and discarding) what the client still sends.
+        unread = {"connection": "close"} if has_body else {}
         if self._protected(method, path) and not self._authorised(headers):
             await _problem(send, 401, "a valid bearer token is required",
-                           {"www-authenticate": "Bearer"})
+                           {"www-authenticate": "Bearer", **unread})
             return
         limit = body_limit(settings, method, path)
-        declared = headers.get("content-length", "")
         if declared.isdigit() and int(declared) > limit:
-            await _problem(send, 413, _too_large(limit))
+            await _problem(send, 413, _too_large(limit), unread)
             return
-        has_body = (declared.isdigit() and int(declared) > 0) or "transfer-encoding" in headers
         if not has_body:
             await self.app(scope, receive, send)
             return
         if self.bodies_in_flight >= settings.max_concurrent_bodies:
             await _problem(send, 503, f"{self.bodies_in_flight} request bodies are being read: "
-                                      f"try again", {"retry-after": str(RETRY_AFTER_S)})
+                                      f"try again", {"retry-after": str(RETRY_AFTER_S), **unread})
             return
         self.bodies_in_flight += 1
         try:
@@ -121,7 +124,7 @@ class EdgeGuard:
                 if received > limit:
                     if not started:
                         refused = True
-                        await _problem(send, 413, _too_large(limit))
+                        await _problem(send, 413, _too_large(limit), {"connection": "close"})
                     raise BodyTooLarge(_too_large(limit))
             return message
 
