@@ -177,9 +177,9 @@ def check_against_robot(scan: Scan, robot: Robot, state: CrossCheckState, *,
     -------
     check : dict
         ``scanner_core.crosscheck.cross_check``'s, with ``led_correction_learned`` when it
-        learned the correction; when frames were placed on a held rotation (the robot lost
-        for part of the pass) ``frames_held_rotation``, ``held_rotation_fraction`` (of the
-        frames placed) and ``flagged``.
+        learned the correction; when frames were placed on a held rotation and the robot has
+        no pose for some of the pass's frames (lost for part of it) ``frames_held_rotation``,
+        ``held_rotation_fraction`` (of the frames placed), ``flagged`` and the ``reason``.
     state : CrossCheckState
     """
     def check(correction, offset_s, max_step_s):
@@ -196,9 +196,12 @@ def check_against_robot(scan: Scan, robot: Robot, state: CrossCheckState, *,
                                     led_correction_from=scan_id or "a scan")
         result["led_correction_learned"] = True
     held = int(getattr(scan, "frames_held_rotation", 0))
-    if held and scan.frames:
-        # Frames placed on a held rotation (the robot lost for part of the pass) were never
-        # checked against it, and their placement is a guess: the check says so, and how much.
+    unchecked = scan.frames - int(result.get("samples") or 0)
+    if held and unchecked > 0:
+        # The robot lost for part of the pass: frames placed on a held rotation that it still
+        # has no pose for were never checked, and their placement is a guess; the check says
+        # so, and how much. (A frame held only because the robot's report came late, and
+        # checked since, is not: under load the last frames of a pass can outrun the reports.)
         result["frames_held_rotation"] = held
         result["held_rotation_fraction"] = round(held / scan.frames, 4)
         held_reason = (f"the robot gave no pose for {held} of {scan.frames} frames "
