@@ -78,6 +78,10 @@ NO_ROOM = {507: {"model": Problem, "description": "the disk refused (full or rea
                                                  "reason, relative to the data folder"}}
 
 
+#: FastAPI's detail when ``json.loads`` raised on a body (made a 422 below).
+BODY_NOT_PARSED = "There was an error parsing the body"
+
+
 def _disk_error(service: Service, exc: OSError, what: str) -> HTTPException:
     return HTTPException(507, f"{what}: {disk_reason(exc, service.settings.data)}")
 
@@ -384,7 +388,7 @@ def create_app(settings: Settings | None = None, *, service: Service | None = No
     async def http_problem(request: Request, exc: StarletteHTTPException) -> Response:
         # FastAPI answers 400 for a body json.loads cannot take (invalid UTF-8, nesting past
         # the interpreter's recursion limit): a malformed request like any other, 422.
-        if exc.status_code == 400 and request.method not in ("GET", "HEAD"):
+        if exc.status_code == 400 and exc.detail == BODY_NOT_PARSED:
             return JSONResponse(status_code=422, content={
                 "detail": "the body is not a JSON document (UTF-8, nested a few hundred deep "
                           "at most)"})
