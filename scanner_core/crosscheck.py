@@ -242,13 +242,7 @@ def estimate_led_and_clock(times, marker_b, robot: Robot, *, initial_offset_s: f
         p, velocity, ok = _track_at(robot, times + offset)
         if ok.sum() < 10:
             raise ValueError(f"only {int(ok.sum())} frames have a robot pose: no LED offset")
-        rot = _robot_rotations(robot, times[ok] + offset)
-        velocity = velocity[ok]
-        n = int(ok.sum())
-        # Unknowns (d_step, m): residual M - p - R m ~ v d_step + R dm.
-        a = np.zeros((3 * n, 4))
-        a[:, 0] = velocity.ravel()
-        a[:, 1:] = rot.reshape(3 * n, 3)
+        a = _clock_and_offset_rows(velocity[ok], _robot_rotations(robot, times[ok] + offset))
         r = (marker[ok] - p[ok]).ravel()
         sol, *_ = np.linalg.lstsq(a, r, rcond=None)
         if np.linalg.cond(a) > 1e6:
@@ -260,6 +254,16 @@ def estimate_led_and_clock(times, marker_b, robot: Robot, *, initial_offset_s: f
             break
     res = (r - a @ sol).reshape(-1, 3)
     return led, offset, float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
+
+
+def _clock_and_offset_rows(velocity, rotations) -> np.ndarray:
+    """(3N, 4) rows of the LED-and-clock fit's unknowns (d_step, m): the residual
+    ``M - p - R m`` is about ``v d_step + R dm``, for (N, 3) `velocity` and (N, 3, 3)
+    `rotations`."""
+    rows = np.zeros((3 * len(velocity), 4))
+    rows[:, 0] = np.asarray(velocity).ravel()
+    rows[:, 1:] = np.asarray(rotations).reshape(-1, 3)
+    return rows
 
 
 #: Consecutive stretches of a calibration pass the LED offset is fitted on apart.
@@ -308,10 +312,8 @@ def led_offset_spread(times, marker_b, robot: Robot, clock_offset_s: float, *,
     for part in np.array_split(np.nonzero(ok)[0], segments):
         if len(part) < 10:
             continue
-        rot = _robot_rotations(robot, times[part] + clock_offset_s)
-        a = np.zeros((3 * len(part), 4))
-        a[:, 0] = velocity[part].ravel()
-        a[:, 1:] = rot.reshape(-1, 3)
+        a = _clock_and_offset_rows(velocity[part],
+                                   _robot_rotations(robot, times[part] + clock_offset_s))
         sol, *_ = np.linalg.lstsq(a, (marker[part] - p[part]).ravel(), rcond=None)
         fits.append(sol[1:])
     if len(fits) < 2:
