@@ -5,6 +5,10 @@ A scan is a folder ``scans/<scan_id>/`` with ``cloud.ply``, ``edges.ply`` and ``
 written into a hidden ``.tmp-<scan_id>`` folder and renamed into place in one step, so a
 process killed mid-write leaves only a temporary folder, which the next start removes. The
 oldest scans beyond ``retention`` are deleted.
+
+The store keeps an index of the scans' infos in memory, read from disk once at ``open`` and
+kept by ``save``, ``update_info`` and ``delete``: ``list`` serves it without reading a file
+(re-parsing every ``info.json`` on each ``GET /scans`` took the camera's time).
 """
 from __future__ import annotations
 
@@ -31,12 +35,30 @@ class ScanStore:
         self.root = Path(root) / "scans"
         self.retention = int(retention)
         self._lock = threading.Lock()
+        self._index: dict[str, dict] | None = None  # scan_id -> info; None until opened
 
     def open(self) -> None:
-        """Create the folder and remove what a killed write left behind."""
+        """Create the folder, remove what a killed write left behind, index the scans."""
         self.root.mkdir(parents=True, exist_ok=True)
         for leftover in self.root.glob(f"{TMP_PREFIX}*"):
             shutil.rmtree(leftover, ignore_errors=True)
+        index = dict(self._read_all())
+        with self._lock:
+            self._index = index
+
+    def _read_all(self) -> list[tuple[str, dict]]:
+        """(folder name, info) of every scan folder, read from disk."""
+        infos = []
+        for folder in self.root.iterdir():
+            if folder.name.startswith(TMP_PREFIX) or not folder.is_dir():
+                continue
+            try:
+                info = json.loads((folder / "info.json").read_text())
+            except (FileNotFoundError, json.JSONDecodeError):
+                continue  # not a scan folder
+            if isinstance(info, dict):
+                infos.append((folder.name, info))
+        return infos
 
     def path(self, scan_id: str) -> Path:
         if not SCAN_ID.match(scan_id):
@@ -61,6 +83,8 @@ class ScanStore:
                     shutil.rmtree(final)
                 os.replace(tmp, final)
                 _fsync_dir(self.root)
+                if self._index is not None:
+                    self._index[scan_id] = json.loads(json.dumps(info))
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -73,6 +97,9 @@ class ScanStore:
         if not (folder / "info.json").is_file():
             raise KeyError(scan_id)
         save_json_atomic(folder / "info.json", info)
+        with self._lock:
+            if self._index is not None:
+                self._index[scan_id] = json.loads(json.dumps(info))
 
     def info(self, scan_id: str) -> dict:
         """The stored info of a scan; KeyError when there is none."""
@@ -88,15 +115,13 @@ class ScanStore:
         return path
 
     def list(self) -> list[dict]:
-        """Infos of the stored scans, newest first."""
-        infos = []
-        for folder in self.root.iterdir():
-            if folder.name.startswith(TMP_PREFIX) or not folder.is_dir():
-                continue
-            try:
-                infos.append(json.loads((folder / "info.json").read_text()))
-            except (FileNotFoundError, json.JSONDecodeError):
-                continue  # not a scan folder
+        """Infos of the stored scans, newest first: from the index once opened (shallow copies),
+        from the disk before."""
+        with self._lock:
+            index = self._index
+            infos = [dict(i) for i in index.values()] if index is not None else None
+        if infos is None:
+            infos = [info for _, info in self._read_all()]
         return sorted(infos, key=lambda i: i.get("created", 0.0), reverse=True)
 
     def delete(self, scan_id: str) -> None:
@@ -104,7 +129,11 @@ class ScanStore:
         with self._lock:
             if not path.is_dir():
                 raise KeyError(scan_id)
-            shutil.rmtree(path)
+            try:
+                shutil.rmtree(path)
+            finally:
+                if self._index is not None and not (path / "info.json").is_file():
+                    self._index.pop(scan_id, None)
 
     def _enforce_retention(self) -> None:
         infos = self.list()
