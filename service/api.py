@@ -33,13 +33,15 @@ from service.models import (CalibrationModel, Health, PartInfo, PartList, Proble
 from service.edge import EdgeGuard
 from service.parts import PartInUse, PartQuotaExceeded, grasp_from_query, part_info
 from service.problems import disk_reason
-from service.pictures import cloud_preview_png, frame_png
+from service.pictures import Busy
 from service.settings import Settings
 from scanner_core.cad import GRASPS, PartError
 
 STATIC = Path(__file__).resolve().parent / "static"
 #: Server-sent events: how often the status page is told the service's status, s.
 EVENTS_PERIOD_S = 0.5
+#: Seconds a client refused a preview (too many being drawn) is told to wait.
+PICTURE_RETRY_S = 1
 
 
 def get_service(request: Request) -> Service:
@@ -103,6 +105,8 @@ def get_status(service: ServiceDep) -> dict:
 @system.get("/metrics", response_class=Response,
             responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text format"}})
 def metrics(service: ServiceDep) -> Response:
+    service.metrics.pictures(service.frame_picture.renders, service.previews.renders,
+                             service.previews.refused)
     return Response(service.metrics.render(service.status()),
                     media_type="text/plain; version=0.0.4; charset=utf-8")
 
@@ -207,9 +211,19 @@ def get_edges(scan_id: str, service: ServiceDep) -> FileResponse:
 
 @scans.get("/{scan_id}/preview.png", response_class=Response,
            responses={200: {"content": {"image/png": {}}, "description": "the cloud seen from below"},
-                      **NOT_FOUND, 409: {"model": Problem, "description": "the scan has no cloud"}})
+                      **NOT_FOUND, 409: {"model": Problem, "description": "the scan has no cloud"},
+                      503: {"model": Problem, "description": "too many previews being drawn: "
+                                                             "try again after Retry-After s"}})
 def get_preview(scan_id: str, service: ServiceDep) -> Response:
-    return Response(cloud_preview_png(_scan_file(service, scan_id, "cloud.ply")), media_type="image/png")
+    path = _scan_file(service, scan_id, "cloud.ply")
+    try:
+        png = service.previews.get(scan_id, path)
+    except Busy as exc:
+        raise HTTPException(503, f"{exc}: try again",
+                            headers={"Retry-After": str(PICTURE_RETRY_S)}) from None
+    except FileNotFoundError:  # deleted meanwhile
+        raise HTTPException(404, f"no scan {scan_id!r}") from None
+    return Response(png, media_type="image/png")
 
 
 @scans.delete("/{scan_id}", status_code=204, response_class=Response, dependencies=Auth,
@@ -338,9 +352,10 @@ def latest_frame(service: ServiceDep) -> Response:
     latest = service.engine.latest
     if latest is None:
         raise HTTPException(404, "no frame has arrived yet")
-    frame, marker = latest
-    return Response(frame_png(frame, marker, service.engine.calibration, service.engine.params),
-                    media_type="image/png", headers={"Cache-Control": "no-store"})
+    png, frame_id = service.frame_picture.get(latest, service.engine.calibration,
+                                              service.engine.params)
+    return Response(png, media_type="image/png",
+                    headers={"Cache-Control": "no-store", "X-Frame-Id": str(frame_id)})
 
 
 @page.get("/events", response_class=StreamingResponse,

@@ -30,6 +30,7 @@ from service.jobs import ScanJob
 from service.metrics import Metrics
 from service.models import taught_place_matrix
 from service.parts import DEMO_PART, PartLibrary
+from service.pictures import FramePicture, PreviewPictures
 from service.problems import disk_reason, relative_path, relative_text
 from service.publisher import Publisher
 from service.settings import Settings
@@ -75,6 +76,9 @@ class Service:
             max_parts=settings.max_parts)
         self.publisher = Publisher(settings.zmq, hwm=settings.zmq_hwm)
         self.metrics = Metrics()
+        # The status page's pictures, bounded and cached (service.pictures)
+        self.frame_picture = FramePicture()
+        self.previews = PreviewPictures(max_pending=settings.max_pending_pictures)
         self.pose_params = PoseParams(act_tolerance_mm=settings.act_tolerance_mm,
                                       act_tolerance_deg=settings.act_tolerance_deg,
                                       robot_rotation_std_deg=settings.robot_rotation_std_deg)

@@ -26,6 +26,12 @@ class Metrics:
         self.zmq_sent = Gauge("flyscan_zmq_sent", "ZeroMQ messages sent", registry=r)
         self.zmq_dropped = Gauge("flyscan_zmq_dropped", "ZeroMQ messages the publisher's queue refused (a subscriber's own losses show as seq gaps)", registry=r)
         self.robot = Gauge("flyscan_robot_connected", "1 when the robot is connected", registry=r)
+        self.renders = Gauge("flyscan_picture_renders",
+                             "Pictures drawn and encoded (the other requests were served cached)",
+                             ["picture"], registry=r)
+        self.pictures_refused = Gauge("flyscan_picture_refused",
+                                      "Preview requests refused (503): too many waiting for a render",
+                                      registry=r)
 
     def scan_finished(self, info: dict) -> None:
         self.scans.labels(state=info["state"]).inc()
@@ -34,6 +40,11 @@ class Metrics:
         latency = (info.get("latency_ms") or {}).get("last_frame_to_zmq")
         if latency is not None:
             self.latency.observe(latency / 1e3)
+
+    def pictures(self, frame_renders: int, preview_renders: int, refused: int) -> None:
+        self.renders.labels(picture="frame").set(frame_renders)
+        self.renders.labels(picture="preview").set(preview_renders)
+        self.pictures_refused.set(refused)
 
     def render(self, status: dict) -> bytes:
         for state in STATES:

@@ -1,6 +1,21 @@
 """The status page's pictures: the latest frame with what the scanner found on it, and the
-last cloud seen from below. Drawn with OpenCV (a few ms), on request only."""
+last cloud seen from below. Drawn with OpenCV (a few ms), on request only, and bounded: the
+camera, the trigger and the pipeline share the process (issue 28).
+
+- ``FramePicture``: ``/frame.png`` is rendered at most once per camera frame and at most every
+  ``FRAME_PERIOD_S``, one render at a time; every client in between gets the same cached bytes.
+  The frame is downscaled first (``cv2.resize``), then drawn and encoded by OpenCV, which
+  releases the GIL.
+- ``PreviewPictures``: a scan's ``preview.png`` is rendered once (on its first request) and kept
+  (the last ``PREVIEW_CACHE`` scans); renders run one at a time, and beyond
+  ``max_pending`` requests waiting for one the answer is ``Busy`` (a 503 with Retry-After).
+"""
 from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -16,28 +31,122 @@ FRAME_SCALE = 1 / 3
 PREVIEW_SIZE = (480, 360)
 #: At most this many points are drawn in the preview.
 PREVIEW_POINTS = 60000
+#: ``/frame.png`` is rendered at most this often, s (5 Hz).
+FRAME_PERIOD_S = 0.2
+#: Previews kept (the newest requested).
+PREVIEW_CACHE = 64
+#: PNG compression level of the pictures (OpenCV's default 1 of 0-9 would be bigger; 3 is a few
+#: ms for the frame).
+PNG_COMPRESSION = 3
 
 
 def frame_png(frame: Frame, marker: MarkerObservation | None, calibration: Calibration,
               params: PipelineParams) -> bytes:
-    """(H, W) uint8 frame -> PNG: stripe rows in green, marker views circled in red, the view
-    strips outlined."""
-    image = cv2.cvtColor(frame.image, cv2.COLOR_GRAY2BGR)
+    """(H, W) uint8 frame -> PNG at ``FRAME_SCALE``: stripe rows in green, marker views circled
+    in red, the view strips outlined. Downscaled first: the drawing and the encoding work on a
+    ninth of the pixels."""
+    s = FRAME_SCALE
+    small = cv2.cvtColor(cv2.resize(frame.image, None, fx=s, fy=s, interpolation=cv2.INTER_AREA),
+                         cv2.COLOR_GRAY2BGR)
+    h, w = small.shape[:2]
     result = stripe.extract(frame.image, method=params.stripe_method,
                             threshold=params.stripe_threshold_dn, columns=calibration.direct_columns)
     cols = np.nonzero(result.valid)[0]
-    rows = np.rint(result.row[cols]).astype(int)
-    image[rows, cols] = (0, 255, 0)
+    rows = np.clip(np.rint(result.row[cols] * s).astype(int), 0, h - 1)
+    small[rows, np.clip((cols * s).astype(int), 0, w - 1)] = (0, 255, 0)
     if marker is not None:
         for x, y in marker.pixels:
             if np.isfinite(x):
-                cv2.circle(image, (int(round(x)), int(round(y))), 18, (0, 0, 255), 3)
+                cv2.circle(small, (int(round(x * s)), int(round(y * s))), 6, (0, 0, 255), 1)
     for c0, c1 in calibration.strips:
-        cv2.rectangle(image, (c0, 0), (c1 - 1, image.shape[0] - 1), (255, 160, 0), 2)
-    small = cv2.resize(image, None, fx=FRAME_SCALE, fy=FRAME_SCALE, interpolation=cv2.INTER_AREA)
+        cv2.rectangle(small, (int(c0 * s), 0), (int((c1 - 1) * s), h - 1), (255, 160, 0), 1)
     cv2.putText(small, f"frame {frame.frame_id}", (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
                 (255, 255, 255), 1, cv2.LINE_AA)
-    return cv2.imencode(".png", small)[1].tobytes()
+    return _png(small)
+
+
+def _png(image) -> bytes:
+    return cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])[1].tobytes()
+
+
+class Busy(Exception):
+    """Too many requests wait for a render: try again later."""
+
+
+class FramePicture:
+    """``/frame.png``, rendered at most once per frame id and once per ``period_s``; the same
+    bytes for every request in between. ``renders`` counts the renders."""
+
+    def __init__(self, period_s: float = FRAME_PERIOD_S, clock=time.monotonic):
+        self.period_s = period_s
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._png: bytes | None = None
+        self._frame_id: int | None = None
+        self._at = float("-inf")
+        self.renders = 0
+
+    def get(self, latest, calibration: Calibration, params: PipelineParams) -> tuple[bytes, int]:
+        """(PNG, frame id shown) for the engine's ``latest`` (frame, marker)."""
+        frame, marker = latest
+        with self._lock:  # one render at a time; the others wait for it and share it
+            fresh = self._png is not None and (
+                self._frame_id == frame.frame_id or self._clock() - self._at < self.period_s)
+            if not fresh:
+                self._png = frame_png(frame, marker, calibration, params)
+                self._frame_id, self._at = frame.frame_id, self._clock()
+                self.renders += 1
+            return self._png, self._frame_id
+
+
+class PreviewPictures:
+    """Scans' ``preview.png``, each rendered once (while its cloud file stays the same) and
+    kept for the last ``size`` scans. One render at a time; more than ``max_pending`` requests
+    waiting for renders: ``Busy``. ``renders`` counts the renders, ``refused`` the Busy."""
+
+    def __init__(self, max_pending: int, size: int = PREVIEW_CACHE):
+        self.max_pending = max_pending
+        self.size = size
+        self._state = threading.Lock()
+        self._render = threading.Lock()
+        self._cache: OrderedDict[tuple, bytes] = OrderedDict()
+        self._pending = 0
+        self.renders = 0
+        self.refused = 0
+
+    def get(self, scan_id: str, path: Path) -> bytes:
+        st = Path(path).stat()
+        key = (scan_id, st.st_mtime_ns, st.st_size)
+        with self._state:
+            if (png := self._hit(key)) is not None:
+                return png
+            if self._pending >= self.max_pending:
+                self.refused += 1
+                raise Busy(f"{self._pending} previews are being drawn")
+            self._pending += 1
+        try:
+            with self._render:
+                with self._state:
+                    png = self._hit(key)
+                if png is None:
+                    png = cloud_preview_png(path)
+                    with self._state:
+                        self.renders += 1
+                        for old in [k for k in self._cache if k[0] == scan_id]:
+                            del self._cache[old]
+                        self._cache[key] = png
+                        while len(self._cache) > self.size:
+                            self._cache.popitem(last=False)
+                return png
+        finally:
+            with self._state:
+                self._pending -= 1
+
+    def _hit(self, key) -> bytes | None:
+        png = self._cache.get(key)
+        if png is not None:
+            self._cache.move_to_end(key)
+        return png
 
 
 def cloud_preview_png(path) -> bytes:
@@ -58,4 +167,4 @@ def cloud_preview_png(path) -> bytes:
         image[v[inside], u[inside]] = colours[inside]
         cv2.putText(image, f"{len(points)} points", (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
                     (255, 255, 255), 1, cv2.LINE_AA)
-    return cv2.imencode(".png", image)[1].tobytes()
+    return _png(image)

@@ -59,6 +59,9 @@ class Settings(BaseSettings):
                                 description="largest mesh upload, bytes (413 beyond)")
     max_concurrent_bodies: int = Field(2, ge=1, le=64,
                                        description="request bodies read at once (503 beyond)")
+    max_pending_pictures: int = Field(4, ge=1, le=64,
+                                      description="requests waiting at once for a scan's preview "
+                                                  "to be drawn (503 beyond)")
     max_parts: int = Field(100, ge=1, le=10_000,
                            description="uploaded parts kept, at most (507 beyond)")
     calibration: Path | None = Field(None, description="calibration JSON; default the reference cell's")

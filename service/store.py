@@ -7,11 +7,12 @@ process killed mid-write leaves only a temporary folder, which the next start re
 oldest scans beyond ``retention`` are deleted.
 
 The store keeps an index of the scans' infos in memory, read from disk once at ``open`` and
-kept by ``save``, ``update_info`` and ``delete``: ``list`` serves it without reading a file
-(re-parsing every ``info.json`` on each ``GET /scans`` took the camera's time).
+kept by ``save``, ``update_info`` and ``delete``: ``list`` and ``info`` serve it without
+reading a file (re-parsing every ``info.json`` on each ``GET /scans`` took the camera's time).
 """
 from __future__ import annotations
 
+import copy
 import json
 import os
 import re
@@ -102,9 +103,13 @@ class ScanStore:
                 self._index[scan_id] = json.loads(json.dumps(info))
 
     def info(self, scan_id: str) -> dict:
-        """The stored info of a scan; KeyError when there is none."""
+        """The stored info of a scan (from the index once opened); KeyError when there is none."""
+        path = self.path(scan_id)
+        with self._lock:
+            if self._index is not None:
+                return copy.deepcopy(self._index[scan_id])
         try:
-            return json.loads((self.path(scan_id) / "info.json").read_text())
+            return json.loads((path / "info.json").read_text())
         except FileNotFoundError:
             raise KeyError(scan_id) from None
 
