@@ -15,7 +15,8 @@ Load patterns (each run against the same service, with ``STORED`` scans on disk)
 
 For each pass: its state, frames, ``frames_dropped`` and ``queue_overflows`` (the scan's info),
 and the clients' answers by status code. ``run(out_dir)`` writes ``abuse.json`` and
-``abuse.png``; ``python -m benchmarks.abuse OUT [--passes N] [--target-passes N]``.
+``abuse.png``: ``flyscan bench abuse --out OUT [--quick]``, or with the counts chosen
+``python -m benchmarks.abuse OUT [--passes N] [--target-passes N] [--patterns ...]``.
 """
 from __future__ import annotations
 
@@ -230,7 +231,9 @@ def run(out_dir, quick: bool = False, passes: int | None = None, target_passes: 
                        for p in patterns}
         finally:
             served.stop()
-    result = {"stored_scans": STORED, "loadavg_before": load_before,
+    summary = {p: {k: r[k] for k in ("passes", "failed", "dropped_total", "passes_with_drops")}
+               for p, r in results.items()}
+    result = {"summary": summary, "stored_scans": STORED, "loadavg_before": load_before,
               "loadavg_after": os.getloadavg(), "patterns": results, "machine": machine_info()}
     write_json(out_dir / "abuse.json", result)
     _chart(result, out_dir / "abuse.png")

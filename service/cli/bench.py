@@ -11,7 +11,7 @@ __all__ = ["add_parser", "run"]
 
 #: The benchmarks, with what the longer ones measure.
 BENCHMARKS = ("stripe", "scan", "simulate", "service", "pose", "coarse", "hardware", "surfaces",
-              "calibrate", "edges", "place")
+              "calibrate", "edges", "place", "abuse")
 
 
 def add_parser(command) -> None:
@@ -24,7 +24,9 @@ def add_parser(command) -> None:
                             "ur-rtde, the robot link's loss and recovery, replay against real "
                             "time; edges: edge points per part and edge kind on creased, "
                             "curved and walled parts; place: the closed loop (pick, scan, "
-                            "correct, place) in the calibrated realistic cell")
+                            "correct, place) in the calibrated realistic cell; abuse: passes "
+                            "armed over REST while clients loop on the status page's reads "
+                            "(frames dropped per load pattern)")
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
     bench.add_argument("--picks", type=int, default=None,
@@ -59,6 +61,8 @@ def run(args) -> int:
         from benchmarks import edges as bench
     elif args.what == "place":
         from benchmarks import place as bench
+    elif args.what == "abuse":
+        from benchmarks import abuse as bench
     elif args.what == "pose":
         from benchmarks import pose as bench
         from benchmarks import pose_limits
