@@ -44,7 +44,8 @@ EVENTS_PERIOD_S = 0.5
 PICTURE_RETRY_S = 1
 
 
-def get_service(request: Request) -> Service:
+async def get_service(request: Request) -> Service:
+    # async: FastAPI runs a plain def dependency in its thread pool, a hop per request
     return request.app.state.service
 
 
@@ -214,10 +215,13 @@ def get_edges(scan_id: str, service: ServiceDep) -> FileResponse:
                       **NOT_FOUND, 409: {"model": Problem, "description": "the scan has no cloud"},
                       503: {"model": Problem, "description": "too many previews being drawn: "
                                                              "try again after Retry-After s"}})
-def get_preview(scan_id: str, service: ServiceDep) -> Response:
+async def get_preview(scan_id: str, service: ServiceDep) -> Response:
+    # on the event loop when the preview is kept (no thread hop), in a thread to draw it
     path = _scan_file(service, scan_id, "cloud.ply")
     try:
-        png = service.previews.get(scan_id, path)
+        png = service.previews.cached(scan_id, path)
+        if png is None:
+            png = await asyncio.to_thread(service.previews.get, scan_id, path)
     except Busy as exc:
         raise HTTPException(503, f"{exc}: try again",
                             headers={"Retry-After": str(PICTURE_RETRY_S)}) from None
@@ -348,12 +352,16 @@ def static_file(name: str) -> FileResponse:
           responses={200: {"content": {"image/png": {}},
                            "description": "the latest frame with the stripe and marker drawn"},
                      404: {"model": Problem, "description": "no frame yet"}})
-def latest_frame(service: ServiceDep) -> Response:
+async def latest_frame(service: ServiceDep) -> Response:
+    # on the event loop when the picture kept is fresh (no thread hop), in a thread to draw it
     latest = service.engine.latest
     if latest is None:
         raise HTTPException(404, "no frame has arrived yet")
-    png, frame_id = service.frame_picture.get(latest, service.engine.calibration,
-                                              service.engine.params)
+    hit = service.frame_picture.cached(latest[0].frame_id)
+    if hit is None:
+        hit = await asyncio.to_thread(service.frame_picture.get, latest,
+                                      service.engine.calibration, service.engine.params)
+    png, frame_id = hit
     return Response(png, media_type="image/png",
                     headers={"Cache-Control": "no-store", "X-Frame-Id": str(frame_id)})
 

@@ -81,22 +81,28 @@ class FramePicture:
         self.period_s = period_s
         self._clock = clock
         self._lock = threading.Lock()
-        self._png: bytes | None = None
-        self._frame_id: int | None = None
-        self._at = float("-inf")
+        self._kept: tuple[bytes, int, float] | None = None  # (PNG, frame id, when drawn)
         self.renders = 0
+
+    def cached(self, frame_id: int) -> tuple[bytes, int] | None:
+        """(PNG, frame id shown) when the picture kept is fresh for ``frame_id``, else None.
+        Takes no lock and draws nothing (for the event loop)."""
+        kept = self._kept
+        if kept is not None and (kept[1] == frame_id or self._clock() - kept[2] < self.period_s):
+            return kept[0], kept[1]
+        return None
 
     def get(self, latest, calibration: Calibration, params: PipelineParams) -> tuple[bytes, int]:
         """(PNG, frame id shown) for the engine's ``latest`` (frame, marker)."""
         frame, marker = latest
         with self._lock:  # one render at a time; the others wait for it and share it
-            fresh = self._png is not None and (
-                self._frame_id == frame.frame_id or self._clock() - self._at < self.period_s)
-            if not fresh:
-                self._png = frame_png(frame, marker, calibration, params)
-                self._frame_id, self._at = frame.frame_id, self._clock()
-                self.renders += 1
-            return self._png, self._frame_id
+            hit = self.cached(frame.frame_id)
+            if hit is not None:
+                return hit
+            png = frame_png(frame, marker, calibration, params)
+            self._kept = (png, frame.frame_id, self._clock())  # one assignment: atomic
+            self.renders += 1
+            return png, frame.frame_id
 
 
 class PreviewPictures:
@@ -114,9 +120,19 @@ class PreviewPictures:
         self.renders = 0
         self.refused = 0
 
-    def get(self, scan_id: str, path: Path) -> bytes:
+    @staticmethod
+    def _key(scan_id: str, path: Path) -> tuple:
         st = Path(path).stat()
-        key = (scan_id, st.st_mtime_ns, st.st_size)
+        return scan_id, st.st_mtime_ns, st.st_size
+
+    def cached(self, scan_id: str, path: Path) -> bytes | None:
+        """The preview kept for the scan's cloud file as it is, else None (draws nothing)."""
+        key = self._key(scan_id, path)
+        with self._state:
+            return self._hit(key)
+
+    def get(self, scan_id: str, path: Path) -> bytes:
+        key = self._key(scan_id, path)
         with self._state:
             if (png := self._hit(key)) is not None:
                 return png
