@@ -24,8 +24,6 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -34,7 +32,7 @@ from pathlib import Path
 
 import httpx
 
-from benchmarks.live import free_port
+from benchmarks.live import ServeProcess
 from benchmarks.results import machine_info, pyplot, save_figure, write_json
 
 __all__ = ["run"]
@@ -48,43 +46,6 @@ PASS_TIMEOUT_S = 60.0
 #: How often a status page asks for the list of scans and for the frame, s (``app.js``).
 PAGE_SCANS_PERIOD_S = 1.0
 PAGE_FRAME_PERIOD_S = 0.2
-
-
-class Served:
-    """A ``flyscan serve --sim`` process on free loopback ports."""
-
-    def __init__(self, data: Path, env: dict | None = None):
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log = data.parent / f"serve-{self.port}.log"
-        self._log = open(self.log, "w")
-        environ = {**os.environ, "OPENBLAS_NUM_THREADS": "1", **(env or {})}
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--sim", "--port", str(self.port),
-             "--zmq", f"tcp://127.0.0.1:{free_port()}", "--data", str(data)],
-            stdout=self._log, stderr=subprocess.STDOUT, env=environ)
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                raise RuntimeError(self.log.read_text()[-2000:])
-            try:
-                if httpx.get(f"{self.url}/health", timeout=1.0).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        self.stop()
-        raise RuntimeError(f"flyscan serve did not start: {self.log.read_text()[-2000:]}")
-
-    def stop(self) -> None:
-        if self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(20)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        self._log.close()
 
 
 def _one_pass(client: httpx.Client) -> dict:
@@ -101,7 +62,7 @@ def _one_pass(client: httpx.Client) -> dict:
 
 def _seed(data: Path, count: int) -> None:
     """One real pass, then ``count - 1`` copies of it on disk (new ids, older dates)."""
-    served = Served(data)
+    served = ServeProcess(data, start_timeout_s=START_TIMEOUT_S)
     try:
         with httpx.Client(base_url=served.url, timeout=60) as client:
             info = _one_pass(client)
@@ -223,7 +184,7 @@ def run(out_dir, quick: bool = False, passes: int | None = None, target_passes: 
         data = Path(tmp) / "data"
         _seed(data, STORED)
         load_before = os.getloadavg()
-        served = Served(data)
+        served = ServeProcess(data, start_timeout_s=START_TIMEOUT_S)
         try:
             with httpx.Client(base_url=served.url, timeout=60) as client:
                 _one_pass(client)  # warm: the first pass of a process builds what it keeps

@@ -1,13 +1,18 @@
 """The service running for a benchmark: started in simulated mode and always stopped, passes
 armed and waited for, a free loopback port. ``bench service`` and ``bench hardware`` drive the
-service through these."""
+service through these; ``bench abuse`` and the service's tests run it as its own process
+(`ServeProcess`)."""
 from __future__ import annotations
 
 import contextlib
+import os
 import socket
+import subprocess
+import sys
 import time
+from pathlib import Path
 
-__all__ = ["free_port", "wait_for", "running_service", "finished_scan"]
+__all__ = ["free_port", "wait_for", "running_service", "finished_scan", "ServeProcess"]
 
 
 def free_port() -> int:
@@ -51,3 +56,63 @@ def finished_scan(service, scan_id: str, timeout: float, poll: float) -> dict | 
         return info if info["state"] in ("done", "failed") else None
 
     return wait_for(over, timeout, poll)
+
+
+class ServeProcess:
+    """A ``flyscan serve --sim`` process on free loopback ports (REST and ZeroMQ), its output
+    in ``serve-PORT.log`` beside `data`; started and healthy once constructed (RuntimeError
+    with the log's end otherwise, the process stopped).
+
+    Parameters
+    ----------
+    data : Path
+        The service's data folder.
+    env : dict, optional
+        Environment on top of this one's (``FLYSCAN_*`` settings).
+    args : sequence of str
+        More ``flyscan serve`` options.
+    start_timeout_s : float
+        How long start-up (imports, JIT warm-up, background frames) may take.
+    """
+
+    def __init__(self, data: Path, *, env: dict | None = None, args=(),
+                 start_timeout_s: float = 60.0):
+        import httpx  # the service's own dependency; not needed by the in-process benches
+
+        self._httpx = httpx
+        self.port, self.zmq_port = free_port(), free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.zmq = f"tcp://127.0.0.1:{self.zmq_port}"
+        self.data = data
+        self.log = data.parent / f"serve-{self.port}.log"
+        environ = {**os.environ, "OPENBLAS_NUM_THREADS": "1", **(env or {})}
+        self._log_file = open(self.log, "w")
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "serve", "--sim", "--port", str(self.port),
+             "--zmq", self.zmq, "--data", str(data), *args],
+            stdout=self._log_file, stderr=subprocess.STDOUT, env=environ)
+        self.wait_healthy(start_timeout_s)
+
+    def wait_healthy(self, timeout_s: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"flyscan serve exited: {self.log.read_text()[-2000:]}")
+            try:
+                if self._httpx.get(f"{self.url}/health", timeout=1.0).status_code == 200:
+                    return
+            except self._httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        self.stop()
+        raise RuntimeError(f"flyscan serve did not start: {self.log.read_text()[-2000:]}")
+
+    def stop(self, wait_s: float = 20.0) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(wait_s)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self._log_file.close()

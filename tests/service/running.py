@@ -1,16 +1,14 @@
 """A ``flyscan serve --sim`` process for the tests, on free loopback ports."""
-import os
-import socket
-import subprocess
-import sys
-import time
-from pathlib import Path
-
 import threading
+import time
 from contextlib import contextmanager
+from pathlib import Path
 
 import httpx
 import uvicorn
+
+from benchmarks.live import ServeProcess, free_port
+from benchmarks.live import wait_for as poll_until
 
 #: Start-up (imports, JIT warm-up, background frames) takes a few seconds on 2 cores.
 START_TIMEOUT_S = 60.0
@@ -18,60 +16,17 @@ START_TIMEOUT_S = 60.0
 
 def wait_for(predicate, timeout=30.0, poll=0.02):
     """The predicate's first truthy value within ``timeout`` s; TimeoutError otherwise."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(poll)
-    raise TimeoutError("condition not met in time")
+    value = poll_until(predicate, timeout, poll)
+    if value is None:
+        raise TimeoutError("condition not met in time")
+    return value
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class RunningService:
-    """A ``flyscan serve`` process and where to reach it."""
+class RunningService(ServeProcess):
+    """A ``flyscan serve`` process and where to reach it (``benchmarks.live.ServeProcess``)."""
 
     def __init__(self, data: Path, *, env: dict | None = None, args=()):
-        self.port, self.zmq_port = free_port(), free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.zmq = f"tcp://127.0.0.1:{self.zmq_port}"
-        self.data = data
-        self.log = data.parent / f"serve-{self.port}.log"
-        environ = {**os.environ, "OPENBLAS_NUM_THREADS": "1", **(env or {})}
-        self._log_file = open(self.log, "w")
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--sim", "--port", str(self.port),
-             "--zmq", self.zmq, "--data", str(data), *args],
-            stdout=self._log_file, stderr=subprocess.STDOUT, env=environ)
-        self.wait_healthy()
-
-    def wait_healthy(self) -> None:
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                raise RuntimeError(f"flyscan serve exited: {self.log.read_text()[-2000:]}")
-            try:
-                if httpx.get(f"{self.url}/health", timeout=1.0).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        raise RuntimeError(f"flyscan serve did not start: {self.log.read_text()[-2000:]}")
-
-    def stop(self) -> None:
-        if self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(15)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        self._log_file.close()
+        super().__init__(data, env=env, args=args, start_timeout_s=START_TIMEOUT_S)
 
 
 #: A fast pass (1 m/s: about half a second with lead-in and lead-out) keeps the tests short.
