@@ -56,7 +56,11 @@ SCENES = {
 }
 
 
-def _score(photo: LinePhoto, threshold, seeds) -> dict:
+def score_photo(photo: LinePhoto, threshold, seeds) -> dict:
+    """How ``scanner_core.stripe.extract`` at `threshold` reads `photo` rendered with each of
+    `seeds`: the share of the columns holding a stripe measured on the line (within
+    ``FALSE_PX`` plus two of the line's sigmas), the false columns, the RMS error of those
+    measured in the line's sigmas, and the median width gate (px)."""
     measured = present = false = 0
     errors, gates = [], []
     for seed in seeds:
@@ -78,12 +82,12 @@ def _score(photo: LinePhoto, threshold, seeds) -> dict:
 
 
 def photographed(seeds=(0, 1, 2)) -> dict:
-    """Per scene and threshold (``"20"``, ``"auto"``), the figures of ``_score``."""
+    """Per scene and threshold (``"20"``, ``"auto"``), the figures of `score_photo`."""
     out = {}
     for name, (photo, held) in SCENES.items():
         out[name] = {"held_to_target": held,
-                     "fixed_20dn": _score(photo, 20.0, seeds),
-                     "auto": _score(photo, "auto", seeds)}
+                     "fixed_20dn": score_photo(photo, 20.0, seeds),
+                     "auto": score_photo(photo, "auto", seeds)}
     return out
 
 

@@ -4,12 +4,13 @@ Frames from ``simulator.line_photos``: a laser line as a photograph shows it (it
 varying along its length, a printed checkerboard under it, 2-D speckle, a colour camera's
 Bayer mosaic), with the drawn line known per column. A column *holds a stripe* where the
 line's peak there is at least ``PRESENT_SNR`` noise sigmas; it is *measured* when the
-extractor gives a row within the line's own extent (``FALSE_PX`` plus two of its sigmas), and
-*false* when it gives a row outside it.
+extractor gives a row within the line's own extent (``benchmarks.stripe.scenes.FALSE_PX``
+plus two of its sigmas), and *false* when it gives a row outside it.
 """
 import numpy as np
 import pytest
 
+from benchmarks.stripe.scenes import score_photo
 from scanner_core.stripe import Reason, extract
 from simulator.imaging import ImageModel, render_image
 from simulator.line_photos import LinePhoto, render_line_photo
@@ -17,7 +18,6 @@ from simulator.line_photos import LinePhoto, render_line_photo
 # Issue 25's target: at least 99 % of the columns holding a stripe measured, none false.
 MIN_MEASURED = 0.99
 # A row farther than this plus two of the line's sigmas from its centre is not on the line.
-FALSE_PX = 2.0
 SEEDS = (0, 1)
 # Bounds on the RMS of the error in the line's own sigmas, on the columns measured, ~1.3 times
 # the worst of six seeds (in brackets): a clean line [0.035 at sigma 0.5 px, 0.010 at 6 px],
@@ -33,20 +33,9 @@ REL_RMS_BAYER = 0.2
 
 def _score(photo: LinePhoto, threshold=20.0):
     """Share of the columns holding a stripe measured, false columns, and the RMS error in the
-    line's sigmas."""
-    measured, present, false, errors = 0, 0, 0, []
-    for seed in SEEDS:
-        img, truth = render_line_photo(photo, np.random.default_rng(seed))
-        res = extract(img, threshold=threshold)
-        err = np.abs(res.row - truth.row)
-        on_line = err <= FALSE_PX + 2.0 * truth.sigma
-        measured += int((res.valid & on_line)[truth.present].sum())
-        present += int(truth.present.sum())
-        false += int((res.valid & ~on_line).sum())
-        kept = res.valid & on_line & truth.present
-        errors.append(err[kept] / truth.sigma[kept])
-    errors = np.concatenate(errors)
-    return measured / present, false, float(np.sqrt(np.mean(errors**2)))
+    line's sigmas (``benchmarks.stripe.scenes.score_photo``, the bench's own scoring)."""
+    figures = score_photo(photo, threshold, SEEDS)
+    return figures["measured_fraction"], figures["false_columns"], figures["rms_in_sigmas"]
 
 
 @pytest.mark.parametrize("sigma", [0.5, 1.0, 3.0, 6.0])
