@@ -29,6 +29,9 @@ class RunningService(ServeProcess):
         super().__init__(data, env=env, args=args, start_timeout_s=START_TIMEOUT_S)
 
 
+#: The token of the tests' services that have one.
+TOKEN = "s3cret"
+
 #: A fast pass (1 m/s: about half a second with lead-in and lead-out) keeps the tests short.
 FAST_PASS = {"FLYSCAN_SIM_SPEED_MM_S": "1000"}
 

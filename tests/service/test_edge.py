@@ -13,23 +13,13 @@ from pathlib import Path
 import httpx
 import pytest
 
-from running import FAST_PASS, RunningService, wait_for
+from running import TOKEN, wait_for
 
-TOKEN = "s3cret"
 #: A body far past every limit, bytes (200 MB), sent in chunks of 1 MiB.
 BIG = 200 * 10**6
 CHUNK = 1 << 20
 #: The service's peak memory may grow by less than this while it refuses BIG bodies, bytes.
 MAX_GROWTH = 50 * 2**20
-
-
-@pytest.fixture(scope="module")
-def guarded(tmp_path_factory):
-    running = RunningService(tmp_path_factory.mktemp("edge") / "data",
-                             env={**FAST_PASS, "FLYSCAN_TOKEN": TOKEN,
-                                  "FLYSCAN_PROTECT_READS": "true"})
-    yield running
-    running.stop()
 
 
 def _auth(token=TOKEN):

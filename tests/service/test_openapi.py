@@ -9,7 +9,7 @@ from schemathesis.checks import (allow_header_conformance, content_type_conforma
                                  not_a_server_error, response_headers_conformance,
                                  response_schema_conformance, status_code_conformance)
 
-from running import FAST_PASS, RunningService
+from running import TOKEN
 
 #: Examples per operation: enough to reach the documented error paths, short enough for CI.
 EXAMPLES = 15
@@ -19,16 +19,6 @@ CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,
           response_headers_conformance, response_schema_conformance, negative_data_rejection]
 #: With a token set, also: a request without it, or with a wrong one, is refused (401).
 AUTH_CHECKS = [*CHECKS, allow_header_conformance, ignored_auth, missing_required_header]
-TOKEN = "s3cret"
-
-
-@pytest.fixture(scope="module")
-def guarded(tmp_path_factory):
-    running = RunningService(tmp_path_factory.mktemp("openapi") / "data",
-                             env={**FAST_PASS, "FLYSCAN_TOKEN": TOKEN,
-                                  "FLYSCAN_PROTECT_READS": "true"})
-    yield running
-    running.stop()
 
 
 def _check_every_operation(url: str, headers: dict | None = None, checks=CHECKS) -> None:
