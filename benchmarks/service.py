@@ -223,10 +223,10 @@ def _summarise(rows: list[dict]) -> dict:
 
 
 @contextlib.contextmanager
-def _pose_stages():
-    """``scanner_core.pose``'s calls to its stages timed (wall, ms, summed per stage) into
-    the dict yielded, until the block ends; the passes are serial, the finisher thread the
-    one caller."""
+def pose_stages(clock=time.perf_counter):
+    """``scanner_core.pose``'s calls to its stages timed (by `clock`, wall by default; ms,
+    summed per stage) into the dict yielded, until the block ends; the passes are serial,
+    the finisher thread the one caller."""
     import scanner_core.pose as pose_module
 
     spent: dict[str, float] = {}
@@ -236,11 +236,11 @@ def _pose_stages():
     def timed(function, label):
         @functools.wraps(function)
         def call(*args, **kwargs):
-            t0 = time.perf_counter()
+            t0 = clock()
             try:
                 return function(*args, **kwargs)
             finally:
-                spent[label] = spent.get(label, 0.0) + (time.perf_counter() - t0) * 1e3
+                spent[label] = spent.get(label, 0.0) + (clock() - t0) * 1e3
         return call
 
     for name, function in saved.items():
@@ -276,7 +276,7 @@ def pose_latency(quick: bool = False) -> dict:
         with tempfile.TemporaryDirectory() as tmp:
             settings = Settings(sim=True, data=pathlib.Path(tmp), zmq=f"tcp://127.0.0.1:{free_port()}",
                                 retention=10, sim_speed_mm_s=speed)
-            with running_service(settings) as service, _pose_stages() as spent:
+            with running_service(settings) as service, pose_stages() as spent:
                 for p_index, name in enumerate(names):
                     in_library = _upload(service, name)
                     rng = np.random.default_rng([MISPLACEMENT_SEED, p_index, s_index])

@@ -17,7 +17,7 @@ The correspondences (`_Terms`, `_match`, `_nearest`) serve the search's scores t
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -35,6 +35,21 @@ _WARM_STRIDE = 4
 _WARM_MIN_POINTS = 2000
 _WARM_TOL_FACTOR = 100.0
 _WARM_MAX_ITERATIONS = 6
+# A fit whose steps stay within this factor of the tolerance without halving over
+# _CREEP_ITERATIONS iterations has settled: it creeps (correspondences moving with it, a
+# constant 6.6e-5 mm an iteration on idler_riser) rather than converges, and would go on to
+# ``max_iterations`` (a fifth of the poses of bench service's scans did, some 200 ms each).
+_CREEP_FACTOR = 100.0
+_CREEP_ITERATIONS = 3
+# Accelerated ICP (Besl and McKay 1992, section IV.B): where two successive steps of a full
+# fit point the same way (within this many degrees, in scaled units) and shrink by a ratio
+# r, the fit converges linearly along that line (a weakly held turn: cycloidal's lobes,
+# r = 0.68 over 30 iterations) and the rest of the way is about r / (1 - r) steps; the fit
+# jumps there at once. Not where r exceeds _JUMP_RATIO: a step that hardly shrinks is a
+# slide along a motion the scan barely holds (ADIS16480 seen on its end), which a jump
+# would carry degrees away.
+_JUMP_DEG = 5.0
+_JUMP_RATIO = 0.95
 # Information below this fraction of the strongest is no information (numerical zero).
 _SINGULAR = 1e-10
 # Queries with more points than this use both cores.
@@ -59,11 +74,18 @@ class _Terms:
     model: SurfaceModel | EdgeModel
     agreement: float = -1.0     # least cosine between `normals` and a match's normal
     steps_mm: np.ndarray | None = None  # edges: a step's height, 0 for a drop-out
+    approximate: bool = False   # matched through the model's lookup table, not its KD-tree
 
     def subset(self, index) -> "_Terms":
         return _Terms(self.points[index], None if self.normals is None else self.normals[index],
                       self.frames[index], self.model, self.agreement,
-                      None if self.steps_mm is None else self.steps_mm[index])
+                      None if self.steps_mm is None else self.steps_mm[index], self.approximate)
+
+    def rough(self) -> "_Terms":
+        """The same points matched through the model's lookup table
+        (``scanner_core.nearest_table``) instead of its KD-tree: what the search screens
+        candidates with, whose points lie millimetres off the model."""
+        return replace(self, approximate=True)
 
 
 @dataclass
@@ -93,6 +115,7 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, iterations=No
     sparse = (surface.subset(slice(None, None, _WARM_STRIDE))
               if iterations is None and len(surface.points) >= _WARM_MIN_POINTS else None)
     it = 0
+    sizes, previous = [], None
     for it in range(1, max_iter + 1):
         terms = surface if sparse is None else sparse
         rows, sigmas = _linearise(terms, edges, pose, centre, gates, params)
@@ -100,14 +123,18 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, iterations=No
         if len(res) < 6:
             break
         delta, observed = _solve(jac, res, w, scale, params.free_std_mm)
-        pose = _apply(delta, centre) @ pose
+        step = delta
+        if iterations is None and sparse is None:
+            step = delta + observed * _jump(previous, observed, scale)
+            previous = observed
+        pose = _apply(step, centre) @ pose
         if gate_mm is None:
             gates = [max(params.min_gate_mm, min(g, 6.0 * sg)) for g, sg in zip(gates, sigmas)]
         if sparse is not None and (it >= _WARM_MAX_ITERATIONS
                                    or np.all(np.abs(observed) < _WARM_TOL_FACTOR * step_tol)):
             sparse = None
             continue
-        if sparse is None and np.all(np.abs(observed) < step_tol):
+        if sparse is None and _settled(sizes, observed, step_tol):
             break
     rows = None
     if iterations is None:
@@ -147,15 +174,40 @@ def _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params
     twist -= free @ (free.T @ twist)
     pose = _apply(twist / s, centre) @ start
     step_tol = np.array([params.tol_mm] * 3 + [np.radians(params.tol_deg)] * 3)
+    sizes = []
     for _ in range(params.max_iterations):
         (jac, res, w, _, _), _ = _linearise(surface, edges, pose, centre, gates, params)
         if len(res) < 6:
             break
         _, observed = _solve(jac, res, w, scale, params.free_std_mm)
         pose = _apply(observed, centre) @ pose
-        if np.all(np.abs(observed) < step_tol):
+        if _settled(sizes, observed, step_tol):
             break
     return pose, None
+
+
+def _jump(previous, delta, scale) -> float:
+    """How many more steps of `delta` (the observable part of a step) the fit may take at
+    once after `previous`: r / (1 - r) where the two point the same way and shrink by r
+    (`_JUMP_DEG`, `_JUMP_RATIO`), else 0."""
+    if previous is None:
+        return 0.0
+    s = np.array([1.0, 1.0, 1.0, scale, scale, scale])
+    a, b = previous * s, delta * s
+    na, nb = np.linalg.norm(a), np.linalg.norm(b)
+    if na == 0.0 or nb == 0.0 or a @ b < na * nb * np.cos(np.radians(_JUMP_DEG)):
+        return 0.0
+    ratio = nb / na
+    return ratio / (1.0 - ratio) if ratio <= _JUMP_RATIO else 0.0
+
+
+def _settled(sizes: list, step, step_tol) -> bool:
+    """Whether a fit whose last step was `step` has settled: within the tolerance, or
+    creeping (`_CREEP_FACTOR`). `sizes` holds the steps so far (in tolerances) and grows."""
+    size = float(np.max(np.abs(step) / step_tol))
+    sizes.append(size)
+    return size < 1.0 or (len(sizes) > _CREEP_ITERATIONS and size < _CREEP_FACTOR
+                          and size > 0.5 * sizes[-1 - _CREEP_ITERATIONS])
 
 
 def _linearise(surface, edges, pose, centre, gates, params):
@@ -231,11 +283,17 @@ def _nearest(terms: _Terms, local, up, bound):
     and keeps the nearest of the three matches: the edge it came from.
     """
     shape = local.shape[:-1]
-    # Threads pay off only for large queries (each call starts its own).
-    workers = -1 if int(np.prod(shape)) > _THREADED_QUERY else 1
-    query = terms.model.tree.query
-    dist, nearest = query(local.reshape(-1, 3), k=1, distance_upper_bound=bound,
-                          workers=workers)
+    if terms.approximate:
+        def query(points):
+            return terms.model.lookup.query(points, bound)
+    else:
+        # Threads pay off only for large queries (each call starts its own).
+        workers = -1 if int(np.prod(shape)) > _THREADED_QUERY else 1
+
+        def query(points):
+            return terms.model.tree.query(points, k=1, distance_upper_bound=bound,
+                                          workers=workers)
+    dist, nearest = query(local.reshape(-1, 3))
     dist, nearest = dist.reshape(shape), nearest.reshape(shape)
     if terms.steps_mm is None:
         return dist, nearest
@@ -245,7 +303,7 @@ def _nearest(terms: _Terms, local, up, bound):
     half = 0.5 * terms.steps_mm[stepped, None]
     for sign in (1.0, -1.0):
         moved = local[..., stepped, :] + sign * half * up[..., None, :]
-        d, n = query(moved.reshape(-1, 3), k=1, distance_upper_bound=bound, workers=workers)
+        d, n = query(moved.reshape(-1, 3))
         d, n = d.reshape(moved.shape[:-1]), n.reshape(moved.shape[:-1])
         nearer = d < dist[..., stepped]
         dist[..., stepped] = np.where(nearer, d, dist[..., stepped])

@@ -9,7 +9,8 @@ its sharp edges, sampled in {P}.
   seen from the sensor where there is one (`outline_adjacency`, with the mesh's other edge
   tests in ``scanner_core.mesh_edges``).
 
-Each keeps a KD-tree over its points, built on first use. Units: mm.
+Each keeps a KD-tree over its points and a lookup table of them for the search's screening
+(`lookup`), built on first use. Units: mm.
 """
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
+from scanner_core.nearest_table import NearestTable
 from scanner_core.mesh_edges import TOWARD_MIN, boundary_edges, outline_adjacency
 
 __all__ = ["SurfaceModel", "EdgeModel", "merge_bevels", "outline_adjacency", "BEVEL_MM",
@@ -27,6 +29,11 @@ __all__ = ["SurfaceModel", "EdgeModel", "merge_bevels", "outline_adjacency", "BE
 #: Parallel sharp edges of the CAD closer than this (mm, about two pixels' footprint) are
 #: one edge to the scanner: a chamfer's two (`merge_bevels`).
 BEVEL_MM = 0.4
+#: How far from the models their lookup tables (`scanner_core.nearest_table`) answer, mm:
+#: the search's widest bounds at the default settings (twice ``PoseParams.gate_mm``, plus
+#: two spacings for surfaces; plus the edge search, 15 mm, for edges). A wider bound is
+#: answered by the KD-tree beyond them.
+LOOKUP_BAND_MM = {"surface": 12.5, "edge": 26.0}
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,6 +93,12 @@ class SurfaceModel:
     @cached_property
     def tree(self) -> cKDTree:
         return _tree(self.points)
+
+    @cached_property
+    def lookup(self) -> NearestTable:
+        """A lookup table of the nearest sample (`scanner_core.nearest_table`), for the
+        search's screening: approximate, O(1) a point."""
+        return _lookup(self, LOOKUP_BAND_MM["surface"])
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,6 +169,11 @@ class EdgeModel:
     def tree(self) -> cKDTree:
         return _tree(self.points if len(self.points) else np.zeros((1, 3)) + np.inf)
 
+    @cached_property
+    def lookup(self) -> NearestTable:
+        """As `SurfaceModel.lookup`."""
+        return _lookup(self, LOOKUP_BAND_MM["edge"])
+
 
 def _tree(points) -> cKDTree:
     """A KD-tree over a model's points, built once per part and queried some hundred times
@@ -163,6 +181,12 @@ def _tree(points) -> cKDTree:
     samples it builds in about two thirds of the time and answers the pose's queries about
     10 % sooner; a nearest neighbour is a nearest neighbour either way."""
     return cKDTree(points, balanced_tree=False)
+
+
+def _lookup(model, band_mm: float) -> NearestTable:
+    def by_tree(points, bound):
+        return model.tree.query(points, k=1, distance_upper_bound=bound)
+    return NearestTable(model.points, band_mm, fallback=by_tree)
 
 
 def merge_bevels(points, directions, width_mm: float = BEVEL_MM, spacing_mm: float = 0.1, *,

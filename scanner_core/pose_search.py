@@ -17,6 +17,12 @@ stage when the nominal grasp is no good start, and which other minima fit as wel
   (`_round_seeds`): a round part picked from a bin can sit any turn off its nominal. A
   minimum that fits clearly better is taken; one that fits as well (`_rival_margin`) is a
   rival, which the uncertainty then covers (``scanner_core.pose_confidence``).
+
+The quick refinements of the coarse grid and of the probes, and the probes' sweep all the way
+round, match their points through the models' lookup tables (``_Terms.rough``,
+``scanner_core.nearest_table``): their points lie millimetres off the model, where a KD-tree
+query is slow. The scores that rank candidates at tight tolerances, and every full fit, use
+the KD-trees.
 """
 from __future__ import annotations
 
@@ -147,9 +153,10 @@ def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> list
                        params.coarse_step_deg)
     grid = np.array(np.meshgrid(angles, angles, angles, indexing="ij")).reshape(3, -1).T
     grid = grid[np.argsort(np.linalg.norm(grid, axis=1))]
+    rough, rough_edges = few.rough(), _rough(few_edges)
 
     def refine(start):
-        fit = _fine(few, few_edges, start, params, iterations=params.coarse_iterations,
+        fit = _fine(rough, rough_edges, start, params, iterations=params.coarse_iterations,
                     gate_mm=params.gate_mm * 2)
         return fit.pose, _agreement(few, few_edges, fit.pose, *_COARSE_TOL_MM)
 
@@ -271,13 +278,14 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
             or _weakest_rotation(few, None, fit.pose, centre, params, weakness=True)[1]
             > _EDGES_ALONE):
         return fit, []
+    rough, rough_edges = few.rough(), _rough(few_edges)
     own = _agreement(few, few_edges, fit.pose, *_COARSE_TOL_MM)
     fits = [fit]
     starts = list(_turned(fit.pose, axis, centre, _PROBE_DEG))
     if weakness > _HELD_WEAKNESS:
         starts += _round_seeds(few, few_edges, fit.pose, axis, params)
     for start in starts:
-        quick = _fine(few, few_edges, start, params, iterations=_PROBE_ITERATIONS,
+        quick = _fine(rough, rough_edges, start, params, iterations=_PROBE_ITERATIONS,
                       gate_mm=params.gate_mm * 2)
         if (_agreement(few, few_edges, quick.pose, *_COARSE_TOL_MM) >= own - _PROBE_MARGIN
                 and all(not _same(quick.pose, f.pose, _RIVAL_SAME_DEG * 10, _RIVAL_SAME_MM * 10)
@@ -346,9 +354,10 @@ def _round_seeds(few: _Terms, few_edges: _Terms | None, pose, axis, params) -> l
         few_edges = few_edges.subset(_evenly(len(few_edges.points), _ROUND_POINTS))
     moved = _turned(pose, axis, pivot, np.arange(_ROUND_FROM_DEG, 360.0 - _ROUND_FROM_DEG + 1e-9,
                                                  step))
-    # an edge point matched near its edge (drop-outs, steps of known height) is all a rough
-    # ranking needs
-    scores = _agreements(few, few_edges, moved, *_ROUND_TOL_MM, edge_search_mm=_ROUND_TOL_MM[1])
+    # an edge point matched near its edge (drop-outs, steps of known height), through the
+    # lookup tables, is all a rough ranking at these tolerances needs
+    scores = _agreements(few.rough(), _rough(few_edges), moved, *_ROUND_TOL_MM,
+                         edge_search_mm=_ROUND_TOL_MM[1])
     # the best turn of each peak of the score (a broad lobe's shoulders outscore a narrower
     # lobe's top): maxima within _ROUND_APART_DEG either side, best first
     reach = max(1, int(round(_ROUND_APART_DEG / step)))
@@ -367,6 +376,10 @@ def _round_seeds(few: _Terms, few_edges: _Terms | None, pose, axis, params) -> l
         else np.zeros((0, 4, 4))
     tight = _agreements(few, few_edges, local, *_COARSE_TOL_MM).reshape(len(chosen), len(fine))
     return [local[k * len(fine) + int(np.argmax(row))] for k, row in enumerate(tight)]
+
+
+def _rough(terms: _Terms | None) -> _Terms | None:
+    return None if terms is None else terms.rough()
 
 
 def _turned(pose, axis, pivot, angles_deg) -> np.ndarray:

@@ -11,7 +11,7 @@ __all__ = ["add_parser", "run"]
 
 #: The benchmarks, with what the longer ones measure.
 BENCHMARKS = ("stripe", "scan", "simulate", "service", "pose", "coarse", "hardware", "surfaces",
-              "calibrate", "edges", "place", "abuse")
+              "calibrate", "edges", "place", "abuse", "pose_time")
 
 
 def add_parser(command) -> None:
@@ -26,7 +26,8 @@ def add_parser(command) -> None:
                             "curved and walled parts; place: the closed loop (pick, scan, "
                             "correct, place) in the calibrated realistic cell; abuse: passes "
                             "armed over REST while clients loop on the status page's reads "
-                            "(frames dropped per load pattern)")
+                            "(frames dropped per load pattern); pose_time: the pose's own CPU "
+                            "time by part, point count and stage")
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
     bench.add_argument("--picks", type=int, default=None,
@@ -63,6 +64,8 @@ def run(args) -> int:
         from benchmarks import place as bench
     elif args.what == "abuse":
         from benchmarks import abuse as bench
+    elif args.what == "pose_time":
+        from benchmarks import pose_time as bench
     elif args.what == "pose":
         from benchmarks import pose as bench
         from benchmarks import pose_limits
