@@ -9,7 +9,14 @@ headers first, so it can refuse cheaply what must never cost the service work:
 - a body larger than the route's limit: 413, from ``Content-Length`` at once, and while the
   body streams (chunked uploads have no length) as soon as the count passes the limit;
 - more bodies at once than ``max_concurrent_bodies``: 503 with ``Retry-After`` (each body
-  being read holds memory or a temporary file).
+  being read holds memory or a temporary file);
+- reads faster than ``read_interval_s`` on one connection, or than ``max_reads_per_s`` all
+  together: paced, i.e. the answer waits its turn (an ``asyncio`` sleep, which costs the
+  camera nothing), and beyond ``MAX_READ_WAIT_S`` of waiting, 503 with ``Retry-After``.
+  What took the camera's frames under clients looping on the reads was the web framework's
+  own Python per request (about half a core at 900 answers a second, with the pictures
+  cached): a client that waits for its answers (every browser and every polling loop) is
+  slowed to the pace, and its work with it.
 
 Which routes are protected: every one that changes something (any method but GET, HEAD and
 OPTIONS) when a token is set, and the reads too with ``protect_reads``, but for the few that
@@ -17,13 +24,14 @@ tell nothing of the cell (``OPEN_PATHS``: health, the status page's shell, the A
 """
 from __future__ import annotations
 
+import asyncio
 import json
 import re
 import secrets
 
 from service.settings import Settings
 
-__all__ = ["EdgeGuard", "BodyTooLarge", "OPEN_PATHS", "body_limit"]
+__all__ = ["EdgeGuard", "BodyTooLarge", "OPEN_PATHS", "body_limit", "read_turn"]
 
 #: Paths anyone may read whatever ``protect_reads`` says: they tell nothing of the cell.
 OPEN_PATHS = re.compile(r"^/(health|docs|docs/oauth2-redirect|redoc|openapi\.json|"
@@ -34,6 +42,12 @@ READS = frozenset({"GET", "HEAD", "OPTIONS"})
 PART_UPLOAD = re.compile(r"^/parts/[^/]+$")
 #: Seconds a client refused for lack of a free body slot is told to wait.
 RETRY_AFTER_S = 1
+#: Paths never paced: liveness.
+UNPACED_PATHS = re.compile(r"^/health$")
+#: A read that would wait longer than this for its turn (s) is refused with 503.
+MAX_READ_WAIT_S = 2.0
+#: Connections whose pace is remembered; the oldest are forgotten beyond.
+PACED_CONNECTIONS = 4096
 
 
 class BodyTooLarge(Exception):
@@ -55,13 +69,17 @@ class EdgeGuard:
     app : ASGI application
     settings : Settings
         ``token``, ``protect_reads``, ``max_body_bytes``, ``max_part_bytes``,
-        ``max_concurrent_bodies``; read at each request (tests change them).
+        ``max_concurrent_bodies``, ``read_interval_s``, ``max_reads_per_s``; read at each
+        request (tests change them).
     """
 
     def __init__(self, app, settings: Settings):
         self.app = app
         self.settings = settings
         self.bodies_in_flight = 0  # one event loop: no lock needed
+        self._next_on_connection: dict = {}  # (host, port) -> when its next read may go
+        self._next_read = 0.0  # when the next read may go, all connections together
+        self.reads_paced = self.reads_refused = 0
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
@@ -79,6 +97,12 @@ class EdgeGuard:
             await _problem(send, 401, "a valid bearer token is required",
                            {"www-authenticate": "Bearer", **unread})
             return
+        if method in READS and not UNPACED_PATHS.match(path) and not (
+                settings.token is not None and self._authorised(headers)):
+            if not await self._paced(scope.get("client")):
+                await _problem(send, 503, "too many reads: try again",
+                               {"retry-after": str(RETRY_AFTER_S)})
+                return
         limit = body_limit(settings, method, path)
         if declared.isdigit() and int(declared) > limit:
             await _problem(send, 413, _too_large(limit), unread)
@@ -95,6 +119,29 @@ class EdgeGuard:
             await self._limited(scope, receive, send, limit)
         finally:
             self.bodies_in_flight -= 1
+
+    async def _paced(self, client) -> bool:
+        """Wait for this read's turn (`read_turn`); False, without waiting for the shared
+        turn, when it is over ``MAX_READ_WAIT_S`` away."""
+        settings = self.settings
+        now = asyncio.get_running_loop().time()
+        key = tuple(client) if client and settings.read_interval_s > 0 else None
+        previous = self._next_on_connection.pop(key, None) if key else None
+        own, shared = read_turn(now, previous, self._next_read, settings.read_interval_s,
+                                settings.max_reads_per_s)
+        if key:
+            self._next_on_connection[key] = own + settings.read_interval_s
+            if len(self._next_on_connection) > PACED_CONNECTIONS:
+                del self._next_on_connection[next(iter(self._next_on_connection))]
+        if shared is None:
+            self.reads_refused += 1
+            await asyncio.sleep(own - now)
+            return False
+        self._next_read = shared + 1.0 / settings.max_reads_per_s
+        if shared > now:
+            self.reads_paced += 1
+            await asyncio.sleep(shared - now)
+        return True
 
     def _protected(self, method: str, path: str) -> bool:
         if self.settings.token is None:
@@ -140,6 +187,35 @@ class EdgeGuard:
         except BodyTooLarge:
             if not refused:
                 raise
+
+
+def read_turn(now: float, connection_next: float | None, shared_next: float,
+              interval_s: float, max_per_s: float) -> tuple[float, float | None]:
+    """When a read may be answered (s, on the event loop's clock).
+
+    Parameters
+    ----------
+    now : float
+    connection_next : float or None
+        When this connection's next read may go (its previous one's turn plus
+        `interval_s`); None for a connection not paced or not seen yet.
+    shared_next : float
+        When the next read of any connection may go.
+    interval_s, max_per_s : float
+        ``read_interval_s`` and ``max_reads_per_s``.
+
+    Returns
+    -------
+    own : float
+        The connection's turn, ``max(now, connection_next)``: its pace holds even when the
+        read is refused, so a client looping on refusals is slowed as well.
+    shared : float or None
+        The read's turn among all reads, ``max(own, shared_next)``; None when that is more
+        than ``MAX_READ_WAIT_S`` away (refused).
+    """
+    own = now if connection_next is None else max(now, connection_next)
+    shared = max(own, shared_next)
+    return own, (None if shared - now > MAX_READ_WAIT_S else shared)
 
 
 def _too_large(limit: int) -> str:

@@ -62,6 +62,14 @@ class Settings(BaseSettings):
     max_pending_pictures: int = Field(4, ge=1, le=64,
                                       description="requests waiting at once for a scan's preview "
                                                   "to be drawn (503 beyond)")
+    read_interval_s: float = Field(0.05, ge=0.0, le=10.0,
+                                   description="least time between two answers to reads on one "
+                                               "connection, s (0: none); reads with the token "
+                                               "and /health are not paced")
+    max_reads_per_s: float = Field(100.0, ge=1.0, le=100_000.0,
+                                   description="reads answered per second, all connections "
+                                               "together; beyond, a read waits its turn (503 "
+                                               "when that is over 2 s)")
     max_parts: int = Field(100, ge=1, le=10_000,
                            description="uploaded parts kept, at most (507 beyond)")
     calibration: Path | None = Field(None, description="calibration JSON; default the reference cell's")

@@ -1,0 +1,63 @@
+"""Reads paced at the edge (issue 28): a connection's reads answered at most every
+``read_interval_s``, all reads at most ``max_reads_per_s``, a read whose turn is too far off
+refused with 503; liveness and reads with the token not paced. The schedule as a function,
+then counts of answers over real HTTP against ``flyscan serve --sim`` (an upper bound the pace
+guarantees, not a speed)."""
+import threading
+import time
+
+import httpx
+import pytest
+
+from running import TOKEN
+from service.edge import MAX_READ_WAIT_S, read_turn
+
+
+def test_a_connection_waits_its_interval_and_every_read_the_shared_pace():
+    # a new connection, nothing queued: now
+    assert read_turn(10.0, None, 0.0, 0.1, 100.0) == (10.0, 10.0)
+    # its next read 0.1 s after its last turn, whatever the shared pace
+    assert read_turn(10.02, 10.1, 10.03, 0.1, 100.0) == (10.1, 10.1)
+    # the shared pace beyond the connection's: wait for it
+    assert read_turn(10.0, None, 10.5, 0.1, 100.0) == (10.0, 10.5)
+    # a shared turn more than MAX_READ_WAIT_S away: refused, the connection's pace kept
+    own, shared = read_turn(10.0, 10.05, 10.0 + MAX_READ_WAIT_S + 0.01, 0.1, 100.0)
+    assert own == 10.05 and shared is None
+
+
+def _loop(url, path, seconds, counts, key, headers=None):
+    with httpx.Client(base_url=url, timeout=30, headers=headers) as client:
+        client.get(path)  # connected before the clock starts
+        end = time.monotonic() + seconds
+        n = 0
+        while time.monotonic() < end:
+            n += client.get(path).status_code == 200
+        counts[key] = n
+
+
+@pytest.mark.parametrize("path", ["/status", "/frame.png"])
+def test_a_looping_client_is_paced_and_another_connection_is_not_slowed_by_it(service, path):
+    counts = {}
+    loops = [threading.Thread(target=_loop, args=(service.url, path, 1.0, counts, k))
+             for k in ("a", "b")]
+    for t in loops:
+        t.start()
+    for t in loops:
+        t.join()
+    # at most one answer per read_interval_s (0.05 s) per connection, and one at the start ...
+    assert counts["a"] <= 21 and counts["b"] <= 21, counts
+    # ... and each connection gets its share
+    assert counts["a"] >= 10 and counts["b"] >= 10, counts
+
+
+def test_liveness_is_not_paced(service):
+    counts = {}
+    _loop(service.url, "/health", 1.0, counts, "health")
+    assert counts["health"] > 60, counts  # three times what a paced connection gets
+
+
+def test_reads_with_the_token_are_not_paced(guarded):
+    counts = {}
+    _loop(guarded.url, "/status", 1.0, counts, "trusted",
+          headers={"Authorization": f"Bearer {TOKEN}"})
+    assert counts["trusted"] > 60, counts
