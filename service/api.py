@@ -70,13 +70,15 @@ UNAUTHORIZED = {401: {"model": Problem, "description": "token missing or wrong"}
 NOT_FOUND = {404: {"model": Problem, "description": "no such scan or part"}}
 #: What the edge (``service.edge``) may answer on any route: 401 on a protected one (every
 #: change with a token set; the reads too with ``protect_reads``), 413 for a body past the
-#: route's limit, 503 when too many bodies are being read at once.
+#: route's limit, 503 when too many bodies are being read at once or a read's turn is too far
+#: off (``read_interval_s``, ``max_reads_per_s``).
 EDGE = {401: {"model": Problem, "description": "token missing or wrong (reads: with "
                                               "protect_reads)"},
         413: {"model": Problem, "description": "the request body is larger than the route's "
                                               "limit (max_body_bytes, max_part_bytes)"},
         503: {"model": Problem, "description": "the service is busy (too many request "
-                                              "bodies at once: retry), or a device is not ready"}}
+                                              "bodies at once, or reads faster than it paces "
+                                              "them: retry), or a device is not ready"}}
 NO_ROOM = {507: {"model": Problem, "description": "the disk refused (full or read-only): the "
                                                  "reason, relative to the data folder"}}
 
