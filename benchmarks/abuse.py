@@ -11,12 +11,20 @@ Load patterns (each run against the same service, with ``STORED`` scans on disk)
 - ``pages``: three status pages open (the page, its script and style, ``/events`` held open,
   ``GET /scans`` every second, the newest scan's preview and ``/frame.png`` as ``app.js`` asks);
 - ``target``: the issue's target: three status pages and four clients looping on the picture
-  endpoints (two on ``/frame.png``, two on the preview).
+  endpoints (two on ``/frame.png``, two on the preview);
+- ``bodies``: two clients sending 200 MB bodies over and over (chunked and with a
+  Content-Length, to ``POST /scans``, ``PUT /calibration``, ``PUT /parts``, with and without
+  the token: the service has one, ``TOKEN``, as a cell on a shared network would);
+- ``slow``: four clients dribbling a chunked upload (``PUT /parts``, 1 KiB every 0.1 s), which
+  hold the body slots: the passes are armed all the same (an arm's body is small);
+- ``streams``: forty clients holding ``/events`` open (``max_event_streams`` of them served).
 
-For each pass: its state, frames, ``frames_dropped`` and ``queue_overflows`` (the scan's info),
-and the clients' answers by status code. ``run(out_dir)`` writes ``abuse.json`` and
-``abuse.png``: ``flyscan bench abuse --out OUT [--quick]``, or with the counts chosen
-``python -m benchmarks.abuse OUT [--passes N] [--target-passes N] [--patterns ...]``.
+For each pass: its state, frames, ``frames_dropped`` and ``queue_overflows`` and its latency
+(``latency_ms``: the last frame to the cloud and to the pose on ZeroMQ); the clients' answers
+by status code and the time each waited for an answer; the service's memory (``VmRSS``,
+sampled every 0.2 s). ``run(out_dir)`` writes ``abuse.json`` and ``abuse.png``: ``flyscan bench
+abuse --out OUT [--quick]``, or with the counts chosen ``python -m benchmarks.abuse OUT
+[--passes N] [--target-passes N] [--patterns ...]``.
 """
 from __future__ import annotations
 
@@ -24,21 +32,23 @@ import argparse
 import json
 import os
 import shutil
+import socket
 import tempfile
 import threading
 import time
-from collections import Counter
+from collections import Counter, defaultdict
 from pathlib import Path
 
 import httpx
+import numpy as np
 
 from benchmarks.live import ServeProcess
 from benchmarks.results import machine_info, pyplot, save_figure, write_json
 
 __all__ = ["run"]
 
-#: Scans on disk while the patterns run (the issue's case: 174).
-STORED = 174
+#: Scans on disk while the patterns run (the issue's case: 174; the quick set's fewer).
+STORED, QUICK_STORED = 174, 20
 PASSES, QUICK_PASSES = 5, 2
 TARGET_PASSES, QUICK_TARGET_PASSES = 100, 3
 START_TIMEOUT_S = 90.0
@@ -46,6 +56,18 @@ PASS_TIMEOUT_S = 60.0
 #: How often a status page asks for the list of scans and for the frame, s (``app.js``).
 PAGE_SCANS_PERIOD_S = 1.0
 PAGE_FRAME_PERIOD_S = 0.2
+#: Patterns, in the order they run.
+PATTERNS = ("quiet", "frame", "preview", "scans", "pages", "target", "bodies", "slow", "streams")
+#: A large body, bytes, sent in pieces of 1 MiB; a slow one's pieces and their period.
+BIG_BODY, BIG_PIECE = 200 * 10**6, 1 << 20
+SLOW_PIECE, SLOW_PERIOD_S = 1024, 0.1
+#: The service's token (the passes are armed with it; the reads need none).
+TOKEN = "abuse-bench-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+#: Event streams held open in ``streams``.
+STREAMS = 40
+#: The service's memory is sampled this often, s.
+MEMORY_PERIOD_S = 0.2
 
 
 def _one_pass(client: httpx.Client) -> dict:
@@ -57,14 +79,14 @@ def _one_pass(client: httpx.Client) -> dict:
             return info
         time.sleep(0.1)
     return {"scan_id": scan_id, "state": "timeout", "frames": 0, "frames_dropped": None,
-            "queue_overflows": None}
+            "queue_overflows": None, "latency_ms": {}}
 
 
 def _seed(data: Path, count: int) -> None:
     """One real pass, then ``count - 1`` copies of it on disk (new ids, older dates)."""
-    served = ServeProcess(data, start_timeout_s=START_TIMEOUT_S)
+    served = ServeProcess(data, env={"FLYSCAN_TOKEN": TOKEN}, start_timeout_s=START_TIMEOUT_S)
     try:
-        with httpx.Client(base_url=served.url, timeout=60) as client:
+        with httpx.Client(base_url=served.url, timeout=60, headers=AUTH) as client:
             info = _one_pass(client)
     finally:
         served.stop()
@@ -78,12 +100,24 @@ def _seed(data: Path, count: int) -> None:
         (copy / "info.json").write_text(json.dumps(meta))
 
 
-def _clients(url: str, pattern: str, stop: threading.Event, answers: Counter) -> list[threading.Thread]:
+def _big_body():
+    piece = b"x" * BIG_PIECE
+    yield b'{"part": "'
+    sent = 10
+    while sent < BIG_BODY:
+        yield piece[:min(BIG_PIECE, BIG_BODY - sent)]
+        sent += BIG_PIECE
+
+
+def _clients(url: str, pattern: str, stop: threading.Event, answers: Counter,
+             waits: dict) -> list[threading.Thread]:
     lock = threading.Lock()
 
-    def count(key):
+    def count(key, waited_s=None):
         with lock:
             answers[key] += 1
+            if waited_s is not None:
+                waits[key.split(" ")[0]].append(waited_s)
 
     def newest(client):
         return client.get("/scans").json()["scans"][0]["scan_id"]
@@ -96,12 +130,62 @@ def _clients(url: str, pattern: str, stop: threading.Event, answers: Counter) ->
                 while not stop.is_set():
                     path = paths[i % len(paths)].replace("{preview}", preview)
                     i += 1
+                    t0 = time.monotonic()
                     try:
                         r = client.get(path)
-                        count(f"{path.split('/')[-1]} {r.status_code}")
+                        count(f"{path.split('/')[-1]} {r.status_code}", time.monotonic() - t0)
                     except httpx.HTTPError as exc:
                         count(f"{path.split('/')[-1]} {type(exc).__name__}")
         return body
+
+    def bodies():
+        routes = [("POST", "/scans"), ("PUT", "/calibration"), ("PUT", "/parts/big?units=mm")]
+        with httpx.Client(base_url=url, timeout=120) as client:
+            i = 0
+            while not stop.is_set():
+                method, path = routes[i % len(routes)]
+                sized = (i // len(routes)) % 2 == 1
+                token = (i // (2 * len(routes))) % 2 == 1
+                i += 1
+                headers = {"Content-Type": "application/json", **(AUTH if token else {})}
+                if sized:
+                    headers["Content-Length"] = str(BIG_BODY)
+                t0 = time.monotonic()
+                try:
+                    r = client.request(method, path, content=_big_body(), headers=headers)
+                    count(f"body {r.status_code}", time.monotonic() - t0)
+                except httpx.HTTPError as exc:  # the service closed the connection mid-body
+                    count(f"body {type(exc).__name__}", time.monotonic() - t0)
+
+    def slow():
+        host, port = url.removeprefix("http://").split(":")
+        while not stop.is_set():
+            with socket.create_connection((host, int(port)), timeout=30) as sock:
+                sock.sendall(f"PUT /parts/slow?units=mm HTTP/1.1\r\nHost: {host}\r\n"
+                             f"Authorization: Bearer {TOKEN}\r\n"
+                             f"Transfer-Encoding: chunked\r\n\r\n".encode())
+                piece = f"{SLOW_PIECE:x}\r\n".encode() + b"x" * SLOW_PIECE + b"\r\n"
+                try:
+                    while not stop.is_set():
+                        sock.sendall(piece)
+                        time.sleep(SLOW_PERIOD_S)
+                        if _has_answer(sock):  # refused (503: no slot) or stopped (408, 413)
+                            head = sock.recv(4096)
+                            count(f"slow {head.split(b' ', 2)[1].decode() if head else 'closed'}")
+                            break
+                except OSError as exc:
+                    count(f"slow {type(exc).__name__}")
+            time.sleep(SLOW_PERIOD_S)  # then dribbles again
+
+    def stream():
+        host, port = url.removeprefix("http://").split(":")
+        with socket.create_connection((host, int(port)), timeout=30) as sock:
+            sock.sendall(f"GET /events HTTP/1.1\r\nHost: {host}\r\n\r\n".encode())
+            head = sock.recv(4096)
+            count(f"stream {head.split(b' ', 2)[1].decode() if head else 'closed'}")
+            while not stop.is_set() and head.startswith(b"HTTP/1.1 200"):
+                if not sock.recv(65536):
+                    break
 
     def page():
         with httpx.Client(base_url=url, timeout=60) as client:
@@ -138,25 +222,62 @@ def _clients(url: str, pattern: str, stop: threading.Event, answers: Counter) ->
         "scans": [loop(["/scans"])],
         "pages": [page] * 3,
         "target": [page] * 3 + [loop(["/frame.png"])] * 2 + [loop(["{preview}"])] * 2,
+        "bodies": [bodies] * 2,
+        "slow": [slow] * 4,
+        "streams": [stream] * STREAMS,
     }[pattern]
     return [threading.Thread(target=t, daemon=True) for t in targets]
 
 
-def _pattern(url: str, pattern: str, passes: int) -> dict:
-    stop, answers = threading.Event(), Counter()
-    threads = _clients(url, pattern, stop, answers)
+def _has_answer(sock) -> bool:
+    import select
+    return bool(select.select([sock], [], [], 0)[0])
+
+
+class _Memory(threading.Thread):
+    """The service's ``VmRSS`` (MB) every `MEMORY_PERIOD_S` until stopped."""
+
+    def __init__(self, pid: int):
+        super().__init__(daemon=True)
+        self.pid, self.samples, self.stop = pid, [], threading.Event()
+
+    def run(self) -> None:
+        while not self.stop.wait(MEMORY_PERIOD_S):
+            try:
+                for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
+                    if line.startswith("VmRSS:"):
+                        self.samples.append(int(line.split()[1]) / 1024)
+            except OSError:
+                return
+
+
+def _percentiles(values) -> dict:
+    values = np.asarray([v for v in values if v is not None], dtype=float)
+    if not len(values):
+        return {}
+    return {"median": float(np.median(values)), "p95": float(np.percentile(values, 95)),
+            "max": float(values.max())}
+
+
+def _pattern(url: str, pid: int, pattern: str, passes: int) -> dict:
+    stop, answers, waits = threading.Event(), Counter(), defaultdict(list)
+    threads = _clients(url, pattern, stop, answers, waits)
+    memory = _Memory(pid)
+    memory.start()
     for t in threads:
         t.start()
     time.sleep(1.0 if threads else 0.0)  # the clients are looping before the first pass
     infos = []
     try:
-        with httpx.Client(base_url=url, timeout=60) as client:
+        with httpx.Client(base_url=url, timeout=60, headers=AUTH) as client:
             for _ in range(passes):
                 infos.append(_one_pass(client))
     finally:
         stop.set()
         for t in threads:
             t.join(10)
+        memory.stop.set()
+        memory.join(5)
     dropped = [i["frames_dropped"] for i in infos]
     result = {
         "passes": len(infos),
@@ -167,6 +288,12 @@ def _pattern(url: str, pattern: str, passes: int) -> dict:
         "dropped_total": sum(d or 0 for d in dropped),
         "passes_with_drops": sum(bool(d) for d in dropped),
         "answers": dict(sorted(answers.items())),
+        "answer_wait_ms": {k: {q: v * 1e3 for q, v in _percentiles(w).items()}
+                           for k, w in sorted(waits.items())},
+        "latency_ms": {key: _percentiles([(i.get("latency_ms") or {}).get(key) for i in infos])
+                       for key in ("last_frame_to_zmq", "pose_published")},
+        "rss_mb": ({"start": memory.samples[0], "max": max(memory.samples),
+                    "end": memory.samples[-1]} if memory.samples else {}),
     }
     print(f"{pattern:8s} {result['passes']} passes, {result['failed']} failed, dropped "
           f"{dropped}, overflows {result['queue_overflows']}, answers {result['answers']}",
@@ -175,26 +302,32 @@ def _pattern(url: str, pattern: str, passes: int) -> dict:
 
 
 def run(out_dir, quick: bool = False, passes: int | None = None, target_passes: int | None = None,
-        patterns=("quiet", "frame", "preview", "scans", "pages", "target")) -> dict:
+        patterns=PATTERNS) -> dict:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     passes = passes or (QUICK_PASSES if quick else PASSES)
     target_passes = target_passes or (QUICK_TARGET_PASSES if quick else TARGET_PASSES)
+    stored = QUICK_STORED if quick else STORED
     with tempfile.TemporaryDirectory(prefix="flyscan-abuse-") as tmp:
         data = Path(tmp) / "data"
-        _seed(data, STORED)
+        _seed(data, stored)
         load_before = os.getloadavg()
-        served = ServeProcess(data, start_timeout_s=START_TIMEOUT_S)
+        served = ServeProcess(data, env={"FLYSCAN_TOKEN": TOKEN}, start_timeout_s=START_TIMEOUT_S)
         try:
-            with httpx.Client(base_url=served.url, timeout=60) as client:
+            with httpx.Client(base_url=served.url, timeout=60, headers=AUTH) as client:
                 _one_pass(client)  # warm: the first pass of a process builds what it keeps
-            results = {p: _pattern(served.url, p, target_passes if p == "target" else passes)
+            results = {p: _pattern(served.url, served.process.pid, p,
+                                   target_passes if p == "target" else passes)
                        for p in patterns}
         finally:
             served.stop()
-    summary = {p: {k: r[k] for k in ("passes", "failed", "dropped_total", "passes_with_drops")}
+    summary = {p: {**{k: r[k] for k in ("passes", "failed", "dropped_total",
+                                        "passes_with_drops")},
+                   "rss_growth_mb": (r["rss_mb"]["max"] - r["rss_mb"]["start"]
+                                     if r["rss_mb"] else None),
+                   "pose_published_p95_ms": r["latency_ms"]["pose_published"].get("p95")}
                for p, r in results.items()}
-    result = {"summary": summary, "stored_scans": STORED, "loadavg_before": load_before,
+    result = {"summary": summary, "stored_scans": stored, "loadavg_before": load_before,
               "loadavg_after": os.getloadavg(), "patterns": results, "machine": machine_info()}
     write_json(out_dir / "abuse.json", result)
     _chart(result, out_dir / "abuse.png")
@@ -204,13 +337,21 @@ def run(out_dir, quick: bool = False, passes: int | None = None, target_passes: 
 def _chart(result: dict, path: Path) -> None:
     plt = pyplot()
     names = list(result["patterns"])
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig, (ax_drops, ax_cost) = plt.subplots(1, 2, figsize=(12, 4))
     for x, name in enumerate(names):
         dropped = [d or 0 for d in result["patterns"][name]["frames_dropped"]]
-        ax.scatter([x] * len(dropped), dropped, s=12, alpha=0.6)
-    ax.set_xticks(range(len(names)), names)
-    ax.set_ylabel("frames dropped per pass")
-    ax.set_title(f"passes under web load ({result['stored_scans']} stored scans)")
+        ax_drops.scatter([x] * len(dropped), dropped, s=12, alpha=0.6)
+    ax_drops.set_xticks(range(len(names)), names, rotation=30)
+    ax_drops.set_ylabel("frames dropped per pass")
+    ax_drops.set_title(f"passes under web load ({result['stored_scans']} stored scans)")
+    growth = [result["summary"][n]["rss_growth_mb"] or 0.0 for n in names]
+    latency = [result["summary"][n]["pose_published_p95_ms"] or 0.0 for n in names]
+    x = np.arange(len(names))
+    ax_cost.bar(x - 0.2, growth, 0.4, label="service memory growth, MB")
+    ax_cost.bar(x + 0.2, latency, 0.4, label="last frame to pose on ZeroMQ, p95, ms")
+    ax_cost.set_xticks(x, names, rotation=30)
+    ax_cost.legend(fontsize=8)
+    ax_cost.set_title("what each load cost")
     save_figure(fig, path)
 
 
@@ -220,7 +361,6 @@ if __name__ == "__main__":
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--passes", type=int)
     parser.add_argument("--target-passes", type=int)
-    parser.add_argument("--patterns", nargs="+",
-                        default=["quiet", "frame", "preview", "scans", "pages", "target"])
+    parser.add_argument("--patterns", nargs="+", choices=PATTERNS, default=list(PATTERNS))
     a = parser.parse_args()
     run(a.out, a.quick, a.passes, a.target_passes, tuple(a.patterns))

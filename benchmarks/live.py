@@ -12,14 +12,25 @@ import sys
 import time
 from pathlib import Path
 
-__all__ = ["free_port", "wait_for", "running_service", "finished_scan", "ServeProcess"]
+__all__ = ["free_port", "free_ports", "wait_for", "running_service", "finished_scan", "ServeProcess"]
 
 
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that nothing listens on (for the service's ZeroMQ socket)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_ports(1)[0]
+
+
+def free_ports(count: int) -> list[int]:
+    """`count` distinct free TCP ports on 127.0.0.1: held open together while they are
+    picked (two calls of `free_port` in a row can return the same port)."""
+    sockets = [socket.socket() for _ in range(count)]
+    try:
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
 
 
 def wait_for(predicate, timeout: float, poll: float = 0.01):
@@ -80,7 +91,7 @@ class ServeProcess:
         import httpx  # the service's own dependency; not needed by the in-process benches
 
         self._httpx = httpx
-        self.port, self.zmq_port = free_port(), free_port()
+        self.port, self.zmq_port = free_ports(2)
         self.url = f"http://127.0.0.1:{self.port}"
         self.zmq = f"tcp://127.0.0.1:{self.zmq_port}"
         self.data = data

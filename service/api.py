@@ -9,7 +9,6 @@ reason, its paths relative to the data folder (``service.problems``).
 from __future__ import annotations
 
 import asyncio
-import json
 import secrets
 import shutil
 from contextlib import asynccontextmanager
@@ -74,6 +73,8 @@ NOT_FOUND = {404: {"model": Problem, "description": "no such scan or part"}}
 #: off (``read_interval_s``, ``max_reads_per_s``).
 EDGE = {401: {"model": Problem, "description": "token missing or wrong (reads: with "
                                               "protect_reads)"},
+        408: {"model": Problem, "description": "the request body stalled (no part of it for "
+                                              "body_idle_s)"},
         413: {"model": Problem, "description": "the request body is larger than the route's "
                                               "limit (max_body_bytes, max_part_bytes)"},
         503: {"model": Problem, "description": "the service is busy (too many request "
@@ -370,16 +371,37 @@ async def latest_frame(service: ServiceDep) -> Response:
 
 @page.get("/events", response_class=StreamingResponse,
           responses={200: {"content": {"text/event-stream": {}},
-                           "description": "the status, as server-sent events"}})
+                           "description": "the status, as server-sent events"},
+                     503: {"model": Problem, "description": "max_event_streams are open"}})
 async def events(request: Request, service: ServiceDep) -> StreamingResponse:
+    if service.event_streams >= service.settings.max_event_streams:
+        raise HTTPException(503, f"{service.event_streams} event streams are open, the most this "
+                                 f"service serves (max_event_streams): try again later",
+                            headers={"Retry-After": "5"})
+    service.event_streams += 1  # counted now (a burst sees it), freed when the answer ends
+
     async def stream():
         while not await request.is_disconnected():
-            status_now = await asyncio.to_thread(service.status)
-            yield f"event: status\ndata: {json.dumps(status_now)}\n\n"
+            yield await asyncio.to_thread(service.status_event, EVENTS_PERIOD_S / 2)
             await asyncio.sleep(EVENTS_PERIOD_S)
 
-    return StreamingResponse(stream(), media_type="text/event-stream",
-                             headers={"Cache-Control": "no-store"})
+    return _Counted(stream(), service, media_type="text/event-stream",
+                    headers={"Cache-Control": "no-store"})
+
+
+class _Counted(StreamingResponse):
+    """An event stream that frees its place in ``Service.event_streams`` when it ends, however
+    it ends (a stream whose generator never started included)."""
+
+    def __init__(self, content, service: Service, **kwargs):
+        super().__init__(content, **kwargs)
+        self._service = service
+
+    async def __call__(self, scope, receive, send):
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self._service.event_streams -= 1
 
 
 # ---------------------------------------------------------------------------------------------

@@ -9,6 +9,7 @@ controller's robot program would. No module of this path imports the simulator.
 from __future__ import annotations
 
 import gc
+import json
 import logging
 import math
 import shutil
@@ -104,6 +105,9 @@ class Service:
                              pose_params=self.pose_params)
         self._jobs: OrderedDict[str, ScanJob] = OrderedDict()  # the recent ones, by arming
         self._jobs_lock = threading.Lock()
+        self._status_event: tuple[float, str] | None = None  # (when, the status as an SSE)
+        self._status_event_lock = threading.Lock()
+        self.event_streams = 0  # /events streams open (the event loop's, no lock needed)
         self.started = time.time()
 
     def _initial_calibration(self) -> Calibration:
@@ -459,6 +463,15 @@ class Service:
         except OSError:
             self.engine.set_calibration(previous)
             raise
+
+    def status_event(self, max_age_s: float) -> str:
+        """The status as one server-sent event, made at most every `max_age_s` and shared by
+        every open status page (each made its own, twice a second, before)."""
+        with self._status_event_lock:
+            now = time.monotonic()
+            if self._status_event is None or now - self._status_event[0] >= max_age_s:
+                self._status_event = (now, f"event: status\ndata: {json.dumps(self.status())}\n\n")
+            return self._status_event[1]
 
     def status(self) -> dict:
         status = self.engine.status()

@@ -9,7 +9,10 @@ headers first, so it can refuse cheaply what must never cost the service work:
 - a body larger than the route's limit: 413, from ``Content-Length`` at once, and while the
   body streams (chunked uploads have no length) as soon as the count passes the limit;
 - more bodies at once than ``max_concurrent_bodies``: 503 with ``Retry-After`` (each body
-  being read holds memory or a temporary file);
+  being read holds memory or a temporary file); a body declared small (``SMALL_BODY_BYTES``,
+  an arm request's few bytes) takes no slot, so uploads dribbled slowly cannot keep a cell
+  controller from arming; a body whose next piece takes longer than ``body_idle_s`` is
+  answered 408 and its slot freed;
 - reads faster than ``read_interval_s`` on one connection, or than ``max_reads_per_s`` all
   together: paced, i.e. the answer waits its turn (an ``asyncio`` sleep, which costs the
   camera nothing), and beyond ``MAX_READ_WAIT_S`` of waiting, 503 with ``Retry-After``.
@@ -42,6 +45,8 @@ READS = frozenset({"GET", "HEAD", "OPTIONS"})
 PART_UPLOAD = re.compile(r"^/parts/[^/]+$")
 #: Seconds a client refused for lack of a free body slot is told to wait.
 RETRY_AFTER_S = 1
+#: Bodies declared this small (bytes) take no slot of ``max_concurrent_bodies``.
+SMALL_BODY_BYTES = 64 << 10
 #: Paths never paced: liveness.
 UNPACED_PATHS = re.compile(r"^/health$")
 #: A read that would wait longer than this for its turn (s) is refused with 503.
@@ -51,7 +56,8 @@ PACED_CONNECTIONS = 4096
 
 
 class BodyTooLarge(Exception):
-    """Raised from ``receive`` once a body passes its limit (the 413 has been sent)."""
+    """Raised from ``receive`` once a body passes its limit or stalls (the 413 or 408 has
+    been sent)."""
 
 
 def body_limit(settings: Settings, method: str, path: str) -> int:
@@ -69,8 +75,8 @@ class EdgeGuard:
     app : ASGI application
     settings : Settings
         ``token``, ``protect_reads``, ``max_body_bytes``, ``max_part_bytes``,
-        ``max_concurrent_bodies``, ``read_interval_s``, ``max_reads_per_s``; read at each
-        request (tests change them).
+        ``max_concurrent_bodies``, ``body_idle_s``, ``read_interval_s``, ``max_reads_per_s``;
+        read at each request (tests change them).
     """
 
     def __init__(self, app, settings: Settings):
@@ -109,6 +115,9 @@ class EdgeGuard:
             return
         if not has_body:
             await self.app(scope, receive, send)
+            return
+        if declared.isdigit() and int(declared) <= SMALL_BODY_BYTES:
+            await self._limited(scope, receive, send, limit)
             return
         if self.bodies_in_flight >= settings.max_concurrent_bodies:
             await _problem(send, 503, f"{self.bodies_in_flight} request bodies are being read: "
@@ -157,15 +166,28 @@ class EdgeGuard:
             given.strip().encode(), expected.encode())
 
     async def _limited(self, scope, receive, send, limit: int) -> None:
-        """Run the app, counting its body's bytes as they arrive; past ``limit`` answer 413
-        and drop whatever the app then tries to send."""
+        """Run the app, counting its body's bytes as they arrive; past ``limit`` answer 413,
+        a piece that takes over ``body_idle_s`` 408, and drop whatever the app then tries to
+        send."""
+        idle_s = self.settings.body_idle_s
         received = 0
         refused = False
         started = False
+        complete = False
 
         async def counting_receive():
-            nonlocal received, refused
-            message = await receive()
+            nonlocal received, refused, complete
+            if complete:
+                return await receive()  # the body is in: what follows is the disconnect
+            try:
+                message = await asyncio.wait_for(receive(), idle_s)
+            except TimeoutError:
+                if not started:
+                    refused = True
+                    await _problem(send, 408, f"no part of the request body came for "
+                                              f"{idle_s:g} s", {"connection": "close"})
+                raise BodyTooLarge("the request body stalled") from None
+            complete = message["type"] != "http.request" or not message.get("more_body")
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > limit:

@@ -59,6 +59,9 @@ class Settings(BaseSettings):
                                 description="largest mesh upload, bytes (413 beyond)")
     max_concurrent_bodies: int = Field(2, ge=1, le=64,
                                        description="request bodies read at once (503 beyond)")
+    body_idle_s: float = Field(10.0, gt=0.0, le=600.0,
+                               description="a request body whose next piece takes longer is "
+                                           "answered 408, s")
     max_pending_pictures: int = Field(4, ge=1, le=64,
                                       description="requests waiting at once for a scan's preview "
                                                   "to be drawn (503 beyond)")
@@ -70,6 +73,9 @@ class Settings(BaseSettings):
                                    description="reads answered per second, all connections "
                                                "together; beyond, a read waits its turn (503 "
                                                "when that is over 2 s)")
+    max_event_streams: int = Field(16, ge=1, le=1024,
+                                   description="status pages' event streams open at once (503 "
+                                               "beyond)")
     max_parts: int = Field(100, ge=1, le=10_000,
                            description="uploaded parts kept, at most (507 beyond)")
     calibration: Path | None = Field(None, description="calibration JSON; default the reference cell's")

@@ -16,6 +16,6 @@ def guarded(tmp_path_factory):
     """A service with a token (``running.TOKEN``) that also guards its reads."""
     running = RunningService(tmp_path_factory.mktemp("guarded") / "data",
                              env={**FAST_PASS, "FLYSCAN_TOKEN": TOKEN,
-                                  "FLYSCAN_PROTECT_READS": "true"})
+                                  "FLYSCAN_PROTECT_READS": "true", "FLYSCAN_BODY_IDLE_S": "3"})
     yield running
     running.stop()

@@ -266,7 +266,9 @@ def _status(sock: socket.socket) -> int:
 
 def test_bodies_read_at_once_are_bounded(guarded):
     """Two uploads held open take both body slots (``max_concurrent_bodies``, 2): one more
-    request with a body is refused with 503 and Retry-After; requests without one pass."""
+    upload is refused with 503 and Retry-After; an arm's few bytes (a body declared small)
+    and requests without a body pass; the held uploads, left without a next piece for
+    ``body_idle_s`` (3 s here), are answered 408 and free their slots."""
     uploads = [_held_upload(guarded.url), _held_upload(guarded.url)]
 
     def probe():
@@ -274,17 +276,26 @@ def test_bodies_read_at_once_are_bounded(guarded):
             if _answered(upload):  # refused while a probe held a slot: open it again
                 upload.close()
                 uploads[k] = _held_upload(guarded.url)
-        response = httpx.post(f"{guarded.url}/scans", content=b"{}",
-                              headers={**_auth(), "Content-Type": "application/json"})
+        response = httpx.put(f"{guarded.url}/parts/third?units=mm", headers=_auth(),
+                             content=iter([b"solid third\n"]))  # chunked: no length
         return response if response.status_code == 503 else None
 
     try:
         refused = wait_for(probe, timeout=30)
         assert refused.headers["retry-after"] == "1" and "bodies" in refused.json()["detail"]
+        assert not any(_answered(upload) for upload in uploads)  # both still held
+        arm = httpx.post(f"{guarded.url}/scans", content=b"{}",
+                         headers={**_auth(), "Content-Type": "application/json"})
+        assert arm.status_code in (202, 409), arm.text
+        if arm.status_code == 202:
+            with httpx.Client(base_url=guarded.url, headers=_auth()) as client:
+                _wait(client, arm.json()["scan_id"])
         assert httpx.get(f"{guarded.url}/status", headers=_auth()).status_code == 200
-        for upload in uploads:
-            upload.sendall(b"0\r\n\r\n")  # the body ends: read whole, not a mesh
-        assert [_status(upload) for upload in uploads] == [422, 422]
+        # the uploads stall: 408, and their slots are free again
+        assert [_status(upload) for upload in uploads] == [408, 408]
+        freed = httpx.put(f"{guarded.url}/parts/third?units=mm", headers=_auth(),
+                          content=iter([b"solid third\n"]))
+        assert freed.status_code == 422  # read whole: not a mesh
     finally:
         for upload in uploads:
             upload.close()

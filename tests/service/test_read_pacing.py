@@ -3,13 +3,14 @@
 refused with 503; liveness and reads with the token not paced. The schedule as a function,
 then counts of answers over real HTTP against ``flyscan serve --sim`` (an upper bound the pace
 guarantees, not a speed)."""
+import socket
 import threading
 import time
 
 import httpx
 import pytest
 
-from running import TOKEN
+from running import TOKEN, wait_for
 from service.edge import MAX_READ_WAIT_S, read_turn
 
 
@@ -61,3 +62,32 @@ def test_reads_with_the_token_are_not_paced(guarded):
     _loop(guarded.url, "/status", 1.0, counts, "trusted",
           headers={"Authorization": f"Bearer {TOKEN}"})
     assert counts["trusted"] > 60, counts
+
+
+def _open_stream(url: str) -> socket.socket:
+    """``GET /events`` held open (raw HTTP), once its first answer line has come."""
+    host, port = url.removeprefix("http://").split(":")
+    sock = socket.create_connection((host, int(port)), timeout=30)
+    sock.sendall(f"GET /events HTTP/1.1\r\nHost: {host}\r\n\r\n".encode())
+    return sock
+
+
+def test_event_streams_are_bounded(service):
+    """``max_event_streams`` (16) status pages' streams at once; one more is 503 with
+    Retry-After; a closed one frees its place."""
+    streams = [_open_stream(service.url) for _ in range(16)]
+    try:
+        heads = [s.recv(4096) for s in streams]
+        assert all(h.startswith(b"HTTP/1.1 200") for h in heads), heads
+        refused = httpx.get(f"{service.url}/events", timeout=30)
+        assert refused.status_code == 503 and refused.headers["retry-after"] == "5"
+        assert "max_event_streams" in refused.json()["detail"]
+        streams.pop().close()
+
+        def accepted():
+            with httpx.stream("GET", f"{service.url}/events", timeout=30) as r:
+                return r.status_code == 200 or None
+        assert wait_for(accepted, timeout=10)
+    finally:
+        for s in streams:
+            s.close()
