@@ -5,6 +5,8 @@
   video file.
 - :class:`GenICamCamera`: a GenICam camera through harvesters (the optional extra
   ``pip install 'flyscan[genicam]'``) and the GenTL producer (.cti) of the camera's vendor.
+- ``service.pylon_camera.PylonCamera``: a Basler camera through pypylon (the optional extra
+  ``pip install 'flyscan[pylon]'``), tested against Basler's own camera emulator.
 - replay of a recorded pass: ``scanner_core.recording`` (``Recording.camera()``).
 
 :func:`open_camera` turns the camera spec of the settings into one of them.
@@ -24,10 +26,7 @@ import numpy as np
 
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout
 from scanner_core.types import Frame
-
-
-class CameraError(RuntimeError):
-    """A camera cannot be opened or gives frames the scanner cannot use."""
+from service.camera_errors import CameraError
 
 
 #: The accepted forms of a camera spec (:func:`open_camera`).
@@ -37,6 +36,8 @@ CAMERA_SPEC_FORMS = (
     "video:<file>              a video file (frame ids = frame index, t = index / fps)",
     "gstreamer:<pipeline>      a GStreamer pipeline ending in appsink",
     "genicam:<producer.cti>[#serial]  a GenICam camera through harvesters",
+    "pylon:[serial][?option=value&...]  a Basler camera through pypylon (options: width, "
+    "height, offset_x, offset_y, exposure_us, gain_db, fps, trigger, images)",
     "replay:<folder>           a pass recorded by scanner_core.recording",
 )
 
@@ -415,7 +416,8 @@ def open_camera(spec: str, *, fps: float | None = None) -> Camera:
     spec : str
         One of :data:`CAMERA_SPEC_FORMS`: ``opencv:0``, ``opencv:/dev/video0``,
         ``video:/path/file.avi``, ``gstreamer:<pipeline>``,
-        ``genicam:/path/producer.cti[#serial]``, ``replay:/path/to/recording``.
+        ``genicam:/path/producer.cti[#serial]``, ``pylon:[serial][?options]``
+        (``service.pylon_camera.parse_pylon_spec``), ``replay:/path/to/recording``.
     fps : float, optional
         Frame rate for a source that does not report one (OpenCV and GenICam).
 
@@ -431,6 +433,9 @@ def open_camera(spec: str, *, fps: float | None = None) -> Camera:
         Anything else, with the accepted forms.
     """
     kind, sep, rest = spec.partition(":") if isinstance(spec, str) else ("", "", "")
+    if kind == "pylon" and sep:  # ``pylon:`` alone is the first Basler camera found
+        from service.pylon_camera import parse_pylon_spec
+        return parse_pylon_spec(rest)
     if sep and rest:
         if kind == "opencv":
             if rest.isdigit():

@@ -59,7 +59,7 @@ def build_devices(settings: Settings):
                          "(service.cli.serve.service_for), not built here")
     if settings.camera is None:
         raise ValueError("no camera: give --camera SPEC (opencv:0, video:FILE, "
-                         "genicam:PRODUCER.cti, replay:FOLDER) or run with --sim")
+                         "genicam:PRODUCER.cti, pylon:SERIAL, replay:FOLDER) or run with --sim")
     return open_camera(settings.camera), open_robot(settings.robot), None, None
 
 

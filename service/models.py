@@ -24,6 +24,14 @@ class Health(BaseModel):
     status: Literal["ok"] = "ok"
 
 
+class CameraClockStatus(BaseModel):
+    source: Literal["camera", "host"] = Field(
+        description="camera: its timestamps mapped to the host clock; host: the time each "
+                    "frame was received (a camera that stamps nothing)")
+    offset_s: float | None = Field(None, description="host minus camera clock, s")
+    drift_ppm: float | None = Field(None, description="host clock's rate minus the camera's, ppm")
+
+
 class CameraStatus(BaseModel):
     state: str = Field(description="streaming, stalled, closed or error")
     error: str | None = None
@@ -35,6 +43,8 @@ class CameraStatus(BaseModel):
     exposure_us: float | None = Field(None, description="the newest frame's exposure, us")
     gain: float = Field(1.0, description="the newest frame's analogue gain")
     exposure_updates: int = Field(0, description="exposure changes made by the control")
+    clock: CameraClockStatus | None = Field(
+        None, description="how a camera with its own clock (pylon:) is mapped to the host's")
 
 
 class QueueStatus(BaseModel):

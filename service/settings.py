@@ -47,7 +47,8 @@ class Settings(BaseSettings):
     robot: str | None = Field(None, description="ur://HOST for a UR robot (ur-rtde); with --sim "
                                                 "an RTDE emulator is started at HOST")
     camera: str | None = Field(None, description="opencv:0, video:FILE, gstreamer:PIPELINE, "
-                                                 "genicam:PRODUCER.cti[#SERIAL], replay:FOLDER")
+                                                 "genicam:PRODUCER.cti[#SERIAL], "
+                                                 "pylon:[SERIAL][?options], replay:FOLDER")
     data: Path = Path("flyscan-data")
     token: SecretStr | None = None
     protect_reads: bool = Field(False, description="the reads need the token too (needs token)")

@@ -49,7 +49,8 @@ def add_parser(command) -> None:
                         help="a recorded pass (`flyscan record`): the report the live pass gave")
     source.add_argument("--camera", default=None,
                         help="a real cell's camera (opencv:0, video:FILE, gstreamer:PIPELINE, "
-                             "genicam:PRODUCER.cti[#SERIAL], replay:FOLDER): arms, waits for one "
+                             "genicam:PRODUCER.cti[#SERIAL], pylon:[SERIAL][?options], "
+                             "replay:FOLDER): arms, waits for one "
                              "pass and scans it; needs --calibration")
     scan.add_argument("--robot", default=None,
                       help="with --camera: ur://HOST (ur-rtde) or replay:FOLDER")

@@ -26,7 +26,8 @@ def add_parser(command) -> None:
                             "is started at HOST and serves the simulated robot")
     serve.add_argument("--camera", default=None,
                        help="opencv:0, opencv:/dev/videoN, video:FILE, gstreamer:PIPELINE, "
-                            "genicam:PRODUCER.cti[#SERIAL] or replay:FOLDER (not with --sim)")
+                            "genicam:PRODUCER.cti[#SERIAL], pylon:[SERIAL][?options] or "
+                            "replay:FOLDER (not with --sim)")
     serve.add_argument("--calibration", type=Path, default=None,
                        help="calibration JSON (flyscan calibrate); default the one kept in the "
                             "data folder (PUT /calibration), or with --sim the cell's truth")
