@@ -2,7 +2,8 @@
 
 Three steps, each through the scanner's own detectors:
 
-1. the views: the LED at known stage positions, its centroid in each view
+1. the views: the LED at known positions (a stage's, or the robot's poses times the LED's
+   offset, which is then fitted too: ``scanner_core.ledpivot``), its centroid in each view
    (``scanner_core.marker.find_markers``), the ladder of view models
    (``scanner_core.viewcal``);
 2. the light plane: the stripe on a sphere of known radius at known centres
@@ -10,70 +11,32 @@ Three steps, each through the scanner's own detectors:
 3. the clocks and the LED's offset from the TCP: a pass of the sphere held by the robot,
    processed with the geometry of steps 1-2 (``scanner_core.crosscheck.estimate_led_and_clock``).
 
-Session folder (``flyscan calibrate --session DIR``; ``write_session`` writes one)
-------------------------------------------------------------------------------------
-``session.json``
-    ``{"format": "flyscan-calibration-session", "version": 1, "image": {"width": W,
-    "height": H, "fps": F}, "sphere_radius_mm": R, "cell": "name",
-    "nominal": {...}}`` where ``nominal`` is a calibration object (the design the installer
-    knows: the view strips and the LED's offset as built; its geometry is only a label).
-``led.csv``
-    Header ``image,x_mm,y_mm,z_mm``; one line per stage position of the LED in {B}, the image a
-    file name in ``led/`` (8-bit greyscale PNG, W x H).
-``sphere.csv``
-    The same for the sphere's centre, images in ``sphere/``.
-``pass/`` (optional)
-    A recording of a pass of the robot (``scanner_core.recording``'s format): the clocks and the LED's
-    offset are estimated from it; without it the nominal LED offset and a zero clock offset
-    are kept.
+The session folder (``flyscan calibrate --session DIR``) is read and written by
+``scanner_core.calsession_folder``; its names are re-exported here.
 """
 from __future__ import annotations
 
-import csv
 import datetime as _dt
-import json
-from dataclasses import dataclass, replace
-from pathlib import Path
+from dataclasses import replace
 from typing import Callable, Iterable
 
 import numpy as np
 
-from scanner_core.calibration import Calibration, CalibrationError
+from scanner_core.calibration import Calibration
+from scanner_core.calsession_folder import (SESSION_FORMAT, SESSION_VERSION, Session,
+                                            SessionError, SessionWriter, load_session,
+                                            write_session)
 from scanner_core.crosscheck import estimate_led_and_clock, led_offset_spread
 from scanner_core.geometry import Plane
+from scanner_core.ledpivot import led_from_robot_poses
 from scanner_core.marker import find_markers
 from scanner_core.pipeline import PipelineParams, camera_frames, frame_stripe, run_pass
 from scanner_core.planecal import calibrate_plane
 from scanner_core.types import MarkerObservation
-from scanner_core.viewcal import calibrate_views, views_as_mirrors
+from scanner_core.viewcal import calibrate_views, project_views, views_as_mirrors
 
-SESSION_FORMAT = "flyscan-calibration-session"
-SESSION_VERSION = 1
-
-
-class SessionError(ValueError):
-    """A session folder that cannot be read: the message names the file and the field."""
-
-
-@dataclass
-class Session:
-    """What a calibration session gave: frames, the stage's positions, the robot's pass.
-
-    ``led_images`` and ``sphere_images`` are called once each and yield (H, W) uint8 frames in
-    the order of their positions; ``pass_devices`` returns a (camera, robot) pair.
-    """
-
-    width: int
-    height: int
-    fps: float
-    sphere_radius_mm: float
-    nominal: Calibration
-    led_positions_b: np.ndarray
-    led_images: Callable[[], Iterable[np.ndarray]]
-    sphere_centres_b: np.ndarray
-    sphere_images: Callable[[], Iterable[np.ndarray]]
-    pass_devices: Callable[[], tuple] | None = None
-    cell_name: str = ""
+__all__ = ["Session", "SessionError", "SessionWriter", "SESSION_FORMAT", "SESSION_VERSION",
+           "calibrate_session", "load_session", "write_session", "observe_led", "observe_sphere"]
 
 
 def observe_led(images: Iterable[np.ndarray], strips, params: PipelineParams) -> np.ndarray:
@@ -109,8 +72,15 @@ def calibrate_session(session: Session, params: PipelineParams = PipelineParams(
     nominal.check_image_size(session.width, session.height)
     progress(f"views: finding the LED in {len(session.led_positions_b)} frames")
     led_px = observe_led(session.led_images(), nominal.strips, params)
-    views = calibrate_views(session.led_positions_b, led_px, session.width, session.height,
-                            seed=seed)
+    led_fit = None
+    if session.led_tcp_b is None:
+        led_positions_b = session.led_positions_b
+    else:
+        led_positions_b, led_fit = _led_from_robot(session, led_px, seed)
+        progress(f"LED offset from {led_fit['poses']} robot poses ({led_fit['turned']} turned): "
+                 f"{np.round(led_fit['led_t_mm'], 3).tolist()} mm in {{T}}, "
+                 f"{led_fit['rms_mm'] * 1e3:.1f} um RMS")
+    views = calibrate_views(led_positions_b, led_px, session.width, session.height, seed=seed)
     progress(f"views: {views.model}, {views.rms_px:.4f} px RMS "
              f"({views.outliers} observation(s) dropped)")
     mirrors = views_as_mirrors(views.mirror_planes, [m.columns for m in nominal.mirrors])
@@ -122,9 +92,9 @@ def calibrate_session(session: Session, params: PipelineParams = PipelineParams(
     plane_c = plane.plane_b.transformed(camera.rotation, -camera.rotation @ camera.origin)
     progress(f"light plane: {plane.points} points from {plane.frames} frames, "
              f"{plane.rms_mm * 1e3:.1f} um RMS; sphere centres {plane.centre_rms_mm * 1e3:.1f} um RMS")
+    led_t = nominal.marker_offset_t.copy() if led_fit is None else np.array(led_fit["led_t_mm"])
     calibration = Calibration(camera, Plane(plane_c.normal, plane_c.offset), mirrors,
-                              nominal.direct_columns, nominal.marker_offset_t.copy(),
-                              nominal.clock_offset_s)
+                              nominal.direct_columns, led_t, nominal.clock_offset_s)
     clocks = None
     if session.pass_devices is not None:
         progress("clocks and LED offset: a pass of the robot")
@@ -147,9 +117,23 @@ def calibrate_session(session: Session, params: PipelineParams = PipelineParams(
                       "plane_rms_mm": plane.rms_mm,
                       "sphere_centre_rms_mm": plane.centre_rms_mm,
                       "led_pass_rms_mm": None if clocks is None else clocks["rms_mm"]},
+        "per_position": {
+            "led_px": _per_position_px(views, led_positions_b, led_px).tolist(),
+            "sphere_centre_mm": plane.centre_errors_mm.tolist()},
+        "led_from_robot": led_fit,
     }
     report = _json_safe(report)
     return replace(calibration, provenance=report), report
+
+
+def _per_position_px(views, points_b, pixels) -> np.ndarray:
+    """(N,) RMS over the views of the fitted views' reprojection error at each LED position,
+    px (NaN where no view saw it)."""
+    err = project_views(views.camera, views.mirror_planes, points_b) - pixels
+    sq = np.nansum(err**2, axis=(1, 2))
+    seen = np.isfinite(err[..., 0]).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(seen > 0, np.sqrt(sq / np.maximum(seen, 1)), np.nan)
 
 
 def _json_safe(value):
@@ -164,6 +148,18 @@ def _json_safe(value):
     if isinstance(value, np.integer):
         return int(value)
     return value
+
+
+def _led_from_robot(session: Session, led_px: np.ndarray, seed: int):
+    """The LED's positions and its offset in {T} from the robot's poses
+    (``scanner_core.ledpivot``), with the views fitted as the stage's are."""
+    def views_of(points_b, pixels):
+        views = calibrate_views(points_b, pixels, session.width, session.height, seed=seed)
+        return views.camera, views_as_mirrors(views.mirror_planes,
+                                              [m.columns for m in session.nominal.mirrors])
+
+    return led_from_robot_poses(session.led_tcp_b, led_px, session.nominal.marker_offset_t,
+                                views_of)
 
 
 def _led_and_clock(session: Session, calibration: Calibration,
@@ -191,134 +187,3 @@ def _led_and_clock(session: Session, calibration: Calibration,
             {"clock_offset_s": offset, "led_t_mm": led.tolist(), "rms_mm": rms,
              "led_std_t_mm": None if led_std is None else led_std.tolist(),
              "frames": int(len(scan.tcp_times))})
-
-
-# ---------------------------------------------------------------------------------------------
-# session folders
-
-
-def write_session(folder, session: Session) -> None:
-    """Write ``session`` as a folder (module docstring), its pass (if any) as a recording in
-    ``pass/`` (raw frames: about 2.3 MB per 1920 x 1200 frame)."""
-    import cv2
-
-    folder = Path(folder)
-    if folder.exists():
-        raise SessionError(f"{folder} exists already")
-    for kind in ("led", "sphere"):
-        (folder / kind).mkdir(parents=True)
-    meta = {"format": SESSION_FORMAT, "version": SESSION_VERSION,
-            "image": {"width": session.width, "height": session.height, "fps": session.fps},
-            "sphere_radius_mm": session.sphere_radius_mm, "cell": session.cell_name,
-            "nominal": session.nominal.to_dict()}
-    (folder / "session.json").write_text(json.dumps(meta, indent=1))
-    for kind, positions, images in (("led", session.led_positions_b, session.led_images),
-                                    ("sphere", session.sphere_centres_b, session.sphere_images)):
-        with open(folder / f"{kind}.csv", "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(["image", "x_mm", "y_mm", "z_mm"])
-            for i, (p, img) in enumerate(zip(positions, images())):
-                name = f"{i:06d}.png"
-                if not cv2.imwrite(str(folder / kind / name), img):
-                    raise OSError(f"could not write {folder / kind / name}")
-                w.writerow([name] + [repr(float(v)) for v in p])
-    if session.pass_devices is not None:
-        _record_pass(folder / "pass", session)
-
-
-def _record_pass(folder: Path, session: Session) -> None:
-    """The session's pass as a recording: every frame, and the robot's samples it still holds."""
-    from scanner_core.devices import CameraClosed
-    from scanner_core.recording import ROBOT_SAMPLE_HZ, robot_samples
-    from scanner_core.recording import PassRecorder
-
-    camera, robot = session.pass_devices()
-    camera.open()
-    robot.connect()
-    try:
-        with PassRecorder(folder, width=session.width, height=session.height, fps=session.fps,
-                          calibration=session.nominal,
-                          notes="calibration pass (flyscan calibrate)") as recorder:
-            while True:
-                try:
-                    recorder.add_frame(camera.grab(1.0))
-                except CameraClosed:
-                    break
-            newest = robot.latest().t
-            recorder.add_robot_poses(robot_samples(robot, newest - 10.0 + 1.0 / ROBOT_SAMPLE_HZ,
-                                                    newest))
-    finally:
-        camera.close()
-        robot.disconnect()
-
-
-def load_session(folder) -> Session:
-    """Read a session folder; SessionError naming the file and field that is wrong."""
-    import cv2
-
-    folder = Path(folder)
-    meta_path = folder / "session.json"
-    try:
-        meta = json.loads(meta_path.read_text())
-    except FileNotFoundError:
-        raise SessionError(f"{meta_path} not found: not a calibration session folder") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise SessionError(f"{meta_path} is not valid JSON: {exc}") from None
-    if not isinstance(meta, dict) or meta.get("format") != SESSION_FORMAT:
-        raise SessionError(f"{meta_path}: `format` must be {SESSION_FORMAT!r}")
-    if meta.get("version") != SESSION_VERSION:
-        raise SessionError(f"{meta_path}: session version {meta.get('version')!r} is not one "
-                           f"this flyscan reads ({SESSION_VERSION})")
-    try:
-        width, height = int(meta["image"]["width"]), int(meta["image"]["height"])
-        fps = float(meta["image"]["fps"])
-        radius = float(meta["sphere_radius_mm"])
-        nominal = Calibration.from_dict(meta["nominal"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise SessionError(f"{meta_path}: missing or malformed field {exc}") from None
-    if not radius > 0:
-        raise SessionError(f"{meta_path}: `sphere_radius_mm` must be positive, got {radius}")
-
-    def table(kind):
-        path = folder / f"{kind}.csv"
-        try:
-            with open(path, newline="") as f:
-                rows = list(csv.reader(f))
-        except FileNotFoundError:
-            raise SessionError(f"{path} not found") from None
-        if not rows or rows[0] != ["image", "x_mm", "y_mm", "z_mm"]:
-            raise SessionError(f"{path}: the header must be image,x_mm,y_mm,z_mm")
-        try:
-            names = [r[0] for r in rows[1:]]
-            positions = np.array([[float(v) for v in r[1:4]] for r in rows[1:]]).reshape(-1, 3)
-        except (ValueError, IndexError) as exc:
-            raise SessionError(f"{path}: {exc}") from None
-        if not np.isfinite(positions).all():
-            raise SessionError(f"{path}: positions must be finite numbers")
-
-        def images():
-            for name in names:
-                img = cv2.imread(str(folder / kind / name), cv2.IMREAD_UNCHANGED)
-                if img is None or img.shape != (height, width) or img.dtype != np.uint8:
-                    raise SessionError(f"{folder / kind / name}: not an 8-bit {width} x {height} "
-                                       f"greyscale image")
-                yield img
-        return positions, images
-
-    led, led_images = table("led")
-    sphere, sphere_images = table("sphere")
-    pass_devices = None
-    if (folder / "pass").is_dir():
-        from scanner_core.recording import load_recording
-        from scanner_core.replay import ReplayCamera, ReplayRobot
-
-        recording = load_recording(folder / "pass")
-
-        def pass_devices():
-            return ReplayCamera(recording), ReplayRobot(recording.robot_samples)
-    try:
-        nominal.check_image_size(width, height)
-    except CalibrationError as exc:
-        raise SessionError(f"{meta_path}: nominal calibration: {exc}") from None
-    return Session(width, height, fps, radius, nominal, led, led_images, sphere, sphere_images,
-                   pass_devices, str(meta.get("cell", "")))

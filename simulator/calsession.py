@@ -12,6 +12,7 @@ import numpy as np
 import trimesh
 
 from scanner_core.geometry import angle_between, apply_transform
+from scanner_core.calplan import PlanGeometry, led_targets, sphere_targets
 from scanner_core.calsession import Session
 from simulator.cell import Cell
 from simulator.parts import Part, part_from_mesh
@@ -25,36 +26,71 @@ SPHERE_SUBDIVISIONS = 6
 #: view) and half along the LED's track (the mirror views); the sphere's.
 LED_POSITIONS = 200
 SPHERE_POSITIONS = 40
+#: The sphere's centre in {T}, mm, as its holder puts it: 50 mm down the tool's axis.
+SPHERE_OFFSET_T_MM = (0.0, 0.0, 50.0)
 
 
 def sphere_part(radius_mm: float) -> Part:
     """The calibration sphere as a part, held 50 mm above its centre."""
     mesh = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=radius_mm)
     grasp = np.eye(4)
-    grasp[2, 3] = 50.0  # its centre 50 mm below the TCP, in the middle of the volume
+    grasp[:3, 3] = SPHERE_OFFSET_T_MM  # its centre below the TCP, in the middle of the volume
     return part_from_mesh(mesh, name="sphere", source=f"procedural:sphere r={radius_mm} mm",
                           grasp=grasp)
 
 
+def plan_geometry(cell: Cell, *, led_offset_t_mm=None, sphere_offset_t_mm=None):
+    """The cell's pass and tools as a calibration plan is generated from them
+    (``scanner_core.calplan``): the LED's offset ``led_offset_t_mm`` (default the cell's),
+    the sphere held as :func:`sphere_part` holds it."""
+    p = cell.pass_profile
+    led = cell.calibration.marker_offset_t if led_offset_t_mm is None else led_offset_t_mm
+    offset = SPHERE_OFFSET_T_MM if sphere_offset_t_mm is None else sphere_offset_t_mm
+    return PlanGeometry(np.asarray(cell.gripper_rotation_b, dtype=np.float64), p.start_y_mm,
+                        p.end_y_mm, p.height_mm, np.asarray(led, dtype=np.float64),
+                        np.asarray(offset, dtype=np.float64), cell.sphere_radius_mm)
+
+
+class StepScenes:
+    """What the camera sees at a calibration step's TCP pose, from the cell's truth: the LED
+    alone (``led``), or the sphere cut by the sheet with the LED switched off (``sphere``: a
+    robot output switches it, so that its blob is not taken for the stripe). The sphere's
+    scene (its intersector) is built once."""
+
+    def __init__(self, cell: Cell):
+        self.cell = cell
+        self._led = _LedScene(cell)
+        self._sphere = None
+
+    def truth(self, kind: str, tcp_b) -> FrameTruth:
+        """The FrameTruth at ``tcp_b`` ((4, 4) ^B X_T, mm, the true pose)."""
+        tcp_b = np.asarray(tcp_b, dtype=np.float64)
+        if kind == "led":
+            led_b = tcp_b[:3, 3] + tcp_b[:3, :3] @ self.cell.calibration.marker_offset_t
+            return self._led.truth(led_b)
+        if kind == "sphere":
+            turn = angle_between(tcp_b[:3, :3] @ [1.0, 0, 0],
+                                 self.cell.gripper_rotation_b @ [1.0, 0, 0])
+            if not np.allclose(tcp_b[:3, :3], self.cell.gripper_rotation_b, atol=1e-6):
+                raise ValueError(f"the simulated sphere is held in the pass orientation only "
+                                 f"(turned {np.degrees(turn):.3f} degrees)")
+            if self._sphere is None:
+                self._sphere = PartScene(sphere_part(self.cell.sphere_radius_mm), self.cell)
+            return self._sphere.geometry(tcp_b[:3, 3], self._sphere.part.grasp, with_marker=False)
+        raise ValueError(f"`kind` must be led or sphere, got {kind!r}")
+
+
 def led_positions(cell: Cell, n: int, rng: np.random.Generator) -> np.ndarray:
     """(n, 3) stage positions of the LED in {B}, mm: a volume about the sheet's centre and a
-    volume along the LED's track in a pass."""
-    p = cell.pass_profile
-    led = np.array([0.0, 0.0, p.height_mm]) + cell.gripper_rotation_b @ \
-        cell.calibration.marker_offset_t
-    half = n // 2
-    around = rng.uniform([-60.0, -25.0, -40.0], [60.0, 25.0, 40.0], (half, 3))
-    track = rng.uniform([led[0] - 25.0, p.start_y_mm + led[1] + 30.0, led[2] - 25.0],
-                        [led[0] + 25.0, p.end_y_mm + led[1] - 30.0, led[2] + 25.0], (n - half, 3))
-    return np.vstack([around, track])
+    volume along the LED's track in a pass (``scanner_core.calplan.led_targets``)."""
+    return led_targets(plan_geometry(cell), n, rng)
 
 
 def sphere_centres(cell: Cell, n: int, rng: np.random.Generator) -> np.ndarray:
     """(n, 3) sphere centres in {B}, mm: across the inspection volume, the sheet cutting the
-    sphere between 8 and 20 mm from its centre, on either side."""
-    r = cell.sphere_radius_mm
-    y = rng.uniform(0.28 * r, 0.7 * r, n) * rng.choice([-1.0, 1.0], n)
-    return np.column_stack([rng.uniform(-45.0, 45.0, n), y, rng.uniform(-25.0, 25.0, n)])
+    sphere between 8 and 20 mm from its centre, on either side
+    (``scanner_core.calplan.sphere_targets``)."""
+    return sphere_targets(cell.sphere_radius_mm, n, rng)
 
 
 def stage_truth(reported: np.ndarray, accuracy_mm: float, rng: np.random.Generator) -> np.ndarray:
