@@ -9,16 +9,14 @@ reason, its paths relative to the data folder (``service.problems``).
 from __future__ import annotations
 
 import asyncio
-import secrets
 import shutil
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, Response, status
+from fastapi import APIRouter, FastAPI, HTTPException, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, StreamingResponse
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from fastapi.exception_handlers import http_exception_handler
@@ -29,9 +27,12 @@ from service.daemon import Service
 from service.engine import EngineBusy, EngineFault
 from service.models import (CalibrationModel, Health, PartInfo, PartList, Problem, ScanAccepted, ScanInfo, ScanList,
                             ScanRequest, Status)
+from service.api_calibration import calibrations
+from service.calhistory import keep_and_activate
+from service.api_common import (Auth, BODY_NOT_PARSED, EDGE, NO_ROOM, NOT_FOUND, ServiceDep,
+                                UNAUTHORIZED, disk_error as _disk_error)
 from service.edge import EdgeGuard
 from service.parts import PartInUse, PartQuotaExceeded, grasp_from_query, part_info
-from service.problems import disk_reason
 from service.pictures import Busy
 from service.settings import Settings
 from scanner_core.cad import GRASPS, PartError
@@ -41,55 +42,6 @@ STATIC = Path(__file__).resolve().parent / "static"
 EVENTS_PERIOD_S = 0.5
 #: Seconds a client refused a preview (too many being drawn) is told to wait.
 PICTURE_RETRY_S = 1
-
-
-async def get_service(request: Request) -> Service:
-    # async: FastAPI runs a plain def dependency in its thread pool, a hop per request
-    return request.app.state.service
-
-
-ServiceDep = Annotated[Service, Depends(get_service)]
-_bearer = HTTPBearer(auto_error=False)
-
-
-def require_token(service: ServiceDep,
-                  credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
-    """Mutating endpoints need the bearer token when one is configured."""
-    token = service.settings.token
-    if token is None:
-        return
-    given = credentials.credentials if credentials is not None else ""
-    if not secrets.compare_digest(given.encode(), token.get_secret_value().encode()):
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "a valid bearer token is required",
-                            headers={"WWW-Authenticate": "Bearer"})
-
-
-Auth = [Depends(require_token)]
-UNAUTHORIZED = {401: {"model": Problem, "description": "token missing or wrong"}}
-NOT_FOUND = {404: {"model": Problem, "description": "no such scan or part"}}
-#: What the edge (``service.edge``) may answer on any route: 401 on a protected one (every
-#: change with a token set; the reads too with ``protect_reads``), 413 for a body past the
-#: route's limit, 503 when too many bodies are being read at once or a read's turn is too far
-#: off (``read_interval_s``, ``max_reads_per_s``).
-EDGE = {401: {"model": Problem, "description": "token missing or wrong (reads: with "
-                                              "protect_reads)"},
-        408: {"model": Problem, "description": "the request body stalled (no part of it for "
-                                              "body_idle_s)"},
-        413: {"model": Problem, "description": "the request body is larger than the route's "
-                                              "limit (max_body_bytes, max_part_bytes)"},
-        503: {"model": Problem, "description": "the service is busy (too many request "
-                                              "bodies at once, or reads faster than it paces "
-                                              "them: retry), or a device is not ready"}}
-NO_ROOM = {507: {"model": Problem, "description": "the disk refused (full or read-only): the "
-                                                 "reason, relative to the data folder"}}
-
-
-#: FastAPI's detail when ``json.loads`` raised on a body (made a 422 below).
-BODY_NOT_PARSED = "There was an error parsing the body"
-
-
-def _disk_error(service: Service, exc: OSError, what: str) -> HTTPException:
-    return HTTPException(507, f"{what}: {disk_reason(exc, service.settings.data)}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -133,7 +85,7 @@ def put_calibration(body: CalibrationModel, service: ServiceDep) -> dict:
     except CalibrationError as exc:
         raise HTTPException(422, str(exc)) from None
     try:
-        service.set_calibration(calibration)
+        keep_and_activate(service, calibration)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
     except EngineBusy as exc:
@@ -425,7 +377,7 @@ def create_app(settings: Settings | None = None, *, service: Service | None = No
     app = FastAPIOffline(title="flyscan", version="0.2.0", lifespan=lifespan,
                          description="In-flight laser-line 3D scanner: arm a scan, fetch its cloud.")
     app.state.service = service
-    for router in (system, scans, parts, page):
+    for router in (system, scans, parts, calibrations, page):
         app.include_router(router)
     # Outside every route, inside Starlette's error middleware: the token and the body's size
     # are checked before FastAPI reads the body (it reads it before solving dependencies).

@@ -26,6 +26,8 @@ from scanner_core.finish import CrossCheckState
 from scanner_core.pose import PoseParams
 from scanner_core.trigger import TriggerParams
 from scanner_core.types import Scan
+from service.calhistory import CalibrationHistory, open_history
+from service.calsessions import CalibrationSessions
 from service.engine import Engine
 from service.jobs import ScanJob
 from service.metrics import Metrics
@@ -103,6 +105,8 @@ class Service:
                                  led_correction_from=(None if settings.led_correction_t_mm is None
                                                       else "settings")),
                              pose_params=self.pose_params)
+        self.calibration_history = CalibrationHistory(settings.data / "calibration" / "history")
+        self.calibration_sessions = CalibrationSessions(self)
         self._jobs: OrderedDict[str, ScanJob] = OrderedDict()  # the recent ones, by arming
         self._jobs_lock = threading.Lock()
         self._status_event: tuple[float, str] | None = None  # (when, the status as an SSE)
@@ -112,11 +116,14 @@ class Service:
 
     def _initial_calibration(self) -> Calibration:
         if self.settings.calibration is not None:
+            self._calibration_source = f"--calibration {self.settings.calibration.name}"
             return load_calibration(self.settings.calibration)
         if self.calibration_path.is_file():
+            self._calibration_source = "the data folder's calibration.json"
             return load_calibration(self.calibration_path)
         if self._default_calibration is None:
             raise ValueError("no calibration: give --calibration FILE or PUT /calibration")
+        self._calibration_source = "the simulated cell's geometry"
         return self._default_calibration
 
     # -- life cycle -------------------------------------------------------------------------
@@ -126,6 +133,7 @@ class Service:
         self.settings.data.mkdir(parents=True, exist_ok=True)
         self.store.open()
         self.parts.open()
+        open_history(self, self._calibration_source)
         self._remove_partial_recordings()
         default = None
         if self.default_part is not None:
@@ -455,7 +463,8 @@ class Service:
 
     def set_calibration(self, calibration: Calibration) -> None:
         """Use and keep a calibration: ValueError if it does not fit the camera, EngineBusy
-        during a scan, OSError if it cannot be saved (then the previous one stays)."""
+        during a scan (a pass is never interrupted), OSError if it cannot be saved (then the
+        previous one stays)."""
         previous = self.engine.calibration
         self.engine.set_calibration(calibration)
         try:

@@ -307,3 +307,81 @@ class CalibrationModel(BaseModel):
         description="standard deviation of marker_offset_t_mm along the {T} axes, mm, as "
                     "flyscan calibrate measured it (0 to 10); every pose's translation "
                     "carries it. Null: not measured")
+
+
+# -- calibration sessions and history (issue 29) ----------------------------------------------
+
+#: A rotation vector, rad (UR's convention): each component within 2 pi.
+RotationVector = Annotated[list[Annotated[float, Field(ge=-6.3, le=6.3, allow_inf_nan=False)]],
+                           Field(min_length=3, max_length=3)]
+#: A point in the cell, mm.
+Point3 = Annotated[list[CellPoint], Field(min_length=3, max_length=3)]
+
+
+class PlanRequest(BaseModel):
+    """A calibration session's plan, generated for the cell (``scanner_core.calplan``). In the
+    simulated cell every geometry field defaults to the cell's; with a real cell the pass and
+    the sphere's holder must be given."""
+
+    model_config = _strict
+
+    led_count: int = Field(200, ge=12, le=2000, description="LED poses")
+    sphere_count: int = Field(40, ge=3, le=500, description="sphere poses")
+    tilt_deg: float = Field(10.0, gt=0, le=30, description="how far the turned LED poses turn "
+                                                          "the tool, degrees")
+    tilted_fraction: float = Field(0.3, ge=0, le=1, description="share of turned LED poses")
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    tcp_rotation: RotationVector | None = Field(
+        None, description="the tool's orientation in a pass: a UR rotation vector, rad")
+    pass_start_y_mm: float | None = _bounded(-5000, 5000, "the pass's start along y of the "
+                                             "robot base, mm", default=None)
+    pass_end_y_mm: float | None = _bounded(-5000, 5000, "the pass's end, mm", default=None)
+    pass_height_mm: float | None = _bounded(-5000, 5000, "the TCP's height in a pass, mm",
+                                            default=None)
+    sphere_offset_t_mm: Point3 | None = Field(
+        None, description="the sphere's centre in {T}, mm (its holder as drawn, or measured "
+                          "with the robot's TCP wizard)")
+    sphere_radius_mm: float = _bounded(1.0, 200.0, "the sphere's radius, mm", default=28.625)
+
+
+class CalibrationSessionInfo(BaseModel):
+    session_id: str
+    state: Literal["recording", "recording pass", "ready to fit", "fitting", "fitted", "failed"]
+    steps: int = Field(description="poses in the plan")
+    captured: int = Field(description="poses captured")
+    pass_scan_id: str | None = None
+    pass_state: Literal["not recorded", "recording", "done", "failed"] = "not recorded"
+    version: int | None = Field(None, description="the calibration version the fit made")
+    figures: dict | None = Field(None, description="the fit's residuals")
+    error: str | None = None
+    plan: dict | None = Field(None, description="the plan: every TCP pose in UR's convention "
+                                                "[x, y, z (m), rx, ry, rz (rad)]")
+
+
+class StepCaptured(BaseModel):
+    index: int
+    kind: Literal["led", "sphere"]
+    image: str
+    tcp: list[float] = Field(description="the TCP pose the robot reported, UR convention")
+    samples: int = Field(description="robot reports averaged")
+    off_plan_mm: float = Field(description="reported minus planned TCP position, mm")
+    off_plan_deg: float = Field(description="reported minus planned orientation, degrees")
+
+
+class CalibrationVersion(BaseModel):
+    version: int
+    created: str
+    source: str
+    active: bool
+    figures: dict = Field(default_factory=dict)
+    has_report: bool = False
+
+
+class CalibrationVersionDetail(CalibrationVersion):
+    calibration: CalibrationModel
+    report: dict | None = None
+
+
+class CalibrationHistoryList(BaseModel):
+    versions: list[CalibrationVersion]
+    active: int | None

@@ -17,12 +17,16 @@ from simulator.parts import simulated
 from simulator.session import misplacement_matrix
 from simulator.surfaces import with_surface
 
-__all__ = ["SimPassDriver", "PREVIOUS_PASS_WAIT_S"]
+__all__ = ["SimPassDriver", "PREVIOUS_PASS_WAIT_S", "CALIBRATION_PART"]
 
 #: The simulated robot finishes its previous pass (its lead-out) before starting the next, s.
 PREVIOUS_PASS_WAIT_S = 5.0
 #: The demo block's name in the service's parts (``service.parts.DEMO_PART``).
 DEMO_PART = "demo"
+#: What a calibration session's pass carries through the sheet in the simulated cell: the
+#: demo block (the pass serves the clocks and the LED's offset, from the marker alone; the
+#: sphere itself cannot be a part yet: a part without edges has no edge model to register).
+CALIBRATION_PART = DEMO_PART
 
 
 class SimPassDriver:
@@ -30,11 +34,15 @@ class SimPassDriver:
     emulator (``--sim --robot ur://HOST``) the emulator serves the same track to the real
     ur-rtde client. Every part is simulated with ``surface`` (``simulator.surfaces``)."""
 
+    calibration_part = CALIBRATION_PART
+
     def __init__(self, sim, emulator=None, surface: str = "default"):
         self.sim = sim
         self.emulator = emulator
         self.surface = surface
         self._dressed: dict[int, tuple] = {}  # id -> (the library's part, the simulated one)
+        self._scenes = None  # simulator.calsession.StepScenes, made at the first hold
+        self._held_at = None  # the TCP position of the emulator's hold, (3,) mm
 
     def _simulated(self, part):
         """The part as the simulator shows it (the same object every time, so that its
@@ -55,6 +63,43 @@ class SimPassDriver:
 
         return {DEMO_PART: part_from_mesh(block_with_holes_and_steps(), name=DEMO_PART,
                                           source="procedural:block_with_holes_and_steps")}
+
+    def plan_geometry(self, nominal):
+        """The simulated cell's pass and tools for a calibration plan, the LED's offset as
+        ``nominal`` (a ``Calibration``: what the installer knows) draws it."""
+        from simulator.calsession import plan_geometry
+
+        return plan_geometry(self.sim.cell, led_offset_t_mm=nominal.marker_offset_t)
+
+    def park(self) -> None:
+        """Take the TCP out of the views, to where the default pass begins (after a
+        calibration session's last pose: the LED held in view would start the next pass)."""
+        cell = self.sim.cell
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = cell.gripper_rotation_b, self.sim.idle_tcp_b
+        self.sim.hold(pose, None)
+        if self.emulator is not None:
+            self.emulator.set_track(self.sim.start_clock(), self.sim.robot.clock_offset_s,
+                                    cell.gripper_rotation_b, pose[:3, 3])
+            self._held_at = pose[:3, 3].copy()
+
+    def hold(self, kind: str, tcp_b) -> None:
+        """Take the TCP to a calibration step's pose ((4, 4) ^B X_T, mm) and hold it there, as
+        the cell controller's robot program would: the camera shows the LED (``led``) or the
+        sphere in the sheet (``sphere``), the robot reports the pose (with a real robot's
+        errors, the RTDE emulator with its orientation error)."""
+        from simulator.calsession import StepScenes
+
+        if self._scenes is None:
+            self._scenes = StepScenes(self.sim.cell)
+        tcp_b = np.asarray(tcp_b, dtype=np.float64)
+        self.sim.hold(tcp_b, self._scenes.truth(kind, tcp_b))
+        if self.emulator is not None:
+            cell = self.sim.cell
+            self.emulator.set_track(self.sim.start_clock(), self.sim.robot.clock_offset_s,
+                                    cell.effects.robot_rotation_error @ tcp_b[:3, :3],
+                                    tcp_b[:3, 3])
+            self._held_at = tcp_b[:3, 3].copy()
 
     def misplacement(self, part, values):
         """The misplacement ``[tx, ty, tz, rx, ry, rz]`` (mm, degrees) the simulated robot's
@@ -94,6 +139,10 @@ class SimPassDriver:
                     raise
                 time.sleep(0.01)
         if self.emulator is not None:
+            if self._held_at is not None:  # back in the pass's orientation after a hold
+                self.emulator.set_track(self.sim.start_clock(), self.sim.robot.clock_offset_s,
+                                        self.sim.cell.gripper_rotation_b, self._held_at)
+                self._held_at = None
             self.emulator.add_segment(live.segment)
 
     def close(self) -> None:

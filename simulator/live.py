@@ -36,6 +36,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -50,7 +51,7 @@ from simulator.parts import Part
 from simulator.track import TrackSegment, pass_frame_count, tcp_on_track
 
 __all__ = ["LiveSimCell", "LiveSimCamera", "LiveSimRobot", "LivePass", "PreparedPass",
-           "PassInProgress", "TrackSegment", "tcp_on_track", "frame_image", "pass_frame_count",
+           "PassInProgress", "Hold", "TrackSegment", "tcp_on_track", "frame_image", "pass_frame_count",
            "CAMERA_BUFFER_FRAMES", "BACKGROUND_RING_FRAMES", "PASS_CACHE_SIZE"]
 
 #: Frames the camera's on-board buffer holds for a late reader (a few frames, as in the
@@ -74,6 +75,22 @@ SCHEDULE_MARGIN_S = 1.0
 
 class PassInProgress(RuntimeError):
     """A pass was started while the previous one is still running."""
+
+
+@dataclass(frozen=True)
+class Hold:
+    """The robot holding the TCP still at a pose (a calibration session's step).
+
+    From camera frame ``first_frame_id`` (camera clock ``t_start``) until a pass starts, the
+    camera shows ``truth`` (None: background) and the robot reports ``tcp_b`` ((4, 4) ^B X_T,
+    mm), as a real robot does: with its per-sample noise and its orientation error
+    (``simulator.effects``).
+    """
+
+    first_frame_id: int
+    t_start: float
+    tcp_b: np.ndarray
+    truth: FrameTruth | None
 
 
 # --------------------------------------------------------------------------------------------
@@ -128,6 +145,7 @@ class LiveSimCell:
         self._lock = threading.Condition()
         self._epoch: float | None = None
         self._passes: list[LivePass] = []  # in time order, pruned to what the history needs
+        self._hold: Hold | None = None  # a calibration step's pose, until the next pass
         self._keep_s = max(robot_history_s, buffer_frames / self.fps) + SCHEDULE_MARGIN_S
         self._cache: OrderedDict = OrderedDict()
         self._prepare_lock = threading.Lock()
@@ -230,10 +248,28 @@ class LiveSimCell:
                 first = max(first, self._passes[-1].last_frame_id + 1)
             live = LivePass(prepared, first, self.fps, first / self.fps - lead_s)
             self._passes.append(live)
+            self._hold = None
             # Drop passes that neither the robot's history nor the camera's buffer can reach.
             while len(self._passes) > 1 and self._passes[1].robot_start_t < now - self._keep_s:
                 self._passes.pop(0)
         return live
+
+    def hold(self, tcp_b, truth: FrameTruth | None) -> Hold:
+        """Hold the TCP still at ``tcp_b`` ((4, 4) ^B X_T, mm) from the camera's next frame on,
+        the camera showing ``truth`` (``simulator.calsession.step_truth``), until the next
+        pass; as :meth:`start_pass`, from the next frame exposed at least ``ROBOT_LEAD_SAMPLES``
+        robot periods from now. PassInProgress while a pass runs."""
+        tcp_b = np.array(tcp_b, dtype=np.float64)
+        if tcp_b.shape != (4, 4) or not np.all(np.isfinite(tcp_b)):
+            raise ValueError(f"`tcp_b` must be a finite (4, 4) pose, got shape {tcp_b.shape}")
+        lead_s = ROBOT_LEAD_SAMPLES / self.robot.rate_hz
+        with self._lock:
+            now = self._now_locked()
+            if self._passes and self._exposed_id(now) < self._passes[-1].last_frame_id:
+                raise PassInProgress("the simulated robot is in a pass")
+            first = math.ceil((now + lead_s) * self.fps)
+            self._hold = Hold(first, first / self.fps - lead_s, tcp_b, truth)
+            return self._hold
 
     @property
     def last_pass(self) -> LivePass | None:
@@ -271,6 +307,9 @@ class LiveSimCell:
     def _frame_source(self, frame_id: int) -> FrameTruth | None:
         """The geometry of camera frame ``frame_id``; None for a background frame (between
     passes, or blank in its pass). Under the lock."""
+        hold = self._hold
+        if hold is not None and frame_id >= hold.first_frame_id:
+            return hold.truth
         for p in reversed(self._passes):
             if p.first_frame_id <= frame_id <= p.last_frame_id:
                 j = frame_id - p.first_frame_id
@@ -279,10 +318,10 @@ class LiveSimCell:
                 return None
         return None
 
-    def _trajectory(self) -> tuple[float, tuple]:
-        """Camera clock now and the passes, as one consistent snapshot."""
+    def _trajectory(self) -> tuple[float, tuple, Hold | None]:
+        """Camera clock now, the passes and the hold, as one consistent snapshot."""
         with self._lock:
-            return self._now_locked(), tuple(self._passes)
+            return self._now_locked(), tuple(self._passes), self._hold
 
     @property
     def idle_tcp_b(self) -> np.ndarray:

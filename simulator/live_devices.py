@@ -203,6 +203,8 @@ class LiveSimRobot(RobotConnection):
         self.history_s = history_s
         self._sim = sim
         self._rotation = np.array(sim.cell.gripper_rotation_b, dtype=np.float64)
+        self._effects = sim.cell.effects
+        self._rotation_error = self._effects.robot_rotation_error
 
     def connect(self) -> None:
         """Start the cell's clock if needed, and report from now on."""
@@ -211,23 +213,49 @@ class LiveSimRobot(RobotConnection):
             super().connect()
 
     def _history(self) -> tuple[int, int, tuple]:
-        """Sample indices ``k_lo..k_hi`` (robot time ``k / rate_hz``) and the schedule."""
+        """Sample indices ``k_lo..k_hi`` (robot time ``k / rate_hz``) and the schedule (the
+        passes and the hold)."""
         self._require_connected()
-        now, passes = self._sim._trajectory()
+        now, passes, hold = self._sim._trajectory()
         now_r = now + self.clock_offset_s
         k_hi = math.floor(now_r * self.rate_hz)
         k_lo = math.ceil(max(now_r - self.history_s, self.clock_offset_s) * self.rate_hz)
-        return k_lo, k_hi, passes
+        return k_lo, k_hi, (passes, hold)
 
-    def _sample(self, passes: tuple, k: int) -> np.ndarray:
-        return self._sim._tcp_at(passes, k / self.rate_hz - self.clock_offset_s)
+    def _held(self, schedule: tuple, k: int):
+        """The hold that sample ``k`` falls in, or None."""
+        hold = schedule[1]
+        if hold is not None and k / self.rate_hz - self.clock_offset_s >= hold.t_start:
+            return hold
+        return None
+
+    def _sample(self, schedule: tuple, k: int) -> np.ndarray:
+        """(3,) the reported TCP position of sample ``k``: on the passes' track, or a hold's
+        with the robot's per-sample noise (seeded by the sample, as ``SimRobot``'s)."""
+        hold = self._held(schedule, k)
+        if hold is None:
+            return self._sim._tcp_at(schedule[0], k / self.rate_hz - self.clock_offset_s)
+        position = hold.tcp_b[:3, 3].copy()
+        if self._effects.tcp_noise_mm > 0:
+            noise = np.random.default_rng([self._effects.seed, k & 0xFFFFFFFF]).standard_normal(3)
+            position += self._effects.tcp_noise_mm * noise
+        return position
+
+    def _rotation_of(self, schedule: tuple, k: int) -> np.ndarray:
+        """The reported rotation of sample ``k``: a hold's, as the robot reports it (its
+        orientation error), else the passes' (the true one, as before holds existed)."""
+        hold = self._held(schedule, k)
+        if hold is None:
+            return self._rotation.copy()
+        return self._rotation_error @ hold.tcp_b[:3, :3]
 
     def latest(self) -> TcpPose:
         """Newest sample; RuntimeError when not connected or none has arrived."""
         k_lo, k_hi, passes = self._history()
         if k_hi < k_lo:
             raise RuntimeError("no pose has arrived yet")
-        return TcpPose(k_hi / self.rate_hz, self._sample(passes, k_hi), self._rotation.copy())
+        return TcpPose(k_hi / self.rate_hz, self._sample(passes, k_hi),
+                       self._rotation_of(passes, k_hi))
 
     def pose_at(self, t: float) -> TcpPose:
         """Pose at robot time ``t``, s, linearly interpolated between the samples around it.
@@ -242,12 +270,13 @@ class LiveSimRobot(RobotConnection):
         if k_hi < k_lo or not (k_lo / self.rate_hz <= t <= k_hi / self.rate_hz):
             raise LookupError(f"t = {t:.4f} s is outside the robot's history")
         if k_lo == k_hi:
-            return TcpPose(t, self._sample(passes, k_lo), self._rotation.copy())
+            return TcpPose(t, self._sample(passes, k_lo), self._rotation_of(passes, k_lo))
         k0 = min(max(math.floor(t * self.rate_hz), k_lo), k_hi - 1)
         t0, t1 = k0 / self.rate_hz, (k0 + 1) / self.rate_hz
         w = (t - t0) / (t1 - t0)
         pos = (1.0 - w) * self._sample(passes, k0) + w * self._sample(passes, k0 + 1)
-        return TcpPose(t, pos, self._rotation.copy())
+        # The rotation is the nearer sample's: it changes only where a hold begins.
+        return TcpPose(t, pos, self._rotation_of(passes, k0 if w < 0.5 else k0 + 1))
 
 
 def _warm_up_image_model(cell: Cell) -> None:

@@ -3,6 +3,7 @@ simulated cell), its report, and how far it is from the truth when the cell is s
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from pathlib import Path
 
@@ -21,6 +22,14 @@ def add_parser(command) -> None:
     where.add_argument("--sim", action="store_true",
                        help="a simulated session in the simulated cell (see --effects)")
     where.add_argument("--session", type=Path, help="a session folder (scanner_core.calsession)")
+    where.add_argument("--url", help="a running service: a session recorded by it with its "
+                                     "robot, fitted there (docs/commissioning.md)")
+    cal.add_argument("--session-id", default=None,
+                     help="with --url: a session the cell controller recorded, to fit")
+    cal.add_argument("--activate", action="store_true",
+                     help="with --url: make the result the service's calibration")
+    cal.add_argument("--token", default=os.environ.get("FLYSCAN_TOKEN"),
+                     help="with --url: bearer token (default $FLYSCAN_TOKEN)")
     cal.add_argument("--seed", type=non_negative_int, default=0,
                      help="positions, stage errors and image noise of the simulated session")
     cal.add_argument("--perturb-seed", type=non_negative_int, default=None,
@@ -29,9 +38,9 @@ def add_parser(command) -> None:
                      help="the simulated cell's real-cell effects: 'all' (default), 'none' or a "
                           "comma-separated choice of lens, exposure, clocks, robot, led")
     cal.add_argument("--led-positions", type=non_negative_int, default=200,
-                     help="stage positions of the LED (simulated session)")
+                     help="positions of the LED (simulated session, or --url's plan)")
     cal.add_argument("--sphere-positions", type=non_negative_int, default=40,
-                     help="stage positions of the sphere (simulated session)")
+                     help="positions of the sphere (simulated session, or --url's plan)")
     cal.add_argument("--write-session", type=Path, default=None,
                      help="also write the simulated session as a folder (PNG frames, CSV)")
     cal.add_argument("--out", type=Path, required=True, help="the calibration JSON to write")
@@ -44,6 +53,12 @@ def run(args) -> int:
 
     if args.out.exists() and args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; give the calibration file's path")
+    if args.url is None and (args.session_id or args.activate):
+        raise UsageError("--session-id and --activate go with --url")
+    if args.url is not None:
+        from service.cli.calibrate_url import run_url
+
+        return run_url(args)
     cell = None
     if args.session is not None:
         session = load_session(args.session)
