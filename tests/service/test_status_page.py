@@ -68,6 +68,9 @@ def test_the_page_shows_the_live_status_and_a_scan_armed_from_it(page, service):
     shown_dropped = int(page.locator("#frames-dropped").inner_text().replace(",", ""))
     assert shown_dropped <= httpx.get(f"{service.url}/status").json()["frames_dropped"]
 
+    # The calibration history: the service's calibration, version 1, active.
+    expect(page.locator('#calibrations tr[data-version="1"] td.st')).to_have_text("active")
+
     # The latest frame loads, and is reloaded while the page is open.
     wait_image(page, "#frame")
     first_src = page.get_attribute("#frame", "src")
