@@ -22,7 +22,7 @@ from service.calhistory import NoPreviousVersion, NoSuchVersion, activate, rollb
 from service.calsessions import NoSuchSession, SessionStateError, draw_residuals
 from service.engine import EngineBusy
 from service.models import (CalibrationHistoryList, CalibrationSessionInfo,
-                            CalibrationVersion, CalibrationVersionDetail, PlanRequest,
+                            CalibrationVersion, CalibrationVersionDetail, PlanRequest, Problem,
                             StepCaptured)
 
 __all__ = ["calibrations"]
@@ -34,7 +34,6 @@ Version = Annotated[int, PathParam(ge=1, le=1_000_000)]
 
 
 def _problem(status: int, description: str) -> dict:
-    from service.models import Problem
     return {status: {"model": Problem, "description": description}}
 
 

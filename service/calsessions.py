@@ -29,7 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from clients.placement import matrix_to_ur_pose, rotvec_to_matrix
-from scanner_core.calplan import CalibrationPlan, PlanGeometry, make_plan, plan_to_dict
+from scanner_core.calplan import (TILT_DEG, TILTED_FRACTION, CalibrationPlan, PlanGeometry,
+                                  make_plan, plan_to_dict)
 from scanner_core.calsession import SessionWriter, calibrate_session, load_session
 from scanner_core.calibration import save_calibration
 from scanner_core.fileio import save_json_atomic
@@ -137,8 +138,8 @@ class CalibrationSessions:
         geometry = self._geometry(request, nominal)
         plan = make_plan(geometry, led_count=request.get("led_count", 200),
                          sphere_count=request.get("sphere_count", 40),
-                         tilted_fraction=request.get("tilted_fraction", 0.3),
-                         tilt_deg=request.get("tilt_deg", 10.0), seed=request.get("seed", 0))
+                         tilted_fraction=request.get("tilted_fraction", TILTED_FRACTION),
+                         tilt_deg=request.get("tilt_deg", TILT_DEG), seed=request.get("seed", 0))
         plan_dict = plan_to_dict(plan)
         stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
         session_id = f"cal-{stamp}-{secrets.token_hex(3)}"

@@ -327,9 +327,9 @@ class PlanRequest(BaseModel):
 
     led_count: int = Field(200, ge=12, le=2000, description="LED poses")
     sphere_count: int = Field(40, ge=3, le=500, description="sphere poses")
-    tilt_deg: float = Field(10.0, gt=0, le=30, description="how far the turned LED poses turn "
+    tilt_deg: float = Field(20.0, gt=0, le=30, description="how far the turned LED poses turn "
                                                           "the tool, degrees")
-    tilted_fraction: float = Field(0.3, ge=0, le=1, description="share of turned LED poses")
+    tilted_fraction: float = Field(0.5, ge=0, le=1, description="share of turned LED poses")
     seed: int = Field(0, ge=0, le=2**31 - 1)
     tcp_rotation: RotationVector | None = Field(
         None, description="the tool's orientation in a pass: a UR rotation vector, rad")

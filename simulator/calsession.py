@@ -69,11 +69,8 @@ class StepScenes:
             led_b = tcp_b[:3, 3] + tcp_b[:3, :3] @ self.cell.calibration.marker_offset_t
             return self._led.truth(led_b)
         if kind == "sphere":
-            turn = angle_between(tcp_b[:3, :3] @ [1.0, 0, 0],
-                                 self.cell.gripper_rotation_b @ [1.0, 0, 0])
             if not np.allclose(tcp_b[:3, :3], self.cell.gripper_rotation_b, atol=1e-6):
-                raise ValueError(f"the simulated sphere is held in the pass orientation only "
-                                 f"(turned {np.degrees(turn):.3f} degrees)")
+                raise ValueError("the simulated sphere is held in the pass orientation only")
             if self._sphere is None:
                 self._sphere = PartScene(sphere_part(self.cell.sphere_radius_mm), self.cell)
             return self._sphere.geometry(tcp_b[:3, 3], self._sphere.part.grasp, with_marker=False)

@@ -23,7 +23,8 @@ def geometry():
 
 
 def test_the_plan_puts_the_led_and_the_sphere_where_the_session_needs_them(geometry):
-    plan = make_plan(geometry, led_count=60, sphere_count=10, tilt_deg=10.0, seed=4)
+    plan = make_plan(geometry, led_count=60, sphere_count=10, tilt_deg=10.0,
+                     tilted_fraction=0.3, seed=4)
     led, sphere = plan.of_kind("led"), plan.of_kind("sphere")
     assert (len(led), len(sphere)) == (60, 10)
     leds = np.array([s.tcp_b[:3, 3] + s.tcp_b[:3, :3] @ LED_T for s in led])
@@ -39,7 +40,8 @@ def test_the_plan_puts_the_led_and_the_sphere_where_the_session_needs_them(geome
     cut = np.abs(centres[:, 1])  # the sheet at y = 0 cuts each 8 to 20 mm from its centre
     assert np.all((cut >= 0.28 * 28.625) & (cut <= 0.7 * 28.625))
     # repeatable, and another seed moves it
-    again = make_plan(geometry, led_count=60, sphere_count=10, tilt_deg=10.0, seed=4)
+    again = make_plan(geometry, led_count=60, sphere_count=10, tilt_deg=10.0,
+                      tilted_fraction=0.3, seed=4)
     assert all(np.array_equal(a.tcp_b, b.tcp_b) for a, b in zip(plan.steps, again.steps))
     other = make_plan(geometry, led_count=60, sphere_count=10, seed=5)
     assert not np.array_equal(other.steps[0].tcp_b, plan.steps[0].tcp_b)

@@ -18,9 +18,9 @@ from simulator.session import run_simulated_scan
 
 PERTURB_SEED = 3
 #: A plan big enough for every view (at least 16 LED positions each in the first fit) and
-#: short enough for a test: about 30 s of captures at 0.2 s a pose; 40 sphere poses as
+#: short enough for a test: about 35 s of captures at 0.2 s a pose; 40 sphere poses as
 #: `calibrate --sim` has (16 left the plane normal at 0.004-0.006 degrees).
-LED_POSES, SPHERE_POSES = 100, 40
+LED_POSES, SPHERE_POSES = 120, 40
 #: The targets (issue 29, as issue 9's for `flyscan calibrate --sim`).
 VIEWS_HELDOUT_PX = 0.05
 PLANE_NORMAL_DEG = 0.005
@@ -157,3 +157,21 @@ def test_activation_only_when_asked_never_in_a_pass_and_rollback_is_exact(record
     assert client.post(f"/calibration/sessions/{info['session_id']}/steps/9999").status_code == 422
     assert client.post("/calibration/sessions/nope/fit").status_code == 404
     assert client.post("/calibration/history/999/activate").status_code == 404
+
+
+def test_a_real_cells_plan_needs_its_pass_and_sphere_holder(cell, tmp_path):
+    """Without a simulated cell to take them from, the plan's geometry must be given."""
+    from types import SimpleNamespace
+
+    from service.calsessions import CalibrationSessions
+
+    service = SimpleNamespace(settings=SimpleNamespace(data=tmp_path), driver=None,
+                              engine=SimpleNamespace(calibration=cell.calibration))
+    sessions = CalibrationSessions(service)
+    with pytest.raises(ValueError, match="a real cell's plan needs tcp_rotation, pass_start_y_mm, "
+                                         "pass_end_y_mm, pass_height_mm, sphere_offset_t_mm"):
+        sessions.create({"led_count": 12, "sphere_count": 3})
+    geometry = {"tcp_rotation": [3.14159265, 0.0, 0.0], "pass_start_y_mm": 100.0,
+                "pass_end_y_mm": -100.0, "pass_height_mm": 50.0, "sphere_offset_t_mm": [0, 0, 50]}
+    with pytest.raises(ValueError, match="pass_end_y_mm > pass_start_y_mm"):
+        sessions.create({"led_count": 12, "sphere_count": 3, **geometry})
