@@ -123,3 +123,24 @@ def test_a_recorded_pass_replays_to_the_same_cloud(robot_service):
     replayed = replay_recording(load_recording(service.settings.data / recording))
     np.testing.assert_array_equal(replayed.cloud, live)
     assert replayed.frames == info["frames"]
+
+
+def test_a_calibration_session_through_the_real_client(robot_service):
+    """The simulated robot goes through a calibration plan and the RTDE emulator reports
+    each pose to the real ur-rtde client (its clock 7.25 s ahead of the camera's): every
+    captured pose is the plan's; the pass is recorded; scans after it are consistent again."""
+    client, service = robot_service
+    info = client.post("/calibration/sessions", json={"led_count": 12, "sphere_count": 3}).json()
+    session_id = info["session_id"]
+    for index in range(info["steps"]):
+        captured = client.post(f"/calibration/sessions/{session_id}/steps/{index}")
+        assert captured.status_code == 200, captured.text
+        step = captured.json()
+        assert step["off_plan_mm"] < 1e-6 and step["off_plan_deg"] < 1e-4, step  # no noise here
+        assert step["samples"] >= 40
+    assert client.post(f"/calibration/sessions/{session_id}/pass").status_code == 202
+    done = wait_for(lambda: (lambda i: i if i["pass_state"] != "recording" else None)(
+        client.get(f"/calibration/sessions/{session_id}").json()), timeout=60.0)
+    assert done["pass_state"] == "done" and done["state"] == "ready to fit", done
+    after = _scan(client)
+    assert after["state"] == "done" and not after["cross_check"]["flagged"], after

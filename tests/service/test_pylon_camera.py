@@ -98,6 +98,30 @@ def test_the_emulated_camera_serves_the_frames_bit_for_bit(emulated):
         camera.grab(0.1)
 
 
+def test_a_hardware_trigger_is_set_on_the_nodes_and_waits_for_its_line(emulated):
+    """trigger=line1: frame start on Line1's rising edge; the emulator's line never fires, so
+    no frame comes (a real camera's would at the trigger's rate, given as fps)."""
+    from scanner_core.devices import CameraTimeout
+
+    camera = open_camera(_spec(emulated[0], trigger="line1", fps=100))
+    camera.open()
+    try:
+        nodes = camera._camera
+        assert (nodes.TriggerSelector.Value, nodes.TriggerMode.Value, nodes.TriggerSource.Value,
+                nodes.TriggerActivation.Value) == ("FrameStart", "On", "Line1", "RisingEdge")
+        assert camera.fps == 100.0  # the trigger's rate, as given
+        with pytest.raises(CameraTimeout, match="no frame from Basler camera 0815-0000"):
+            camera.grab(0.2)
+    finally:
+        camera.close()
+    camera = open_camera(_spec(emulated[0]))  # back to free run on the same camera
+    camera.open()
+    try:
+        assert camera._camera.TriggerMode.Value == "Off" and camera.grab(2.0).frame_id == 0
+    finally:
+        camera.close()
+
+
 def test_node_errors_are_clear(emulated):
     folder = emulated[0]
     with pytest.raises(CameraError, match=r"ExposureTime 0.5 us is out of range for Basler "
