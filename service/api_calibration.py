@@ -15,11 +15,12 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Path as PathParam, Response
+from fastapi.responses import FileResponse
 from fastapi.concurrency import run_in_threadpool
 
 from service.api_common import Auth, EDGE, NO_ROOM, ServiceDep, UNAUTHORIZED, disk_error
 from service.calhistory import NoPreviousVersion, NoSuchVersion, activate, rollback
-from service.calsessions import NoSuchSession, SessionStateError, draw_residuals
+from service.calsessions import NoSuchSession, SessionStateError
 from service.engine import EngineBusy
 from service.models import (CalibrationHistoryList, CalibrationSessionInfo,
                             CalibrationVersion, CalibrationVersionDetail, PlanRequest, Problem,
@@ -136,17 +137,13 @@ def get_version(version: Version, service: ServiceDep) -> dict:
                                    "description": "residuals per view and per position"},
                              **_problem(404, "no such version, or one without a fit's report")})
 def residuals_png(version: Version, service: ServiceDep) -> Response:
-    import io
-
     try:
-        report = service.calibration_history.report(version)
+        path = service.calibration_history.residuals_path(version)
     except NoSuchVersion as exc:
         raise HTTPException(404, str(exc.args[0])) from None
-    if report is None:
+    if not path.is_file():  # drawn once, when the session was fitted
         raise HTTPException(404, f"version {version} was not fitted here: it has no residuals")
-    picture = io.BytesIO()
-    draw_residuals(report, picture)
-    return Response(picture.getvalue(), media_type="image/png")
+    return FileResponse(path, media_type="image/png")
 
 
 def _activation(service, change) -> dict:

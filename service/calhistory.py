@@ -93,6 +93,11 @@ class CalibrationHistory:
             return None
         return json.loads(path.read_text())
 
+    def residuals_path(self, version: int) -> Path:
+        """Where the version's residuals chart is kept (``service.calsessions``)."""
+        self.entry(version)
+        return self._path(version, ".residuals.png")
+
     def entries(self) -> list[dict]:
         with self._lock:
             active = self._index["active"]

@@ -21,6 +21,7 @@ import logging
 import math
 import os
 import secrets
+import shutil
 import threading
 import time
 from dataclasses import dataclass, field
@@ -158,8 +159,6 @@ class CalibrationSessions:
 
     def _prune(self) -> None:
         """Only the newest SESSIONS_KEPT - 1 session folders stay before a new one."""
-        import shutil
-
         if not self.root.is_dir():
             return
         done = sorted(p for p in self.root.iterdir() if p.is_dir())
@@ -315,6 +314,11 @@ class CalibrationSessions:
                 calibration, source=f"session {session.session_id}", report=report,
                 figures=figures)
             draw_residuals(report, session.folder / "residuals.png")
+            # Kept with the version: the chart is drawn once, not for each request (drawing
+            # holds the interpreter's lock for about 0.1 s, which the camera's thread needs).
+            history = self.service.calibration_history
+            shutil.copyfile(session.folder / "residuals.png",
+                            history.residuals_path(entry["version"]))
             with session.lock:
                 session.version, session.figures, session.state = entry["version"], figures, "fitted"
         except Exception as exc:  # the fit's own errors say what the session lacks
