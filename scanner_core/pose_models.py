@@ -29,6 +29,8 @@ __all__ = ["SurfaceModel", "EdgeModel", "merge_bevels", "outline_adjacency", "BE
 #: Parallel sharp edges of the CAD closer than this (mm, about two pixels' footprint) are
 #: one edge to the scanner: a chamfer's two (`merge_bevels`).
 BEVEL_MM = 0.4
+#: Where an edge model without edges keeps its one unreachable point, mm.
+_NOWHERE_MM = 1e9
 #: How far from the models their lookup tables (`scanner_core.nearest_table`) answer, mm:
 #: the search's widest bounds at the default settings (twice ``PoseParams.gate_mm``, plus
 #: two spacings for surfaces; plus the edge search, 15 mm, for edges). A wider bound is
@@ -167,7 +169,9 @@ class EdgeModel:
 
     @cached_property
     def tree(self) -> cKDTree:
-        return _tree(self.points if len(self.points) else np.zeros((1, 3)) + np.inf)
+        # A part without sharp edges (a sphere): one point farther than any bound, never
+        # matched (a tree of inf is refused by SciPy).
+        return _tree(self.points if len(self.points) else np.full((1, 3), _NOWHERE_MM))
 
     @cached_property
     def lookup(self) -> NearestTable:

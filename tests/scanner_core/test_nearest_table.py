@@ -98,3 +98,19 @@ def test_the_fine_fit_stops_and_jumps_where_the_plain_iteration_would_end(monkey
     assert np.allclose(fast.std, plain.std, rtol=1e-3)
     assert fast.act == plain.act and fast.free_axes == plain.free_axes
     assert fast_calls < plain_calls, (fast_calls, plain_calls)
+
+
+def test_a_part_without_sharp_edges_is_prepared_and_its_edges_match_nothing():
+    import trimesh
+
+    from scanner_core.cad import part_from_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
+    edge_model = EdgeModel.from_mesh(sphere)
+    assert len(edge_model.points) == 0
+    dist, _ = edge_model.tree.query(np.zeros((3, 3)), distance_upper_bound=100.0)
+    assert np.all(np.isinf(dist))
+    dist, _ = edge_model.lookup.query(np.zeros((3, 3)), 100.0)
+    assert np.all(np.isinf(dist))
+    part = part_from_mesh(sphere, name="sphere")
+    assert part.prepare() > 0.0
