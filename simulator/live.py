@@ -54,9 +54,13 @@ __all__ = ["LiveSimCell", "LiveSimCamera", "LiveSimRobot", "LivePass", "Prepared
            "PassInProgress", "Hold", "TrackSegment", "tcp_on_track", "frame_image", "pass_frame_count",
            "CAMERA_BUFFER_FRAMES", "BACKGROUND_RING_FRAMES", "PASS_CACHE_SIZE"]
 
-#: Frames the camera's on-board buffer holds for a late reader (a few frames, as in the
-#: transport buffers of USB3 and GigE Vision cameras); older frames are lost.
-CAMERA_BUFFER_FRAMES = 4
+#: Frames the camera keeps for a late reader; older frames are lost. As many as the real
+#: camera path queues: the Basler camera's grab engine is given 16 buffers
+#: (``service.pylon_camera.GRAB_BUFFERS``, 0.1 s at 162 fps; pylon's own default is 10), which
+#: its driver fills whatever the Python side does. With 4 (25 ms) the simulated camera lost
+#: frames to stalls of the reader the real one rides out: 1 of 20 passes with no client on
+#: an idle machine, 8 of 100 under the web load of bench abuse's target.
+CAMERA_BUFFER_FRAMES = 16
 #: Noise-only frames rendered once at ``open`` and cycled between passes: enough that
 #: consecutive idle frames differ, few enough to cost about 20 ms and 18 MB once. Rendering
 #: fresh noise for every idle frame would take a third of a core at 162 fps.
