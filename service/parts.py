@@ -3,6 +3,9 @@ simulated cell's demo block, handed in by its driver).
 
 An uploaded part is kept as ``parts/<name>/mesh.<ext>`` with ``part.json`` (its unit and
 grasp), written into a temporary folder and renamed into place, and loaded again at start.
+A part's scan plan (``flyscan plan``'s ``plan.json``, read by ``scanner_core.scanplan``)
+placed in its folder gives its nominal grasp at start: the plan's grasp turned by its pass
+direction (it must have been made for that mesh file).
 Every part is checked as ``flyscan scan`` checks it (readable, counts consistent with the
 file, plausible size for its unit, fits the inspection volume at its nominal grasp) and as a
 solid (`check_solid`: a thickness and a volume) before it is accepted. An upload is streamed
@@ -22,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from scanner_core.cad import GRASPS, PartError, PartModel, check_fits, load_part
+from scanner_core.scanplan import check_plan_grasp, load_scan_plan
 
 log = logging.getLogger("flyscan.parts")
 
@@ -35,6 +39,8 @@ MIN_THICKNESS_MM = 0.2
 #: The smallest volume of a part's box along its principal axes, mm^3.
 MIN_VOLUME_MM3 = 1.0
 STAGING_PREFIX = ".tmp-"
+#: A stored part's scan plan, beside its part.json.
+PLAN_FILE = "plan.json"
 
 
 class PartQuotaExceeded(Exception):
@@ -109,8 +115,18 @@ class PartLibrary:
                 continue
             try:
                 meta = json.loads((folder / "part.json").read_text())
-                self._parts[folder.name] = load_part(folder / meta["file"], meta["units"],
-                                                     name=folder.name, grasp=_grasp(meta["grasp"]))
+                grasp = _grasp(meta["grasp"])
+                if (folder / PLAN_FILE).is_file():
+                    plan = load_scan_plan(folder / PLAN_FILE)
+                    plan.check_mesh(folder / meta["file"])
+                    grasp = plan.nominal_grasp
+                part = load_part(folder / meta["file"], meta["units"], name=folder.name,
+                                 grasp=grasp)
+                if (folder / PLAN_FILE).is_file():
+                    check_plan_grasp(plan, part.vertices)
+                    log.info("part %s: nominal grasp from its plan (%s, turned %g degrees)",
+                             folder.name, plan.grasp_name, plan.pass_direction_deg)
+                self._parts[folder.name] = part
             except (OSError, ValueError, KeyError, TypeError) as exc:  # PartError is a ValueError
                 log.error("stored part %s skipped: %s", folder.name, exc)
 

@@ -1,4 +1,4 @@
-"""The flyscan command line: scan, simulate, serve, record, replay, calibrate, benchmark.
+"""The flyscan command line: scan, simulate, serve, record, replay, calibrate, plan, benchmark.
 
 Every command calls the same library functions the service and the benchmarks use; each
 command's module only parses its arguments, reports errors clearly and exits non-zero on
@@ -15,7 +15,7 @@ import sys
 
 from threadpoolctl import threadpool_limits
 
-from service.cli import bench, calibrate, record, scan, serve, simulate
+from service.cli import bench, calibrate, plan, record, scan, serve, simulate
 from service.cli.common import (EXIT_SCAN_FAILED, MIN_PROFILES, HelpFormatter, ScanError,
                                 ScanFailed, UsageError, check_frame_spacing, join_number_lists,
                                 version)
@@ -25,7 +25,7 @@ __all__ = ["main", "build_parser", "parse_args", "UsageError", "ScanError", "Sca
 
 _COMMANDS = {"scan": scan.run, "simulate": simulate.run, "serve": serve.run,
              "record": record.run_record, "replay": record.run_replay,
-             "calibrate": calibrate.run, "bench": bench.run}
+             "calibrate": calibrate.run, "plan": plan.run, "bench": bench.run}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,6 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_parser(command)
     serve.add_parser(command)
     record.add_parsers(command)
+    plan.add_parser(command)
     bench.add_parser(command)
     return parser
 
@@ -82,9 +83,10 @@ def _run(args) -> int:
     from scanner_core.viewcal import ViewCalibrationError
     from scanner_core.calsession import SessionError
     from scanner_core.recording import RecordingError
+    from scanner_core.scanplan import PlanError
 
     errors = (UsageError, PartError, CalibrationError, ScanError, SessionError,
-              ViewCalibrationError, PlaneCalibrationError, RecordingError)
+              ViewCalibrationError, PlaneCalibrationError, RecordingError, PlanError)
     if args.command in ("simulate", "scan", "bench", "calibrate"):
         from simulator.embree import EmbreeError
         from simulator.virtual_setup import SetupError

@@ -132,12 +132,24 @@ def check_part_args(args) -> None:
 
 def load_part_model(args):
     """The scanner's model of the part of ``--part``/``--units`` with its ``--grasp``
-    (``scanner_core.cad.PartModel``), or None without ``--part``."""
+    (``scanner_core.cad.PartModel``), or None without ``--part``. With ``--plan``, the
+    plan's nominal grasp (its grasp turned by its pass direction), after checking that the
+    plan was made for this mesh file; the plan read is kept as ``args.loaded_plan``."""
     from scanner_core.cad import load_part
+    from scanner_core.scanplan import check_plan_grasp, load_scan_plan
 
+    args.loaded_plan = None
     if args.part is None:
         return None
-    return load_part(args.part, args.units, grasp=getattr(args, "grasp", None))
+    plan_path = getattr(args, "plan", None)
+    if plan_path is None:
+        return load_part(args.part, args.units, grasp=getattr(args, "grasp", None))
+    plan = load_scan_plan(plan_path)
+    plan.check_mesh(args.part)
+    part = load_part(args.part, args.units, grasp=plan.nominal_grasp)
+    check_plan_grasp(plan, part.vertices)
+    args.loaded_plan = plan
+    return part
 
 
 def add_act_tolerance(parser) -> None:

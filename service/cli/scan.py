@@ -66,6 +66,10 @@ def add_parser(command) -> None:
                            "turned a quarter so its smallest extent hangs along z_T (held by its "
                            "broadest side, as a suction cup holds it), then centred; 'identity': "
                            "the CAD origin at the TCP")
+    scan.add_argument("--plan", type=Path, default=None,
+                      help="the part's plan.json (flyscan plan): its grasp and pass direction "
+                           "(a turn about z_T) replace --grasp; in the simulated cell its pass "
+                           "speed and frame rate too, unless --preset, --speed or --fps is given")
     add_act_tolerance(scan)
     scan.add_argument("--calibration", type=Path, default=None,
                       help="calibration JSON the scanner uses (simulated cell: default the "
@@ -111,6 +115,10 @@ def run(args) -> int:
     if args.robot is not None and args.camera is None:
         raise UsageError("--robot goes with --camera (a real cell)")
     check_part_args(args)
+    if args.plan is not None and args.part is None:
+        raise UsageError("--plan goes with --part: a plan is made for one mesh file")
+    if args.plan is not None and args.grasp != "centred":
+        raise UsageError("--plan gives the grasp: not with --grasp")
     check_out_dir(args.out)
     if args.recording is not None:
         return _from_recording(args)
@@ -155,7 +163,10 @@ def _simulated(args) -> int:
     calibration = load_calibration(args.calibration) if args.calibration else None
     cell = sim_cell(args.perturb_seed, scan_effects(args, calibration))
     preset = PASS_PRESETS[args.preset]
-    cell = cell.with_pass(speed_mm_s=args.speed or preset.speed_mm_s, fps=args.fps or preset.fps)
+    plan = getattr(args, "loaded_plan", None) if args.preset == "default" else None
+    speed, fps = (plan.speed_mm_s, plan.fps) if plan is not None else (preset.speed_mm_s,
+                                                                        preset.fps)
+    cell = cell.with_pass(speed_mm_s=args.speed or speed, fps=args.fps or fps)
     check_frame_spacing(part, cell.pass_profile.speed_mm_s, cell.pass_profile.fps)
     if calibration is not None:
         calibration.check_image_size(cell.calibration.camera.width,
