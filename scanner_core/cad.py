@@ -30,7 +30,8 @@ if TYPE_CHECKING:  # imported where used: ray casting alone needs neither trimes
 
 __all__ = ["UNITS_MM", "PLAUSIBLE_SIZE_MM", "INSPECTION_VOLUME_MM", "GRIPPER_TOLERANCE_MM",
            "PartError", "PartModel", "load_part", "part_from_mesh", "saved_part", "centred_grasp",
-           "flat_grasp", "GRASPS", "named_grasp", "check_fits", "canonical_unit"]
+           "flat_grasp", "GRASPS", "named_grasp", "check_fits", "canonical_unit",
+           "check_rigid_grasp"]
 
 #: Length of one unit in millimetres.
 UNITS_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "inch": 25.4}
@@ -490,6 +491,13 @@ def check_fits(part: PartModel, volume_mm=INSPECTION_VOLUME_MM, *, pose=None) ->
         raise PartError(f"{spans}, reaching {-lo[2]:.1f} mm into the gripper (z_T < 0): {hint}")
     raise PartError(f"{spans}, outside the inspection volume below the TCP ({vol[0]:g} x "
                     f"{vol[1]:g} x {vol[2]:g} mm, z_T from 0): {hint}")
+
+
+def check_rigid_grasp(grasp) -> np.ndarray:
+    """`grasp` as a read-only (4, 4) float64 rigid ^T X_P; PartError naming what is wrong."""
+    checked = _check_grasp(grasp)
+    checked.setflags(write=False)
+    return checked
 
 
 def _check_grasp(grasp) -> np.ndarray:

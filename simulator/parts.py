@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -58,6 +58,22 @@ class Part(PartModel):
         """The part's Embree scene in {P}, built on first use and kept: most of its cost is
         copying the mesh (NOTES.md), and every simulated pass or frame reuses it."""
         return Intersector(self.vertices, self.faces)
+
+    def with_grasp(self, grasp) -> "Part":
+        """The same part held by another nominal grasp ((4, 4) ^T X_P, mm), sharing what this
+        one has built that the grasp does not change (its mesh, bounding box, ray-casting
+        scene, surface model and model edges; the edge model depends on the view, so it is
+        built again): a planner scans one part under many grasps."""
+        grasp = np.array(grasp, dtype=np.float64)
+        other = replace(self, grasp=cad.check_rigid_grasp(grasp))
+        for name in _GRASP_FREE:
+            if name in self.__dict__:
+                other.__dict__[name] = self.__dict__[name]
+        return other
+
+
+# The cached properties of a part that do not depend on its grasp (all in {P}).
+_GRASP_FREE = ("mesh", "bounds", "intersector", "surface_model", "model_edges")
 
 
 def simulated(model: PartModel, surface: Surface | None = None) -> Part:

@@ -27,7 +27,7 @@ def test_a_lazy_import_of_the_simulator_from_the_service_is_caught(tmp_path):
     """The contract sees imports inside functions too: a copy of the tree in which the
     service's store imports the simulator inside a function breaks it."""
     copy = tmp_path / "tree"
-    for name in ("scanner_core", "simulator", "service", "benchmarks", "clients"):
+    for name in ("scanner_core", "simulator", "planning", "service", "benchmarks", "clients"):
         shutil.copytree(ROOT / name, copy / name, ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(ROOT / "pyproject.toml", copy / "pyproject.toml")
     store = copy / "service" / "store.py"
