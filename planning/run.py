@@ -1,6 +1,7 @@
 """``flyscan plan``'s run: a catalogue's candidates as tasks on Dask distributed.
 
-Each part's mesh is scattered to the cluster once; each candidate not already in the cache
+Each part's mesh goes to the cluster once, as the result of a task that holds it (rather
+than scattered: scattered data dies with its worker, a task's result is computed again); each candidate not already in the cache
 (``planning.cache``) is one task (``planning.evaluate.evaluate``) whose key is its cache
 key, so a task is never computed twice within a run either. Results are stored as they
 arrive: a run stopped halfway, or one whose worker died, keeps every finished candidate, and
@@ -40,8 +41,9 @@ class PlanRun:
 
 
 def local_cluster(workers: int | None = None, *, processes: bool = True):
-    """A ``LocalCluster`` of `workers` single-threaded workers (default: one per core), with
-    no dashboard (its port may be taken); the caller closes it."""
+    """A ``LocalCluster`` of `workers` single-threaded workers (default: one per core), its
+    dashboard on a free port (the scheduler's web server starts even without a dashboard,
+    on 8787 unless told: another cluster may hold it); the caller closes it."""
     import os
 
     from distributed import LocalCluster
@@ -50,7 +52,7 @@ def local_cluster(workers: int | None = None, *, processes: bool = True):
     if n < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     return LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
-                        dashboard_address=None, silence_logs=40)
+                        dashboard_address="127.0.0.1:0", silence_logs=40)
 
 
 def plan_catalogue(catalogue, out, *, units: str | None = None, client=None,
@@ -134,14 +136,17 @@ def _compute(missing, jobs, results, store, run, *, client, scheduler, workers, 
                 own_cluster = local_cluster(workers)
                 client = own_client = Client(own_cluster)
         run.workers = len(client.scheduler_info(n_workers=-1)["workers"])
-        link = getattr(client, "dashboard_link", None) if scheduler else None
+        link = getattr(client, "dashboard_link", None)
         print(f"plan: {len(missing)} tasks on {run.workers} workers"
               + (f"; dashboard {link}" if link else ""), file=log, flush=True)
         meshes = {}
         for key in missing:
             entry = jobs[key][0]
             if entry.name not in meshes:  # each part's mesh goes to the cluster once
-                meshes[entry.name] = client.scatter(entry.mesh, hash=False)
+                # as a task holding it, not scattered: scattered data lost with its worker
+                # is gone, a task's result is computed again from the graph
+                meshes[entry.name] = client.submit(_hold, entry.mesh, key=f"mesh-{key[:16]}",
+                                                   pure=False)
         futures = {client.submit(evaluate, meshes[jobs[k][0].name], jobs[k][1], key=f"plan-{k}",
                                  pure=False): k for k in missing}
         t0 = time.perf_counter()
@@ -166,6 +171,12 @@ def _compute(missing, jobs, results, store, run, *, client, scheduler, workers, 
             own_client.close()
         if own_cluster is not None:
             own_cluster.close()
+
+
+def _hold(mesh):
+    """A part's mesh, as a task's result: it lives on a worker and goes to the others that
+    need it (a worker's tasks of one part fetch it once)."""
+    return mesh
 
 
 def _progress(done, total, elapsed, part, candidate, result, log) -> None:
