@@ -27,7 +27,7 @@ import numpy as np
 
 from planning.candidates import Candidate
 
-__all__ = ["PartMesh", "PLAN_SEED", "PREVIEW_POINTS", "evaluate", "score"]
+__all__ = ["PartMesh", "PLAN_SEED", "PREVIEW_POINTS", "evaluate", "score", "warm_up"]
 
 #: The image-noise seed of every planned pass (``flyscan scan``'s default seed).
 PLAN_SEED = 0
@@ -89,6 +89,24 @@ def evaluate(mesh: PartMesh, candidate: Candidate, *, preview: bool = True) -> d
                       "rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                                       1)}
     return result
+
+
+def warm_up() -> float:
+    """Load every kernel a candidate's scan uses (numba's cache) by scanning a small box once;
+    the seconds it took. A process's first scan otherwise pays it (1-2 s)."""
+    import trimesh
+
+    from planning.candidates import candidates
+    from scanner_core.cad import part_from_mesh
+
+    t0 = time.perf_counter()
+    part = part_from_mesh(trimesh.creation.box((30.0, 20.0, 10.0)), name="warm-up")
+    mesh = PartMesh(name=part.name, vertices=np.asarray(part.vertices),
+                    faces=np.asarray(part.faces), units="mm", source="procedural:box",
+                    digest="warm-up")
+    evaluate(mesh, candidates(part, presets=("fast",), resting=0)[0][0], preview=False)
+    _parts.pop("warm-up", None)
+    return time.perf_counter() - t0
 
 
 def score(result: dict, tolerance_mm: float, tolerance_deg: float) -> float:

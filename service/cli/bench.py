@@ -11,7 +11,7 @@ __all__ = ["add_parser", "run"]
 
 #: The benchmarks, with what the longer ones measure.
 BENCHMARKS = ("stripe", "scan", "simulate", "service", "pose", "coarse", "hardware", "surfaces",
-              "calibrate", "edges", "place", "abuse", "pose_time")
+              "calibrate", "edges", "place", "abuse", "pose_time", "planning")
 
 
 def add_parser(command) -> None:
@@ -27,7 +27,9 @@ def add_parser(command) -> None:
                             "correct, place) in the calibrated realistic cell; abuse: passes "
                             "armed over REST while clients loop on the status page's reads "
                             "(frames dropped per load pattern); pose_time: the pose's own CPU "
-                            "time by part, point count and stage")
+                            "time by part, point count and stage; planning: flyscan plan's "
+                            "throughput on 1 and 2 workers, task cost, the reference parts' "
+                            "plans against flyscan scan with them, a 100-part catalogue")
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
     bench.add_argument("--picks", type=int, default=None,
@@ -66,6 +68,8 @@ def run(args) -> int:
         from benchmarks import abuse as bench
     elif args.what == "pose_time":
         from benchmarks import pose_time as bench
+    elif args.what == "planning":
+        from benchmarks import planning as bench
     elif args.what == "pose":
         from benchmarks import pose as bench
         from benchmarks import pose_limits
