@@ -186,10 +186,10 @@ def _shape(shape: str, rng: np.random.Generator):
         return procedural.bracket_with_two_holes((u(40, 90), u(25, 50), u(4, 10)),
                                                  step_height=u(3, 8))
     if shape == "dome":
-        return procedural.faceted_dome(u(15, 40), u(4, 12))
+        return procedural.faceted_dome(u(25, 45), u(4, 12))
     if shape == "fan_disk":
-        radius = u(25, 55)
-        return procedural.fan_disk(radius, u(4, 10), hub_radius=radius * u(0.3, 0.5))
+        radius = u(40, 60)
+        return procedural.fan_disk(radius, u(4, 10), hub_radius=radius * u(0.4, 0.5))
     if shape == "crowned":
         size = (u(40, 80), u(30, 50), u(8, 16))
         return procedural.crowned_block(size, crown_radius=u(0.6, 0.9) * size[1])

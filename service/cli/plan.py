@@ -72,6 +72,10 @@ def run(args) -> int:
                                 tolerance_deg=args.act_tolerance_deg)
     except CatalogueError as exc:
         raise UsageError(str(exc)) from None
+    except (OSError, TimeoutError) as exc:
+        if not args.scheduler:
+            raise
+        raise UsageError(f"cannot reach the Dask scheduler {args.scheduler}: {exc}") from None
     summary = result.summary
     print(f"planned {summary['parts']} parts: {summary['every_axis_fixed']} with every axis "
           f"fixed, {summary['broken']} broken; {args.out / 'catalogue.csv'}")
