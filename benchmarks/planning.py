@@ -282,7 +282,9 @@ def catalogue(out: Path, *, parts: int = CATALOGUE_PARTS) -> dict:
               "candidates_per_part": run_.tasks / max(1, parts - statuses.count("broken")),
               "by_shape": _by_shape(summary["rows"]), "cost": _costs(_cached_results(plan_out)),
               "task_walls": [r["cost"]["wall_s"] for r in _cached_results(plan_out)
-                             if r.get("cost")]}
+                             if r.get("cost")],
+              "task_cpu": [r["cost"]["cpu_s"] for r in _cached_results(plan_out)
+                           if r.get("cost")]}
     write_json(out / "catalogue.json", result)
     return result
 
@@ -363,8 +365,12 @@ def combine(out) -> dict:
                                                  "no_scan", "broken")}
         summary["catalogue"]["wall_s"] = c["run"]["wall_s"]
         summary["task_cost"] = c["cost"]
-        summary["projection"] = projection(c["cost"]["wall_s_sum"] / c["cost"]["tasks"],
-                                           c["candidates_per_part"])
+        # from the mean wall time a task took here (two workers and other jobs on two cores)
+        # and from its mean CPU time (what a core of its own would take)
+        summary["projection"] = {
+            "from_wall": projection(c["cost"]["wall_s_sum"] / c["cost"]["tasks"],
+                                    c["candidates_per_part"]),
+            "from_cpu": projection(float(np.mean(c["task_cpu"])), c["candidates_per_part"])}
     if "reference" in phases:
         r = phases["reference"]
         summary["reference"] = {"wall_s": r["run"]["wall_s"], "parts": {
