@@ -20,6 +20,7 @@ def test_combine_summarises_the_phases(tmp_path):
             {"workers": 2, "tasks": 10, "compute_s": 5.5, "per_s": 10 / 5.5,
              "load_before": [0.7, 0.5, 0.5], "load_after": [2, 1, 1], "cost": {}}]
     (tmp_path / "throughput.json").write_text(json.dumps({"runs": runs, "ratio": 10 / 5.5 / 1.0}))
+    # (the ratio is throughput()'s, of the medians per worker count)
     rows = [{"part": "a", "seed": 1, "misplacement": [0] * 6, "observable": True,
              "worst_factor": 1.5, "ratio_predicted_over_measured": {"tx_mm": 1.5}},
             {"part": "a", "seed": 1, "misplacement": [1, 0, 0, 0, 0, 0], "observable": False,
