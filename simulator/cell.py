@@ -129,7 +129,16 @@ class Cell:
         )
 
     def with_pass(self, **changes) -> "Cell":
-        return replace(self, pass_profile=replace(self.pass_profile, **changes))
+        """The cell with its pass changed. A slower pass keeps at least the lead-out
+        distance of this one (``lead_out_s`` scaled, unless given): the marker must leave
+        the views for the pass to end, and the paper's slow pass (50 mm/s) carried it 15 mm
+        in the default 0.3 s, still in view: every such pass failed, "camera stream
+        ended"."""
+        profile = replace(self.pass_profile, **changes)
+        if "lead_out_s" not in changes and profile.speed_mm_s < self.pass_profile.speed_mm_s:
+            reach_mm = self.pass_profile.lead_out_s * self.pass_profile.speed_mm_s
+            profile = replace(profile, lead_out_s=reach_mm / profile.speed_mm_s)
+        return replace(self, pass_profile=profile)
 
 
 def load_cell(path=REFERENCE_CELL, *, perturb_seed: int | None = None) -> Cell:

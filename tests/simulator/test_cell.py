@@ -70,3 +70,23 @@ def test_perturbation_is_repeatable_and_small(cell):
     tilt = np.degrees(angle_between(a.light_plane_b.normal, cell.light_plane_b.normal))
     assert 0.0 < tilt < 1.5  # degrees
     assert _close(load_cell(perturb_seed=7).to_dict(), a.to_dict())
+
+
+def test_a_slower_pass_keeps_the_lead_out_distance_and_the_slow_preset_ends():
+    """The marker must leave the views for a pass to end: a slower pass keeps the lead-out's
+    distance (the paper's slow pass, 50 mm/s at 16 fps, ended as "camera stream ended")."""
+    from simulator.cell import PASS_PRESETS
+    from simulator.parts import block_with_holes_and_steps, part_from_mesh
+    from simulator.session import run_simulated_scan
+
+    cell = load_cell()
+    reach_mm = cell.pass_profile.lead_out_s * cell.pass_profile.speed_mm_s
+    slow = PASS_PRESETS["slow"]
+    slower = cell.with_pass(speed_mm_s=slow.speed_mm_s, fps=slow.fps)
+    assert slower.pass_profile.lead_out_s * slower.pass_profile.speed_mm_s == pytest.approx(reach_mm)
+    assert cell.with_pass(speed_mm_s=1000.0).pass_profile.lead_out_s == cell.pass_profile.lead_out_s
+    assert cell.with_pass(speed_mm_s=50.0, lead_out_s=0.3).pass_profile.lead_out_s == 0.3
+    block = part_from_mesh(block_with_holes_and_steps(), name="block")
+    scan, report = run_simulated_scan(block, slower, seed=0, evaluate=False, pose=False)
+    assert report["state"] == "done" and report["end_reason"] == "marker gone", report["reason"]
+    assert len(scan.cloud) > 1000
