@@ -77,43 +77,6 @@ function applyStatus(s) {
   if (key !== scansKey) {
     scansKey = key;
     refreshScans();
-
-// The calibration history (GET /calibration/history): every version, its residuals, which is
-// active; the residuals' chart of the newest fitted one, drawn by the service once per change.
-const CALIBRATION_PERIOD_MS = 10000;
-
-async function refreshCalibrations() {
-  try {
-    const r = await fetch("/calibration/history", { cache: "no-store" });
-    if (!r.ok) throw new Error("GET /calibration/history: " + r.status);
-    const history = await r.json();
-    const tbody = $("calibrations");
-    tbody.replaceChildren();
-    for (const v of history.versions.slice().reverse()) {
-      const tr = document.createElement("tr");
-      tr.dataset.version = v.version;
-      const f = v.figures || {};
-      cell(tr, "v" + v.version);
-      cell(tr, v.source);
-      cell(tr, v.created);
-      cell(tr, fmtNum(f.views_heldout_px, 4), "num");
-      cell(tr, (f.views_per_view_rms_px || []).map((x) => fmtNum(x, 4)).join(" / "), "num");
-      cell(tr, fmtNum(f.plane_rms_um, 1), "num");
-      cell(tr, fmtNum(f.sphere_centre_rms_um, 1), "num");
-      cell(tr, v.active ? "active" : "", "st");
-      tbody.appendChild(tr);
-    }
-    const fitted = history.versions.filter((v) => v.has_report).pop();
-    const img = $("residuals");
-    const src = fitted ? "/calibration/history/" + fitted.version + "/residuals.png" : null;
-    if (src && img.getAttribute("src") !== src) { img.src = src; img.hidden = false; }
-  } catch (err) {
-    console.error(err);
-  }
-  setTimeout(refreshCalibrations, CALIBRATION_PERIOD_MS);
-}
-
-refreshCalibrations();
   }
 }
 
@@ -342,43 +305,6 @@ function setupArm() {
         result.dataset.scanId = body.scan_id;
         setText(result, "Armed scan " + body.scan_id);
         refreshScans();
-
-// The calibration history (GET /calibration/history): every version, its residuals, which is
-// active; the residuals' chart of the newest fitted one, drawn by the service once per change.
-const CALIBRATION_PERIOD_MS = 10000;
-
-async function refreshCalibrations() {
-  try {
-    const r = await fetch("/calibration/history", { cache: "no-store" });
-    if (!r.ok) throw new Error("GET /calibration/history: " + r.status);
-    const history = await r.json();
-    const tbody = $("calibrations");
-    tbody.replaceChildren();
-    for (const v of history.versions.slice().reverse()) {
-      const tr = document.createElement("tr");
-      tr.dataset.version = v.version;
-      const f = v.figures || {};
-      cell(tr, "v" + v.version);
-      cell(tr, v.source);
-      cell(tr, v.created);
-      cell(tr, fmtNum(f.views_heldout_px, 4), "num");
-      cell(tr, (f.views_per_view_rms_px || []).map((x) => fmtNum(x, 4)).join(" / "), "num");
-      cell(tr, fmtNum(f.plane_rms_um, 1), "num");
-      cell(tr, fmtNum(f.sphere_centre_rms_um, 1), "num");
-      cell(tr, v.active ? "active" : "", "st");
-      tbody.appendChild(tr);
-    }
-    const fitted = history.versions.filter((v) => v.has_report).pop();
-    const img = $("residuals");
-    const src = fitted ? "/calibration/history/" + fitted.version + "/residuals.png" : null;
-    if (src && img.getAttribute("src") !== src) { img.src = src; img.hidden = false; }
-  } catch (err) {
-    console.error(err);
-  }
-  setTimeout(refreshCalibrations, CALIBRATION_PERIOD_MS);
-}
-
-refreshCalibrations();
       } else {
         result.className = "arm-result error";
         setText(result, "Not armed (" + r.status + "): " + problemText(body, r));
