@@ -43,6 +43,7 @@ import httpx
 import numpy as np
 
 from benchmarks.live import ServeProcess
+from benchmarks.stats import spread
 from benchmarks.results import machine_info, pyplot, save_figure, write_json
 
 __all__ = ["run"]
@@ -251,14 +252,6 @@ class _Memory(threading.Thread):
                 return
 
 
-def _percentiles(values) -> dict:
-    values = np.asarray([v for v in values if v is not None], dtype=float)
-    if not len(values):
-        return {}
-    return {"median": float(np.median(values)), "p95": float(np.percentile(values, 95)),
-            "max": float(values.max())}
-
-
 def _pattern(url: str, pid: int, pattern: str, passes: int) -> dict:
     stop, answers, waits = threading.Event(), Counter(), defaultdict(list)
     threads = _clients(url, pattern, stop, answers, waits)
@@ -288,9 +281,8 @@ def _pattern(url: str, pid: int, pattern: str, passes: int) -> dict:
         "dropped_total": sum(d or 0 for d in dropped),
         "passes_with_drops": sum(bool(d) for d in dropped),
         "answers": dict(sorted(answers.items())),
-        "answer_wait_ms": {k: {q: v * 1e3 for q, v in _percentiles(w).items()}
-                           for k, w in sorted(waits.items())},
-        "latency_ms": {key: _percentiles([(i.get("latency_ms") or {}).get(key) for i in infos])
+        "answer_wait_ms": {k: spread([v * 1e3 for v in w]) for k, w in sorted(waits.items())},
+        "latency_ms": {key: spread([(i.get("latency_ms") or {}).get(key) for i in infos])
                        for key in ("last_frame_to_zmq", "pose_published")},
         "rss_mb": ({"start": memory.samples[0], "max": max(memory.samples),
                     "end": memory.samples[-1]} if memory.samples else {}),

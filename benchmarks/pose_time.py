@@ -27,6 +27,7 @@ from threadpoolctl import threadpool_limits
 from benchmarks.parts import (DEMO_PART, MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG,
                               MISPLACEMENT_UP_TO_MM, REFERENCE_PARTS, bench_part,
                               random_misplacement)
+from benchmarks.stats import spread
 from benchmarks.results import machine_info, write_json
 from benchmarks.service import TARGET_POSE_P95_MS, TARGET_POSE_POINTS, pose_stages
 from scanner_core.pose import PoseParams, scan_pose
@@ -102,22 +103,14 @@ def _timed(part, cell, values, *, seed: int) -> dict:
             "error_mdeg": float(angle * 1e3)}
 
 
-def _stats(values) -> dict:
-    values = np.asarray(values, dtype=float)
-    if not len(values):
-        return {"count": 0}
-    return {"count": int(len(values)), "median_ms": float(np.median(values)),
-            "p95_ms": float(np.percentile(values, 95)), "max_ms": float(values.max())}
-
-
 def _summary(rows: list[dict]) -> dict:
     small = [r["ms"] for r in rows if r["points"] <= TARGET_POSE_POINTS]
-    by_part = {name: _stats([r["ms"] for r in rows if r["part"] == name])
+    by_part = {name: spread([r["ms"] for r in rows if r["part"] == name])
                for name in dict.fromkeys(r["part"] for r in rows)}
     searched = [r["ms"] for r in rows if r["points"] <= TARGET_POSE_POINTS
                 and (r["coarse"] or r["stages_ms"].get("probes", 0.0) > 10.0)]
-    return {"up_to_target_points": _stats(small), "by_part": by_part,
-            "searched_up_to_target_points": _stats(searched),
+    return {"up_to_target_points": spread(small), "by_part": by_part,
+            "searched_up_to_target_points": spread(searched),
             "target_p95_ms": TARGET_POSE_P95_MS, "target_points": TARGET_POSE_POINTS,
             "over_target": int(sum(ms > TARGET_POSE_P95_MS for ms in small)),
             "note": "the pose alone; the service adds the pass's end, the scan's assembly and "

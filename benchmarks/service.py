@@ -41,6 +41,7 @@ from benchmarks.live import finished_scan, free_port, running_service
 from benchmarks.parts import (DEMO_PART, MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG,
                               MISPLACEMENT_UP_TO_MM, REFERENCE_PARTS, bench_part, demo_pass,
                               random_misplacement)
+from benchmarks.stats import spread
 from benchmarks.results import machine_info, pyplot, save_figure, write_json
 
 __all__ = ["run"]
@@ -320,22 +321,14 @@ def _pose_row(name: str, speed: float, values, info: dict, stages: dict) -> dict
             "refused": pose.get("refused")}
 
 
-def _stats(values) -> dict:
-    values = np.asarray([v for v in values if v is not None], dtype=float)
-    if not len(values):
-        return {"n": 0}
-    return {"n": int(len(values)), "median": float(np.median(values)),
-            "p95": float(np.percentile(values, 95)), "max": float(values.max())}
-
-
 def _pose_summary(rows: list[dict]) -> dict:
     by_part, by_points = {}, {}
     for name in dict.fromkeys(r["part"] for r in rows):
         mine = [r for r in rows if r["part"] == name]
         within = [r["pose_published_ms"] for r in mine if r["points"] <= TARGET_POSE_POINTS]
         by_part[name] = {"points_median": float(np.median([r["points"] for r in mine])),
-                         "pose_published_ms": _stats(r["pose_published_ms"] for r in mine),
-                         "pose_published_ms_up_to_target_points": _stats(within),
+                         "pose_published_ms": spread(r["pose_published_ms"] for r in mine),
+                         "pose_published_ms_up_to_target_points": spread(within),
                          "coarse": sum(r["coarse"] for r in mine),
                          "ambiguous": sum(r["ambiguous"] for r in mine),
                          "path_ms_median": _median_dict([r["pose_path_ms"] for r in mine]),
@@ -344,10 +337,10 @@ def _pose_summary(rows: list[dict]) -> dict:
     for high in (*POINT_BINS, np.inf):
         mine = [r["pose_published_ms"] for r in rows if low < r["points"] <= high]
         if mine:
-            by_points[f"{low}-{high if np.isfinite(high) else 'more'}"] = _stats(mine)
+            by_points[f"{low}-{high if np.isfinite(high) else 'more'}"] = spread(mine)
         low = high
-    within = _stats(r["pose_published_ms"] for r in rows if r["points"] <= TARGET_POSE_POINTS)
-    whole = _stats(r["pose_published_ms"] for r in rows
+    within = spread(r["pose_published_ms"] for r in rows if r["points"] <= TARGET_POSE_POINTS)
+    whole = spread(r["pose_published_ms"] for r in rows
                    if r["points"] <= TARGET_POSE_POINTS and not r.get("frames_lost"))
     return {"by_part": by_part, "by_points": by_points,
             "pose_published_ms_up_to_target_points": within,
@@ -473,7 +466,7 @@ def _plot_pose(pose: dict, ax_points, ax_path, ax_stages) -> None:
     ax_points.set_ylabel("last frame -> pose on ZeroMQ, ms")
     within = pose["pose_published_ms_up_to_target_points"]
     ax_points.set_title(f"pose latency (ringed: coarse or ambiguous); p95 up to "
-                        f"{TARGET_POSE_POINTS // 1000}k points {within.get('p95', float('nan')):.0f} ms",
+                        f"{TARGET_POSE_POINTS // 1000}k points {within.get('p95') or float('nan'):.0f} ms",
                         fontsize=9)
     ax_points.legend(fontsize=7)
     for ax, key, title in ((ax_path, "path_ms_median", "the pose's path (median per part)"),

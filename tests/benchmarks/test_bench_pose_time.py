@@ -19,5 +19,5 @@ def test_bench_pose_time_quick(tmp_path):
         assert sum(row["stages_ms"].values()) <= row["ms"] * 1.05 + 1.0
     small = [r["ms"] for r in rows if r["points"] <= written["summary"]["target_points"]]
     summary = result["summary"]["up_to_target_points"]
-    assert summary["count"] == len(small)
-    assert np.isclose(summary["median_ms"], np.median(small), rtol=1e-3)
+    assert summary["n"] == len(small)
+    assert np.isclose(summary["median"], np.median(small), rtol=1e-3)

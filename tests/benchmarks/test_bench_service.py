@@ -57,4 +57,4 @@ def test_the_stage_timer_restores_the_pose_module():
 
 @pytest.mark.parametrize("values, n", [([None, None], 0), ([1.0, None, 3.0], 2)])
 def test_stats_leave_out_missing_values(values, n):
-    assert bench._stats(values)["n"] == n
+    assert bench.spread(values)["n"] == n
