@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import queue
 import threading
 import time
@@ -289,6 +290,7 @@ class Engine:
     def _acquire(self) -> None:
         tracker = MarkerTracker(self.calibration, self.params)
         last_id, last_t = None, None
+        lag_floor = math.inf
         while self._running.is_set():
             if self.camera_state in ("closed", "error"):
                 time.sleep(CAMERA_REOPEN_S)
@@ -315,6 +317,13 @@ class Engine:
                         self.trigger.reset()
             received = time.monotonic()
             self.frames_total += 1
+            # How long the frame waited in the camera's buffer beyond the promptest read since
+            # the camera opened (received minus exposed: both clocks' offset and the read's own
+            # time cancel); a wait the buffer cannot hold loses frames.
+            if last_id is None:
+                lag_floor = math.inf
+            lag_floor = min(lag_floor, received - frame.t)
+            lag_ms = (received - frame.t - lag_floor) * 1e3
             gap = 0 if last_id is None else max(frame.frame_id - last_id - 1, 0)
             self.frames_dropped += gap
             if last_t is not None and frame.t > last_t:
@@ -325,12 +334,13 @@ class Engine:
             self.exposure_seen = (frame.exposure_us, frame.gain)
             self.exposure.frame_grabbed(frame.exposure_us, frame.gain)
             try:
-                self._on_frame(frame, gap, received, tracker)
+                self._on_frame(frame, gap, lag_ms, received, tracker)
             except Exception as exc:  # a frame the pipeline refuses (its size, its type)
                 log.exception("frame %s could not be handled", frame.frame_id)
                 self._camera_stopped("error", f"frame {frame.frame_id}: {exc!r}")
 
-    def _on_frame(self, frame: Frame, gap: int, received: float, tracker: MarkerTracker) -> None:
+    def _on_frame(self, frame: Frame, gap: int, lag_ms: float, received: float,
+                  tracker: MarkerTracker) -> None:
         # The marker search runs outside the lock, so that /status never waits for it; a
         # state that changes meanwhile takes effect from the next frame.
         with self._lock:
@@ -356,6 +366,7 @@ class Engine:
                 return
             if state is TriggerState.SCANNING:
                 job.frames_dropped += gap
+                job.acquisition_lag_ms = max(job.acquisition_lag_ms, lag_ms)
             if self.trigger.state is TriggerState.SCANNING and job.state == "armed":
                 job.state = "scanning"
             for item in step.emit:
@@ -454,6 +465,7 @@ class Engine:
                                     stopped_because=job.reason)
         scan.queue_overflows = job.queue_overflows
         scan.timings_ms = {"marker": round(job.marker_ms, 3), "profiles": round(job.profiles_ms, 3),
+                           "acquisition_lag": round(job.acquisition_lag_ms, 3),
                            "wait_workers": round((t1 - t0) * 1e3, 3),
                            "assemble": round((time.perf_counter() - t1) * 1e3, 3)}
         if scan.frames > scan.frames_held_rotation:  # the robot gave this pass's rotation

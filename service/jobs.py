@@ -34,6 +34,8 @@ class ScanJob:
     end_monotonic: float | None = None
     latency_ms: dict = field(default_factory=dict)
     marker_ms: float = 0.0
+    #: The longest a frame of the pass waited in the camera's buffer, ms (``Engine._acquire``).
+    acquisition_lag_ms: float = 0.0
     profiles_ms: float = 0.0
     info: dict = field(default_factory=dict)
     recording: LiveRecording | None = None

@@ -16,6 +16,8 @@ def test_bench_abuse_quick(tmp_path):
         assert pattern["failed"] == 0 and pattern["passes"] >= 1, (name, pattern)
         assert pattern["rss_mb"]["max"] - pattern["rss_mb"]["start"] < 50.0, (name, pattern)
         assert pattern["latency_ms"]["pose_published"]["median"] > 0.0
+        # every pass reports how long its frames waited in the camera's buffer
+        assert all(lag is not None and lag >= 0.0 for lag in pattern["acquisition_lag_ms"])
     # 200 MB bodies: refused before their limit is passed: without the token (401), at the
     # limit (413), or for want of a slot (503); never read whole
     assert set(patterns["bodies"]["answers"]) <= {"body 401", "body 413", "body 503"}, patterns["bodies"]

@@ -70,6 +70,28 @@ def test_a_camera_that_stops_mid_pass_fails_the_scan_and_the_service_recovers(si
     assert info["state"] == "done" and info["points"] > 1000, info["reason"]
 
 
+def test_a_late_read_shows_as_the_pass_acquisition_lag_without_losing_frames(sim_service):
+    """A read 60 ms late mid-pass (the buffer holds 16 frames, 99 ms at 162 fps) loses no
+    frame, and the scan reports the wait as ``timings_ms.acquisition_lag``."""
+    client, sim = sim_service
+    grab, scanning, slept = sim.camera.grab, threading.Event(), []
+
+    def late_grab(timeout=1.0):
+        if scanning.is_set() and not slept:
+            slept.append(time.monotonic())
+            time.sleep(0.06)
+        return grab(timeout)
+
+    sim.camera.grab = late_grab
+    scan_id = client.post("/scans", json={}).json()["scan_id"]
+    wait_for(lambda: client.get("/status").json()["state"] == "scanning")
+    scanning.set()
+    info = wait_for(lambda: finished(client, scan_id))
+    assert slept and info["state"] == "done", info["reason"]
+    assert info["frames_dropped"] == 0
+    assert 55.0 <= info["timings_ms"]["acquisition_lag"] < 1000.0, info["timings_ms"]
+
+
 def test_an_armed_scan_without_a_pass_times_out(tmp_path, cell):
     sim = LiveSimCell(cell, seed=1)
     settings = Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0")
