@@ -103,20 +103,20 @@ class _Fit:
     scale_mm: float             # radius that makes rotations comparable with translations
 
 
-def _fine(surface: _Terms, edges: _Terms | None, start, params, *, iterations=None,
-          gate_mm=None) -> _Fit:
+def _fine(surface: _Terms, edges: _Terms | None, start, params) -> _Fit:
+    """The fit from `start` ((4, 4) ^T X_P, mm) to convergence; the search's quick
+    refinements of many starts are ``scanner_core.pose_quick``."""
     pose = start.copy()
     centre = surface.points.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((surface.points - centre) ** 2, axis=1)))) or 1.0
-    gates = [params.gate_mm if gate_mm is None else gate_mm] * 2
-    max_iter = params.max_iterations if iterations is None else iterations
+    gates = [params.gate_mm] * 2
     step_tol = np.array([params.tol_mm] * 3 + [np.radians(params.tol_deg)] * 3)
     # Far from the minimum, a quarter of the points steers as well as all of them.
     sparse = (surface.subset(slice(None, None, _WARM_STRIDE))
-              if iterations is None and len(surface.points) >= _WARM_MIN_POINTS else None)
+              if len(surface.points) >= _WARM_MIN_POINTS else None)
     it = 0
     sizes, previous = [], None
-    for it in range(1, max_iter + 1):
+    for it in range(1, params.max_iterations + 1):
         terms = surface if sparse is None else sparse
         rows, sigmas = _linearise(terms, edges, pose, centre, gates, params)
         jac, res, w = rows[:3]
@@ -124,21 +124,18 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, iterations=No
             break
         delta, observed = _solve(jac, res, w, scale, params.free_std_mm)
         step = delta
-        if iterations is None and sparse is None:
+        if sparse is None:
             step = delta + observed * _jump(previous, observed, scale)
             previous = observed
         pose = _apply(step, centre) @ pose
-        if gate_mm is None:
-            gates = [max(params.min_gate_mm, min(g, 6.0 * sg)) for g, sg in zip(gates, sigmas)]
+        gates = [max(params.min_gate_mm, min(g, 6.0 * sg)) for g, sg in zip(gates, sigmas)]
         if sparse is not None and (it >= _WARM_MAX_ITERATIONS
                                    or np.all(np.abs(observed) < _WARM_TOL_FACTOR * step_tol)):
             sparse = None
             continue
         if sparse is None and _settled(sizes, observed, step_tol):
             break
-    rows = None
-    if iterations is None:
-        pose, rows = _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params)
+    pose, rows = _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params)
     if rows is None:
         rows, _ = _linearise(surface, edges, pose, centre, gates, params)
     jac, res, w, frames, matched = rows

@@ -33,6 +33,7 @@ from scipy.spatial.transform import Rotation
 from scanner_core.pose_fine import (_EDGE_SEARCH_MM, _MIN_EDGE_LEVEL, _evenly, _Fit, _fine,
                                     _information, _linearise, _nearest, _spacing, _subsample,
                                     _Terms)
+from scanner_core.pose_quick import _quick_fits
 
 # Model points that seed a coarse candidate's translation.
 _SEED_POINTS = 5000
@@ -155,17 +156,15 @@ def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> list
     grid = grid[np.argsort(np.linalg.norm(grid, axis=1))]
     rough, rough_edges = few.rough(), _rough(few_edges)
 
-    def refine(start):
-        fit = _fine(rough, rough_edges, start, params, iterations=params.coarse_iterations,
-                    gate_mm=params.gate_mm * 2)
-        return fit.pose, _agreement(few, few_edges, fit.pose, *_COARSE_TOL_MM)
+    def refine(starts) -> list:
+        poses = _quick_fits(rough, rough_edges, starts, params,
+                            iterations=params.coarse_iterations, gate_mm=params.gate_mm * 2)
+        return list(zip(poses, _agreements(few, few_edges, poses, *_COARSE_TOL_MM)))
 
-    candidates = []
-    for rotvec in grid:
-        turn = np.eye(4)
-        turn[:3, :3] = Rotation.from_rotvec(np.radians(rotvec)).as_matrix()
-        candidates.append(refine(_seed_translation(few.points, surface.model, turn @ nominal)))
-    kept = _distinct(candidates, _COARSE_KEEP)
+    turns = np.tile(np.eye(4), (len(grid), 1, 1))
+    turns[:, :3, :3] = Rotation.from_rotvec(np.radians(grid)).as_matrix()
+    kept = _distinct(refine(np.stack([_seed_translation(few.points, surface.model, turn @ nominal)
+                                      for turn in turns])), _COARSE_KEEP)
     # The sweep: about the weakest rotation of the best candidate's fit, through the scan's
     # centre, across the grid's step, without refinement (cheap); the best distinct seeds
     # are then refined like the grid's candidates.
@@ -178,7 +177,8 @@ def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> list
         axis = _weakest_rotation(few, few_edges, pose, centre, params)
         moved = _turned(pose, axis, centre, offsets)
         seeds.extend(zip(moved, _agreements(few, few_edges, moved, *_COARSE_TOL_MM)))
-    refined = [refine(pose) for pose, _ in _distinct(seeds, _SWEEP_SEEDS, same_deg=step * 1.5)]
+    refined = refine(np.stack([pose for pose, _ in
+                               _distinct(seeds, _SWEEP_SEEDS, same_deg=step * 1.5)]))
     return [pose for pose, _ in _distinct(refined + kept, _SWEEP_SEEDS)]
 
 
@@ -284,13 +284,14 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
     starts = list(_turned(fit.pose, axis, centre, _PROBE_DEG))
     if weakness > _HELD_WEAKNESS:
         starts += _round_seeds(few, few_edges, fit.pose, axis, params)
-    for start in starts:
-        quick = _fine(rough, rough_edges, start, params, iterations=_PROBE_ITERATIONS,
-                      gate_mm=params.gate_mm * 2)
-        if (_agreement(few, few_edges, quick.pose, *_COARSE_TOL_MM) >= own - _PROBE_MARGIN
-                and all(not _same(quick.pose, f.pose, _RIVAL_SAME_DEG * 10, _RIVAL_SAME_MM * 10)
+    quick = _quick_fits(rough, rough_edges, np.stack(starts), params,
+                        iterations=_PROBE_ITERATIONS, gate_mm=params.gate_mm * 2)
+    scores = _agreements(few, few_edges, quick, *_COARSE_TOL_MM)
+    for pose, score in zip(quick, scores):
+        if (score >= own - _PROBE_MARGIN
+                and all(not _same(pose, f.pose, _RIVAL_SAME_DEG * 10, _RIVAL_SAME_MM * 10)
                         for f in fits)):
-            fits.append(_fine(surface, edges, quick.pose, params))
+            fits.append(_fine(surface, edges, pose, params))
     if len(fits) == 1:
         return fit, []
     scores = [_final_score(surface, edges, f, params) for f in fits]
