@@ -317,9 +317,8 @@ class Engine:
                         self.trigger.reset()
             received = time.monotonic()
             self.frames_total += 1
-            # How long the frame waited in the camera's buffer beyond the promptest read since
-            # the camera opened (received minus exposed: both clocks' offset and the read's own
-            # time cancel); a wait the buffer cannot hold loses frames.
+            # The frame's wait in the camera's buffer beyond the promptest read since the camera
+            # opened (the clocks' offset and the read's own time cancel in received - exposed).
             if last_id is None:
                 lag_floor = math.inf
             lag_floor = min(lag_floor, received - frame.t)
