@@ -208,56 +208,24 @@ def _settled(sizes: list, step, step_tol) -> bool:
 
 
 def _linearise(surface, edges, pose, centre, gates, params):
-    """Residuals, Jacobian rows, robust weights and frames of all correspondences at `pose`.
+    """Residuals, Jacobian rows, robust weights and frames of all correspondences at `pose`
+    (the rows of weight 0 left out).
 
     Returns ``(jacobian, residuals, weights, frames, surface_inliers)`` and the robust scale
     of each kind (surface, edges).
     """
     parts, sigmas = [], []
-    surface_rows = _surface_rows(surface, pose, centre, gates[0], params.surface_noise_mm)
-    parts.append(surface_rows[:4])
-    sigmas.append(surface_rows[4])
-    matched = len(surface_rows[1])
-    if edges is not None:
-        edge_rows = _edge_rows(edges, pose, centre, gates[1], params.edge_noise_mm)
-        parts.append(edge_rows[:4])
-        sigmas.append(edge_rows[4])
-    else:
-        sigmas.append(np.inf)
+    for terms, rows, gate, noise_mm in ((surface, _surface_rows, gates[0], params.surface_noise_mm),
+                                        (edges, _edge_rows, gates[1], params.edge_noise_mm)):
+        if terms is None:
+            sigmas.append(np.inf)
+            continue
+        jac, res, w, sigma = rows(terms, pose[None], centre, gate, noise_mm)
+        keep = w[0] > 0
+        parts.append((jac[0][keep], res[0][keep], w[0][keep], terms.frames[keep]))
+        sigmas.append(float(sigma[0]))
     jac, res, w, frames = (np.concatenate(x) for x in zip(*parts))
-    return (jac, res, w, frames, matched), sigmas
-
-
-def _surface_rows(terms: _Terms, pose, centre, gate, noise_mm):
-    """Point-to-plane rows: the residual of scan point s matched to model point q (normal n)
-    is ``n . (s - X q)`` in {T}; a motion (t, w) about `centre` changes it by
-    ``-[n, (s - centre) x n] . (t, w)``."""
-    rotation, translation = pose[:3, :3], pose[:3, 3]
-    spacing = _spacing(terms.model)
-    idx, nearest = _match(terms, pose, gate + 2.0 * spacing)
-    n_t = terms.model.normals[nearest] @ rotation.T
-    if terms.normals is not None:
-        # Scan normals point to the sensor, model normals out of the part: the same way up.
-        scan_n = terms.normals[idx]
-        agree = np.einsum("ij,ij->i", n_t, np.nan_to_num(scan_n, nan=0.0))
-        ok = (agree >= terms.agreement) | ~np.isfinite(scan_n[:, 0])
-        idx, nearest, n_t = idx[ok], nearest[ok], n_t[ok]
-    q_t = terms.model.points[nearest] @ rotation.T + translation
-    return _robust_rows(terms.points[idx], n_t, q_t, terms.frames[idx], centre, gate, noise_mm)
-
-
-def _edge_rows(terms: _Terms, pose, centre, gate, noise_mm):
-    """Edge rows: the distance in (x_T, y_T) from the edge point to the model's edge line,
-    i.e. to the vertical plane through it (normal ``d x z_T`` for edge direction d)."""
-    rotation, translation = pose[:3, :3], pose[:3, 3]
-    idx, nearest = _match(terms, pose, gate + _spacing(terms.model) + _EDGE_SEARCH_MM)
-    d_t = terms.model.directions[nearest] @ rotation.T
-    m = np.stack([d_t[:, 1], -d_t[:, 0], np.zeros(len(d_t))], axis=1)
-    length = np.linalg.norm(m, axis=1)
-    ok = length > _MIN_EDGE_LEVEL  # an edge along z_T is no line in the (x_T, y_T) plane
-    idx, nearest, m = idx[ok], nearest[ok], m[ok] / length[ok, None]
-    q_t = terms.model.points[nearest] @ rotation.T + translation
-    return _robust_rows(terms.points[idx], m, q_t, terms.frames[idx], centre, gate, noise_mm)
+    return (jac, res, w, frames, len(parts[0][1])), sigmas
 
 
 def _match(terms: _Terms, pose, bound):
@@ -308,20 +276,73 @@ def _nearest(terms: _Terms, local, up, bound):
     return dist, nearest
 
 
-def _robust_rows(s_t, n_t, q_t, frames, centre, gate, noise_mm):
-    """Rows with residual within `gate`, weighted by Tukey's biweight at their own robust
-    scale and by the inverse variance of the expected scatter `noise_mm`."""
-    res = np.einsum("ij,ij->i", n_t, s_t - q_t)
-    inside = np.abs(res) <= gate
-    s_t, n_t, res, frames = s_t[inside], n_t[inside], res[inside], frames[inside]
-    if len(res) < 3:
-        return np.zeros((0, 6)), np.zeros(0), np.zeros(0), np.zeros(0, np.int64), np.inf
-    sigma = max(_MAD_TO_SIGMA * float(np.median(np.abs(res - np.median(res)))), _MIN_SIGMA_MM)
-    u = res / (_TUKEY_C * sigma)
-    w = np.where(np.abs(u) < 1.0, (1.0 - u**2) ** 2, 0.0) / noise_mm**2
-    jac = np.hstack([n_t, np.cross(s_t - centre, n_t)])
-    keep = w > 0
-    return jac[keep], res[keep], w[keep], frames[keep], sigma
+def _surface_rows(terms: _Terms, poses, centre, gate, noise_mm):
+    """Point-to-plane rows of the N surface points at each of the (P, 4, 4) `poses`: the
+    residual of scan point s matched to model point q (normal n) is ``n . (s - X q)`` in
+    {T}; a motion (t, w) about `centre` changes it by ``-[n, (s - centre) x n] . (t, w)``.
+    Returns :func:`_robust_rows`' (P, N, 6) rows, (P, N) residuals and weights (0 for a
+    point with no match, or whose normal disagrees) and (P,) robust scales."""
+    rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
+    local = (terms.points[None] - translation[:, None]) @ rotation  # (P, N, 3) in {P}
+    dist, nearest = _nearest(terms, local, rotation[:, 2], gate + 2.0 * _spacing(terms.model))
+    valid = np.isfinite(dist)
+    nearest = np.where(valid, nearest, 0)
+    turn = rotation.transpose(0, 2, 1)  # row vectors in {P} to {T}
+    n_t = terms.model.normals[nearest] @ turn
+    if terms.normals is not None:
+        # Scan normals point to the sensor, model normals out of the part: the same way up.
+        agree = np.einsum("pnj,nj->pn", n_t, np.nan_to_num(terms.normals, nan=0.0))
+        valid &= (agree >= terms.agreement) | ~np.isfinite(terms.normals[:, 0])
+    q_t = terms.model.points[nearest] @ turn + translation[:, None]
+    return _robust_rows(terms.points, n_t, q_t, valid, centre, gate, noise_mm)
+
+
+def _edge_rows(terms: _Terms, poses, centre, gate, noise_mm):
+    """Edge rows, as :func:`_surface_rows`: the distance in (x_T, y_T) from the edge point
+    to the model's edge line, i.e. to the vertical plane through it (normal ``d x z_T`` for
+    edge direction d); an edge within 17 degrees of z_T is no line in that plane."""
+    rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
+    local = (terms.points[None] - translation[:, None]) @ rotation
+    bound = gate + _spacing(terms.model) + _EDGE_SEARCH_MM
+    dist, nearest = _nearest(terms, local, rotation[:, 2], bound)
+    valid = np.isfinite(dist)
+    nearest = np.where(valid, nearest, 0)
+    turn = rotation.transpose(0, 2, 1)
+    d_t = terms.model.directions[nearest] @ turn
+    m = np.stack([d_t[..., 1], -d_t[..., 0], np.zeros(d_t.shape[:-1])], axis=-1)
+    length = np.linalg.norm(m, axis=-1)
+    valid &= length > _MIN_EDGE_LEVEL
+    m = m / np.maximum(length, 1e-12)[..., None]
+    q_t = terms.model.points[nearest] @ turn + translation[:, None]
+    return _robust_rows(terms.points, m, q_t, valid, centre, gate, noise_mm)
+
+
+def _robust_rows(s_t, n_t, q_t, valid, centre, gate, noise_mm):
+    """Rows of the `valid` correspondences within `gate`, weighted by Tukey's biweight at
+    each pose's own robust scale (the median absolute deviation of those residuals) and by
+    the inverse variance of the expected scatter `noise_mm`; a pose with fewer than 3 such
+    rows gets none (all weights 0, scale inf).
+
+    Returns (P, N, 6) Jacobian rows, (P, N) residuals, (P, N) weights and (P,) scales, mm.
+    """
+    count, n = valid.shape
+    if n == 0:
+        return np.zeros((count, 0, 6)), np.zeros((count, 0)), np.zeros((count, 0)), \
+            np.full(count, np.inf)
+    res = np.sum(n_t * (s_t[None] - q_t), axis=-1)
+    inside = valid & (np.abs(res) <= gate)
+    counted = np.count_nonzero(inside, axis=1)
+    inside &= (counted >= 3)[:, None]
+    sigma = np.full((count, 1), _MIN_SIGMA_MM)
+    for k in np.nonzero(counted >= 3)[0]:
+        kept = res[k, inside[k]]
+        spread = np.median(np.abs(kept - np.median(kept)))
+        sigma[k] = max(_MAD_TO_SIGMA * float(spread), _MIN_SIGMA_MM)
+    u = np.where(inside, res, 0.0) / (_TUKEY_C * sigma)
+    w = np.where(inside & (np.abs(u) < 1.0), (1.0 - u**2) ** 2, 0.0) / noise_mm**2
+    jac = np.concatenate([n_t, np.cross(s_t[None] - centre, n_t)], axis=-1)
+    scale = np.where(counted >= 3, sigma[:, 0], np.inf)
+    return jac, np.where(inside, res, 0.0), w, scale
 
 
 def _spacing(model) -> float:
@@ -367,14 +388,27 @@ def _solve(jac, res, w, scale, free_std_mm):
     weak constraint (the facets of a turned cylinder) would otherwise creep along for ever.
     """
     s = np.array([1.0, 1.0, 1.0, scale, scale, scale])
-    info = _information(jac, w, scale)
-    rhs = (jac / s).T @ (w * res)
+    step, observed = _steps((jac / s)[None], res[None], w[None], free_std_mm)
+    return step[0] / s, observed[0] / s
+
+
+def _steps(scaled_jac, res, w, free_std_mm):
+    """:func:`_solve` for P poses at once, on (P, N, 6) rows already scaled to arc length
+    (rows of weight 0 count for nothing): each pose's step and its part along the observable
+    motions, both (P, 6) in scaled units."""
+    weighted = scaled_jac.transpose(0, 2, 1) * w[:, None]  # (P, 6, N)
+    info = weighted @ scaled_jac
+    rhs = (weighted @ res[..., None])[..., 0]
     values, vectors = np.linalg.eigh(info)
-    moving = values > _SINGULAR * values[-1]
-    step_scaled = vectors[:, moving] @ ((vectors[:, moving].T @ rhs) / values[moving])
-    strong = _observable(values, free_std_mm)
-    observed = vectors[:, strong] @ (vectors[:, strong].T @ step_scaled)
-    return step_scaled / s, observed / s
+    top = values[:, -1:]
+    projected = np.einsum("pji,pj->pi", vectors, rhs)
+    with np.errstate(all="ignore"):
+        moving = values > _SINGULAR * top
+        along = np.where(moving, projected / np.where(moving, values, 1.0), 0.0)
+        strong = values > np.maximum(1.0 / free_std_mm**2, _SINGULAR * top)
+    step = np.einsum("pij,pj->pi", vectors, along)
+    observed = np.einsum("pij,pj->pi", vectors, np.where(strong, along, 0.0))
+    return step, observed
 
 
 def _apply(delta, centre) -> np.ndarray:
