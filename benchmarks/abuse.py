@@ -45,6 +45,8 @@ import numpy as np
 from benchmarks.live import ServeProcess
 from benchmarks.stats import spread
 from benchmarks.results import machine_info, pyplot, save_figure, write_json
+from simulator.cell import load_cell
+from simulator.live import CAMERA_BUFFER_FRAMES
 
 __all__ = ["run"]
 
@@ -67,8 +69,6 @@ TOKEN = "abuse-bench-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 #: Event streams held open in ``streams``.
 STREAMS = 40
-#: What the camera's buffer holds, ms: 16 frames at 162 fps (``simulator.live``).
-BUFFER_MS = 16 / 162 * 1e3
 #: The service's memory is sampled this often, s.
 MEMORY_PERIOD_S = 0.2
 
@@ -293,7 +293,8 @@ def _pattern(url: str, pid: int, pattern: str, passes: int) -> dict:
     }
     lags = [lag for lag in result["acquisition_lag_ms"] if lag is not None]
     print(f"{pattern:8s} {result['passes']} passes, {result['failed']} failed, dropped "
-          f"{dropped}, worst acquisition lag {max(lags, default=float('nan')):.1f} ms, overflows {result['queue_overflows']}, answers {result['answers']}",
+          f"{dropped}, worst acquisition lag {max(lags, default=float('nan')):.1f} ms, "
+          f"overflows {result['queue_overflows']}, answers {result['answers']}",
           flush=True)
     return result
 
@@ -336,15 +337,17 @@ def _chart(result: dict, path: Path) -> None:
     plt = pyplot()
     names = list(result["patterns"])
     fig, (ax_drops, ax_cost) = plt.subplots(1, 2, figsize=(12, 4))
+    # what the simulated camera's buffer holds, ms (16 frames at the cell's 162 fps: 99 ms)
+    buffer_ms = CAMERA_BUFFER_FRAMES / load_cell().pass_profile.fps * 1e3
     for x, name in enumerate(names):
         pattern = result["patterns"][name]
         lags = [lag if lag is not None else np.nan for lag in pattern["acquisition_lag_ms"]]
         ax_drops.scatter([x] * len(lags), lags, s=12, alpha=0.6)
-        ax_drops.annotate(f"{pattern['dropped_total']} lost", (x, BUFFER_MS), ha="center",
+        ax_drops.annotate(f"{pattern['dropped_total']} lost", (x, buffer_ms), ha="center",
                           va="bottom", fontsize=8)
-    ax_drops.axhline(BUFFER_MS, color="k", ls="--", lw=0.8)
+    ax_drops.axhline(buffer_ms, color="k", ls="--", lw=0.8)
     ax_drops.set_xticks(range(len(names)), names, rotation=30)
-    ax_drops.set_ylim(0, BUFFER_MS * 1.2)
+    ax_drops.set_ylim(0, buffer_ms * 1.2)
     ax_drops.set_ylabel("longest wait of a frame in the camera's buffer, ms")
     ax_drops.set_title(f"passes under web load ({result['stored_scans']} stored scans); "
                        f"dashed: what the buffer holds", fontsize=9)

@@ -11,7 +11,7 @@ not constrain (a turn about a symmetry axis, a slide along a prism) are left at 
 starting value instead of drifting: the update is solved in the observable subspace of the
 information matrix only (`_directions`, `_solve`, `_hold_free_motions`).
 
-The correspondences (`_Terms`, `_match`, `_nearest`) serve the search's scores too
+The correspondences (`_Terms`, `_nearest`) serve the search's scores too
 (``scanner_core.pose_search``), and the fit's information matrix the uncertainty
 (``scanner_core.pose_confidence``). Units: mm, radians.
 """
@@ -228,15 +228,6 @@ def _linearise(surface, edges, pose, centre, gates, params):
     return (jac, res, w, frames, len(parts[0][1])), sigmas
 
 
-def _match(terms: _Terms, pose, bound):
-    """Indices of the scan points with a model point within `bound` mm, and those points."""
-    rotation, translation = pose[:3, :3], pose[:3, 3]
-    local = (terms.points - translation) @ rotation  # the scan in {P}
-    dist, nearest = _nearest(terms, local, rotation[2], bound)
-    idx = np.nonzero(np.isfinite(dist))[0]
-    return idx, nearest[idx]
-
-
 def _nearest(terms: _Terms, local, up, bound):
     """Distance to and index of the nearest model point within `bound` mm (inf and the
     model's size beyond it) of each point of `local` ((..., N, 3), the scan in {P}).
@@ -357,8 +348,9 @@ def _information(jac, w, scale):
 
 
 def _observable(values, free_std_mm):
-    """Which eigen-directions of the information the scan pins down better than the limit."""
-    return values > max(1.0 / free_std_mm**2, _SINGULAR * values[-1])
+    """Which eigen-directions of the information the scan pins down better than the limit
+    (`values` ascending along the last axis, one row per pose)."""
+    return values > np.maximum(1.0 / free_std_mm**2, _SINGULAR * values[..., -1:])
 
 
 def _directions(jac, w, frames, scale, params):
@@ -405,7 +397,7 @@ def _steps(scaled_jac, res, w, free_std_mm):
     with np.errstate(all="ignore"):
         moving = values > _SINGULAR * top
         along = np.where(moving, projected / np.where(moving, values, 1.0), 0.0)
-        strong = values > np.maximum(1.0 / free_std_mm**2, _SINGULAR * top)
+        strong = _observable(values, free_std_mm)
     step = np.einsum("pij,pj->pi", vectors, along)
     observed = np.einsum("pij,pj->pi", vectors, np.where(strong, along, 0.0))
     return step, observed

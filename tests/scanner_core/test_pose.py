@@ -529,7 +529,7 @@ def test_a_step_point_is_matched_to_the_edge_it_was_found_at(block, tilt_deg):
     off by the step times the lean (0.5-0.7 mm here): the point counts as an outlier, and
     featuretype's poses were flagged poor fits and sent to the coarse search. Matched from
     half its step above and below, it finds its own edge, every time."""
-    from scanner_core.pose_fine import _match, _Terms
+    from scanner_core.pose_fine import _nearest, _Terms
     mesh, nominal, model, edge_model = block
     truth = misplacement(0.5, -0.5, 0.3, 1.0, tilt_deg, 2.0) @ nominal
     pts, nrm, frames, edges, edge_frames, steps, is_step = _stepped_scan(mesh, truth, seed=5)
@@ -538,7 +538,10 @@ def test_a_step_point_is_matched_to_the_edge_it_was_found_at(block, tilt_deg):
     for with_steps, right in ((False, None), (True, 1.0)):
         terms = _Terms(edges[is_step], None, edge_frames[is_step], edge_model,
                        steps_mm=steps[is_step] if with_steps else None)
-        idx, nearest = _match(terms, truth, 20.0)
+        local = (terms.points - truth[:3, 3]) @ truth[:3, :3]  # the edge cloud in {P}
+        dist, nearest = _nearest(terms, local, truth[2, :3], 20.0)
+        idx = np.nonzero(np.isfinite(dist))[0]
+        nearest = nearest[idx]
         on_top = np.abs(edge_model.points[nearest, 2] - top_z) < 0.3
         if with_steps:
             assert len(idx) == is_step.sum() and on_top.mean() == right
