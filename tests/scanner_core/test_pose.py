@@ -627,3 +627,48 @@ def test_a_rival_margin_takes_a_profile_s_surface_and_edge_points_together():
     other[:3, 3] = [-0.02, 0.0, 0.01]
     margin = _rival_margin(terms, edges, np.eye(4), other, PoseParams())
     assert margin == pytest.approx(2 * (2 / 2000 + 1 / 400))
+
+
+def test_the_search_on_a_subsample_settles_on_every_point(block):
+    """The minimum is searched for on ``search_points`` of the scan and settled on all of it:
+    the pose is the one a search on every point finds, the sigma is every point's."""
+    mesh, nominal, model, edge_model = block
+    truth = misplacement(2.0, -1.0, 0.5, -2.0, 3.0, 6.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=4, density=20.0)
+    assert len(pts) > 3000
+    kwargs = dict(frame_ids=frames, edges_t=edges, edge_frame_ids=edge_frames,
+                  edge_model=edge_model)
+    everywhere = register(pts, nrm, model, nominal, params=PoseParams(search_points=10 ** 6),
+                          **kwargs)
+    searched = register(pts, nrm, model, nominal, params=PoseParams(search_points=600), **kwargs)
+    dt, dr = pose_error(searched.matrix, everywhere.matrix)
+    assert np.abs(dt).max() < 0.001 and np.abs(dr).max() < 0.002, (dt, dr)
+    assert_allclose(searched.std, everywhere.std, rtol=0.05)
+    assert searched.act == everywhere.act
+
+
+def test_row_medians_are_numpy_s_medians_of_the_masked_entries():
+    from scanner_core.pose_fine import _row_medians
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 5, 800):
+        values, mask = rng.normal(size=(6, n)), rng.random((6, n)) > 0.4
+        mask[0] = False
+        expected = [np.median(v[m]) if m.any() else np.nan for v, m in zip(values, mask)]
+        assert_allclose(_row_medians(values, mask), expected, rtol=0, atol=0)
+
+
+def test_a_fit_that_comes_back_to_an_earlier_pose_has_settled():
+    """Correspondences that flip between a few sets send a fit round a cycle of steps that
+    neither shrink nor creep; coming back to a pose it has been at ends it."""
+    from scanner_core.pose_fine import _revisited
+
+    tol = np.array([1e-5] * 3 + [np.radians(1e-5)] * 3)
+    cycle = [misplacement(x * 1e-3, 0, 0, 0, 0, x * 1e-3) for x in (0.0, 9.0, 4.0, 1.0)]
+    visited = []
+    assert not any(_revisited(visited, pose, tol) for pose in cycle)
+    assert _revisited(visited, cycle[1] @ misplacement(2e-6, 0, 0, 0, 0, 0), tol)
+    # a fit converging (its steps halving, none yet within the tolerance) never revisits
+    converging = [misplacement(1e-3 * (1 - 0.5 ** k), 0, 0, 0, 0, 0) for k in range(7)]
+    visited = []
+    assert not any(_revisited(visited, pose, tol) for pose in converging)
