@@ -103,9 +103,10 @@ class _Fit:
     scale_mm: float             # radius that makes rotations comparable with translations
 
 
-def _fine(surface: _Terms, edges: _Terms | None, start, params) -> _Fit:
+def _fine(surface: _Terms, edges: _Terms | None, start, params, *, warm: bool = True) -> _Fit:
     """The fit from `start` ((4, 4) ^T X_P, mm) to convergence; the search's quick
-    refinements of many starts are ``scanner_core.pose_quick``."""
+    refinements of many starts are ``scanner_core.pose_quick``. Without `warm`, every
+    iteration uses all the points (a start already at a minimum of some of them)."""
     pose = start.copy()
     centre = surface.points.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((surface.points - centre) ** 2, axis=1)))) or 1.0
@@ -113,7 +114,7 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params) -> _Fit:
     step_tol = np.array([params.tol_mm] * 3 + [np.radians(params.tol_deg)] * 3)
     # Far from the minimum, a quarter of the points steers as well as all of them.
     sparse = (surface.subset(slice(None, None, _WARM_STRIDE))
-              if len(surface.points) >= _WARM_MIN_POINTS else None)
+              if warm and len(surface.points) >= _WARM_MIN_POINTS else None)
     it = 0
     sizes, previous, visited = [], None, []
     for it in range(1, params.max_iterations + 1):

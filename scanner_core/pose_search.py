@@ -176,7 +176,7 @@ def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> list
     for pose, _ in kept:
         axis = _weakest_rotation(few, few_edges, pose, centre, params)
         moved = _turned(pose, axis, centre, offsets)
-        seeds.extend(zip(moved, _agreements(few, few_edges, moved, *_COARSE_TOL_MM)))
+        seeds.extend(zip(moved, _agreements(few, rough_edges, moved, *_COARSE_TOL_MM)))
     refined = refine(np.stack([pose for pose, _ in
                                _distinct(seeds, _SWEEP_SEEDS, same_deg=step * 1.5)]))
     return [pose for pose, _ in _distinct(refined + kept, _SWEEP_SEEDS)]
@@ -375,7 +375,8 @@ def _round_seeds(few: _Terms, few_edges: _Terms | None, pose, axis, params) -> l
     fine = np.arange(-step, step + 1e-9, _ROUND_FINE_DEG)
     local = np.concatenate([_turned(moved[i], axis, pivot, fine) for i in chosen]) if chosen \
         else np.zeros((0, 4, 4))
-    tight = _agreements(few, few_edges, local, *_COARSE_TOL_MM).reshape(len(chosen), len(fine))
+    tight = _agreements(few, _rough(few_edges), local,
+                        *_COARSE_TOL_MM).reshape(len(chosen), len(fine))
     return [local[k * len(fine) + int(np.argmax(row))] for k, row in enumerate(tight)]
 
 
