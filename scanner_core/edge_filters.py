@@ -24,7 +24,8 @@ __all__ = ["occluded_dropouts", "chamfered_dropouts", "grazing_edges", "CHAMFER_
 
 
 def occluded_dropouts(points_t, across_t, sensors_t, cloud_t, *, probe_mm: float = 0.5,
-                      radius_mm: float = 1.0, clearance_mm: float = 2.0) -> np.ndarray:
+                      radius_mm: float = 1.0, clearance_mm: float = 2.0,
+                      cloud_tree=None) -> np.ndarray:
     """Drop-outs where the stripe vanished behind another part of the part, not at an edge.
 
     A profile cannot tell a rim from the boundary of an occlusion cast by a feature outside
@@ -56,6 +57,8 @@ def occluded_dropouts(points_t, across_t, sensors_t, cloud_t, *, probe_mm: float
         Must exceed half the spacing of the profiles (1.2 mm at 200 mm/s and 162 fps), so
         that a line of sight through a measured surface passes near one of its points.
     clearance_mm : float
+    cloud_tree : scipy.spatial.cKDTree, optional
+        A KD-tree over `cloud_t` (the scan's other filters share one); built here without.
 
     Returns
     -------
@@ -75,7 +78,7 @@ def occluded_dropouts(points_t, across_t, sensors_t, cloud_t, *, probe_mm: float
     if len(points) == 0 or len(cloud) == 0:
         return out
     lo, hi = cloud.min(axis=0) - radius_mm, cloud.max(axis=0) + radius_mm
-    tree = cKDTree(cloud)
+    tree = cKDTree(cloud) if cloud_tree is None else cloud_tree
     probes = points + probe_mm * across
     sight = sensors - probes
     length = np.sqrt(np.einsum("ij,ij->i", sight, sight))
@@ -87,13 +90,18 @@ def occluded_dropouts(points_t, across_t, sensors_t, cloud_t, *, probe_mm: float
     t_far = np.nan_to_num(np.maximum(t1, t2), nan=np.inf, posinf=np.inf, neginf=-np.inf)
     t_exit = t_far.min(axis=1)
     t_exit = np.minimum(t_exit, length)
-    for i in range(len(points)):
-        if not t_exit[i] > clearance_mm:
-            continue
-        t = np.arange(clearance_mm, t_exit[i] + radius_mm, radius_mm)
-        samples = probes[i] + t[:, None] * sight[i]
-        dist, _ = tree.query(samples, distance_upper_bound=radius_mm)
-        out[i] = bool(np.isfinite(dist).any())
+    # every line of sight's samples, every radius_mm from clearance_mm to t_exit, in one query
+    reaching = np.nonzero(t_exit > clearance_mm)[0]
+    if not len(reaching):
+        return out
+    counts = np.floor((t_exit[reaching] + radius_mm - clearance_mm) / radius_mm - 1e-9)
+    counts = counts.astype(np.int64) + 1
+    owner = np.repeat(np.arange(len(reaching)), counts)
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    t = clearance_mm + (np.arange(len(owner)) - first[owner]) * radius_mm
+    samples = probes[reaching][owner] + t[:, None] * sight[reaching][owner]
+    dist, _ = tree.query(samples, distance_upper_bound=radius_mm)
+    out[reaching] = np.logical_or.reduceat(np.isfinite(dist), first)
     return out
 
 
@@ -118,6 +126,8 @@ CHAIN_SPACINGS = 2.5
 CHAIN_MIN_MM = 2.0
 _CHAMFER_LEVELS = np.linspace(0.2, 1.0, 81)
 _CHAMFER_WIDTHS_PX = np.linspace(1.0, 2.0, 41)
+# Elements of the chamfer fit's arrays at a time (levels x widths x points: 16 MB of float64).
+_CHAMFER_BLOCK = 2_000_000
 
 
 def chamfered_dropouts(points_t, across_t, frame_ids, stripe_end, per_px_t, spacing_mm):
@@ -224,12 +234,15 @@ def _fit_chamfer(last, before):
     under them, and how much better per profile than a sharp edge (c = 1) they explain
     them (mean squared residual, in squared fractions of the face's level): c, w, the
     fractions and the gain. Levels are tried from 1 down, a tie keeping the higher (a
-    sharp edge crossed at one phase fits c = f, f = 1 as well as c = 1). Memory: one
-    (widths, points) array at a time."""
-    w = _CHAMFER_WIDTHS_PX[:, None]
+    sharp edge crossed at one phase fits c = f, f = 1 as well as c = 1). The levels go
+    through in blocks of (levels, widths, points) arrays of at most ``_CHAMFER_BLOCK``."""
+    w = _CHAMFER_WIDTHS_PX[None, :, None]
+    levels = _CHAMFER_LEVELS[::-1]
+    step = max(1, _CHAMFER_BLOCK // (len(_CHAMFER_WIDTHS_PX) * max(len(last), 1)))
     best_cost, best = np.inf, None
     sharp_cost = np.inf
-    for c in _CHAMFER_LEVELS[::-1]:
+    for start in range(0, len(levels), step):
+        c = levels[start:start + step, None, None]
         # f <= w - 1: the column before is all chamfer
         f_a = np.clip(last / c, 0.0, w - 1.0)
         cost_a = (last - c * f_a) ** 2 + (before - c) ** 2
@@ -238,13 +251,17 @@ def _fit_chamfer(last, before):
         f_b = np.clip((c * last + (1.0 - c) * rest) / (c**2 + (1.0 - c) ** 2), w - 1.0, 1.0)
         cost_b = (last - c * f_b) ** 2 + (before - c - (1.0 - c) * (f_b - w + 1.0)) ** 2
         first = cost_a <= cost_b
-        totals = np.where(first, cost_a, cost_b).sum(axis=1)
-        k = int(np.argmin(totals))
-        if c == _CHAMFER_LEVELS[-1]:
-            sharp_cost = float(totals[k])
-        if totals[k] < best_cost:
-            best_cost = float(totals[k])
-            best = (float(c), float(_CHAMFER_WIDTHS_PX[k]), np.where(first[k], f_a[k], f_b[k]))
+        totals = np.where(first, cost_a, cost_b).sum(axis=2)  # (levels, widths)
+        width_of = np.argmin(totals, axis=1)  # the first width at its least, as one by one
+        least = totals[np.arange(len(totals)), width_of]
+        if start == 0:
+            sharp_cost = float(least[0])  # c = 1: the first level tried
+        k = int(np.argmin(least))  # the first (highest) level at the block's least
+        if least[k] < best_cost:
+            j = width_of[k]
+            best_cost = float(least[k])
+            best = (float(c[k, 0, 0]), float(_CHAMFER_WIDTHS_PX[j]),
+                    np.where(first[k, j], f_a[k, j], f_b[k, j]))
     c, width, fill = best
     return c, width, fill, (sharp_cost - best_cost) / len(last)
 
@@ -293,7 +310,7 @@ LONE_PROFILE_REACH = 2.1
 
 def grazing_edges(points_t, sheet_normals_t, cloud_t, cloud_frame_ids, spacing_mm: float, *,
                   frame_ids=None, radius_mm: float = 2.5, grazing_deg: float = GRAZING_DEG,
-                  min_points: int = 8) -> np.ndarray:
+                  min_points: int = 8, cloud_tree=None) -> np.ndarray:
     """Edge points on a surface the light sheet grazes.
 
     A profile alone cannot tell: the sheet cuts a wall turned a few degrees from it along a
@@ -334,6 +351,8 @@ def grazing_edges(points_t, sheet_normals_t, cloud_t, cloud_frame_ids, spacing_m
     grazing_deg : float
     min_points : int
         Fewer cloud points than this within the radius: nothing to judge by, the point is kept.
+    cloud_tree : scipy.spatial.cKDTree, optional
+        A KD-tree over `cloud_t`; built here without.
 
     Returns
     -------
@@ -356,16 +375,24 @@ def grazing_edges(points_t, sheet_normals_t, cloud_t, cloud_frame_ids, spacing_m
         radius_mm = max(radius_mm, min(LONE_PROFILE_REACH * spacing_mm, 2.0 * radius_mm))
     dense = np.isfinite(spacing_mm) and spacing_mm < radius_mm / 2
     cos_limit = math.cos(math.radians(grazing_deg))
-    tree = cKDTree(cloud)
+    tree = cKDTree(cloud) if cloud_tree is None else cloud_tree
     if frame_ids is not None:
         points = _on_own_profile(points, np.asarray(frame_ids).reshape(-1), cloud, frames, tree)
-    for i, near in enumerate(tree.query_ball_point(points, radius_mm)):
-        if len(near) < min_points:
-            continue
-        if np.all(frames[near] == frames[near[0]]):
-            out[i] = dense
-            continue
-        local = cloud[near] - cloud[near].mean(axis=0)
-        _, axes = np.linalg.eigh(local.T @ local)
-        out[i] = abs(float(axes[:, 0] @ normals[i])) > cos_limit
+    near = tree.query_ball_point(points, radius_mm)
+    counts = np.array([len(n) for n in near], np.int64)
+    judged = np.nonzero(counts >= min_points)[0]
+    if not len(judged):
+        return out
+    # every judged neighbourhood at once: segments of one flat index array
+    members = np.concatenate([near[i] for i in judged]).astype(np.int64)
+    first = np.concatenate([[0], np.cumsum(counts[judged])[:-1]])
+    lone = (np.minimum.reduceat(frames[members], first)
+            == np.maximum.reduceat(frames[members], first))
+    owner = np.repeat(np.arange(len(judged)), counts[judged])
+    centre = np.add.reduceat(cloud[members], first) / counts[judged][:, None]
+    local = cloud[members] - centre[owner]
+    scatter = np.add.reduceat(local[:, :, None] * local[:, None, :], first)
+    _, axes = np.linalg.eigh(scatter)
+    grazed = np.abs(np.einsum("ki,ki->k", axes[:, :, 0], normals[judged])) > cos_limit
+    out[judged] = np.where(lone, dense, grazed)
     return out

@@ -152,7 +152,7 @@ def sheet_range_b(calibration) -> np.ndarray:
 
 def turned_away(points_t, kinds, sizes_mm, range_t, sensors_t, cloud_t, cloud_frame_ids,
                 frame_ids, cloud_sensors_t, *, crease_deg: float = SOFT_CREASE_DEG,
-                loss_deg: float = STRIPE_LOSS_DEG):
+                loss_deg: float = STRIPE_LOSS_DEG, cloud_tree=None):
     """Edge points whose surface may go on unseen beyond them: turned out of the camera's
     view or out of the sheet's light by less than a soft crease (module docstring).
 
@@ -180,6 +180,8 @@ def turned_away(points_t, kinds, sizes_mm, range_t, sensors_t, cloud_t, cloud_fr
         The largest crease that is no edge.
     loss_deg : float
         The sheet's incidence at which the stripe is lost.
+    cloud_tree : scipy.spatial.cKDTree, optional
+        A KD-tree over `cloud_t`; built here without.
 
     Returns
     -------
@@ -214,7 +216,8 @@ def turned_away(points_t, kinds, sizes_mm, range_t, sensors_t, cloud_t, cloud_fr
     # the near side's end: a step's point lies half its height beyond it, along the range axis
     half = np.where(kinds == EdgeKind.STEP, 0.5 * np.nan_to_num(sizes), 0.0)
     ends = points - half[:, None] * axis
-    near = _nearest_of_profile(ends, frames, cloud, cloud_frames, cKDTree(cloud),
+    near = _nearest_of_profile(ends, frames, cloud, cloud_frames,
+                               cKDTree(cloud) if cloud_tree is None else cloud_tree,
                                reach_mm=NEAR_REACH_MM)
     found = near >= 0
     if found.any():

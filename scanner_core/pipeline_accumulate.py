@@ -299,16 +299,20 @@ def _stitch_edges(scan: Scan, placed: list[PlacedProfile], calibration: Calibrat
                                       stripe_end[dropout], per_px[dropout],
                                       scan.profile_spacing_mm)
         points[dropout] = moved
+    from scipy.spatial import cKDTree  # as the filters do: scipy only for the scan's end
+
+    # one KD-tree over the cloud for the three filters that look around the edge points
+    tree = cKDTree(np.asarray(scan.cloud, np.float64)) if len(scan.cloud) else None
     if len(dropout) and len(scan.cloud):
         why[dropout[occluded_dropouts(points[dropout], across[dropout], sensors[dropout],
-                                      scan.cloud)]] = EdgeKind.OCCLUDED
+                                      scan.cloud, cloud_tree=tree)]] = EdgeKind.OCCLUDED
     scan.edges_occluded = int((why == EdgeKind.OCCLUDED).sum())
     # The sheet's normal in {T} per frame: R^T n_B.
     sheet_b = calibration.light_plane_b.normal
     rotations = np.array([p.rotation_b for p in placed])
     sheets = np.repeat(np.einsum("fji,j->fi", rotations, sheet_b), counts, axis=0)
     grazed = grazing_edges(points, sheets, scan.cloud, scan.frame_ids, scan.profile_spacing_mm,
-                           frame_ids=frames) & (why == 0)
+                           frame_ids=frames, cloud_tree=tree) & (why == 0)
     why[grazed] = EdgeKind.GRAZING
     scan.edges_grazing = int(grazed.sum())
     if len(points) and len(scan.cloud):
@@ -317,7 +321,7 @@ def _stitch_edges(scan: Scan, placed: list[PlacedProfile], calibration: Calibrat
         range_b = sheet_range_b(calibration)
         ranges = np.repeat(np.einsum("fji,j->fi", rotations, range_b), counts, axis=0)
         turned, _, _ = turned_away(points, kind, size, ranges, sensors, scan.cloud,
-                                   scan.frame_ids, frames, point_sensors(scan))
+                                   scan.frame_ids, frames, point_sensors(scan), cloud_tree=tree)
         why[turned & (why == 0)] = EdgeKind.TURNED_AWAY
     keep = why == 0
     scan.edges, scan.edge_frame_ids, scan.edge_kind = points[keep], frames[keep], kind[keep]

@@ -863,3 +863,68 @@ def test_a_step_point_in_mid_air_is_judged_by_its_own_surface():
     assert grazing_edges(step, sheet, cloud, ids, spacing, frame_ids=[0]).tolist() == [False]
     with pytest.raises(ValueError, match="`frame_ids`"):
         grazing_edges(step, sheet, cloud, ids, spacing, frame_ids=[0, 1])
+
+
+def test_the_scan_s_filters_judge_many_points_at_once_as_one_at_a_time(rng):
+    """grazing_edges and occluded_dropouts take every point's neighbourhood or line of sight
+    in one batch (segments of one array): each point's verdict is the one it gets alone,
+    with their own KD-tree or a shared one."""
+    from scipy.spatial import cKDTree
+
+    tilted, ids = _profiles_on_plane([0.0, np.cos(0.12), np.sin(0.12)], profiles=9)
+    level, level_ids = _profiles_on_plane([0.0, 0.0, 1.0], profiles=9, seed=1)
+    cloud = np.concatenate([tilted, level + [30.0, 0.0, 0.0]])
+    frames = np.concatenate([ids, level_ids])
+    edges = np.concatenate([rng.uniform([-4, -3, -1], [4, 3, 1], (40, 3)),
+                            rng.uniform([26, -3, -1], [34, 3, 1], (40, 3)),
+                            [[100.0, 0.0, 0.0]]])  # nothing near
+    sheets = np.tile([0.0, 1.0, 0.0], (len(edges), 1))
+    batch = grazing_edges(edges, sheets, cloud, frames, 1.2,
+                          cloud_tree=cKDTree(cloud))
+    alone = [grazing_edges(e[None], s[None], cloud, frames, 1.2)[0] for e, s in zip(edges, sheets)]
+    assert batch.tolist() == alone and 0 < batch.sum() < len(edges)
+
+    across = np.tile([1.0, 0.0, 0.0], (len(edges), 1))
+    sensors = edges + rng.uniform([-20, -20, 40], [20, 20, 120], (len(edges), 3))
+    batch = occluded_dropouts(edges, across, sensors, cloud + [0.0, 0.0, 8.0],
+                              cloud_tree=cKDTree(cloud + [0.0, 0.0, 8.0]))
+    alone = [occluded_dropouts(e[None], a[None], s[None], cloud + [0.0, 0.0, 8.0])[0]
+             for e, a, s in zip(edges, across, sensors)]
+    assert batch.tolist() == alone and 0 < batch.sum() < len(edges)
+
+
+def test_the_chamfer_fit_over_all_levels_is_the_fit_level_by_level(rng, monkeypatch):
+    """The chamfer's levels go through in blocks; the fit is the one a level at a time finds
+    (the first width at its least, the highest level on a tie), whatever the block."""
+    from scanner_core import edge_filters
+    from scanner_core.edge_filters import _CHAMFER_LEVELS, _CHAMFER_WIDTHS_PX, _fit_chamfer
+
+    def one_level_at_a_time(last, before):
+        w = _CHAMFER_WIDTHS_PX[:, None]
+        best_cost, best, sharp = np.inf, None, np.inf
+        for c in _CHAMFER_LEVELS[::-1]:
+            f_a = np.clip(last / c, 0.0, w - 1.0)
+            cost_a = (last - c * f_a) ** 2 + (before - c) ** 2
+            rest = before - c + (1.0 - c) * (w - 1.0)
+            f_b = np.clip((c * last + (1.0 - c) * rest) / (c**2 + (1.0 - c) ** 2), w - 1.0, 1.0)
+            cost_b = (last - c * f_b) ** 2 + (before - c - (1.0 - c) * (f_b - w + 1.0)) ** 2
+            first = cost_a <= cost_b
+            totals = np.where(first, cost_a, cost_b).sum(axis=1)
+            k = int(np.argmin(totals))
+            if c == _CHAMFER_LEVELS[-1]:
+                sharp = float(totals[k])
+            if totals[k] < best_cost:
+                best_cost = float(totals[k])
+                best = (float(c), float(_CHAMFER_WIDTHS_PX[k]),
+                        np.where(first[k], f_a[k], f_b[k]))
+        return (*best, (sharp - best_cost) / len(last))
+
+    for block in (edge_filters._CHAMFER_BLOCK, 41 * 30 * 7):
+        monkeypatch.setattr(edge_filters, "_CHAMFER_BLOCK", block)
+        for n in (6, 30):
+            level = rng.uniform(0.3, 1.0)
+            fill = rng.uniform(0.0, 1.0, n)
+            last, before = level * fill + rng.normal(0, 0.03, n), level + rng.normal(0, 0.03, n)
+            got, want = _fit_chamfer(last, before), one_level_at_a_time(last, before)
+            assert got[:2] == want[:2] and got[3] == want[3]
+            assert_allclose(got[2], want[2], rtol=0, atol=0)
