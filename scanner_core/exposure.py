@@ -335,9 +335,7 @@ def partly_lit(frame_ids, cloud_t, quality, brightness, ratio: float,
     (N,) bool
         The points lit for part of the exposure.
     """
-    from scipy.spatial import cKDTree
-
-    frame_ids = np.asarray(frame_ids)
+    frame_ids = np.asarray(frame_ids).reshape(-1)
     cloud = np.asarray(cloud_t, dtype=np.float64).reshape(-1, 3)
     light = np.asarray(brightness, dtype=np.float64)
     level = np.asarray(quality, dtype=np.float64) / np.where(np.isfinite(light) & (light > 0),
@@ -345,6 +343,39 @@ def partly_lit(frame_ids, cloud_t, quality, brightness, ratio: float,
     out = np.zeros(len(cloud), bool)
     if ratio <= 0 or len(cloud) == 0:
         return out
+    # Every point's nearest along x_T in each neighbouring profile at once: the points sorted
+    # by profile, then x, under one key (the profile's rank times a span wider than the
+    # cloud, plus x), and each looked up between its two sorted neighbours there.
+    ids, rank = np.unique(frame_ids, return_inverse=True)
+    x = cloud[:, 0] - cloud[:, 0].min()
+    span = float(x.max()) + 4.0 * match_mm + 1.0
+    order = np.lexsort((x, rank))
+    key = rank[order] * span + x[order]
+    seen, reference = [], []
+    for step in (-1, 1):
+        wanted = frame_ids + step
+        where = np.minimum(np.searchsorted(ids, wanted), len(ids) - 1)
+        exists = ids[where] == wanted
+        place = np.searchsorted(key, where * span + x)
+        best = np.full(len(cloud), -1, np.int64)
+        best_d = np.full(len(cloud), np.inf)
+        for candidate in (place - 1, place):  # the left one first: it keeps a tie
+            inside = (candidate >= 0) & (candidate < len(order))
+            other = order[np.clip(candidate, 0, len(order) - 1)]
+            d = np.abs(x[other] - x)
+            nearer = inside & exists & (rank[other] == where) & (d < best_d)
+            best = np.where(nearer, other, best)
+            best_d = np.where(nearer, d, best_d)
+        found = best_d < match_mm
+        other = np.where(found, best, 0)
+        # The same surface: no steeper than about 56 degrees between the two profiles.
+        dz = np.abs(cloud[other, 2] - cloud[:, 2])
+        dy = np.abs(cloud[other, 1] - cloud[:, 1])
+        same = found & (dz <= np.maximum(0.5, 1.5 * dy))
+        seen.append(same)
+        reference.append(np.where(same, level[other], 0.0))
+    one_side = seen[0] ^ seen[1]
+    return one_side & (level < ratio * np.where(seen[0], reference[0], reference[1]))
     ids, starts = np.unique(frame_ids, return_index=True)
     order = np.argsort(frame_ids, kind="stable")
     bounds = np.append(np.searchsorted(frame_ids[order], ids), len(order))

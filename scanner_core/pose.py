@@ -40,6 +40,7 @@ This module holds the entry points (`register`, `scan_pose`), their settings and
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -58,6 +59,11 @@ from scanner_core.pose_search import (_better_turn, _coarse, _final_score, _prob
 __all__ = ["PoseParams", "SurfaceModel", "EdgeModel", "PoseResult", "register", "scan_pose",
            "AXIS_NAMES", "MIN_POSE_POINTS", "BEVEL_MM", "TOWARD_MIN", "merge_bevels",
            "outline_adjacency", "MAX_PROFILE_SPACING_MM", "MIN_COVERAGE"]
+
+# The search's minimum is settled on every point to this many times the fit's tolerance: it
+# moves a few micrometres, and its last steps below 0.1 um took 2 to 8 more iterations on
+# 6 000 points (bench pose_time's scans: the pose's median 159 -> 144 ms, poses within 0.74 um).
+_SETTLE_TOL_FACTOR = 10.0
 
 #: A scan with fewer points gives no pose (refused, with the reason), not a guess.
 MIN_POSE_POINTS = 50
@@ -401,7 +407,9 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
                 > _final_score(search, edges, fit, params)):
             fit = candidate
     if search is not surface:
-        fit = _fine(surface, edges, fit.pose, params, warm=False)
+        settle = dataclasses.replace(params, tol_mm=params.tol_mm * _SETTLE_TOL_FACTOR,
+                                     tol_deg=params.tol_deg * _SETTLE_TOL_FACTOR)
+        fit = _fine(surface, edges, fit.pose, settle, warm=False)
     before_probes = fit.pose
     # The other minima on every point: on fewer, a rival that fits as well can go unseen
     # (ADIS16480 seen on its end, bench pose: a rival 152 mdeg away, the truth, missed).

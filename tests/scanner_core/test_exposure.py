@@ -214,3 +214,47 @@ def test_a_surface_lit_for_part_of_the_exposure_is_not_kept():
     assert drop[frames == 0].all()
     assert not drop[frames != 0].any()
     assert not partly_lit(frames, cloud, quality, np.array(light), 0.0).any()
+
+
+def test_partly_lit_points_are_the_ones_a_profile_by_profile_search_finds(rng):
+    """All profiles at once (sorted under one key) against each profile's own KD-tree of x_T,
+    as the scan's end first did: the same points, over profiles with gaps between them,
+    surfaces that step, and dim points at either side."""
+    from scipy.spatial import cKDTree
+
+    from scanner_core.exposure import PARTLY_LIT_MATCH_MM, partly_lit
+
+    def profile_by_profile(frame_ids, cloud, level, ratio):
+        out = np.zeros(len(cloud), bool)
+        members = {f: np.nonzero(frame_ids == f)[0] for f in np.unique(frame_ids)}
+        trees = {f: cKDTree(cloud[m][:, :1]) for f, m in members.items()}
+        for f, idx in members.items():
+            seen, reference = [], []
+            for g in (f - 1, f + 1):
+                if g not in members:
+                    seen.append(np.zeros(len(idx), bool))
+                    reference.append(np.zeros(len(idx)))
+                    continue
+                dist, j = trees[g].query(cloud[idx, :1], distance_upper_bound=PARTLY_LIT_MATCH_MM)
+                found = np.isfinite(dist)
+                other = members[g][np.where(found, j, 0)]
+                dz = np.abs(cloud[other, 2] - cloud[idx, 2])
+                dy = np.abs(cloud[other, 1] - cloud[idx, 1])
+                same = found & (dz <= np.maximum(0.5, 1.5 * dy))
+                seen.append(same)
+                reference.append(np.where(same, level[other], 0.0))
+            one_side = seen[0] ^ seen[1]
+            out[idx] = one_side & (level[idx] < ratio * np.where(seen[0], reference[0],
+                                                                 reference[1]))
+        return out
+
+    frames = np.repeat(np.r_[np.arange(0, 30), np.arange(32, 40)], 60)
+    n = len(frames)
+    x = rng.uniform(-20.0, 20.0, n)
+    cloud = np.column_stack([x, frames * 1.2, np.where(x > 5.0, 3.0, 0.0) + rng.normal(0, 0.2, n)])
+    quality = rng.uniform(50.0, 250.0, n)
+    light = np.where(rng.random(n) < 0.1, np.nan, rng.uniform(0.5, 2.0, n))
+    got = partly_lit(frames, cloud, quality, light, 0.6)
+    level = quality / np.where(np.isfinite(light) & (light > 0), light, 1.0)
+    want = profile_by_profile(frames, cloud, level, 0.6)
+    assert got.tolist() == want.tolist() and 0 < got.sum() < n // 4
