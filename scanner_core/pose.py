@@ -217,6 +217,9 @@ class PoseParams:
         if not (np.isfinite(self.robot_rotation_std_deg) and self.robot_rotation_std_deg >= 0):
             raise ValueError(f"PoseParams.robot_rotation_std_deg must be finite and >= 0, got "
                              f"{self.robot_rotation_std_deg!r}")
+        if not self.search_points >= MIN_POSE_POINTS:
+            raise ValueError(f"PoseParams.search_points must be at least {MIN_POSE_POINTS}, got "
+                             f"{self.search_points!r}")
 
 
 @dataclass
@@ -242,6 +245,7 @@ class PoseResult:
     covariance : (6, 6) float64
         Of (tx, ty, tz in mm, rx, ry, rz in rad); NaN rows and columns along free motions.
     iterations : int
+        Of the last fit: the one that settled the pose on every point.
     coarse : bool
         Whether the coarse search ran.
     time_ms : float

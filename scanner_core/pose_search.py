@@ -18,11 +18,13 @@ stage when the nominal grasp is no good start, and which other minima fit as wel
   minimum that fits clearly better is taken; one that fits as well (`_rival_margin`) is a
   rival, which the uncertainty then covers (``scanner_core.pose_confidence``).
 
-The quick refinements of the coarse grid and of the probes, and the probes' sweep all the way
-round, match their points through the models' lookup tables (``_Terms.rough``,
+The quick refinements of the coarse grid and of the probes, the probes' sweep all the way
+round, and the scores that only place a seed (the coarse sweep's turns, a probe peak's best
+turn) match their points through the models' lookup tables (``_Terms.rough``,
 ``scanner_core.nearest_table``): their points lie millimetres off the model, where a KD-tree
-query is slow. The scores that rank candidates at tight tolerances, and every full fit, use
-the KD-trees.
+query is slow (an edge point searches 15 mm), and a seed is refined before anything is
+decided on it. The scores that rank refined candidates and decide (the better turn, the final
+scores, the rival margins), and every full fit, use the KD-trees.
 """
 from __future__ import annotations
 
@@ -176,7 +178,7 @@ def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> list
     for pose, _ in kept:
         axis = _weakest_rotation(few, few_edges, pose, centre, params)
         moved = _turned(pose, axis, centre, offsets)
-        seeds.extend(zip(moved, _agreements(few, rough_edges, moved, *_COARSE_TOL_MM)))
+        seeds.extend(zip(moved, _agreements(rough, rough_edges, moved, *_COARSE_TOL_MM)))
     refined = refine(np.stack([pose for pose, _ in
                                _distinct(seeds, _SWEEP_SEEDS, same_deg=step * 1.5)]))
     return [pose for pose, _ in _distinct(refined + kept, _SWEEP_SEEDS)]
@@ -369,13 +371,14 @@ def _round_seeds(few: _Terms, few_edges: _Terms | None, pose, axis, params) -> l
             chosen.append(i)
             if len(chosen) == _ROUND_SEEDS:
                 break
-    # Each peak placed within a fraction of a degree, at the tight tolerances: a minimum
+    # Each peak placed within a fraction of a degree, at the tight tolerances (through the
+    # lookup tables: the seed is refined before it is scored for a decision): a minimum
     # about a weakly held rotation can be narrower than the sweep's step (cycloidal's true
     # turn: a start 2 degrees off settles in a minimum 1.6 degrees off it).
     fine = np.arange(-step, step + 1e-9, _ROUND_FINE_DEG)
     local = np.concatenate([_turned(moved[i], axis, pivot, fine) for i in chosen]) if chosen \
         else np.zeros((0, 4, 4))
-    tight = _agreements(few, _rough(few_edges), local,
+    tight = _agreements(few.rough(), _rough(few_edges), local,
                         *_COARSE_TOL_MM).reshape(len(chosen), len(fine))
     return [local[k * len(fine) + int(np.argmax(row))] for k, row in enumerate(tight)]
 

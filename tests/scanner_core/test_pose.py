@@ -672,3 +672,8 @@ def test_a_fit_that_comes_back_to_an_earlier_pose_has_settled():
     converging = [misplacement(1e-3 * (1 - 0.5 ** k), 0, 0, 0, 0, 0) for k in range(7)]
     visited = []
     assert not any(_revisited(visited, pose, tol) for pose in converging)
+
+
+def test_a_search_on_too_few_points_is_refused():
+    with pytest.raises(ValueError, match="search_points"):
+        PoseParams(search_points=10)
