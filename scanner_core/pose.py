@@ -416,7 +416,7 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
         fit = _fine(surface, edges, fit.pose, settle, warm=False)
     before_probes = fit.pose
     # The other minima on every point: on fewer, a rival that fits as well can go unseen
-    # (ADIS16480 seen on its end, bench pose: a rival 152 mdeg away, the truth, missed).
+    # (ADIS16480 seen on its end, bench pose: a rival 152 mdeg away, near the truth, missed).
     fit, rivals = _probe_turns(surface, edges, fit, params)
     covariance, std, free_axes = _uncertainty(fit, params, rivals)
     flags = _flags(fit, free_axes, edges is not None, params)
