@@ -35,7 +35,8 @@ any points with normals, such as the simulator's predicted cloud of the same pas
 
 Each stage has a module of its own: the models in ``scanner_core.pose_models``, the fine stage
 in ``scanner_core.pose_fine``, the coarse search, the agreement score and the probes in
-``scanner_core.pose_search``, the uncertainty and the flags in ``scanner_core.pose_confidence``.
+``scanner_core.pose_search``, the uncertainty and the flags in ``scanner_core.pose_confidence``,
+the inputs' checks in ``scanner_core.pose_inputs``.
 This module holds the entry points (`register`, `scan_pose`), their settings and their result.
 """
 from __future__ import annotations
@@ -51,6 +52,8 @@ from scanner_core.pose_confidence import (MAX_PROFILE_SPACING_MM, MIN_COVERAGE,
                                           _coverage_flags, _flags, _rival_words, _uncertainty,
                                           judge)
 from scanner_core.pose_fine import _fine, _subsample, _Terms
+from scanner_core.pose_inputs import (add_placement_error, check_inputs, edge_steps,
+                                      scan_steps)
 from scanner_core.pose_models import (BEVEL_MM, TOWARD_MIN, EdgeModel, SurfaceModel,
                                       merge_bevels, outline_adjacency)
 from scanner_core.pose_search import (_better_turn, _coarse, _final_score, _probe_turns,
@@ -379,7 +382,7 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
     """:func:`register` without the verdict (``judge``), which `scan_pose` gives once its
     own flags and the placement's error are in."""
     t0 = time.perf_counter()
-    points, directions, frames = _check_inputs(points_t, normals_t, frame_ids)
+    points, directions, frames = check_inputs(points_t, normals_t, frame_ids)
     agreement = np.cos(np.radians(params.normal_agreement_deg))
     nominal = np.asarray(nominal, dtype=np.float64)
     rng = np.random.default_rng(params.seed)
@@ -387,8 +390,8 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
     surface = _Terms(points[used], directions[used], frames[used], model, agreement)
     edges = None
     if edges_t is not None and edge_model is not None and len(edge_model.points):
-        e_points, _, e_frames = _check_inputs(edges_t, None, edge_frame_ids, minimum=0)
-        steps = _edge_steps(edges_t, edge_steps_mm)
+        e_points, _, e_frames = check_inputs(edges_t, None, edge_frame_ids, minimum=0)
+        steps = edge_steps(edges_t, edge_steps_mm)
         if len(e_points):
             edges = _Terms(e_points, None, e_frames, edge_model, steps_mm=steps)
 
@@ -466,88 +469,13 @@ def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeMod
                        edges_t=scan.edges if use_edges else None,
                        edge_frame_ids=edge_frames if use_edges else None,
                        edge_model=edge_model if use_edges else None,
-                       edge_steps_mm=_scan_steps(scan) if use_edges else None, params=params)
+                       edge_steps_mm=scan_steps(scan) if use_edges else None, params=params)
     result.flags += _coverage_flags(scan, result.matrix, surface_model)
     placement = getattr(scan, "placement_std_mm", None)
-    _add_placement_error(result, np.zeros(3) if placement is None else placement,
+    add_placement_error(result, np.zeros(3) if placement is None else placement,
                          params.robot_rotation_std_deg)
     judged = time.perf_counter()
     judge(result, surface_model, params)
     result.time_ms += (time.perf_counter() - judged) * 1e3
     result.normals_ms = (time.perf_counter() - t0) * 1e3 - result.time_ms
     return result
-
-
-def _add_placement_error(result: PoseResult, std_mm, rotation_std_deg: float = 0.0) -> None:
-    """The errors every profile's placement shares, added to the pose's covariance: they
-    move the whole cloud in {T}, so the pose carries them whole, however many profiles
-    average their own errors away.
-
-    - `std_mm` (3,): the calibration's marker offset (``Scan.placement_std_mm``), mm along
-      the {T} axes, onto the translations. In ``flyscan bench place``'s calibrated cell the
-      marker offset 19 um off its truth put every pose acted on 17-18 um off along y_T
-      against sigmas of 4 um.
-    - `rotation_std_deg`: the robot's orientation report (``PoseParams
-      .robot_rotation_std_deg``), onto each rotation: a turn of the cloud about the TCP, the
-      {T} origin, which moves no translation of it.
-    """
-    std = np.asarray(std_mm, dtype=np.float64).reshape(3)
-    if not (np.isfinite(std).all() and np.all(std >= 0)):
-        raise ValueError(f"placement_std_mm must be 3 finite numbers >= 0, got {std.tolist()}")
-    result.covariance = result.covariance.copy()
-    result.covariance[:3, :3] += np.diag(std**2)
-    result.covariance[3:, 3:] += np.eye(3) * np.radians(rotation_std_deg) ** 2
-    with np.errstate(invalid="ignore"):
-        variance = np.diag(result.covariance)
-        result.std[:3] = np.sqrt(variance[:3])
-        result.std[3:] = np.degrees(np.sqrt(variance[3:]))
-
-
-def _scan_steps(scan) -> np.ndarray | None:
-    """(M,) the height of each step point of the scan's edge cloud, 0 for a drop-out; None
-    when the scan carries no kinds and sizes for its edge points."""
-    from scanner_core.edges import EdgeKind
-
-    kinds = getattr(scan, "edge_kind", None)
-    sizes = getattr(scan, "edge_size_mm", None)
-    if kinds is None or sizes is None or len(kinds) != len(scan.edges):
-        return None
-    return np.where(np.asarray(kinds) == EdgeKind.STEP,
-                    np.nan_to_num(np.asarray(sizes, dtype=np.float64)), 0.0)
-
-
-# --------------------------------------------------------------------------------------------
-# Inputs
-# --------------------------------------------------------------------------------------------
-
-def _check_inputs(points_t, normals_t, frame_ids, minimum: int = 6):
-    points = np.asarray(points_t, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"points_t must be (N, 3), got {points.shape}")
-    normals = (np.full(points.shape, np.nan) if normals_t is None
-               else np.asarray(normals_t, dtype=np.float64))
-    if normals.shape != points.shape:
-        raise ValueError(f"normals_t must be {points.shape}, got {normals.shape}")
-    frames = (np.arange(len(points)) if frame_ids is None
-              else np.asarray(frame_ids, dtype=np.int64))
-    if frames.shape != (len(points),):
-        raise ValueError(f"frame_ids must be ({len(points)},), got {frames.shape}")
-    keep = np.isfinite(points).all(axis=1)
-    if keep.sum() < minimum:
-        raise ValueError(f"a pose needs at least {minimum} finite points, got {int(keep.sum())}")
-    return points[keep], normals[keep], frames[keep]
-
-
-def _edge_steps(edges_t, edge_steps_mm) -> np.ndarray | None:
-    """(K,) step heights of the finite edge points (as `_check_inputs` keeps them), mm, 0 for
-    a drop-out; None without `edge_steps_mm`."""
-    if edge_steps_mm is None:
-        return None
-    points = np.asarray(edges_t, dtype=np.float64)
-    steps = np.asarray(edge_steps_mm, dtype=np.float64).reshape(-1)
-    if steps.shape != (len(points),):
-        raise ValueError(f"edge_steps_mm must be ({len(points)},), got {steps.shape}")
-    if np.any(steps < 0) or np.any(np.isinf(steps)):
-        raise ValueError("edge_steps_mm must be finite and >= 0 (a step's height, 0 or NaN "
-                         "for a drop-out)")
-    return np.nan_to_num(steps[np.isfinite(points).all(axis=1)], nan=0.0)

@@ -8,7 +8,8 @@ import pytest
 from scanner_core.calibration import Calibration, CalibrationError
 from scanner_core.crosscheck import estimate_led_and_clock, led_offset_spread
 from scanner_core.devices import TcpPose
-from scanner_core.pose import PoseParams, PoseResult, _add_placement_error
+from scanner_core.pose import PoseParams, PoseResult
+from scanner_core.pose_inputs import add_placement_error
 from scanner_core.pose_confidence import judge
 
 # {T} in {B}: z_T down, turned 30 degrees about it.
@@ -102,7 +103,7 @@ def test_the_pose_carries_the_placement_error_whole():
     covariance[2, :] = covariance[:, 2] = np.nan
     result = PoseResult(matrix=np.eye(4), misplacement=np.eye(4), rms_mm=0.01,
                         inlier_fraction=0.99, std=std.copy(), covariance=covariance)
-    _add_placement_error(result, [0.0, 0.010, 0.005])
+    add_placement_error(result, [0.0, 0.010, 0.005])
     assert result.std[0] == pytest.approx(0.002)
     assert result.std[1] == pytest.approx(np.hypot(0.004, 0.010))
     assert np.isnan(result.std[2])
@@ -113,7 +114,7 @@ def test_the_pose_carries_the_placement_error_whole():
     judge(result, None, PoseParams(act_tolerance_mm=0.1))
     assert result.act
     with pytest.raises(ValueError, match="placement_std_mm"):
-        _add_placement_error(result, [0.0, -1.0, 0.0])
+        add_placement_error(result, [0.0, -1.0, 0.0])
 
 
 def test_the_robot_s_orientation_report_turns_the_pose_too():
@@ -123,7 +124,7 @@ def test_the_robot_s_orientation_report_turns_the_pose_too():
     covariance = np.diag(np.r_[std[:3], np.radians(std[3:])] ** 2)
     result = PoseResult(matrix=np.eye(4), misplacement=np.eye(4), rms_mm=0.01,
                         inlier_fraction=0.99, std=std.copy(), covariance=covariance)
-    _add_placement_error(result, np.zeros(3), 0.004)
+    add_placement_error(result, np.zeros(3), 0.004)
     np.testing.assert_allclose(result.std, [0.002, 0.002, 0.002, 0.005, 0.005, 0.005])
     with pytest.raises(ValueError, match="robot_rotation_std_deg"):
         PoseParams(robot_rotation_std_deg=-0.001)
