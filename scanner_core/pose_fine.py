@@ -17,11 +17,12 @@ The correspondences (`_Terms`, `_nearest`) serve the search's scores too
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from scanner_core.nearest_table import NearestMemo
 from scanner_core.pose_models import EdgeModel, SurfaceModel
 
 # Tukey's biweight constant: 95 % efficiency under Gaussian noise.
@@ -75,6 +76,8 @@ class _Terms:
     agreement: float = -1.0     # least cosine between `normals` and a match's normal
     steps_mm: np.ndarray | None = None  # edges: a step's height, 0 for a drop-out
     approximate: bool = False   # matched through the model's lookup table, not its KD-tree
+    # the KD-tree's answers at one pose at a time, remembered between a fit's iterations
+    memo: NearestMemo | None = field(default=None, init=False, repr=False, compare=False)
 
     def subset(self, index) -> "_Terms":
         return _Terms(self.points[index], None if self.normals is None else self.normals[index],
@@ -270,7 +273,13 @@ def _nearest(terms: _Terms, local, up, bound):
         def query(points):
             return terms.model.tree.query(points, k=1, distance_upper_bound=bound,
                                           workers=workers)
-    dist, nearest = query(local.reshape(-1, 3))
+    if not terms.approximate and len(shape) == 2 and shape[0] == 1:
+        # one pose: the fit's iterations ask again only where the answer may have changed
+        if terms.memo is None:
+            terms.memo = NearestMemo(terms.model.tree)
+        dist, nearest = terms.memo.query(local.reshape(-1, 3), bound)
+    else:
+        dist, nearest = query(local.reshape(-1, 3))
     dist, nearest = dist.reshape(shape), nearest.reshape(shape)
     if terms.steps_mm is None:
         return dist, nearest

@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 import scanner_core.pose_fine as pose_fine
-from scanner_core.nearest_table import NearestTable
+from scanner_core.nearest_table import NearestMemo, NearestTable
 from scanner_core.pose import EdgeModel, PoseParams, SurfaceModel, register
 from simulator.parts import block_with_holes_and_steps, centred_grasp
 from test_pose import lobed_disc, misplacement, pose_error, synthetic_scan
@@ -54,6 +54,41 @@ def test_a_bound_is_honoured_and_beyond_the_band_the_tree_answers(surface):
     assert np.all(np.isinf(dist)) and not calls  # within a bound inside the band: no match
     dist, index = table.query(far, bound=20.0)   # a bound beyond the band: the tree's answer
     assert calls and np.allclose(dist, exact) and np.array_equal(index, nearest)
+
+
+@pytest.mark.parametrize("step_mm", [0.0005, 0.02, 0.5])
+def test_a_remembered_query_is_a_fresh_query(surface, step_mm):
+    """Points moving as a fit's do (micrometres late, half a millimetre early), some far off
+    the part, under bounds that shrink and grow: the memo answers as the tree does, and asks
+    it again about fewer points the less they move."""
+    points, tree = surface
+    rng = np.random.default_rng(3)
+    moving = points[rng.choice(len(points), 2000)] + rng.normal(0, 0.1, (2000, 3))
+    moving[:100, 2] += 8.0  # above the block: no match within the smaller bounds
+    memo = NearestMemo(tree)
+    asked = []
+    original = tree.query
+
+    class Counting:  # the same tree, counting the points it is asked about
+        n, data = tree.n, tree.data
+
+        def query(self, queries, **kw):
+            asked.append(len(queries))
+            return original(queries, **kw)
+
+    memo.tree = Counting()
+    for bound in [5.5, 5.5, 3.0, 1.0, 0.6, 0.6, 9.0, 0.6, 0.45]:
+        moving = moving + rng.normal(0, step_mm, moving.shape)
+        dist, index = memo.query(moving, bound)
+        exact, nearest = tree.query(moving, distance_upper_bound=bound)
+        assert np.array_equal(np.isfinite(dist), np.isfinite(exact))
+        found = np.isfinite(exact)
+        assert np.array_equal(index[found], nearest[found])
+        assert np.allclose(dist[found], exact[found], rtol=0, atol=1e-12)
+        assert np.all(index[~found] == len(points))
+    assert asked[0] == len(moving)
+    if step_mm < 0.001:
+        assert np.mean(asked[1:]) < 0.2 * len(moving)
 
 
 def test_the_table_stays_within_its_size():
