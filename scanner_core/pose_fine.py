@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from scanner_core._pose_rows import plane_rows
 from scanner_core.nearest_table import NearestMemo
 from scanner_core.pose_models import EdgeModel, SurfaceModel
 
@@ -301,21 +302,18 @@ def _surface_rows(terms: _Terms, poses, centre, gate, noise_mm):
     """Point-to-plane rows of the N surface points at each of the (P, 4, 4) `poses`: the
     residual of scan point s matched to model point q (normal n) is ``n . (s - X q)`` in
     {T}; a motion (t, w) about `centre` changes it by ``-[n, (s - centre) x n] . (t, w)``.
-    Returns :func:`_robust_rows`' (P, N, 6) rows, (P, N) residuals and weights (0 for a
-    point with no match, or whose normal disagrees) and (P,) robust scales."""
+    Returns (P, N, 6) rows, (P, N) residuals and weights (0 for a point with no match,
+    whose normal disagrees or beyond the gate) and (P,) robust scales
+    (``scanner_core._pose_rows.plane_rows``)."""
     rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
     local = (terms.points[None] - translation[:, None]) @ rotation  # (P, N, 3) in {P}
     dist, nearest = _nearest(terms, local, rotation[:, 2], gate + 2.0 * _spacing(terms.model))
-    valid = np.isfinite(dist)
-    nearest = np.where(valid, nearest, 0)
-    turn = rotation.transpose(0, 2, 1)  # row vectors in {P} to {T}
-    n_t = terms.model.normals[nearest] @ turn
-    if terms.normals is not None:
-        # Scan normals point to the sensor, model normals out of the part: the same way up.
-        agree = np.einsum("pnj,nj->pn", n_t, np.nan_to_num(terms.normals, nan=0.0))
-        valid &= (agree >= terms.agreement) | ~np.isfinite(terms.normals[:, 0])
-    q_t = terms.model.points[nearest] @ turn + translation[:, None]
-    return _robust_rows(terms.points, n_t, q_t, valid, centre, gate, noise_mm)
+    normals = terms.normals if terms.normals is not None else np.full(terms.points.shape, np.nan)
+    # Scan normals point to the sensor, model normals out of the part: the same way up.
+    return plane_rows(terms.points, normals, terms.model.points, terms.model.normals,
+                      nearest, np.isfinite(dist), rotation, translation, centre, gate,
+                      noise_mm, terms.agreement, False, _MIN_EDGE_LEVEL, _MAD_TO_SIGMA,
+                      _TUKEY_C, _MIN_SIGMA_MM)
 
 
 def _edge_rows(terms: _Terms, poses, centre, gate, noise_mm):
@@ -326,54 +324,10 @@ def _edge_rows(terms: _Terms, poses, centre, gate, noise_mm):
     local = (terms.points[None] - translation[:, None]) @ rotation
     bound = gate + _spacing(terms.model) + _EDGE_SEARCH_MM
     dist, nearest = _nearest(terms, local, rotation[:, 2], bound)
-    valid = np.isfinite(dist)
-    nearest = np.where(valid, nearest, 0)
-    turn = rotation.transpose(0, 2, 1)
-    d_t = terms.model.directions[nearest] @ turn
-    m = np.stack([d_t[..., 1], -d_t[..., 0], np.zeros(d_t.shape[:-1])], axis=-1)
-    length = np.linalg.norm(m, axis=-1)
-    valid &= length > _MIN_EDGE_LEVEL
-    m = m / np.maximum(length, 1e-12)[..., None]
-    q_t = terms.model.points[nearest] @ turn + translation[:, None]
-    return _robust_rows(terms.points, m, q_t, valid, centre, gate, noise_mm)
-
-
-def _robust_rows(s_t, n_t, q_t, valid, centre, gate, noise_mm):
-    """Rows of the `valid` correspondences within `gate`, weighted by Tukey's biweight at
-    each pose's own robust scale (the median absolute deviation of those residuals) and by
-    the inverse variance of the expected scatter `noise_mm`; a pose with fewer than 3 such
-    rows gets none (all weights 0, scale inf).
-
-    Returns (P, N, 6) Jacobian rows, (P, N) residuals, (P, N) weights and (P,) scales, mm.
-    """
-    count, n = valid.shape
-    if n == 0:
-        return np.zeros((count, 0, 6)), np.zeros((count, 0)), np.zeros((count, 0)), \
-            np.full(count, np.inf)
-    res = np.sum(n_t * (s_t[None] - q_t), axis=-1)
-    inside = valid & (np.abs(res) <= gate)
-    counted = np.count_nonzero(inside, axis=1)
-    inside &= (counted >= 3)[:, None]
-    centred = np.abs(res - _row_medians(res, inside)[:, None])
-    spread = np.nan_to_num(_row_medians(centred, inside), nan=0.0)
-    sigma = np.maximum(_MAD_TO_SIGMA * spread, _MIN_SIGMA_MM)[:, None]
-    u = np.where(inside, res, 0.0) / (_TUKEY_C * sigma)
-    w = np.where(inside & (np.abs(u) < 1.0), (1.0 - u**2) ** 2, 0.0) / noise_mm**2
-    jac = np.concatenate([n_t, np.cross(s_t[None] - centre, n_t)], axis=-1)
-    scale = np.where(counted >= 3, sigma[:, 0], np.inf)
-    return jac, np.where(inside, res, 0.0), w, scale
-
-
-def _row_medians(values, mask) -> np.ndarray:
-    """(P,) median of each row of the (P, N) `values` over its `mask`ed entries (NaN for a
-    row with none): one sort of the whole array, not a median call per row (27 rows of 800
-    took 380 us one by one, 46 us sorted together)."""
-    counted = np.count_nonzero(mask, axis=1)
-    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
-    low = np.take_along_axis(ordered, np.maximum(counted - 1, 0)[:, None] // 2, axis=1)[:, 0]
-    high = np.take_along_axis(ordered, np.minimum(counted // 2, max(values.shape[1] - 1, 0))
-                              [:, None], axis=1)[:, 0]
-    return np.where(counted > 0, 0.5 * (low + high), np.nan)
+    return plane_rows(terms.points, terms.points, terms.model.points, terms.model.directions,
+                      nearest, np.isfinite(dist), rotation, translation, centre, gate,
+                      noise_mm, -1.0, True, _MIN_EDGE_LEVEL, _MAD_TO_SIGMA, _TUKEY_C,
+                      _MIN_SIGMA_MM)
 
 
 def _spacing(model) -> float:

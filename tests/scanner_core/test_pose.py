@@ -647,15 +647,75 @@ def test_the_search_on_a_subsample_settles_on_every_point(block):
     assert searched.act == everywhere.act
 
 
-def test_row_medians_are_numpy_s_medians_of_the_masked_entries():
-    from scanner_core.pose_fine import _row_medians
+def _rows_with_numpy(s_t, scan_n, model_p, model_v, nearest, valid, poses, centre, gate, noise,
+                    agreement, edges):
+    """The rows as numpy computes them, array by array: the compiled kernel's oracle."""
+    from scanner_core.pose_fine import _MAD_TO_SIGMA, _MIN_EDGE_LEVEL, _MIN_SIGMA_MM, _TUKEY_C
 
-    rng = np.random.default_rng(3)
-    for n in (1, 2, 5, 800):
-        values, mask = rng.normal(size=(6, n)), rng.random((6, n)) > 0.4
-        mask[0] = False
-        expected = [np.median(v[m]) if m.any() else np.nan for v, m in zip(values, mask)]
-        assert_allclose(_row_medians(values, mask), expected, rtol=0, atol=0)
+    rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
+    turn = rotation.transpose(0, 2, 1)
+    v_t = model_v[nearest] @ turn
+    valid = valid.copy()
+    if edges:
+        m = np.stack([v_t[..., 1], -v_t[..., 0], np.zeros(v_t.shape[:-1])], axis=-1)
+        length = np.linalg.norm(m, axis=-1)
+        valid &= length > _MIN_EDGE_LEVEL
+        n_t = m / np.maximum(length, 1e-12)[..., None]
+    else:
+        n_t = v_t
+        agree = np.einsum("pnj,nj->pn", n_t, np.nan_to_num(scan_n, nan=0.0))
+        valid &= (agree >= agreement) | ~np.isfinite(scan_n[:, 0])
+    q_t = model_p[nearest] @ turn + translation[:, None]
+    res = np.sum(n_t * (s_t[None] - q_t), axis=-1)
+    inside = valid & (np.abs(res) <= gate)
+    inside &= (np.count_nonzero(inside, axis=1) >= 3)[:, None]
+    sigma = np.full(len(poses), np.inf)
+    w = np.zeros(res.shape)
+    for p in range(len(poses)):
+        if inside[p].any():
+            r = res[p][inside[p]]
+            sigma[p] = max(_MAD_TO_SIGMA * np.median(np.abs(r - np.median(r))), _MIN_SIGMA_MM)
+            u = res[p] / (_TUKEY_C * sigma[p])
+            w[p] = np.where(inside[p] & (np.abs(u) < 1), (1 - u**2) ** 2, 0.0) / noise**2
+    jac = np.concatenate([n_t, np.cross(s_t[None] - centre, n_t)], axis=-1)
+    return jac * inside[..., None], np.where(inside, res, 0.0), w, sigma
+
+
+@pytest.mark.parametrize("edges", [False, True])
+def test_the_compiled_rows_are_numpy_s(edges):
+    """Matches with and without a normal (NaN), normals that disagree, edges near z_T, a
+    pose with fewer than 3 residuals within the gate, an even and an odd count."""
+    from scanner_core._pose_rows import plane_rows
+    from scanner_core.pose_fine import _MAD_TO_SIGMA, _MIN_EDGE_LEVEL, _MIN_SIGMA_MM, _TUKEY_C
+
+    rng = np.random.default_rng(4)
+    for n in (2, 7, 800):
+        s_t = rng.normal(0, 20, (n, 3))
+        scan_n = rng.normal(size=(n, 3))
+        scan_n[::5] = np.nan
+        model_p, model_v = rng.normal(0, 20, (50, 3)), rng.normal(size=(50, 3))
+        model_v /= np.linalg.norm(model_v, axis=1)[:, None]
+        model_v[::7] = [0.05, 0.0, 1.0]  # an edge within 3 degrees of z_T
+        poses = np.tile(np.eye(4), (4, 1, 1))
+        poses[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.2, (4, 3))).as_matrix()
+        poses[:, :3, 3] = rng.normal(0, 1, (4, 3))
+        nearest = rng.integers(0, 50, (4, n))
+        valid = rng.random((4, n)) > 0.2
+        valid[3, 2:] = False  # at most 2 matches
+        args = (s_t, scan_n, model_p, model_v, nearest, valid, poses, np.ones(3), 25.0, 0.01,
+                0.5, edges)
+        jac, res, w, sigma = plane_rows(s_t, scan_n, model_p, model_v, nearest, valid,
+                                        poses[:, :3, :3].copy(), poses[:, :3, 3].copy(),
+                                        np.ones(3), 25.0, 0.01, 0.5, edges, _MIN_EDGE_LEVEL,
+                                        _MAD_TO_SIGMA, _TUKEY_C, _MIN_SIGMA_MM)
+        e_jac, e_res, e_w, e_sigma = _rows_with_numpy(*args)
+        assert np.isinf(sigma[3]) and not w[3].any()
+        assert_allclose(sigma, e_sigma, rtol=1e-12)
+        assert_allclose(res, e_res, rtol=0, atol=1e-11)
+        assert_allclose(w, e_w, rtol=1e-9, atol=1e-9)
+        assert_allclose(jac, e_jac, rtol=0, atol=1e-11)
+        if n == 800:
+            assert np.count_nonzero(w) > 300  # enough rows weighted to compare
 
 
 def test_a_fit_that_comes_back_to_an_earlier_pose_has_settled():
