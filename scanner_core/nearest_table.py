@@ -27,6 +27,7 @@ may have changed.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.ndimage import distance_transform_edt
 
 __all__ = ["NearestTable", "NearestMemo"]
@@ -101,20 +102,10 @@ class NearestTable:
         """
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         size = len(self.points)
-        dist = np.full(len(points), np.inf)
-        index = np.full(len(points), size, np.int64)
         if not size or not len(points):
-            return dist, index
-        inside = np.all((points >= self.origin - self.voxel_mm / 2)
-                        & (points <= self.origin + (np.asarray(self.table.shape) - 0.5)
-                           * self.voxel_mm), axis=1)
-        found = np.full(len(points), -1, np.int64)
-        found[inside] = self.table[tuple(self._cells(points[inside]).T)]
-        hit = found >= 0
-        d = np.linalg.norm(points[hit] - self.points[found[hit]], axis=1)
-        near = d <= bound
-        rows = np.nonzero(hit)[0][near]
-        dist[rows], index[rows] = d[near], found[hit][near]
+            return np.full(len(points), np.inf), np.full(len(points), size, np.int64)
+        dist, index = _look_up(points, self.origin, float(self.voxel_mm), self.table,
+                               self.points, float(bound))
         # Off the table is beyond the band: no match within a bound inside it; a bound beyond
         # it, the KD-tree knows.
         off = np.isinf(dist) if bound > self.band_mm else np.zeros(len(points), bool)
@@ -180,3 +171,36 @@ class NearestMemo:
         dist[rows] = near[near <= bound]
         index[rows] = self.index[rows]
         return dist, index
+
+
+@njit(nogil=True, cache=True)
+def _look_up(points, origin, voxel_mm, table, set_points, bound):
+    """`NearestTable.query` on the table alone, in one pass: each point's voxel (the nearest
+    centre; none outside the grid), its point and its true distance, within `bound`."""
+    count = len(points)
+    size = len(set_points)
+    nx, ny, nz = table.shape
+    dist = np.full(count, np.inf)
+    index = np.full(count, size, np.int64)
+    cell = np.empty(3, np.int64)
+    for i in range(count):
+        outside = False
+        for a, extent in enumerate((nx, ny, nz)):
+            x = points[i, a]
+            if not (x >= origin[a] - voxel_mm / 2 and x <= origin[a] + (extent - 0.5) * voxel_mm):
+                outside = True
+                break
+            c = int(np.rint((x - origin[a]) / voxel_mm))
+            cell[a] = min(max(c, 0), extent - 1)
+        if outside:
+            continue
+        j = table[cell[0], cell[1], cell[2]]
+        if j < 0:
+            continue
+        dx = points[i, 0] - set_points[j, 0]
+        dy = points[i, 1] - set_points[j, 1]
+        dz = points[i, 2] - set_points[j, 2]
+        d = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if d <= bound:
+            dist[i], index[i] = d, j
+    return dist, index
