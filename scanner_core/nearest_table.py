@@ -144,18 +144,14 @@ class NearestMemo:
         the same K points at every call)."""
         points = np.asarray(points, dtype=np.float64)
         if self.where is None or len(self.where) != len(points):
-            ask = np.ones(len(points), bool)
             self.where = points.copy()
             self.index = np.full(len(points), self.tree.n, np.int64)
             self.first = np.full(len(points), np.inf)
             self.others = np.zeros(len(points))
             self.bound = np.zeros(len(points))
+            ask = np.ones(len(points), bool)
         else:
-            moved = np.linalg.norm(points - self.where, axis=1)
-            found = np.isfinite(self.first)
-            kept = np.where(found, self.first + moved < self.others - moved,
-                            bound <= self.bound - moved)
-            ask = ~kept
+            ask = _to_ask(points, self.where, self.first, self.others, self.bound, bound)
         if np.any(ask):
             dist, index = self.tree.query(points[ask], k=2, distance_upper_bound=bound)
             self.where[ask] = points[ask]
@@ -163,15 +159,41 @@ class NearestMemo:
             self.first[ask] = dist[:, 0]
             self.others[ask] = np.minimum(dist[:, 1], bound)
             self.bound[ask] = bound
-        dist = np.full(len(points), np.inf)
-        index = np.full(len(points), self.tree.n, np.int64)
-        has = np.isfinite(self.first)
-        near = np.linalg.norm(points[has] - self.tree.data[self.index[has]], axis=1)
-        rows = np.nonzero(has)[0][near <= bound]
-        dist[rows] = near[near <= bound]
-        index[rows] = self.index[rows]
-        return dist, index
+        return _answer(points, self.index, self.first, self.tree.data, bound)
 
+
+@njit(nogil=True, cache=True)
+def _to_ask(points, where, first, others, asked_bound, bound):
+    """Which points `NearestMemo` must ask the tree about again (see there)."""
+    ask = np.empty(len(points), np.bool_)
+    for i in range(len(points)):
+        dx = points[i, 0] - where[i, 0]
+        dy = points[i, 1] - where[i, 1]
+        dz = points[i, 2] - where[i, 2]
+        moved = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if np.isfinite(first[i]):
+            ask[i] = not (first[i] + moved < others[i] - moved)
+        else:
+            ask[i] = not (bound <= asked_bound[i] - moved)
+    return ask
+
+
+@njit(nogil=True, cache=True)
+def _answer(points, index, first, set_points, bound):
+    """Each point's distance to its remembered nearest, and its index, within `bound`."""
+    dist = np.full(len(points), np.inf)
+    found = np.full(len(points), len(set_points), np.int64)
+    for i in range(len(points)):
+        if not np.isfinite(first[i]):
+            continue
+        j = index[i]
+        dx = points[i, 0] - set_points[j, 0]
+        dy = points[i, 1] - set_points[j, 1]
+        dz = points[i, 2] - set_points[j, 2]
+        d = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if d <= bound:
+            dist[i], found[i] = d, j
+    return dist, found
 
 @njit(nogil=True, cache=True)
 def _look_up(points, origin, voxel_mm, table, set_points, bound):
