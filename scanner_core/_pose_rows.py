@@ -1,5 +1,6 @@
-"""The fine stage's rows in one compiled pass (``scanner_core.pose_fine``): point-to-plane
-residuals, Jacobian rows and Tukey weights of matched scan points, at P poses at once.
+"""The fine stage's rows (``scanner_core.pose_fine``: point-to-plane residuals, Jacobian rows
+and Tukey weights of matched scan points) and the search's agreement test
+(``scanner_core.pose_search._matched``), each in one compiled pass at P poses at once.
 
 Done with numpy, one row set of 6 000 points took some 30 array operations (gathers, the
 turn into {T}, the normal test, the gate, two masked medians, the weights): about 0.6 ms a
@@ -121,3 +122,63 @@ def plane_rows(scan_points, scan_normals, model_points, model_vectors, nearest, 
                 if abs(u) < 1.0:
                     weights[p, i] = (1.0 - u * u) ** 2 / noise_mm**2
     return jacobian, residuals, weights, scale
+
+
+@njit(nogil=True, cache=True)
+def matched_within(local, nearest, valid, model_points, model_vectors, scan_normals,
+                   rotation, agreement, tol, planes, min_level):
+    """(P, N) bool: whether each scan point lies within `tol` (mm) of its model match at
+    each of P poses, the residual taken in {P} (``offset = local - q``):
+
+    - surfaces (`planes`): ``|v . offset| <= tol`` for the model normal v, and the scan
+      normal turned into {P} (``R^T s_n``; a NaN normal agrees) at least `agreement` (a
+      cosine) along v;
+    - edges: across the edge in (x_T, y_T), ``|z . (v x offset)| <= tol * level`` for the
+      edge direction v and z_T in {P} (``z``, the third row of R), where
+      ``level = sqrt(1 - (z . v)^2)`` must exceed `min_level`.
+
+    Parameters
+    ----------
+    local : (P, N, 3) float64
+        The scan points in {P} at each pose, mm.
+    nearest : (P, N) int64
+    valid : (P, N) bool
+    model_points, model_vectors : (M, 3) float64
+    scan_normals : (N, 3) float64
+        Surfaces only; edges: any array.
+    rotation : (P, 3, 3) float64
+    agreement, tol, min_level : float
+    planes : bool
+    """
+    count, n = nearest.shape
+    matched = np.zeros((count, n), np.bool_)
+    for p in range(count):
+        r = rotation[p]
+        for i in range(n):
+            if not valid[p, i]:
+                continue
+            j = nearest[p, i]
+            ox = local[p, i, 0] - model_points[j, 0]
+            oy = local[p, i, 1] - model_points[j, 1]
+            oz = local[p, i, 2] - model_points[j, 2]
+            vx, vy, vz = model_vectors[j, 0], model_vectors[j, 1], model_vectors[j, 2]
+            if planes:
+                if not abs(vx * ox + vy * oy + vz * oz) <= tol:
+                    continue
+                sx, sy, sz = scan_normals[i, 0], scan_normals[i, 1], scan_normals[i, 2]
+                if np.isfinite(sx):
+                    # the scan normal in {P}: R^T s_n
+                    px = r[0, 0] * sx + r[1, 0] * sy + r[2, 0] * sz
+                    py = r[0, 1] * sx + r[1, 1] * sy + r[2, 1] * sz
+                    pz = r[0, 2] * sx + r[1, 2] * sy + r[2, 2] * sz
+                    if vx * px + vy * py + vz * pz < agreement:
+                        continue
+                matched[p, i] = True
+            else:
+                zx, zy, zz = r[2, 0], r[2, 1], r[2, 2]
+                along = zx * vx + zy * vy + zz * vz
+                level = np.sqrt(max(1.0 - along * along, 0.0))
+                across = abs(zx * (vy * oz - vz * oy) + zy * (vz * ox - vx * oz)
+                             + zz * (vx * oy - vy * ox))
+                matched[p, i] = level > min_level and across <= tol * level
+    return matched

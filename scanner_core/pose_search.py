@@ -35,6 +35,7 @@ from scipy.spatial.transform import Rotation
 from scanner_core.pose_fine import (_EDGE_SEARCH_MM, _MIN_EDGE_LEVEL, _evenly, _Fit, _fine,
                                     _information, _linearise, _nearest, _spacing, _subsample,
                                     _Terms)
+from scanner_core._pose_rows import matched_within
 from scanner_core.pose_quick import _quick_fits
 
 # Model points that seed a coarse candidate's translation.
@@ -104,32 +105,17 @@ def _matched(terms: _Terms, poses, bound, tol, *, planes: bool) -> np.ndarray:
     for edges.
     Residuals are taken in {P}, where the model lies (a distance does not change with the
     frame), so each pose's rotation is applied once per point, not per match."""
-    count, n = len(poses), len(terms.points)
+    n = len(terms.points)
     rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
     local = (terms.points[None] - translation[:, None]) @ rotation  # (P, N, 3) in {P}
     dist, nearest = _nearest(terms, local, rotation[:, 2], bound)
-    hit = np.nonzero(np.isfinite(dist.reshape(-1)))[0]
-    which, nearest = hit // n, nearest.reshape(-1)[hit]
-    offset = local.reshape(-1, 3)[hit] - terms.model.points[nearest]
     if planes:
-        normal = terms.model.normals[nearest]
-        res = np.abs(np.sum(normal * offset, axis=1))
-        if terms.normals is not None:
-            scan_n = (np.nan_to_num(terms.normals)[None] @ rotation).reshape(-1, 3)[hit]
-            seen = np.isfinite(terms.normals[hit % n, 0])
-            res[(np.sum(normal * scan_n, axis=1) < terms.agreement) & seen] = np.inf
-        ok = res <= tol
+        vectors = terms.model.normals
+        normals = terms.normals if terms.normals is not None else np.full((n, 3), np.nan)
     else:
-        # across the edge in (x_T, y_T): the z_T component of (direction x offset) in {T},
-        # over the length of the direction's (x_T, y_T) part
-        up = rotation[which, 2, :]  # z_T in {P}
-        direction = terms.model.directions[nearest]
-        level = np.sqrt(np.maximum(1.0 - np.sum(up * direction, axis=1) ** 2, 0.0))
-        across = np.abs(np.sum(up * np.cross(direction, offset), axis=1))
-        ok = (level > _MIN_EDGE_LEVEL) & (across <= tol * level)
-    matched = np.zeros(count * n, bool)
-    matched[hit[ok]] = True
-    return matched.reshape(count, n)
+        vectors, normals = terms.model.directions, terms.points
+    return matched_within(local, nearest, np.isfinite(dist), terms.model.points, vectors,
+                          normals, rotation, terms.agreement, tol, planes, _MIN_EDGE_LEVEL)
 
 
 # The coarse candidates are ranked at these tolerances (mm, surface and edges): wide enough

@@ -718,6 +718,43 @@ def test_the_compiled_rows_are_numpy_s(edges):
             assert np.count_nonzero(w) > 300  # enough rows weighted to compare
 
 
+@pytest.mark.parametrize("planes", [False, True])
+def test_the_compiled_agreement_test_is_numpy_s(planes):
+    """Which points lie within a tolerance of their match (``pose_search._matched``), against
+    the numpy computation it replaced: normals that disagree or are unknown, edges near z_T."""
+    from scanner_core._pose_rows import matched_within
+    from scanner_core.pose_fine import _MIN_EDGE_LEVEL
+
+    rng = np.random.default_rng(5)
+    count, n = 5, 900
+    model_p, model_v = rng.normal(0, 1, (60, 3)), rng.normal(size=(60, 3))
+    model_v /= np.linalg.norm(model_v, axis=1)[:, None]
+    model_v[::9] = [0.0, 0.05, 1.0]
+    scan_n = rng.normal(size=(n, 3))
+    scan_n[::4] = np.nan
+    rotation = Rotation.from_rotvec(rng.normal(0, 0.5, (count, 3))).as_matrix()
+    local = rng.normal(0, 1, (count, n, 3))
+    nearest = rng.integers(0, 60, (count, n))
+    valid = rng.random((count, n)) > 0.1
+    tol, agreement = 0.4, 0.3
+    got = matched_within(local, nearest, valid, model_p, model_v, scan_n, rotation, agreement,
+                         tol, planes, _MIN_EDGE_LEVEL)
+    offset = local - model_p[nearest]
+    vector = model_v[nearest]
+    if planes:
+        scan_p = np.nan_to_num(scan_n)[None] @ rotation
+        ok = np.abs(np.sum(vector * offset, axis=-1)) <= tol
+        ok &= (np.sum(vector * scan_p, axis=-1) >= agreement) | np.isnan(scan_n[None, :, 0])
+    else:
+        up = rotation[:, 2, :][:, None]
+        level = np.sqrt(np.maximum(1.0 - np.sum(up * vector, axis=-1) ** 2, 0.0))
+        across = np.abs(np.sum(up * np.cross(vector, offset), axis=-1))
+        ok = (level > _MIN_EDGE_LEVEL) & (across <= tol * level)
+    expected = ok & valid
+    assert 0.1 < expected.mean() < 0.9
+    assert np.array_equal(got, expected)
+
+
 def test_a_fit_that_comes_back_to_an_earlier_pose_has_settled():
     """Correspondences that flip between a few sets send a fit round a cycle of steps that
     neither shrink nor creep; coming back to a pose it has been at ends it."""
