@@ -398,7 +398,15 @@ def _steps(scaled_jac, res, w, free_std_mm):
 
 
 def _apply(delta, centre) -> np.ndarray:
-    """4x4 in {T}: rotate by ``delta[3:]`` about `centre`, then translate by ``delta[:3]``."""
+    """4x4 in {T}: rotate by ``delta[3:]`` about `centre`, then translate by ``delta[:3]``;
+    (P, 4, 4) for (P, 6) `delta`."""
+    delta = np.asarray(delta, dtype=np.float64)
+    if delta.ndim == 2:
+        m = np.tile(np.eye(4), (len(delta), 1, 1))
+        rotation = Rotation.from_rotvec(delta[:, 3:]).as_matrix()
+        m[:, :3, :3] = rotation
+        m[:, :3, 3] = centre + delta[:, :3] - rotation @ centre
+        return m
     m = np.eye(4)
     rotation = Rotation.from_rotvec(delta[3:]).as_matrix()
     m[:3, :3] = rotation

@@ -66,11 +66,10 @@ def _quick_fits(surface: _Terms, edges: _Terms | None, starts, params, *, iterat
                            for pair in ((jac, e_jac), (res, e_res), (w, e_w)))
         enough = np.count_nonzero(w > 0, axis=1) >= 6
         delta, observed = _steps(jac / s, res, w, params.free_std_mm)
-        for k, i in enumerate(index):
-            if not enough[k]:
-                active[i] = False  # too few rows: the start stays (as a single fit stops)
-                continue
-            poses[i] = _apply(delta[k] / s, centre) @ poses[i]
-            if _settled(sizes[i], observed[k] / s, step_tol):
-                active[i] = False
+        moved = index[enough]
+        poses[moved] = _apply(delta[enough] / s, centre) @ poses[moved]
+        active[index[~enough]] = False  # too few rows: the start stays (as a single fit stops)
+        for k in np.nonzero(enough)[0]:
+            if _settled(sizes[index[k]], observed[k] / s, step_tol):
+                active[index[k]] = False
     return poses
