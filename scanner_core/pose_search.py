@@ -151,8 +151,8 @@ def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> list
 
     turns = np.tile(np.eye(4), (len(grid), 1, 1))
     turns[:, :3, :3] = Rotation.from_rotvec(np.radians(grid)).as_matrix()
-    kept = _distinct(refine(np.stack([_seed_translation(few.points, surface.model, turn @ nominal)
-                                      for turn in turns])), _COARSE_KEEP)
+    kept = _distinct(refine(_seed_translations(few.points, surface.model, turns @ nominal)),
+                     _COARSE_KEEP)
     # The sweep: about the weakest rotation of the best candidate's fit, through the scan's
     # centre, across the grid's step, without refinement (cheap); the best distinct seeds
     # are then refined like the grid's candidates.
@@ -416,17 +416,18 @@ def _weakest_rotation(surface, edges, pose, centre, params, *, weakness: bool = 
     return (axis, ratio) if weakness else axis
 
 
-def _seed_translation(pts, model, pose) -> np.ndarray:
-    """Shift `pose` so that the model's sensor-facing side meets the scan: centres in x, y,
-    the nearest surfaces to the sensor (largest z_T) in z."""
+def _seed_translations(pts, model, poses) -> np.ndarray:
+    """Shift each of the (P, 4, 4) `poses` so that the model's sensor-facing side meets the
+    scan: centres in x, y, the nearest surfaces to the sensor (largest z_T) in z."""
     few = slice(None, None, max(1, len(model.points) // _SEED_POINTS))
-    model_t = model.points[few] @ pose[:3, :3].T + pose[:3, 3]
-    facing = (model.normals[few] @ pose[:3, :3].T)[:, 2] > 0.3
-    if facing.sum() < 10:
-        facing = np.ones(len(model_t), bool)
-    shift = np.zeros(3)
-    shift[:2] = np.median(pts[:, :2], axis=0) - np.median(model_t[facing, :2], axis=0)
-    shift[2] = np.percentile(pts[:, 2], 95) - np.percentile(model_t[facing, 2], 95)
-    moved = pose.copy()
-    moved[:3, 3] += shift
+    scan_xy = np.median(pts[:, :2], axis=0)
+    scan_z = np.percentile(pts[:, 2], 95)
+    moved = np.array(poses, dtype=np.float64, copy=True)
+    for pose in moved:
+        model_t = model.points[few] @ pose[:3, :3].T + pose[:3, 3]
+        facing = (model.normals[few] @ pose[:3, :3].T)[:, 2] > 0.3
+        if facing.sum() < 10:
+            facing = np.ones(len(model_t), bool)
+        pose[:2, 3] += scan_xy - np.median(model_t[facing, :2], axis=0)
+        pose[2, 3] += scan_z - np.percentile(model_t[facing, 2], 95)
     return moved
