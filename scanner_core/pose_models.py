@@ -102,6 +102,13 @@ class SurfaceModel:
         search's screening: approximate, O(1) a point."""
         return _lookup(self, LOOKUP_BAND_MM["surface"])
 
+    @cached_property
+    def seed_cache(self) -> dict:
+        """What the coarse search's seeds take of the model at a pose, by pose
+        (``scanner_core.pose_search._seed_translations``): it does not depend on the scan,
+        and the grid's poses around one grasp are the same at every pass."""
+        return {}
+
 
 @dataclass(frozen=True, eq=False)
 class EdgeModel:

@@ -40,6 +40,8 @@ from scanner_core.pose_quick import _quick_fits
 
 # Model points that seed a coarse candidate's translation.
 _SEED_POINTS = 5000
+# Poses whose seeds a model remembers (the coarse grid's 27 around each grasp it is held by).
+_SEED_CACHE = 1024
 # A converged fit is scored at this many times the expected scatter.
 _FINAL_TOL = 5.0
 
@@ -419,15 +421,31 @@ def _weakest_rotation(surface, edges, pose, centre, params, *, weakness: bool = 
 def _seed_translations(pts, model, poses) -> np.ndarray:
     """Shift each of the (P, 4, 4) `poses` so that the model's sensor-facing side meets the
     scan: centres in x, y, the nearest surfaces to the sensor (largest z_T) in z."""
-    few = slice(None, None, max(1, len(model.points) // _SEED_POINTS))
     scan_xy = np.median(pts[:, :2], axis=0)
     scan_z = np.percentile(pts[:, 2], 95)
     moved = np.array(poses, dtype=np.float64, copy=True)
     for pose in moved:
-        model_t = model.points[few] @ pose[:3, :3].T + pose[:3, 3]
-        facing = (model.normals[few] @ pose[:3, :3].T)[:, 2] > 0.3
-        if facing.sum() < 10:
-            facing = np.ones(len(model_t), bool)
-        pose[:2, 3] += scan_xy - np.median(model_t[facing, :2], axis=0)
-        pose[2, 3] += scan_z - np.percentile(model_t[facing, 2], 95)
+        model_xy, model_z = _model_seed(model, pose)
+        pose[:2, 3] += scan_xy - model_xy
+        pose[2, 3] += scan_z - model_z
     return moved
+
+
+def _model_seed(model, pose) -> tuple[np.ndarray, float]:
+    """The median (x, y) and the 95th percentile z_T of the model's sensor-facing samples
+    at `pose`, remembered per pose (``SurfaceModel.seed_cache``)."""
+    cache = getattr(model, "seed_cache", None)
+    key = np.asarray(pose, dtype=np.float64).tobytes()
+    if cache is not None and key in cache:
+        return cache[key]
+    few = slice(None, None, max(1, len(model.points) // _SEED_POINTS))
+    model_t = model.points[few] @ pose[:3, :3].T + pose[:3, 3]
+    facing = (model.normals[few] @ pose[:3, :3].T)[:, 2] > 0.3
+    if facing.sum() < 10:
+        facing = np.ones(len(model_t), bool)
+    seed = (np.median(model_t[facing, :2], axis=0), np.percentile(model_t[facing, 2], 95))
+    if cache is not None:
+        if len(cache) >= _SEED_CACHE:
+            cache.clear()
+        cache[key] = seed
+    return seed

@@ -755,6 +755,31 @@ def test_the_compiled_agreement_test_is_numpy_s(planes):
     assert np.array_equal(got, expected)
 
 
+def test_the_coarse_seeds_remembered_per_part_are_the_seeds(monkeypatch):
+    """The model's side of a coarse seed depends on the pose alone: remembered per part, the
+    seeds are the same, and the memory stays bounded."""
+    import scanner_core.pose_search as search
+    from simulator.parts import block_with_holes_and_steps
+
+    model = SurfaceModel.from_mesh(block_with_holes_and_steps())
+    rng = np.random.default_rng(6)
+    poses = np.tile(np.eye(4), (5, 1, 1))
+    poses[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.3, (5, 3))).as_matrix()
+    poses[:, :3, 3] = rng.normal(0, 5, (5, 3))
+    scan = rng.normal(0, 10, (300, 3))
+    fresh = search._seed_translations(scan, model, poses)
+    assert len(model.seed_cache) == 5
+    assert np.array_equal(search._seed_translations(scan, model, poses), fresh)
+    # a duck-typed model without the memory seeds the same
+    plain = type("Plain", (), {"points": model.points, "normals": model.normals})()
+    assert np.array_equal(search._seed_translations(scan, plain, poses), fresh)
+    monkeypatch.setattr(search, "_SEED_CACHE", 3)
+    shifted = poses[:2].copy()
+    shifted[:, :3, 3] += 1.0
+    search._seed_translations(scan, model, shifted)
+    assert len(model.seed_cache) <= 3
+
+
 def test_a_fit_that_comes_back_to_an_earlier_pose_has_settled():
     """Correspondences that flip between a few sets send a fit round a cycle of steps that
     neither shrink nor creep; coming back to a pose it has been at ends it."""
