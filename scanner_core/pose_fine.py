@@ -81,9 +81,12 @@ class _Terms:
     memo: NearestMemo | None = field(default=None, init=False, repr=False, compare=False)
 
     def subset(self, index) -> "_Terms":
-        return _Terms(self.points[index], None if self.normals is None else self.normals[index],
-                      self.frames[index], self.model, self.agreement,
-                      None if self.steps_mm is None else self.steps_mm[index], self.approximate)
+        # contiguous whatever the index (a slice is a strided view): the compiled rows take
+        # one layout (``scanner_core.pose_warm`` compiles it)
+        def take(values):
+            return None if values is None else np.ascontiguousarray(values[index])
+        return _Terms(take(self.points), take(self.normals), take(self.frames), self.model,
+                      self.agreement, take(self.steps_mm), self.approximate)
 
     def rough(self) -> "_Terms":
         """The same points matched through the model's lookup table

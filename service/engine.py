@@ -28,6 +28,7 @@ from scanner_core.exposure import ExposureController
 from scanner_core.finish import CrossCheckState, PassOutcome, finish_pass, pass_failure
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_in_view,
                                    measure_frame, warm_up)
+from scanner_core.pose_warm import warm_up_pose
 from scanner_core.trigger import EndReason, Trigger, TriggerError, TriggerState
 from scanner_core.types import Frame, MarkerObservation
 from service.jobs import ScanJob, new_scan_id
@@ -121,7 +122,7 @@ class Engine:
     # -- life cycle -------------------------------------------------------------------------
 
     def start(self) -> None:
-        self.warmup_ms = warm_up(self.calibration, self.params)
+        self.warmup_ms = warm_up(self.calibration, self.params) + warm_up_pose()
         self._running.set()
         self._open_camera()
         try:

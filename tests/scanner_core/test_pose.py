@@ -799,3 +799,26 @@ def test_a_fit_that_comes_back_to_an_earlier_pose_has_settled():
 def test_a_search_on_too_few_points_is_refused():
     with pytest.raises(ValueError, match="search_points"):
         PoseParams(search_points=10)
+
+
+def test_the_warm_up_compiles_what_a_pose_runs(block):
+    """After ``warm_up_pose`` a pose that searches coarsely (about 10 mm and 20 degrees off,
+    its scan's points more than the fine stage's warm start needs) compiles nothing more:
+    the first pass's pose waits for no compiler."""
+    import scanner_core._pose_rows as rows
+    import scanner_core.nearest_table as table
+    from scanner_core.pose_warm import warm_up_pose
+
+    kernels = [rows.plane_rows, rows.matched_within, table._look_up, table._to_ask,
+               table._answer]
+    assert warm_up_pose() > 0
+    compiled = [set(k.signatures) for k in kernels]
+    assert all(compiled)
+    mesh, nominal, model, edge_model = block
+    truth = misplacement(8.0, -6.0, 3.0, 8.0, -10.0, 15.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=3, density=20.0)
+    assert len(pts) > 2000
+    result = register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
+                      edge_frame_ids=edge_frames, edge_model=edge_model)
+    assert result.coarse
+    assert [set(k.signatures) for k in kernels] == compiled
