@@ -376,27 +376,3 @@ def partly_lit(frame_ids, cloud_t, quality, brightness, ratio: float,
         reference.append(np.where(same, level[other], 0.0))
     one_side = seen[0] ^ seen[1]
     return one_side & (level < ratio * np.where(seen[0], reference[0], reference[1]))
-    ids, starts = np.unique(frame_ids, return_index=True)
-    order = np.argsort(frame_ids, kind="stable")
-    bounds = np.append(np.searchsorted(frame_ids[order], ids), len(order))
-    members = {f: order[bounds[i]:bounds[i + 1]] for i, f in enumerate(ids)}
-    trees = {f: cKDTree(cloud[m][:, :1]) for f, m in members.items()}
-    for f, idx in members.items():
-        seen, reference = [], []
-        for g in (f - 1, f + 1):
-            if g not in members:
-                seen.append(np.zeros(len(idx), bool))
-                reference.append(np.zeros(len(idx)))
-                continue
-            dist, j = trees[g].query(cloud[idx, :1], distance_upper_bound=match_mm)
-            found = np.isfinite(dist)
-            other = members[g][np.where(found, j, 0)]
-            # The same surface: no steeper than about 56 degrees between the two profiles.
-            dz = np.abs(cloud[other, 2] - cloud[idx, 2])
-            dy = np.abs(cloud[other, 1] - cloud[idx, 1])
-            same = found & (dz <= np.maximum(0.5, 1.5 * dy))
-            seen.append(same)
-            reference.append(np.where(same, level[other], 0.0))
-        one_side = seen[0] ^ seen[1]
-        out[idx] = one_side & (level[idx] < ratio * np.where(seen[0], reference[0], reference[1]))
-    return out

@@ -26,6 +26,8 @@ import dataclasses
 import time
 from dataclasses import dataclass
 
+import numpy as np
+
 from scanner_core.crosscheck import (DEFAULT_TOLERANCE_MM, MAX_DRIFT_STEP_S, MAX_OFFSET_STEP_S,
                                      cross_check)
 from scanner_core.devices import Robot
@@ -33,6 +35,10 @@ from scanner_core.edge_kinds import reclassify_with_model
 from scanner_core.report import scan_report
 from scanner_core.trigger import EndReason
 from scanner_core.types import Scan
+
+#: How long the cross-check waits for the robot's reports to reach the pass's last frame, s,
+#: and how often it looks. It runs after the pose is out: the robot never waits for it.
+REPORT_WAIT_S, REPORT_POLL_S = 0.2, 0.002
 
 __all__ = ["CrossCheckState", "PassOutcome", "pass_failure", "check_against_robot",
            "finish_pass"]
@@ -187,6 +193,7 @@ def check_against_robot(scan: Scan, robot: Robot, state: CrossCheckState, *,
                            max_offset_step_s=max_step_s, led_correction_t_mm=correction,
                            tolerance_mm=state.tolerance_mm)
 
+    _await_reports(robot, scan.tcp_times, state.clock_offset_s)
     max_step_s = MAX_DRIFT_STEP_S if state.clock_offset_estimated else MAX_OFFSET_STEP_S
     result = check(state.led_correction_t_mm, state.clock_offset_s, max_step_s)
     if state.led_correction_t_mm is None and result["samples"] and result["offset_estimated"]:
@@ -212,6 +219,28 @@ def check_against_robot(scan: Scan, robot: Robot, state: CrossCheckState, *,
         state = dataclasses.replace(state, clock_offset_s=float(result["clock_offset_s"]),
                                     clock_offset_estimated=True)
     return result, state
+
+
+def _await_reports(robot: Robot, tcp_times, clock_offset_s: float,
+                   timeout_s: float = REPORT_WAIT_S) -> None:
+    """Wait, at most `timeout_s`, until the robot has reported for the pass's last frame
+    (its time on the robot's clock through `clock_offset_s`): the reports come over the
+    network behind the frames, and a pass checked before they arrive would call its last
+    frames unchecked. Returns at once without a robot, a connection or a report."""
+    times = np.asarray(tcp_times, dtype=np.float64)
+    if robot is None or not robot.connected or not np.isfinite(times).any():
+        return
+    until = float(np.nanmax(times)) + clock_offset_s
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            if robot.latest().t >= until:
+                return
+        except RuntimeError:  # none has arrived
+            return
+        if time.monotonic() >= deadline:
+            return
+        time.sleep(REPORT_POLL_S)
 
 
 def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,

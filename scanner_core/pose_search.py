@@ -32,10 +32,10 @@ import numpy as np
 from scipy.ndimage import maximum_filter1d
 from scipy.spatial.transform import Rotation
 
+from scanner_core._pose_rows import matched_within
 from scanner_core.pose_fine import (_EDGE_SEARCH_MM, _MIN_EDGE_LEVEL, _evenly, _Fit, _fine,
                                     _information, _linearise, _nearest, _spacing, _subsample,
                                     _Terms)
-from scanner_core._pose_rows import matched_within
 from scanner_core.pose_quick import _quick_fits
 
 # Model points that seed a coarse candidate's translation.

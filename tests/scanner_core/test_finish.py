@@ -141,3 +141,49 @@ def test_frames_on_a_held_rotation_flag_the_check_with_their_fraction(simulated_
     assert check["held_rotation_fraction"] == round(held.frames_held_rotation / scan.frames, 4)
     assert f"{held.frames_held_rotation} of {scan.frames} frames" in check["reason"]
     assert outcome.report["cross_check"]["held_rotation_fraction"] == check["held_rotation_fraction"]
+
+
+class _ReportsLate:
+    """The simulated robot whose reports after robot time ``t`` arrive `delay_s` late: until
+    then it has no pose for later times, and its newest is at ``t``."""
+
+    def __init__(self, robot, t: float, delay_s: float):
+        import time
+
+        self._robot, self._t = robot, t
+        self._arrived = time.monotonic() + delay_s
+        self.connected = True
+
+    def _late(self) -> bool:
+        import time
+
+        return time.monotonic() < self._arrived
+
+    def pose_at(self, t: float):
+        if t > self._t and self._late():
+            raise LookupError(f"no pose at {t} yet")
+        return self._robot.pose_at(t)
+
+    def latest(self):
+        return self._robot.pose_at(self._t) if self._late() else self._robot.latest()
+
+
+def test_the_check_waits_for_the_robot_s_reports_on_the_last_frames(simulated_pass):
+    """Reports of the pass's last tenth that arrive 50 ms after the pass is finished (a robot
+    on a loaded network, a pose that came out quickly): the check waits for them and checks
+    every frame, unflagged; a robot lost for those frames still flags it (after the wait)."""
+    import time
+
+    scan, sim, part = simulated_pass
+    held = copy.copy(scan)
+    held.frames_held_rotation = scan.frames // 10
+    state = CrossCheckState(clock_offset_s=0.0125, clock_offset_estimated=True)
+    last_reported = scan.tcp_times[scan.frames - held.frames_held_rotation] + 0.0125
+    t0 = time.monotonic()
+    check = finish_pass(held, EndReason.MARKER_GONE, _ReportsLate(sim.robot, last_reported, 0.05),
+                        state).cross_check
+    assert time.monotonic() - t0 >= 0.05
+    assert check["samples"] == scan.frames and not check["flagged"], check
+    lost = finish_pass(held, EndReason.MARKER_GONE, _LostAfter(sim.robot, last_reported),
+                       state).cross_check
+    assert lost["flagged"] and lost["samples"] < scan.frames
