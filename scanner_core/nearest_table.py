@@ -159,7 +159,8 @@ class NearestMemo:
             self.first[ask] = dist[:, 0]
             self.others[ask] = np.minimum(dist[:, 1], bound)
             self.bound[ask] = bound
-        return _answer(points, self.index, self.first, self.tree.data, bound)
+        return _within(points, np.where(np.isfinite(self.first), self.index, -1),
+                       self.tree.data, bound)
 
 
 @njit(nogil=True, cache=True)
@@ -179,45 +180,13 @@ def _to_ask(points, where, first, others, asked_bound, bound):
 
 
 @njit(nogil=True, cache=True)
-def _answer(points, index, first, set_points, bound):
-    """Each point's distance to its remembered nearest, and its index, within `bound`."""
+def _within(points, candidate, set_points, bound):
+    """Each point's distance to its `candidate` of the set (-1: none) and the candidate's
+    index, where within `bound`; inf and the set's size elsewhere."""
     dist = np.full(len(points), np.inf)
-    found = np.full(len(points), len(set_points), np.int64)
+    index = np.full(len(points), len(set_points), np.int64)
     for i in range(len(points)):
-        if not np.isfinite(first[i]):
-            continue
-        j = index[i]
-        dx = points[i, 0] - set_points[j, 0]
-        dy = points[i, 1] - set_points[j, 1]
-        dz = points[i, 2] - set_points[j, 2]
-        d = np.sqrt(dx * dx + dy * dy + dz * dz)
-        if d <= bound:
-            dist[i], found[i] = d, j
-    return dist, found
-
-
-@njit(nogil=True, cache=True)
-def _look_up(points, origin, voxel_mm, table, set_points, bound):
-    """`NearestTable.query` on the table alone, in one pass: each point's voxel (the nearest
-    centre; none outside the grid), its point and its true distance, within `bound`."""
-    count = len(points)
-    size = len(set_points)
-    nx, ny, nz = table.shape
-    dist = np.full(count, np.inf)
-    index = np.full(count, size, np.int64)
-    cell = np.empty(3, np.int64)
-    for i in range(count):
-        outside = False
-        for a, extent in enumerate((nx, ny, nz)):
-            x = points[i, a]
-            if not (x >= origin[a] - voxel_mm / 2 and x <= origin[a] + (extent - 0.5) * voxel_mm):
-                outside = True
-                break
-            c = int(np.rint((x - origin[a]) / voxel_mm))
-            cell[a] = min(max(c, 0), extent - 1)
-        if outside:
-            continue
-        j = table[cell[0], cell[1], cell[2]]
+        j = candidate[i]
         if j < 0:
             continue
         dx = points[i, 0] - set_points[j, 0]
@@ -227,3 +196,24 @@ def _look_up(points, origin, voxel_mm, table, set_points, bound):
         if d <= bound:
             dist[i], index[i] = d, j
     return dist, index
+
+
+@njit(nogil=True, cache=True)
+def _look_up(points, origin, voxel_mm, table, set_points, bound):
+    """`NearestTable.query` on the table alone, in one pass: each point's voxel (the nearest
+    centre; none outside the grid), its point and its true distance, within `bound`."""
+    nx, ny, nz = table.shape
+    candidate = np.full(len(points), -1, np.int64)
+    cell = np.empty(3, np.int64)
+    for i in range(len(points)):
+        outside = False
+        for a, extent in enumerate((nx, ny, nz)):
+            x = points[i, a]
+            if not (x >= origin[a] - voxel_mm / 2 and x <= origin[a] + (extent - 0.5) * voxel_mm):
+                outside = True
+                break
+            c = int(np.rint((x - origin[a]) / voxel_mm))
+            cell[a] = min(max(c, 0), extent - 1)
+        if not outside:
+            candidate[i] = table[cell[0], cell[1], cell[2]]
+    return _within(points, candidate, set_points, bound)

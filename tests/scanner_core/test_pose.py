@@ -810,7 +810,7 @@ def test_the_warm_up_compiles_what_a_pose_runs(block):
     from scanner_core.pose_warm import warm_up_pose
 
     kernels = [rows.plane_rows, rows.matched_within, table._look_up, table._to_ask,
-               table._answer]
+               table._within]
     assert warm_up_pose() > 0
     compiled = [set(k.signatures) for k in kernels]
     assert all(compiled)
