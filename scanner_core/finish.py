@@ -9,7 +9,9 @@ live pass reported.
    (it timed out, the camera stopped, no profile was placed, no point was found...).
 2. **Pose** (``scanner_core.pose.scan_pose``) against the part's CAD model
    (``scanner_core.cad.PartModel``), when the pass is a scan and a model is given, handed
-   at once to ``on_pose`` (the service publishes it: the robot waits for it alone); with a
+   at once to ``on_pose`` (the service publishes it: the robot waits for it alone), or the
+   pose computed before the pass ended, when the pass added nothing it reads
+   (``scanner_core.pose_ahead``); with a
    pose that constrains every axis the edge points off the model's edges are then set aside
    (``scanner_core.edge_kinds.reclassify_with_model``: the model says where its edges are).
 3. **Cross-check** (:func:`check_against_robot`): the marker-derived TCP track against the
@@ -32,6 +34,8 @@ from scanner_core.crosscheck import (DEFAULT_TOLERANCE_MM, MAX_DRIFT_STEP_S, MAX
                                      cross_check)
 from scanner_core.devices import Robot
 from scanner_core.edge_kinds import reclassify_with_model
+from scanner_core.pose_ahead import PoseAhead, inputs_pose_report
+from scanner_core.pose_inputs import ScanPoseInputs
 from scanner_core.report import scan_report
 from scanner_core.trigger import EndReason
 from scanner_core.types import Scan
@@ -247,7 +251,8 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
                 state: CrossCheckState, part_model=None, *, pose_params=None,
                 scan_id: str | None = None, detail: str | None = None, note: str | None = None,
                 frames_lost: int = 0, queue_overflows: int = 0, worker_errors=(),
-                on_pose=None, **report_extra) -> PassOutcome:
+                on_pose=None, pose_ahead: PoseAhead | None = None,
+                **report_extra) -> PassOutcome:
     """A finished pass's verdict, cross-check, pose, edges and report.
 
     Parameters
@@ -273,6 +278,11 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
         ``pose_report`` will be; ``timings_ms`` the timings so far (``pose``, ``normals``,
         ``registration``: the cross-check comes after the pose, which does not use it). Not
         called when no pose is asked for (no model, a failed pass).
+    pose_ahead : scanner_core.pose_ahead.PoseAhead, optional
+        A pose computed before the pass ended (``scanner_core.pose_ahead.pose_ahead``): kept
+        when this scan's pose inputs, model and params are its own (then ``timings_ms`` has
+        ``ahead``, that pose's own time, and no ``normals`` or ``registration``), else the
+        pose is computed here.
     **report_extra
         Further ``report.json`` entries (the service's scan id and times, a replay's source).
 
@@ -280,7 +290,7 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
     -------
     PassOutcome
     """
-    from scanner_core.pose import PoseParams, scan_pose
+    from scanner_core.pose import PoseParams
 
     timings = {}
     failure = pass_failure(scan, end_reason, detail=detail, note=note, frames_lost=frames_lost,
@@ -288,15 +298,14 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
     pose = pose_report = None
     if failure is None and part_model is not None:
         t0 = time.perf_counter()
-        try:
-            pose = scan_pose(scan, part_model.surface_model, part_model.grasp,
-                             edge_model=part_model.edge_model, params=pose_params or PoseParams())
-        except ValueError as exc:
-            pose_report = {"refused": str(exc)}
+        params = pose_params or PoseParams()
+        inputs = ScanPoseInputs.of(scan)
+        if pose_ahead is not None and pose_ahead.serves(inputs, part_model, params):
+            pose, pose_report = pose_ahead.pose, dict(pose_ahead.report)
+            timings["ahead"] = pose_ahead.timings_ms["pose"]
         else:
-            pose_report = pose.to_dict()
-            timings["normals"] = round(pose.normals_ms, 3)
-            timings["registration"] = round(pose.time_ms, 3)
+            pose, pose_report, computed = inputs_pose_report(inputs, part_model, params)
+            timings.update(computed)
         timings["pose"] = round((time.perf_counter() - t0) * 1e3, 3)
         if on_pose is not None:
             on_pose(pose_report, dict(timings))

@@ -109,6 +109,8 @@ class PassAccumulator:
                                              else np.asarray(fallback_rotation, np.float64))
         self._rotation_t = -np.inf
         self._newest: tuple[int, np.ndarray, np.ndarray] | None = None  # id, columns, rows
+        self._newest_id = -1           # the newest frame added
+        self._newest_with_points = -1  # the newest frame placed with points or edge points
 
     def expected_rows(self, frame_id: int) -> np.ndarray | None:
         """(W,) float64: the stripe's rows in the newest profile placed at most
@@ -162,6 +164,9 @@ class PassAccumulator:
                                        profile.exposure_us * profile.gain)
         with self._lock:
             self._frame_ids.append(profile.frame_id)
+            self._newest_id = max(self._newest_id, profile.frame_id)
+            if placed is not None and (len(placed.cloud_t) or len(placed.edges_t)):
+                self._newest_with_points = max(self._newest_with_points, profile.frame_id)
             if np.isfinite(profile.marker.residual_px):
                 self._residuals.append(profile.marker.residual_px)
             if placed is None:
@@ -174,6 +179,15 @@ class PassAccumulator:
                                                  or profile.frame_id > self._newest[0]):
                     self._newest = (profile.frame_id, profile.columns, profile.rows)
         return placed is not None
+
+    def quiet_since(self, frames: int) -> int | None:
+        """The newest frame that placed points (or edge points), when the `frames` frames
+        after it have placed none: the part has left the sheet (or a gap in it is passing);
+        None before the first point, or while points still come."""
+        with self._lock:
+            if self._newest_with_points < 0 or self._newest_id - self._newest_with_points < frames:
+                return None
+            return self._newest_with_points
 
     @property
     def frames_seen(self) -> int:

@@ -48,18 +48,18 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanner_core.pose_confidence import (MAX_PROFILE_SPACING_MM, MIN_COVERAGE,
-                                          _coverage_flags, _flags, _rival_words, _uncertainty,
+from scanner_core.pose_confidence import (MIN_COVERAGE, _coverage_flags, _flags, _rival_words, _uncertainty,
                                           judge)
 from scanner_core.pose_fine import _fine, _subsample, _Terms
-from scanner_core.pose_inputs import (add_placement_error, check_inputs, edge_steps,
-                                      scan_steps)
+from scanner_core.pose_inputs import (MAX_PROFILE_SPACING_MM, ScanPoseInputs,
+                                      add_placement_error, check_inputs, edge_steps)
 from scanner_core.pose_models import (BEVEL_MM, TOWARD_MIN, EdgeModel, SurfaceModel,
                                       merge_bevels, outline_adjacency)
 from scanner_core.pose_search import (_better_turn, _coarse, _final_score, _probe_turns,
                                       _turn_deg)
 
 __all__ = ["PoseParams", "SurfaceModel", "EdgeModel", "PoseResult", "register", "scan_pose",
+           "inputs_pose", "ScanPoseInputs",
            "AXIS_NAMES", "MIN_POSE_POINTS", "BEVEL_MM", "TOWARD_MIN", "merge_bevels",
            "outline_adjacency", "MAX_PROFILE_SPACING_MM", "MIN_COVERAGE"]
 
@@ -443,37 +443,45 @@ def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeMod
               params: PoseParams = PoseParams()) -> PoseResult:
     """The pose of a stitched scan (``scanner_core.types.Scan``): its cloud (up to
     ``params.max_points`` of it) with normals toward the camera, its frames as clusters, and
-    its edge cloud when it has one.
+    its edge cloud when it has one. :func:`inputs_pose` of what it reads of the scan
+    (``ScanPoseInputs.of``).
 
     Raises
     ------
     ValueError
         Fewer than `MIN_POSE_POINTS` points: no pose is better than a guess.
     """
-    from scanner_core.normals import estimate_normals
-    from scanner_core.scanio import point_sensors
+    return inputs_pose(ScanPoseInputs.of(scan), surface_model, nominal, edge_model=edge_model,
+                       params=params)
 
-    if len(scan.cloud) < MIN_POSE_POINTS:
+
+def inputs_pose(inputs: ScanPoseInputs, surface_model: SurfaceModel, nominal, *,
+                edge_model: EdgeModel | None = None,
+                params: PoseParams = PoseParams()) -> PoseResult:
+    """:func:`scan_pose` of a scan's `inputs`: a function of them alone (a fixed seed), so
+    the same inputs give the same pose, bit for bit."""
+    from scanner_core.normals import estimate_normals
+
+    if len(inputs.cloud) < MIN_POSE_POINTS:
         raise ValueError(f"a pose needs at least {MIN_POSE_POINTS} points, the scan has "
-                         f"{len(scan.cloud)}")
-    edge_frames = getattr(scan, "edge_frame_ids", None)
-    use_edges = edge_model is not None and len(scan.edges) > 0 and edge_frames is not None
+                         f"{len(inputs.cloud)}")
+    use_edges = (edge_model is not None and inputs.edges is not None and len(inputs.edges) > 0)
     # Normals only where the fit looks (neighbours from the whole cloud): most of a pose's
     # time would otherwise go to normals it never uses.
     t0 = time.perf_counter()
-    used = _subsample(len(scan.cloud), params.max_points, np.random.default_rng(params.seed))
-    normals = estimate_normals(scan.cloud, sensors=point_sensors(scan), frame_ids=scan.frame_ids,
+    used = _subsample(len(inputs.cloud), params.max_points, np.random.default_rng(params.seed))
+    normals = estimate_normals(inputs.cloud, sensors=inputs.sensors, frame_ids=inputs.frame_ids,
                                index=used)
-    result = _register(scan.cloud[used], normals, surface_model, nominal,
-                       frame_ids=scan.frame_ids[used],
-                       edges_t=scan.edges if use_edges else None,
-                       edge_frame_ids=edge_frames if use_edges else None,
+    result = _register(inputs.cloud[used], normals, surface_model, nominal,
+                       frame_ids=inputs.frame_ids[used],
+                       edges_t=inputs.edges if use_edges else None,
+                       edge_frame_ids=inputs.edge_frame_ids if use_edges else None,
                        edge_model=edge_model if use_edges else None,
-                       edge_steps_mm=scan_steps(scan) if use_edges else None, params=params)
-    result.flags += _coverage_flags(scan, result.matrix, surface_model)
-    placement = getattr(scan, "placement_std_mm", None)
+                       edge_steps_mm=inputs.edge_steps_mm if use_edges else None, params=params)
+    result.flags += _coverage_flags(inputs, result.matrix, surface_model)
+    placement = inputs.placement_std_mm
     add_placement_error(result, np.zeros(3) if placement is None else placement,
-                         params.robot_rotation_std_deg)
+                        params.robot_rotation_std_deg)
     judged = time.perf_counter()
     judge(result, surface_model, params)
     result.time_ms += (time.perf_counter() - judged) * 1e3

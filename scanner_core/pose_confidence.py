@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from scanner_core.pose_fine import _directions, _Fit
+from scanner_core.pose_inputs import ScanPoseInputs
 from scanner_core.pose_models import SurfaceModel
 
 if TYPE_CHECKING:
@@ -38,9 +39,6 @@ _FREE_TURN = 1e-8
 
 #: A flag that informs and does not stop a robot acting on the pose (``judge``).
 EDGES_NOTE = "edges: "
-#: Profiles farther apart than this (mm) sample a part's features too coarsely for the
-#: uncertainty to be trusted: a hole's rim crossed by two profiles pins little.
-MAX_PROFILE_SPACING_MM = 3.0
 #: A scan covering less of the part's length along the pass than this is partial.
 MIN_COVERAGE = 0.9
 
@@ -206,19 +204,15 @@ def _flags(fit: _Fit, free_axes, with_edges: bool, params: PoseParams) -> list[s
     return flags
 
 
-def _coverage_flags(scan, pose, surface_model: SurfaceModel) -> list[str]:
+def _coverage_flags(inputs: ScanPoseInputs, pose, surface_model: SurfaceModel) -> list[str]:
     """Flags a pose cannot raise from its fit alone: profiles too far apart, and a pass that
     saw only part of the part (the trigger started late, or the pass ended early)."""
-    flags = []
-    spacing = scan.profile_spacing_mm
-    if spacing > MAX_PROFILE_SPACING_MM:  # False for NaN: fewer than two profiles
-        flags.append(f"sparse: {spacing:.1f} mm between profiles (at most "
-                     f"{MAX_PROFILE_SPACING_MM:g})")
+    flags = [] if inputs.sparse is None else [inputs.sparse]
     normals_t = surface_model.normals @ pose[:3, :3].T
     facing = normals_t[:, 2] > 0.3  # the sensor looks up at the part along -z_T
     if facing.any():
         along = (surface_model.points[facing] @ pose[:3, :3].T + pose[:3, 3])[:, 1]
-        seen = scan.cloud[:, 1]
+        seen = inputs.cloud[:, 1]
         length = float(along.max() - along.min())
         overlap = min(along.max(), seen.max()) - max(along.min(), seen.min())
         coverage = max(0.0, float(overlap)) / length if length > 0 else 1.0

@@ -1,13 +1,116 @@
-"""The pose's inputs, checked and prepared (`check_inputs`, `edge_steps`, `scan_steps`), and
-the errors every profile's placement shares, added to its covariance (`add_placement_error`).
+"""The pose's inputs, checked and prepared (`check_inputs`, `edge_steps`, `scan_steps`), what
+a scan's pose reads of the scan (`ScanPoseInputs`), and the errors every profile's placement
+shares, added to its covariance (`add_placement_error`).
 
 Units: mm; the covariance's rotations in rad, the reported sigmas in degrees.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+
 import numpy as np
 
-__all__ = ["add_placement_error", "scan_steps", "check_inputs", "edge_steps"]
+__all__ = ["add_placement_error", "scan_steps", "check_inputs", "edge_steps", "ScanPoseInputs",
+           "MAX_PROFILE_SPACING_MM", "sparse_flag", "part_spacing_mm"]
+
+#: Profiles farther apart than this (mm) sample a part's features too coarsely for the
+#: uncertainty to be trusted: a hole's rim crossed by two profiles pins little.
+MAX_PROFILE_SPACING_MM = 3.0
+
+
+def sparse_flag(spacing_mm: float) -> str | None:
+    """The flag for profiles `spacing_mm` apart, or None when they are close enough (and for
+    NaN: fewer than two profiles)."""
+    if spacing_mm > MAX_PROFILE_SPACING_MM:
+        return (f"sparse: {spacing_mm:.1f} mm between profiles (at most "
+                f"{MAX_PROFILE_SPACING_MM:g})")
+    return None
+
+
+def part_spacing_mm(scan) -> float:
+    """The median distance between consecutive profiles (the TCP's steps) from the first to
+    the last frame that placed a point, mm: the profiles' spacing on the part, not on the
+    whole pass, whose start and end (the robot speeding up, the gripper's way out after the
+    part has left the sheet) do not sample it. NaN with fewer than two such profiles;
+    ``Scan.profile_spacing_mm`` when the scan does not list its frames' ids."""
+    frames = getattr(scan, "tcp_frame_ids", None)
+    track = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
+    if frames is None or len(frames) != len(track):
+        return scan.profile_spacing_mm
+    if not len(scan.frame_ids):
+        return float("nan")
+    frames = np.asarray(frames)
+    on_part = track[(frames >= scan.frame_ids.min()) & (frames <= scan.frame_ids.max())]
+    if len(on_part) < 2:
+        return float("nan")
+    return float(np.median(np.linalg.norm(np.diff(on_part, axis=0), axis=1)))
+
+
+@dataclass(frozen=True, eq=False)
+class ScanPoseInputs:
+    """What a scan's pose (``scanner_core.pose.scan_pose``) reads of the scan, and nothing
+    else: two scans whose inputs are the same (:meth:`same_as`) have the same pose, bit for
+    bit. The service computes a pass's pose once the part has left the sheet, while the
+    gripper finishes the pass, and keeps it when the whole pass's inputs turn out the same
+    (``scanner_core.finish.pose_ahead``).
+
+    Attributes
+    ----------
+    cloud : (N, 3) float32
+        The points, mm in {T}.
+    frame_ids : (N,) int
+        Each point's frame.
+    sensors : (N, 3) float64
+        The camera's centre at each point's frame, mm in {T} (NaN where unknown).
+    edges : (M, 3) float32 or None
+        The edge cloud, mm in {T}; None when the scan has no frames for its edge points.
+    edge_frame_ids : (M,) int or None
+    edge_steps_mm : (M,) float64 or None
+        ``scan_steps``: each edge point's step height, 0 for a drop-out.
+    placement_std_mm : (3,) float64 or None
+        ``Scan.placement_std_mm``.
+    sparse : str or None
+        ``sparse_flag`` of ``part_spacing_mm``: the pose reads the spacing through it alone.
+    """
+
+    cloud: np.ndarray
+    frame_ids: np.ndarray
+    sensors: np.ndarray
+    edges: np.ndarray | None
+    edge_frame_ids: np.ndarray | None
+    edge_steps_mm: np.ndarray | None
+    placement_std_mm: np.ndarray | None
+    sparse: str | None
+
+    @classmethod
+    def of(cls, scan) -> "ScanPoseInputs":
+        from scanner_core.scanio import point_sensors  # its PLY writer: not at import
+
+        edge_frames = getattr(scan, "edge_frame_ids", None)
+        placement = getattr(scan, "placement_std_mm", None)
+        return cls(cloud=np.asarray(scan.cloud), frame_ids=np.asarray(scan.frame_ids),
+                   sensors=point_sensors(scan),
+                   edges=None if edge_frames is None else np.asarray(scan.edges),
+                   edge_frame_ids=None if edge_frames is None else np.asarray(edge_frames),
+                   edge_steps_mm=scan_steps(scan),
+                   placement_std_mm=None if placement is None else np.asarray(placement,
+                                                                              np.float64),
+                   sparse=sparse_flag(part_spacing_mm(scan)))
+
+    def same_as(self, other: "ScanPoseInputs") -> bool:
+        """Whether every input is the same, value for value (NaN equal to NaN), in the same
+        dtype and shape."""
+        for field in fields(self):
+            mine, theirs = getattr(self, field.name), getattr(other, field.name)
+            if isinstance(mine, np.ndarray) or isinstance(theirs, np.ndarray):
+                if not (isinstance(mine, np.ndarray) and isinstance(theirs, np.ndarray)
+                        and mine.dtype == theirs.dtype and mine.shape == theirs.shape
+                        and np.array_equal(mine, theirs,
+                                           equal_nan=mine.dtype.kind in "fc")):
+                    return False
+            elif mine != theirs:
+                return False
+        return True
 
 
 def add_placement_error(result, std_mm, rotation_std_deg: float = 0.0) -> None:

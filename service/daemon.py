@@ -336,6 +336,8 @@ class Service:
             for key in ("normals", "registration"):
                 if key in timings:
                     path[key] = timings[key]
+            if "ahead" in timings:  # computed before the pass ended: not on the path
+                job.latency_ms["pose_ahead"] = timings["ahead"]
             path["pose_checks"] = max(round(timings["pose"] - timings.get("normals", 0.0)
                                             - timings.get("registration", 0.0), 3), 0.0)
             path["handed"] = time.monotonic()

@@ -28,9 +28,11 @@ from scanner_core.exposure import ExposureController
 from scanner_core.finish import CrossCheckState, PassOutcome, finish_pass, pass_failure
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_in_view,
                                    measure_frame, warm_up)
+from scanner_core.pose_ahead import pose_ahead
 from scanner_core.pose_warm import warm_up_pose
 from scanner_core.trigger import EndReason, Trigger, TriggerError, TriggerState
 from scanner_core.types import Frame, MarkerObservation
+from service.engine_status import engine_status
 from service.jobs import ScanJob, new_scan_id
 from service.live_recording import LiveRecording
 
@@ -40,6 +42,9 @@ log = logging.getLogger("flyscan.engine")
 CAMERA_REOPEN_S = 1.0
 #: The finisher waits at most this long for a pass's last profiles, s.
 FINISH_WAIT_S = 30.0
+#: After this many frames without a point the part has left the sheet: the finisher computes
+#: the pose of the pass so far (``scanner_core.pose_ahead``), kept if the pass adds no point.
+AHEAD_QUIET_FRAMES = 4
 
 
 class EngineBusy(RuntimeError):
@@ -225,6 +230,7 @@ class Engine:
             except BaseException:
                 self.trigger.reset()
                 raise
+        job.part_model = part_model
         self.job = job
         return job
 
@@ -244,34 +250,7 @@ class Engine:
             self.calibration = calibration
 
     def status(self) -> dict:
-        with self._lock:
-            job = self.job
-            return {
-                "state": self.trigger.state.value,
-                "fault_reason": self.trigger.fault_reason,
-                "camera": {"state": self.camera_state, "error": self.camera_error,
-                           "fps": round(self.fps, 2), "frames": self.frames_total,
-                           "frames_dropped": self.frames_dropped,
-                           "exposure_mode": (self.params.exposure.mode if self.exposure.active
-                                             else "fixed"),
-                           "exposure_us": _finite_or_none(self.exposure_seen[0]),
-                           "gain": self.exposure_seen[1],
-                           "exposure_updates": self.exposure.updates,
-                           "clock": getattr(self.camera, "clock_status", None)},
-                "robot": _robot_status(self.robot),
-                "fps": round(self.fps, 2),
-                "frames_dropped": self.frames_dropped,
-                "queue": {"depth": self._frames.qsize(), "capacity": self._frames.maxsize,
-                          "overflows": self.queue_overflows},
-                "current_scan_id": job.scan_id if job and job.state in ("armed", "scanning", "processing") else None,
-                "last_scan_id": self.last_scan_id,
-                "scans_done": self.scans_done,
-                "scans_failed": self.scans_failed,
-                "clock_offset_s": self.clock_offset_s,
-                "led_correction_t_mm": (None if self.cross_check_state.led_correction_t_mm is None
-                                        else list(self.cross_check_state.led_correction_t_mm)),
-                "led_correction_from": self.cross_check_state.led_correction_from,
-            }
+        return engine_status(self)
 
     # -- threads ----------------------------------------------------------------------------
 
@@ -420,6 +399,30 @@ class Engine:
                 job.worker_errors.append(f"frame {frame.frame_id}: {exc!r}")
             finally:
                 job.processed((time.perf_counter() - t0) * 1e3)
+            self._ask_pose_ahead(job)
+
+    def _ask_pose_ahead(self, job: ScanJob) -> None:
+        """Queue the pose of the pass so far for the finisher, once per newest frame with
+        points, when no point has come for ``AHEAD_QUIET_FRAMES`` frames."""
+        accumulator = job.accumulator
+        if job.part_model is None or job.end_monotonic is not None or accumulator is None:
+            return
+        newest = accumulator.quiet_since(AHEAD_QUIET_FRAMES)
+        with self._lock:
+            if newest is not None and newest > job.ahead_asked:
+                job.ahead_asked = newest
+                self._ended.put((job, None))
+
+    def _pose_ahead(self, job: ScanJob) -> None:
+        """Finisher thread, during the pass: the pose of the pass so far (skipped once the pass
+        has ended: its finish is next, and computes it)."""
+        accumulator = job.accumulator
+        if job.end_monotonic is not None or accumulator is None:
+            return
+        try:
+            job.ahead = pose_ahead(accumulator.scan(), job.part_model, self.pose_params)
+        except Exception:  # the pass's end computes the pose as ever
+            log.exception("pose ahead of %s failed", job.scan_id)
 
     def _finish_loop(self) -> None:
         while True:
@@ -427,6 +430,9 @@ class Engine:
             if item is None:
                 return
             job, reason = item
+            if reason is None:
+                self._pose_ahead(job)
+                continue
             try:
                 self._finish(job, reason)
             except Exception as exc:  # the scan fails with the reason; the finisher goes on
@@ -443,7 +449,7 @@ class Engine:
                     self.scans_done += job.state == "done"
                     self.scans_failed += job.state == "failed"
                 job.finished = time.time()
-                job.accumulator = None  # the scan is out: its profiles are not kept in memory
+                job.accumulator = job.ahead = None  # the scan is out: not kept in memory
 
     def _finish_recording(self, job: ScanJob) -> None:
         try:
@@ -483,19 +489,9 @@ class Engine:
                 pose_params=self.pose_params, scan_id=job.scan_id, detail=job.end_detail,
                 note=job.note, frames_lost=job.frames_dropped,
                 queue_overflows=job.queue_overflows, worker_errors=job.worker_errors,
-                on_pose=on_pose, part=job.part, created=job.created)
+                on_pose=on_pose, pose_ahead=job.ahead, part=job.part, created=job.created)
             self.cross_check_state = outcome.cross_check_state
             job.state, job.reason = outcome.state, outcome.reason
             return outcome
 
         self.on_scan(job, scan, finish)
-
-
-def _robot_status(robot: Robot) -> dict:
-    """``connected``, and what a real robot backend tells of its link (``URRobot.status``)."""
-    details = getattr(robot, "status", None)
-    return {**(details() if callable(details) else {}), "connected": bool(robot.connected)}
-
-
-def _finite_or_none(value: float) -> float | None:
-    return float(value) if np.isfinite(value) else None

@@ -42,6 +42,13 @@ class ScanJob:
     info_extra: dict = field(default_factory=dict)
     #: ^B X_T,place (4, 4) mm: the taught place pose the finished scan's correction starts from.
     taught_place: object = None
+    #: The part's CAD model (``scanner_core.cad.PartModel``) the pass's pose is computed
+    #: against before the pass ends; None: no pose ahead.
+    part_model: object = None
+    #: The pose computed before the pass ended (``scanner_core.pose_ahead.PoseAhead``), and
+    #: the newest frame with points it was asked for.
+    ahead: object = None
+    ahead_asked: int = -1
     _in_flight: int = 0
     _idle: threading.Condition = field(default_factory=threading.Condition)
 
