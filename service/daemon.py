@@ -96,6 +96,7 @@ class Service:
                              on_scan=self._on_scan, on_pass_armed=self._on_pass_armed,
                              on_recorded=self._on_recorded,
                              workers=settings.workers, queue_frames=settings.queue_frames,
+                             pose_ahead_frames=settings.pose_ahead_frames,
                              camera_timeout_s=settings.camera_timeout_s,
                              cross_check_state=CrossCheckState(
                                  clock_offset_s=settings.clock_offset_s,

@@ -42,9 +42,6 @@ log = logging.getLogger("flyscan.engine")
 CAMERA_REOPEN_S = 1.0
 #: The finisher waits at most this long for a pass's last profiles, s.
 FINISH_WAIT_S = 30.0
-#: After this many frames without a point the part has left the sheet: the finisher computes
-#: the pose of the pass so far (``scanner_core.pose_ahead``), kept if the pass adds no point.
-AHEAD_QUIET_FRAMES = 4
 
 
 class EngineBusy(RuntimeError):
@@ -76,8 +73,10 @@ class Engine:
     on_recorded : callable(job, info), optional
         Called on the finisher thread when a recorded pass's recording is in place (or has
         failed: ``info["error"]``), after ``on_scan``.
-    workers, queue_frames, camera_timeout_s
-        See ``service.settings.Settings``.
+    workers, pose_ahead_frames, queue_frames, camera_timeout_s
+        See ``service.settings.Settings``. After ``pose_ahead_frames`` frames without a point
+        (the part has left the sheet) the finisher computes the pose of the pass so far
+        (``scanner_core.pose_ahead``), kept if the pass adds nothing it reads; 0: never.
     cross_check_state : scanner_core.finish.CrossCheckState, optional
         Where the cross-check starts (clock offset, tolerance, a known correction of the LED
         offset); each finished pass hands the next the state it leaves
@@ -87,7 +86,7 @@ class Engine:
 
     def __init__(self, camera: Camera, robot: Robot, calibration: Calibration,
                  params: PipelineParams, *, on_scan, on_pass_armed=None, on_recorded=None,
-                 workers: int = 2,
+                 workers: int = 2, pose_ahead_frames: int = 4,
                  queue_frames: int = 64, camera_timeout_s: float = 1.0,
                  cross_check_state: CrossCheckState | None = None, pose_params=None):
         self.camera, self.robot = camera, robot
@@ -95,6 +94,7 @@ class Engine:
         self.on_scan, self.on_pass_armed = on_scan, on_pass_armed
         self.on_recorded = on_recorded
         self.n_workers = int(workers)
+        self.pose_ahead_frames = int(pose_ahead_frames)
         self.camera_timeout_s = camera_timeout_s
         # read when a pass is armed, written by the finisher thread (one pass at a time)
         self.cross_check_state = cross_check_state or CrossCheckState()
@@ -403,11 +403,12 @@ class Engine:
 
     def _ask_pose_ahead(self, job: ScanJob) -> None:
         """Queue the pose of the pass so far for the finisher, once per newest frame with
-        points, when no point has come for ``AHEAD_QUIET_FRAMES`` frames."""
+        points, when no point has come for ``pose_ahead_frames`` frames."""
         accumulator = job.accumulator
-        if job.part_model is None or job.end_monotonic is not None or accumulator is None:
+        if (job.part_model is None or job.end_monotonic is not None or accumulator is None
+                or self.pose_ahead_frames <= 0):
             return
-        newest = accumulator.quiet_since(AHEAD_QUIET_FRAMES)
+        newest = accumulator.quiet_since(self.pose_ahead_frames)
         with self._lock:
             if newest is not None and newest > job.ahead_asked:
                 job.ahead_asked = newest
