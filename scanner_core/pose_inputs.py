@@ -11,7 +11,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 __all__ = ["add_placement_error", "scan_steps", "check_inputs", "edge_steps", "ScanPoseInputs",
-           "MAX_PROFILE_SPACING_MM", "sparse_flag", "part_spacing_mm"]
+           "MAX_PROFILE_SPACING_MM", "sparse_flag"]
 
 #: Profiles farther apart than this (mm) sample a part's features too coarsely for the
 #: uncertainty to be trusted: a hole's rim crossed by two profiles pins little.
@@ -25,25 +25,6 @@ def sparse_flag(spacing_mm: float) -> str | None:
         return (f"sparse: {spacing_mm:.1f} mm between profiles (at most "
                 f"{MAX_PROFILE_SPACING_MM:g})")
     return None
-
-
-def part_spacing_mm(scan) -> float:
-    """The median distance between consecutive profiles (the TCP's steps) from the first to
-    the last frame that placed a point, mm: the profiles' spacing on the part, not on the
-    whole pass, whose start and end (the robot speeding up, the gripper's way out after the
-    part has left the sheet) do not sample it. NaN with fewer than two such profiles;
-    ``Scan.profile_spacing_mm`` when the scan does not list its frames' ids."""
-    frames = getattr(scan, "tcp_frame_ids", None)
-    track = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
-    if frames is None or len(frames) != len(track):
-        return scan.profile_spacing_mm
-    if not len(scan.frame_ids):
-        return float("nan")
-    frames = np.asarray(frames)
-    on_part = track[(frames >= scan.frame_ids.min()) & (frames <= scan.frame_ids.max())]
-    if len(on_part) < 2:
-        return float("nan")
-    return float(np.median(np.linalg.norm(np.diff(on_part, axis=0), axis=1)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,7 +51,8 @@ class ScanPoseInputs:
     placement_std_mm : (3,) float64 or None
         ``Scan.placement_std_mm``.
     sparse : str or None
-        ``sparse_flag`` of ``part_spacing_mm``: the pose reads the spacing through it alone.
+        ``sparse_flag`` of ``Scan.profile_spacing_mm`` (the profiles' on the part): the pose
+        reads the spacing through it alone.
     """
 
     cloud: np.ndarray
@@ -95,7 +77,7 @@ class ScanPoseInputs:
                    edge_steps_mm=scan_steps(scan),
                    placement_std_mm=None if placement is None else np.asarray(placement,
                                                                               np.float64),
-                   sparse=sparse_flag(part_spacing_mm(scan)))
+                   sparse=sparse_flag(scan.profile_spacing_mm))
 
     def same_as(self, other: "ScanPoseInputs") -> bool:
         """Whether every input is the same, value for value (NaN equal to NaN), in the same

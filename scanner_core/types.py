@@ -221,9 +221,16 @@ class Scan:
 
     @property
     def profile_spacing_mm(self) -> float:
-        """Median distance between consecutive profiles along the pass (the TCP's steps), mm;
-        NaN with fewer than two profiles."""
+        """Median distance between consecutive profiles on the part (the TCP's steps from the
+        first to the last frame that placed a point), mm; NaN with fewer than two profiles.
+        The pass's start and end (the robot speeding up; the gripper's way out once the part
+        has left the sheet) sample nothing, and would move the median with every frame.
+        Over the whole pass when the scan does not list its frames (``tcp_frame_ids``) or has
+        no point."""
         track = np.asarray(self.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
+        frames = np.asarray(self.tcp_frame_ids)
+        if len(frames) == len(track) and len(self.frame_ids):
+            track = track[(frames >= self.frame_ids.min()) & (frames <= self.frame_ids.max())]
         if len(track) < 2:
             return float("nan")
         return float(np.median(np.linalg.norm(np.diff(track, axis=0), axis=1)))
