@@ -496,11 +496,11 @@ def _plot_pose(pose: dict, ax_points, ax_path, ax_stages, at_end: dict | None = 
     ax_points.set_ylabel("last frame -> pose on ZeroMQ, ms")
     within = pose["pose_published_ms_up_to_target_points"]
     late = "" if at_end is None else (
-        f" (x: at the pass's end, "
-        f"{at_end['pose_published_ms_up_to_target_points'].get('p95') or float('nan'):.0f} ms)")
-    ax_points.set_title(f"pose latency (ringed: coarse or ambiguous); p95 up to "
-                        f"{TARGET_POSE_POINTS // 1000}k points "
-                        f"{within.get('p95') or float('nan'):.0f} ms{late}", fontsize=9)
+        f"; x: the pose at the pass's end, "
+        f"{at_end['pose_published_ms_up_to_target_points'].get('p95') or float('nan'):.0f} ms")
+    ax_points.set_title(f"pose latency, p95 up to {TARGET_POSE_POINTS // 1000}k points "
+                        f"{within.get('p95') or float('nan'):.0f} ms\n(ringed: coarse or "
+                        f"ambiguous{late})", fontsize=9)
     ax_points.legend(fontsize=7)
     for ax, key, title in ((ax_path, "path_ms_median", "the pose's path (median per part)"),
                            (ax_stages, "stages_ms_median", "registration's stages (median)")):
