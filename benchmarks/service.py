@@ -353,11 +353,12 @@ def _pose_summary(rows: list[dict]) -> dict:
     within = spread(r["pose_published_ms"] for r in rows if r["points"] <= TARGET_POSE_POINTS)
     whole = spread(r["pose_published_ms"] for r in rows
                    if r["points"] <= TARGET_POSE_POINTS and not r.get("frames_lost"))
-    computed = spread((r["registration_ms"] or 0.0) + (r["normals_ms"] or 0.0) for r in rows
-                      if r["points"] <= TARGET_POSE_POINTS and r["registration_ms"] is not None)
+    computed = spread((r.get("registration_ms") or 0.0) + (r.get("normals_ms") or 0.0)
+                      for r in rows
+                      if r["points"] <= TARGET_POSE_POINTS and r.get("registration_ms") is not None)
     return {"by_part": by_part, "by_points": by_points,
             "pose_published_ms_up_to_target_points": within,
-            "ahead_kept": sum(r["ahead"] for r in rows),
+            "ahead_kept": sum(bool(r.get("ahead")) for r in rows),
             # the pose's own time (normals and registration), wherever it was spent
             "pose_computed_ms_up_to_target_points": computed,
             "passes_with_frames_lost": sum(bool(r.get("frames_lost")) for r in rows),

@@ -128,14 +128,25 @@ def test_the_cell_controller_places_misplaced_parts(cell, monkeypatch):
                                    taught_place=place, seed=7) == 2
     lines = out.getvalue().splitlines()
     assert len(lines) == 2
+    placed = 0
     for line in lines:
         found = re.search(r"place at \[([-0-9.,]+)\], placed part off by ([0-9.]+) um, "
                           r"([0-9.]+) mdeg \(truth\)$", line)
-        assert found, line
+        if found is None:
+            # A pass that lost frames or left them unplaced (a loaded CI machine: the live
+            # simulated camera keeps the real clock) may rightly not be acted on; a whole one
+            # must be placed.
+            with FlyscanClient(cell.url) as client:
+                info = client.scan(line.split()[1])
+            assert "do not place" in line, line
+            assert info["frames_dropped"] + info["frames_unplaced"] > 0, (line, info)
+            continue
+        placed += 1
         assert float(found[2]) < PLACED_TOLERANCE_UM and float(found[3]) < PLACED_TOLERANCE_MDEG
         # Near the taught pose: the correction is the misplacement's size (mm, degrees).
         target = ur_pose_to_matrix([float(v) for v in found[1].split(",")])
         assert np.linalg.norm(target[:3, 3] - ur_pose_to_matrix(place)[:3, 3]) < 10.0
+    assert placed >= 1, lines
 
 
 def test_a_part_is_uploaded_with_its_taught_grasp(cell, tmp_path):
