@@ -110,6 +110,8 @@ class PassAccumulator:
         self._rotation_t = -np.inf
         self._newest: tuple[int, np.ndarray, np.ndarray] | None = None  # id, columns, rows
         self._newest_id = -1           # the newest frame added
+        # (profiles up to the last with points, the scan's point and edge fields): `scan`
+        self._points_cache: tuple[list, dict] | None = None
         self._newest_with_points = -1  # the newest frame placed with points or edge points
 
     def expected_rows(self, frame_id: int) -> np.ndarray | None:
@@ -205,21 +207,34 @@ class PassAccumulator:
         """
         with self._lock:
             placed = sorted(self._placed, key=lambda p: p.frame_id)
-            if self.merge_exposure_pairs:
-                placed = _best_exposed(placed)
-            placed, partly_lit_points = _without_partly_lit(placed, self.partly_lit_ratio)
+            on_part = _up_to_the_last_point(placed)
+            cached = self._points_cache
+            if not (cached is not None and len(cached[0]) == len(on_part)
+                    and all(a is b for a, b in zip(cached[0], on_part))):
+                cached = None
+                measured = _best_exposed(placed) if self.merge_exposure_pairs else placed
+                measured, partly_lit_points = _without_partly_lit(measured,
+                                                                  self.partly_lit_ratio)
             ids = sorted(self._frame_ids)
             residuals = list(self._residuals)
             unplaced, held, no_rotation = self._unplaced, self._held_rotation, self._no_rotation
         if frames_dropped is None:
             frames_dropped = int(ids[-1] - ids[0] + 1 - len(ids)) if ids else 0
-        counts = [len(p.cloud_t) for p in placed]
+        if cached is None:
+            counts = [len(p.cloud_t) for p in measured]
+            points = {
+                "cloud": (np.concatenate([p.cloud_t for p in measured]) if measured
+                          else np.zeros((0, 3), np.float32)),
+                "frame_ids": np.repeat(np.array([p.frame_id for p in measured], np.int32),
+                                       counts),
+                "quality": (np.concatenate([p.quality for p in measured]).astype(np.float32)
+                            if measured else np.zeros(0, np.float32)),
+                "points_partly_lit": partly_lit_points}
+        else:
+            points = {name: _copied(value) for name, value in cached[1].items()
+                      if name in _POINT_FIELDS}
         scan = Scan(
-            cloud=(np.concatenate([p.cloud_t for p in placed]) if placed
-                   else np.zeros((0, 3), np.float32)),
-            frame_ids=np.repeat(np.array([p.frame_id for p in placed], np.int32), counts),
-            quality=(np.concatenate([p.quality for p in placed]).astype(np.float32) if placed
-                     else np.zeros(0, np.float32)),
+            cloud=points["cloud"], frame_ids=points["frame_ids"], quality=points["quality"],
             edges=np.zeros((0, 3), np.float32),
             tcp_positions_b=np.array([p.tcp_b for p in placed]).reshape(-1, 3),
             tcp_times=np.array([p.t for p in placed], dtype=np.float64),
@@ -228,7 +243,7 @@ class PassAccumulator:
             frames_unplaced=unplaced,
             marker_residual_px=float(np.median(residuals)) if residuals else float("nan"),
         )
-        scan.points_partly_lit = partly_lit_points
+        scan.points_partly_lit = points["points_partly_lit"]
         scan.placement_std_mm = self.calibration.marker_offset_std_mm
         scan.frames_held_rotation = held
         scan.frames_without_rotation = no_rotation
@@ -239,11 +254,47 @@ class PassAccumulator:
         scan.sensor_positions_t = np.einsum(
             "fji,fj->fi", scan.tcp_rotations_b,
             self.calibration.camera.origin - scan.tcp_positions_b)
-        _stitch_edges(scan, placed, self.calibration)
+        if cached is None:
+            _stitch_edges(scan, placed, self.calibration)
+            # What the points and edges came from (the profiles up to the last with points,
+            # the same objects) and what they are: a later scan of the same profiles (the
+            # pass's end, after the pose was computed ahead) takes them as they are.
+            if not self.merge_exposure_pairs:  # a pair may straddle the last point
+                with self._lock:
+                    self._points_cache = (on_part, {name: _copied(getattr(scan, name))
+                                                    for name in (*_POINT_FIELDS, *_EDGE_FIELDS)})
+        else:
+            for name in _EDGE_FIELDS:
+                setattr(scan, name, _copied(cached[1][name]))
         scan.end_reason = end_reason.value if end_reason is not None else None
         if end_reason is EndReason.CAMERA_STOPPED and scan.frames:
             scan.interrupted = stopped_because
         return scan
+
+
+# A scan's fields that come from its profiles' points and edge points alone.
+_POINT_FIELDS = ("cloud", "frame_ids", "quality", "points_partly_lit")
+_EDGE_FIELDS = ("edges", "edge_frame_ids", "edge_kind", "edge_size_mm", "edge_quality",
+                "edges_aside", "edges_occluded", "edges_grazing")
+
+
+def _up_to_the_last_point(placed: list[PlacedProfile]) -> list[PlacedProfile]:
+    """The sorted `placed` profiles up to the last that has points or edge points: all that
+    a scan's points and edge points depend on (the later ones add no point, and the
+    profiles' spacing on the part, ``Scan.profile_spacing_mm``, ends there)."""
+    last = max((k for k, p in enumerate(placed) if len(p.cloud_t) or len(p.edges_t)),
+               default=-1)
+    return placed[:last + 1]
+
+
+def _copied(value):
+    """A copy of an array (or of ``AsideEdges``' arrays): scans never share one."""
+    if isinstance(value, np.ndarray):
+        return value.copy()
+    if dataclasses.is_dataclass(value):
+        return dataclasses.replace(value, **{f.name: _copied(getattr(value, f.name))
+                                             for f in dataclasses.fields(value)})
+    return value
 
 
 def _best_exposed(placed: list[PlacedProfile]) -> list[PlacedProfile]:

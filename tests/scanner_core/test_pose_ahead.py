@@ -133,3 +133,58 @@ def test_sparse_profiles_read_the_same_before_the_pass_ends():
     inputs = ScanPoseInputs.of(whole)
     assert inputs.sparse is not None and inputs.sparse.startswith("sparse: 6.")
     assert ScanPoseInputs.of(out).same_as(inputs)
+
+
+def test_the_pass_s_end_takes_the_points_and_edges_of_a_scan_of_the_same_profiles(
+        passes, monkeypatch):
+    """A scan taken once the part has left the sheet (the pose computed ahead) leaves its
+    points and edge points to the pass's end, which takes them unless a profile with points
+    came since: the same scan as the pass's end computes anew, every field, with no edge
+    filter run again, in arrays of its own."""
+    import scanner_core.pipeline_accumulate as accumulate
+    from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams,
+                                       camera_frames, feed_frame)
+    from scanner_core.trigger import Trigger
+    from simulator.cell import load_cell
+    from simulator.session import simulated_cell
+
+    part, whole, out, _ = passes
+    last_point = int(max(whole.frame_ids.max(), whole.edge_frame_ids.max()))
+    cell, params = load_cell(), PipelineParams()
+    sim = simulated_cell(part, cell, seed=3)
+    sim.camera.open()
+    sim.robot.connect()
+    trigger, tracker = Trigger(params.trigger), MarkerTracker(cell.calibration, params)
+    trigger.arm()
+    accumulator = PassAccumulator(cell.calibration, sim.robot,
+                                  partly_lit_ratio=params.partly_lit_ratio)
+    timings = dict.fromkeys(("acquire", "marker", "profiles", "scan"), 0.0)
+    stitched = []
+    stitch = accumulate._stitch_edges
+    monkeypatch.setattr(accumulate, "_stitch_edges",
+                        lambda *args: stitched.append(1) or stitch(*args))
+    snapshots = []
+    for frame in camera_frames(sim.camera):
+        if trigger.state.value not in ("armed", "scanning"):
+            break
+        feed_frame(frame, tracker, trigger, accumulator, params, timings, None)
+        if frame.frame_id in (last_point - 3, last_point + 4):
+            snapshots.append(accumulator.scan())
+    assert len(stitched) == 2  # the two scans of the pass so far
+    end = accumulator.scan(end_reason=trigger.end_reason)
+    assert len(stitched) == 2  # the pass's end took the second's
+    fields = ("cloud", "frame_ids", "quality", "edges", "edge_frame_ids", "edge_kind",
+              "edge_size_mm", "edge_quality", "tcp_positions_b", "tcp_frame_ids",
+              "sensor_positions_t")
+    for name in fields:
+        mine, theirs = getattr(end, name), getattr(whole, name)
+        assert mine.dtype == theirs.dtype, name
+        assert np.array_equal(mine, theirs, equal_nan=mine.dtype.kind == "f"), name
+    assert end.frames == whole.frames and end.frames > snapshots[1].frames
+    assert (end.points_partly_lit, end.edges_occluded, end.edges_grazing) == (
+        whole.points_partly_lit, whole.edges_occluded, whole.edges_grazing)
+    assert np.array_equal(end.edges_aside.points, whole.edges_aside.points)
+    assert end.cloud is not snapshots[1].cloud and end.edges is not snapshots[1].edges
+    assert ScanPoseInputs.of(end).same_as(ScanPoseInputs.of(whole))
+    # a profile with points after the first scan: computed anew, not taken
+    assert len(snapshots[0].cloud) < len(end.cloud)
