@@ -75,8 +75,9 @@ class Engine:
         failed: ``info["error"]``), after ``on_scan``.
     workers, pose_ahead_frames, queue_frames, camera_timeout_s
         See ``service.settings.Settings``. After ``pose_ahead_frames`` frames without a point
-        (the part has left the sheet) the finisher computes the pose of the pass so far
-        (``scanner_core.pose_ahead``), kept if the pass adds nothing it reads; 0: never.
+        (the part has left the sheet) the finisher assembles the scan of the pass so far and
+        computes its pose (``scanner_core.pose_ahead``), kept if the pass adds nothing they
+        read; 0: never.
     cross_check_state : scanner_core.finish.CrossCheckState, optional
         Where the cross-check starts (clock offset, tolerance, a known correction of the LED
         offset); each finished pass hands the next the state it leaves
@@ -402,11 +403,10 @@ class Engine:
             self._ask_pose_ahead(job)
 
     def _ask_pose_ahead(self, job: ScanJob) -> None:
-        """Queue the pose of the pass so far for the finisher, once per newest frame with
-        points, when no point has come for ``pose_ahead_frames`` frames."""
+        """Queue the scan of the pass so far (and its pose) for the finisher, once per newest
+        frame with points, when no point has come for ``pose_ahead_frames`` frames."""
         accumulator = job.accumulator
-        if (job.part_model is None or job.end_monotonic is not None or accumulator is None
-                or self.pose_ahead_frames <= 0):
+        if job.end_monotonic is not None or accumulator is None or self.pose_ahead_frames <= 0:
             return
         newest = accumulator.quiet_since(self.pose_ahead_frames)
         with self._lock:
@@ -415,15 +415,17 @@ class Engine:
                 self._ended.put((job, None))
 
     def _pose_ahead(self, job: ScanJob) -> None:
-        """Finisher thread, during the pass: the pose of the pass so far (skipped once the pass
-        has ended: its finish is next, and computes it)."""
+        """Finisher thread, during the pass: the scan so far (``PassAccumulator.scan`` keeps
+        its points for the pass's end) and its pose (``scanner_core.pose_ahead``)."""
         accumulator = job.accumulator
         if job.end_monotonic is not None or accumulator is None:
-            return
+            return  # the pass has ended: its finish is next
         try:
-            job.ahead = pose_ahead(accumulator.scan(), job.part_model, self.pose_params)
-        except Exception:  # the pass's end computes the pose as ever
-            log.exception("pose ahead of %s failed", job.scan_id)
+            scan = accumulator.scan()
+            if job.part_model is not None:
+                job.ahead = pose_ahead(scan, job.part_model, self.pose_params)
+        except Exception:  # the pass's end assembles and computes as ever
+            log.exception("scan ahead of %s failed", job.scan_id)
 
     def _finish_loop(self) -> None:
         while True:
