@@ -10,7 +10,9 @@ whole pass's scan (``scanner_core.pose_inputs.ScanPoseInputs``) is the same, val
 function of those inputs alone, so a kept pose is the one the end of the pass would have
 computed, bit for bit: a replay (which computes it at the end) reports the same pose.
 
-What the robot waits for is then the pass's end, the scan's assembly and this comparison; the
+The scan of the pass so far also leaves its points and edge points to the pass's end
+(``PassAccumulator.scan`` takes them when no profile with points came since). What the robot
+waits for is then the pass's end, the rest of the scan's assembly and this comparison; the
 pose's own time (``PoseResult.time_ms``) is unchanged and still reported.
 """
 from __future__ import annotations

@@ -5,10 +5,12 @@ while a scan is armed or in progress, finds the marker (tracked from frame to fr
 the trigger. The frames of a pass go through a bounded queue to worker threads, which extract
 and triangulate the stripe and place the profile (``scanner_core.pipeline``: the numba kernels
 release the GIL) while the pass is still running; a full queue drops the frame and counts it,
-so acquisition never waits. When the trigger ends the pass, the finisher thread waits for the
-pass's last profiles, assembles the scan and hands it on (``on_scan``: the service publishes
-the cloud, then ends the pass as every pass ends, ``scanner_core.finish``, and stores it). The
-same ``scanner_core`` functions run ``flyscan scan`` and ``flyscan replay`` offline.
+so acquisition never waits. Once the part has left the sheet the finisher thread assembles the
+scan so far and computes its pose (``scanner_core.pose_ahead``); when the trigger ends the
+pass, it waits for the last profiles, assembles the scan (taking what the pass did not change)
+and hands it on (``on_scan``: the service publishes the cloud, then ends the pass as every pass
+ends, ``scanner_core.finish``, and stores it). ``flyscan scan`` and ``flyscan replay`` run the
+same ``scanner_core`` functions offline.
 """
 from __future__ import annotations
 
@@ -74,10 +76,7 @@ class Engine:
         Called on the finisher thread when a recorded pass's recording is in place (or has
         failed: ``info["error"]``), after ``on_scan``.
     workers, pose_ahead_frames, queue_frames, camera_timeout_s
-        See ``service.settings.Settings``. After ``pose_ahead_frames`` frames without a point
-        (the part has left the sheet) the finisher assembles the scan of the pass so far and
-        computes its pose (``scanner_core.pose_ahead``), kept if the pass adds nothing they
-        read; 0: never.
+        See ``service.settings.Settings`` (``pose_ahead_frames``: ``_ask_pose_ahead``).
     cross_check_state : scanner_core.finish.CrossCheckState, optional
         Where the cross-check starts (clock offset, tolerance, a known correction of the LED
         offset); each finished pass hands the next the state it leaves
