@@ -163,13 +163,17 @@ def test_the_pass_s_end_takes_the_points_and_edges_of_a_scan_of_the_same_profile
     stitch = accumulate._stitch_edges
     monkeypatch.setattr(accumulate, "_stitch_edges",
                         lambda *args: stitched.append(1) or stitch(*args))
-    snapshots = []
+    snapshots, quiet = [], {}
     for frame in camera_frames(sim.camera):
         if trigger.state.value not in ("armed", "scanning"):
             break
         feed_frame(frame, tracker, trigger, accumulator, params, timings, None)
+        quiet[frame.frame_id] = accumulator.quiet_since(4)
         if frame.frame_id in (last_point - 3, last_point + 4):
             snapshots.append(accumulator.scan())
+    # the service's rule: the part has left the sheet 4 frames after its last point
+    assert quiet[last_point + 3] is None and quiet[last_point + 4] == last_point
+    assert quiet[max(quiet)] == last_point
     assert len(stitched) == 2  # the two scans of the pass so far
     end = accumulator.scan(end_reason=trigger.end_reason)
     assert len(stitched) == 2  # the pass's end took the second's
