@@ -4,6 +4,7 @@ import pytest
 
 from benchmarks import service as bench
 from benchmarks.results import pyplot
+from benchmarks.service_charts import plot_pose
 
 
 def _row(part, points, published, coarse=False, ambiguous=False):
@@ -37,7 +38,7 @@ def test_the_chart_draws(tmp_path):
     pose = {"parts": ["block", "gear"], "rows": ROWS, **bench._pose_summary(ROWS)}
     plt = pyplot()
     fig, axes = plt.subplots(1, 3)
-    bench._plot_pose(pose, *axes)
+    plot_pose(pose, *axes)
     fig.savefig(tmp_path / "pose.png")
     plt.close(fig)
     assert (tmp_path / "pose.png").stat().st_size > 0
