@@ -45,16 +45,46 @@ class PlanRun:
 def local_cluster(workers: int | None = None, *, processes: bool = True):
     """A ``LocalCluster`` of `workers` single-threaded workers (default: one per core), its
     dashboard on a free port (the scheduler's web server starts even without a dashboard,
-    on 8787 unless told: another cluster may hold it); the caller closes it."""
+    on 8787 unless told: another cluster may hold it); the caller closes it.
+
+    Before each worker process starts, its nanny writes the workers' variables
+    (``distributed.nanny.pre-spawn-environ``: ``MALLOC_TRIM_THRESHOLD_=65536``,
+    ``OMP_NUM_THREADS=1``, ...) into this process's environment, where every child started
+    later inherits them: a ``flyscan serve`` started after a plan ran with glibc trimming its
+    heap at every 64 KiB and lost frames under load. The cluster puts this process's
+    environment back once its workers have started and again when it closes (a worker that
+    dies is started again, and writes them again)."""
     import os
 
     from distributed import LocalCluster
 
+    class EnvironmentKeepingCluster(LocalCluster):
+        def close(self, timeout: float | None = None):
+            try:
+                return super().close(timeout)
+            finally:
+                _restore_environment(environment)
+
     n = int(workers) if workers else (os.cpu_count() or 1)
     if n < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    return LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
-                        dashboard_address="127.0.0.1:0", silence_logs=40)
+    environment = dict(os.environ)
+    try:
+        return EnvironmentKeepingCluster(n_workers=n, threads_per_worker=1, processes=processes,
+                                         dashboard_address="127.0.0.1:0", silence_logs=40)
+    finally:
+        _restore_environment(environment)
+
+
+def _restore_environment(saved: dict[str, str]) -> None:
+    """``os.environ`` as `saved`: variables added since removed, changed ones set back."""
+    import os
+
+    for name in set(os.environ) - set(saved):
+        del os.environ[name]
+    for name, value in saved.items():
+        if os.environ.get(name) != value:
+            os.environ[name] = value
 
 
 def plan_catalogue(catalogue, out, *, units: str | None = None, client=None,

@@ -53,10 +53,13 @@ def planned(catalogue, tmp_path_factory):
             os.kill(pid, signal.SIGKILL)
             killed.append((addr, done, total))
 
+    environment = dict(os.environ)
     with local_cluster(2) as cluster, Client(cluster) as client:
+        started = dict(os.environ)
+        in_workers = client.run(os.getenv, "MALLOC_TRIM_THRESHOLD_")
         run = plan_catalogue(catalogue, out, client=client, on_result=kill_one,
                              log=io.StringIO(), **OPTIONS)
-    return run, out, killed
+    return run, out, killed, (environment, in_workers, started, dict(os.environ))
 
 
 def _without_cost(result: dict) -> dict:
@@ -64,7 +67,7 @@ def _without_cost(result: dict) -> dict:
 
 
 def test_a_killed_worker_loses_nothing_and_changes_nothing(planned, catalogue):
-    run, out, killed = planned
+    run, out, killed, _ = planned
     assert len(killed) == 1 and killed[0][1] < killed[0][2], "a worker was killed mid-run"
     assert run.errors == 0
     assert run.computed == run.tasks > 0 and run.cached == 0
@@ -83,8 +86,18 @@ def test_a_killed_worker_loses_nothing_and_changes_nothing(planned, catalogue):
             assert stored[key]["status"] == here["status"]
 
 
+def test_the_cluster_leaves_this_process_environment_as_it_was(planned):
+    """distributed's nannies write their workers' variables (MALLOC_TRIM_THRESHOLD_, ...)
+    into the process that starts them, also when a killed worker is started again; a
+    service started afterwards inherited them."""
+    environment, in_workers, started, closed = planned[3]
+    assert set(in_workers.values()) == {"65536"}  # the workers have theirs
+    assert started == environment
+    assert closed == environment
+
+
 def test_the_summary_reports_the_broken_mesh_and_plans_the_others(planned):
-    run, out, _ = planned
+    run, out, *_ = planned
     rows = {r["part"]: r for r in run.summary["rows"]}
     assert rows["broken"]["status"] == "broken"
     assert "broken.stl" in rows["broken"]["reason"] and "no triangles" in rows["broken"]["reason"]
@@ -103,7 +116,7 @@ def test_the_summary_reports_the_broken_mesh_and_plans_the_others(planned):
 
 
 def test_a_cached_rerun_computes_nothing(planned, catalogue):
-    run, out, _ = planned
+    run, out, *_ = planned
     before = {p: p.read_bytes() for p in sorted((out / "plans").glob("*/plan.json"))}
     again = plan_catalogue(catalogue, out, workers=1, log=io.StringIO(), **OPTIONS)
     assert (again.computed, again.cached, again.workers) == (0, run.tasks, 0)
@@ -111,7 +124,7 @@ def test_a_cached_rerun_computes_nothing(planned, catalogue):
 
 
 def test_the_ranking_puts_a_scan_that_fixes_every_axis_first(planned):
-    _, out, _ = planned
+    _, out, *_ = planned
     for path in (out / "plans").glob("*/plan.json"):
         plan = json.loads(path.read_text())
         done = [c for c in plan["candidates"] if c["status"] == "done"]
@@ -123,7 +136,7 @@ def test_the_ranking_puts_a_scan_that_fixes_every_axis_first(planned):
 
 
 def test_flyscan_scan_takes_the_plan(planned, catalogue, tmp_path, capsys):
-    _, out, _ = planned
+    _, out, *_ = planned
     name = "p0000_block"
     plan_path = out / "plans" / name / "plan.json"
     plan = json.loads(plan_path.read_text())
@@ -150,7 +163,7 @@ def test_flyscan_scan_takes_the_plan(planned, catalogue, tmp_path, capsys):
 def test_the_service_takes_a_stored_parts_plan(planned, catalogue, tmp_path):
     from service.parts import PLAN_FILE, PartLibrary
 
-    _, out, _ = planned
+    _, out, *_ = planned
     name = "p0000_block"
     library = PartLibrary(tmp_path)
     library.open()
