@@ -314,9 +314,9 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
 def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams()) -> float:
     """Compile the numba kernels before the first pass, so that no frame of a pass waits for
     the JIT: a synthetic frame with a stripe and a marker blob in every view goes through the
-    marker search (whole strips and near a prediction) and the frame processing, as a writable
-    and as a read-only array, and a frame without the marker through the search.
-    Returns the time it took, ms."""
+    marker search (whole strips and near a prediction) and the frame processing, and a frame
+    without the marker through the search. (Read-only frames reach the kernels as writable
+    copies: ``validate.check_image``.) Returns the time it took, ms."""
     t0 = time.perf_counter()
     cam = calibration.camera
     rows, cols = np.mgrid[0:cam.height, 0:cam.width].astype(np.float32)
@@ -328,19 +328,14 @@ def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams())
         centre_col = c0 + 0.8 * (c1 - c0) if (c0, c1) == calibration.direct_columns else (c0 + c1) / 2
         image += 220.0 * np.exp(-0.5 * ((cols - centre_col) ** 2 + (rows - cam.height / 4.0) ** 2)
                                 / sigma**2)
-    writable = np.clip(image, 0, 255).astype(np.uint8)
-    read_only = writable.copy()
-    read_only.setflags(write=False)  # numba compiles read-only arrays apart; cameras give both
-    for pixels in (writable, read_only):
-        frame = Frame(pixels, -1, 0.0)
-        tracker = MarkerTracker(calibration, params)
-        marker = tracker.observe(frame)
-        tracker.observe(frame)
-        process_frame(frame, calibration, params, marker)
-        if params.geometric_window:  # the windowed kernel compiles apart
-            stripe_mod.extract(pixels, columns=calibration.direct_columns, row_min=0.0,
-                               row_max=cam.height / 2.0)
-        blank = np.full_like(writable, 10)  # no marker anywhere
-        blank.setflags(write=pixels.flags.writeable)
-        tracker.observe(Frame(blank, -1, 0.0))
+    pixels = np.clip(image, 0, 255).astype(np.uint8)
+    frame = Frame(pixels, -1, 0.0)
+    tracker = MarkerTracker(calibration, params)
+    marker = tracker.observe(frame)
+    tracker.observe(frame)
+    process_frame(frame, calibration, params, marker)
+    if params.geometric_window:  # the windowed kernel compiles apart
+        stripe_mod.extract(pixels, columns=calibration.direct_columns, row_min=0.0,
+                           row_max=cam.height / 2.0)
+    tracker.observe(Frame(np.full_like(pixels, 10), -1, 0.0))  # no marker anywhere
     return (time.perf_counter() - t0) * 1e3

@@ -5,12 +5,16 @@ import numpy as np
 
 
 def check_image(image) -> np.ndarray:
-    """A 2-D uint8 frame, C-contiguous, or ValueError naming `image` and what it got."""
+    """A 2-D uint8 frame, C-contiguous and writable, or ValueError naming `image` and what it
+    got. A read-only frame (a camera's or a recording's buffer) is copied (about 0.1 ms for
+    1152 x 1200): numba compiles every kernel a second time for read-only arrays, 15 of a
+    cold start's 54 s, and a kernel compiled at a pass's first read-only frame would hold
+    the GIL for seconds."""
     if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:
         desc = (f"{image.shape} {image.dtype}" if isinstance(image, np.ndarray)
                 else type(image).__name__)
         raise ValueError(f"`image` must be 2-D uint8, got {desc}")
-    return np.ascontiguousarray(image)
+    return np.require(image, requirements=("C", "W"))
 
 
 def check_columns(columns, width: int, name: str = "columns", *, allow_empty: bool = False

@@ -198,6 +198,42 @@ def test_warm_up_frame_finds_the_marker_everywhere(cell, monkeypatch):
     assert len(profile.columns) > 500
 
 
+def _compiled_signatures() -> dict:
+    """Every numba kernel of scanner_core loaded so far: its compiled signatures."""
+    import sys
+
+    from numba.core.registry import CPUDispatcher
+
+    found = {}
+    for name, module in list(sys.modules.items()):
+        if name.startswith("scanner_core"):
+            for attr, value in vars(module).items():
+                if isinstance(value, CPUDispatcher):
+                    found[f"{name}.{attr}"] = len(value.signatures)
+    return found
+
+
+def test_a_read_only_frame_after_the_warm_up_compiles_nothing(recorded, cell):
+    """A camera's or a recording's read-only buffer reaches the kernels as a writable copy:
+    after the warm-up (which compiles writable frames only) a pass of read-only frames
+    compiles no kernel anew, which would hold the GIL for seconds mid-pass."""
+    from scanner_core import pipeline_frame
+
+    pipeline_frame.warm_up(cell.calibration)
+    before = _compiled_signatures()
+    assert sum(before.values()) >= 8
+    frames, _ = recorded
+    tracker, profiles = MarkerTracker(cell.calibration, PipelineParams()), []
+    for frame in frames:
+        image = frame.image.copy()
+        image.setflags(write=False)
+        read_only = Frame(image, frame.frame_id, frame.t)
+        marker = tracker.observe(read_only)
+        profiles.append(pipeline_frame.process_frame(read_only, cell.calibration, marker=marker))
+    assert sum(len(p.columns) > 0 for p in profiles) > 5  # the part was seen
+    assert _compiled_signatures() == before
+
+
 def test_the_previous_profile_guides_the_next_frames_stripe(cell):
     """A glint brighter than the stripe over 60 columns (longer than continuity bridges): the
     frame alone takes it there; with the previous profile's rows (what the accumulator hands
