@@ -1,0 +1,186 @@
+"""Where the calibrated LED offset's error comes from: the clocks of the calibration pass.
+
+``flyscan calibrate`` fits the LED's offset from the TCP, ``m`` (mm in {T}), and one clock
+offset ``d`` (robot minus camera, s) to the calibration pass
+(``scanner_core.crosscheck.estimate_led_and_clock``: ``M_i = p(t_i + d) + R(t_i + d) m``). Along
+the pass a clock error moves every marker position by the robot's velocity times it, which an
+LED offset along the pass direction also does: only the pass's changes of speed tell them
+apart. For each realistic cell (``--perturb-seed``, every effect) this bench calibrates as
+``flyscan calibrate --sim`` does, runs the calibration pass again and fits the LED three ways
+on the same marker positions:
+
+- **fitted**: the calibration's own (one clock offset for the pass, fitted with the LED);
+- **true clock**: the LED alone, with the robot clock of every frame taken from the simulator's
+  truth (its offset and its drift: evaluation only);
+- **with drift**: the LED, a clock offset and a clock drift (ppm) fitted together.
+
+Each LED error is reported per {T} axis, um, beside the calibration's
+``marker_offset_std_mm`` and the pass's direction in {T}.
+
+``python -m benchmarks.led_clock OUT [--seeds 1 2 3]`` writes ``led_clock.json`` and
+``led_clock.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from benchmarks.results import pyplot, save_figure, write_json
+from scanner_core.calsession import calibrate_session
+from scanner_core.crosscheck import _clock_and_offset_rows, _robot_rotations, _track_at
+from scanner_core.pipeline import PipelineParams, camera_frames, run_pass
+from simulator.calsession import simulate_session
+from simulator.cell import load_cell
+from simulator.effects import realistic_cell
+
+#: The session's LED and sphere positions (``bench calibrate``'s and ``bench place``'s).
+SESSION_POSITIONS = (200, 40)
+SEEDS = (1, 2, 3, 4, 5)
+#: Gauss-Newton steps of the fit with a drift (it converges in 3-4).
+DRIFT_ITERATIONS = 8
+
+
+def _true_robot_clock(cell, times: np.ndarray) -> np.ndarray:
+    """(N,) the robot's clock at each camera time (mid-exposure), s: the simulator's truth."""
+    effects = cell.effects
+    mid = 0.5e-3 if effects.exposure_blur else 0.0
+    if not (effects.clock_offset_s or effects.clock_drift_ppm):
+        return times + mid
+    return np.array([float(effects.robot_time(t + mid)) for t in times])
+
+
+def _led_on_clock(robot, marker_b, robot_times) -> np.ndarray:
+    """The LED in {T}, mm, by least squares of ``M_i - p(s_i) = R(s_i) m`` at robot times."""
+    p, _, ok = _track_at(robot, robot_times)
+    rotations = _robot_rotations(robot, robot_times[ok])
+    m, *_ = np.linalg.lstsq(rotations.reshape(-1, 3), (marker_b[ok] - p[ok]).ravel(),
+                            rcond=None)
+    return m
+
+
+def _led_with_drift(robot, marker_b, times, start_s) -> tuple[np.ndarray, float, float]:
+    """The LED (mm in {T}), the clock offset at the pass's middle (s) and its drift (ppm),
+    fitted together: ``M_i = p(t_i + d0 + d1 (t_i - t_mid)) + R m``, Gauss-Newton."""
+    d0, d1, middle = float(start_s), 0.0, float(np.median(times))
+    m = np.zeros(3)
+    for _ in range(DRIFT_ITERATIONS):
+        robot_times = times + d0 + d1 * (times - middle)
+        p, velocity, ok = _track_at(robot, robot_times)
+        rows = _clock_and_offset_rows(velocity[ok], _robot_rotations(robot, robot_times[ok]))
+        drift = (velocity[ok] * (times[ok] - middle)[:, None]).ravel()
+        a = np.column_stack([rows[:, :1], drift, rows[:, 1:]])
+        step, *_ = np.linalg.lstsq(a, (marker_b[ok] - p[ok]).ravel(), rcond=None)
+        d0, d1, m = d0 + step[0], d1 + step[1], step[2:]
+    return m, d0, d1 * 1e6
+
+
+def _row(seed: int, positions=SESSION_POSITIONS) -> dict:
+    t0 = time.perf_counter()
+    cell = realistic_cell(load_cell(perturb_seed=seed), seed=seed)
+    session = simulate_session(cell, seed=seed, led_count=positions[0],
+                               sphere_count=positions[1])
+    calibration, _ = calibrate_session(session, seed=seed)
+    true_led = cell.calibration.marker_offset_t
+    # The calibration pass again, placed with the design's LED and clock, as the session's is.
+    nominal = replace(calibration, marker_offset_t=session.nominal.marker_offset_t,
+                      clock_offset_s=session.nominal.clock_offset_s)
+    camera, robot = session.pass_devices()
+    camera.open()
+    robot.connect()
+    try:
+        scan = run_pass(camera_frames(camera), nominal, robot, PipelineParams())
+    finally:
+        camera.close()
+    times = scan.tcp_times
+    marker_b = scan.tcp_positions_b + np.einsum("fij,j->fi", scan.tcp_rotations_b,
+                                                nominal.marker_offset_t)
+    true_clock = _true_robot_clock(cell, times)
+    on_truth = _led_on_clock(robot, marker_b, true_clock)
+    drifting, d0, drift_ppm = _led_with_drift(robot, marker_b, times, calibration.clock_offset_s)
+    _, velocity, ok = _track_at(robot, true_clock)
+    speed = np.linalg.norm(velocity[ok], axis=1)
+    heading_b = np.median(velocity[ok], axis=0)
+    heading_t = scan.tcp_rotations_b[0].T @ (heading_b / np.linalg.norm(heading_b))
+    middle = float(np.median(times))
+    true_middle = float(np.interp(middle, times, true_clock - times))
+    um = lambda led: np.round((np.asarray(led) - true_led) * 1e3, 2).tolist()  # noqa: E731
+    std = calibration.marker_offset_std_mm
+    return {
+        "perturb_seed": seed, "frames": int(len(times)),
+        "speed_mm_s": {"min": float(speed.min()), "median": float(np.median(speed)),
+                       "max": float(speed.max())},
+        "pass_direction_t": np.round(heading_t, 3).tolist(),
+        "clock_drift_ppm_true": float(cell.effects.clock_drift_ppm),
+        "true_clock_change_over_pass_ms": float((true_clock[-1] - times[-1]
+                                                 - true_clock[0] + times[0]) * 1e3),
+        "led_error_um": {"fitted": um(calibration.marker_offset_t), "true_clock": um(on_truth),
+                         "with_drift": um(drifting)},
+        "led_std_um": None if std is None else np.round(np.asarray(std) * 1e3, 2).tolist(),
+        "clock_error_ms": {"fitted": (calibration.clock_offset_s - true_middle) * 1e3,
+                           "with_drift": (d0 - true_middle) * 1e3},
+        "drift_ppm_fitted": drift_ppm,
+        "time_s": round(time.perf_counter() - t0, 1),
+    }
+
+
+def run(out_dir, seeds=SEEDS, progress=None, positions=SESSION_POSITIONS) -> dict:
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    say = progress or (lambda line: print(line, file=sys.stderr, flush=True))
+    rows = []
+    with threadpool_limits(limits=1, user_api="blas"):
+        for seed in seeds:
+            row = _row(int(seed), positions)
+            rows.append(row)
+            e = row["led_error_um"]
+            say(f"seed {seed}: LED error um (x, y, z in T) fitted {e['fitted']}, true clock "
+                f"{e['true_clock']}, with drift {e['with_drift']}; std {row['led_std_um']}; "
+                f"clock {row['clock_error_ms']['fitted']:+.3f} ms ({row['time_s']} s)")
+    result = {"seeds": list(seeds), "session_positions": list(positions), "rows": rows}
+    write_json(out / "led_clock.json", result)
+    plot(result, out / "led_clock.png")
+    return result
+
+
+def plot(result: dict, path) -> None:
+    """The LED's error along the pass (y_T) per cell: fitted, on the true clock, with a drift
+    term, and the calibration's reported sigma."""
+    plt = pyplot()
+    rows = result["rows"]
+    x = np.arange(len(rows))
+    axis = int(np.argmax(np.abs(rows[0]["pass_direction_t"]))) if rows else 1
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    for k, (key, label) in enumerate((("fitted", "fitted (one clock offset)"),
+                                      ("true_clock", "on the true clock"),
+                                      ("with_drift", "fitted with a drift"))):
+        ax.bar(x + (k - 1) * 0.27, [r["led_error_um"][key][axis] for r in rows], 0.27,
+               label=label)
+    stds = [r["led_std_um"][axis] if r["led_std_um"] else np.nan for r in rows]
+    ax.errorbar(x - 0.27, np.zeros(len(rows)), yerr=stds, fmt="none", ecolor="k", capsize=4,
+                label="reported sigma")
+    ax.axhline(0.0, color="grey", lw=0.8)
+    ax.set_xticks(x, [f"cell {r['perturb_seed']}" for r in rows])
+    ax.set_ylabel(f"LED offset error along {'xyz'[axis]}_T (um)")
+    ax.set_title("the calibrated LED offset along the pass: the clock trades against it")
+    ax.legend(fontsize=8)
+    save_figure(fig, path)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.led_clock",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("out", type=pathlib.Path)
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
+    args = parser.parse_args(argv)
+    run(args.out, args.seeds)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
