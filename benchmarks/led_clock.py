@@ -5,9 +5,12 @@ offset ``d`` (robot minus camera, s) to the calibration pass
 (``scanner_core.crosscheck.estimate_led_and_clock``: ``M_i = p(t_i + d) + R(t_i + d) m``). Along
 the pass a clock error moves every marker position by the robot's velocity times it, which an
 LED offset along the pass direction also does: only the pass's changes of speed tell them
-apart. For each realistic cell (``--perturb-seed``, every effect) this bench calibrates as
-``flyscan calibrate --sim`` does, runs the calibration pass again and fits the LED three ways
-on the same marker positions:
+apart, and a robot clock that drifts along a pass whose speed only grows reads as a constant
+clock error. For each realistic cell (``--perturb-seed``, every effect) and each shape of the
+calibration pass's speed (``"ramp"``: up all the way, a scan's; ``"peak"``: up to the middle
+and down again, the calibration's since 2026-11-27), this bench calibrates as ``flyscan
+calibrate --sim`` does, runs the calibration pass again and fits the LED three ways on the
+same marker positions:
 
 - **fitted**: the calibration's own (one clock offset for the pass, fitted with the LED);
 - **true clock**: the LED alone, with the robot clock of every frame taken from the simulator's
@@ -44,6 +47,8 @@ SESSION_POSITIONS = (200, 40)
 SEEDS = (1, 2, 3, 4, 5)
 #: Gauss-Newton steps of the fit with a drift (it converges in 3-4).
 DRIFT_ITERATIONS = 8
+#: The calibration pass's speed shapes compared (``simulator.cell.SPEED_SHAPES``).
+SHAPES = ("ramp", "peak")
 
 
 def _true_robot_clock(cell, times: np.ndarray) -> np.ndarray:
@@ -80,11 +85,11 @@ def _led_with_drift(robot, marker_b, times, start_s) -> tuple[np.ndarray, float,
     return m, d0, d1 * 1e6
 
 
-def _row(seed: int, positions=SESSION_POSITIONS) -> dict:
+def _row(seed: int, shape: str, positions=SESSION_POSITIONS) -> dict:
     t0 = time.perf_counter()
     cell = realistic_cell(load_cell(perturb_seed=seed), seed=seed)
     session = simulate_session(cell, seed=seed, led_count=positions[0],
-                               sphere_count=positions[1])
+                               sphere_count=positions[1], pass_speed_shape=shape)
     calibration, _ = calibrate_session(session, seed=seed)
     true_led = cell.calibration.marker_offset_t
     # The calibration pass again, placed with the design's LED and clock, as the session's is.
@@ -112,7 +117,7 @@ def _row(seed: int, positions=SESSION_POSITIONS) -> dict:
     um = lambda led: np.round((np.asarray(led) - true_led) * 1e3, 2).tolist()  # noqa: E731
     std = calibration.marker_offset_std_mm
     return {
-        "perturb_seed": seed, "frames": int(len(times)),
+        "perturb_seed": seed, "speed_shape": shape, "frames": int(len(times)),
         "speed_mm_s": {"min": float(speed.min()), "median": float(np.median(speed)),
                        "max": float(speed.max())},
         "pass_direction_t": np.round(heading_t, 3).tolist(),
@@ -129,45 +134,76 @@ def _row(seed: int, positions=SESSION_POSITIONS) -> dict:
     }
 
 
-def run(out_dir, seeds=SEEDS, progress=None, positions=SESSION_POSITIONS) -> dict:
+def run(out_dir, seeds=SEEDS, progress=None, positions=SESSION_POSITIONS, shapes=SHAPES) -> dict:
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     say = progress or (lambda line: print(line, file=sys.stderr, flush=True))
     rows = []
     with threadpool_limits(limits=1, user_api="blas"):
         for seed in seeds:
-            row = _row(int(seed), positions)
-            rows.append(row)
-            e = row["led_error_um"]
-            say(f"seed {seed}: LED error um (x, y, z in T) fitted {e['fitted']}, true clock "
-                f"{e['true_clock']}, with drift {e['with_drift']}; std {row['led_std_um']}; "
-                f"clock {row['clock_error_ms']['fitted']:+.3f} ms ({row['time_s']} s)")
-    result = {"seeds": list(seeds), "session_positions": list(positions), "rows": rows}
+            for shape in shapes:
+                row = _row(int(seed), shape, positions)
+                rows.append(row)
+                e = row["led_error_um"]
+                say(f"seed {seed}, {shape}: LED error um (x, y, z in T) fitted {e['fitted']}, "
+                    f"true clock {e['true_clock']}, with drift {e['with_drift']}; std "
+                    f"{row['led_std_um']}; clock {row['clock_error_ms']['fitted']:+.3f} ms "
+                    f"({row['time_s']} s)")
+    result = {"seeds": list(seeds), "shapes": list(shapes), "session_positions": list(positions),
+              "rows": rows, "summary": _summary(rows)}
     write_json(out / "led_clock.json", result)
     plot(result, out / "led_clock.png")
     return result
 
 
+def _summary(rows) -> dict:
+    """Per shape, over the cells, along the pass: the fitted LED's RMS and largest error, the
+    true-clock LED's largest, and the largest error in units of the reported sigma."""
+    out = {}
+    for shape in dict.fromkeys(r["speed_shape"] for r in rows):
+        mine = [r for r in rows if r["speed_shape"] == shape]
+        along = [int(np.argmax(np.abs(r["pass_direction_t"]))) for r in mine]
+        fitted = np.array([r["led_error_um"]["fitted"][k] for r, k in zip(mine, along)])
+        truth = np.array([r["led_error_um"]["true_clock"][k] for r, k in zip(mine, along)])
+        sigma = np.array([r["led_std_um"][k] if r["led_std_um"] else np.nan
+                          for r, k in zip(mine, along)])
+        out[shape] = {"cells": len(mine), "fitted_rms_um": float(np.sqrt(np.mean(fitted**2))),
+                      "fitted_max_um": float(np.max(np.abs(fitted))),
+                      "true_clock_max_um": float(np.max(np.abs(truth))),
+                      "max_z": float(np.nanmax(np.abs(fitted) / sigma))}
+    return out
+
+
 def plot(result: dict, path) -> None:
-    """The LED's error along the pass (y_T) per cell: fitted, on the true clock, with a drift
-    term, and the calibration's reported sigma."""
+    """The LED's error along the pass per cell: fitted on a pass whose speed ramps up, fitted
+    on one whose speed peaks at its middle (with its reported sigma), and on the true clock."""
     plt = pyplot()
     rows = result["rows"]
-    x = np.arange(len(rows))
-    axis = int(np.argmax(np.abs(rows[0]["pass_direction_t"]))) if rows else 1
+    seeds = list(dict.fromkeys(r["perturb_seed"] for r in rows))
+    by = {(r["perturb_seed"], r["speed_shape"]): r for r in rows}
+    x = np.arange(len(seeds))
     fig, ax = plt.subplots(figsize=(7, 3.6))
-    for k, (key, label) in enumerate((("fitted", "fitted (one clock offset)"),
-                                      ("true_clock", "on the true clock"),
-                                      ("with_drift", "fitted with a drift"))):
-        ax.bar(x + (k - 1) * 0.27, [r["led_error_um"][key][axis] for r in rows], 0.27,
-               label=label)
-    stds = [r["led_std_um"][axis] if r["led_std_um"] else np.nan for r in rows]
-    ax.errorbar(x - 0.27, np.zeros(len(rows)), yerr=stds, fmt="none", ecolor="k", capsize=4,
-                label="reported sigma")
+    bars = [("ramp", "fitted", "pass speed ramping up (before)"),
+            ("peak", "fitted", "pass speed up then down (now)"),
+            ("peak", "true_clock", "on the true clock")]
+    for k, (shape, key, label) in enumerate(bars):
+        values = []
+        for seed in seeds:
+            r = by.get((seed, shape))
+            along = int(np.argmax(np.abs(r["pass_direction_t"]))) if r else 0
+            values.append(r["led_error_um"][key][along] if r else np.nan)
+        ax.bar(x + (k - 1) * 0.27, values, 0.27, label=label)
+    sigmas = []
+    for seed in seeds:
+        r = by.get((seed, "peak"))
+        along = int(np.argmax(np.abs(r["pass_direction_t"]))) if r else 0
+        sigmas.append(r["led_std_um"][along] if r and r["led_std_um"] else np.nan)
+    ax.errorbar(x, np.zeros(len(seeds)), yerr=sigmas, fmt="none", ecolor="k", capsize=4,
+                label="reported sigma (now)")
     ax.axhline(0.0, color="grey", lw=0.8)
-    ax.set_xticks(x, [f"cell {r['perturb_seed']}" for r in rows])
-    ax.set_ylabel(f"LED offset error along {'xyz'[axis]}_T (um)")
-    ax.set_title("the calibrated LED offset along the pass: the clock trades against it")
+    ax.set_xticks(x, [f"cell {seed}" for seed in seeds])
+    ax.set_ylabel("LED offset error along the pass (um)")
+    ax.set_title("the calibrated LED offset: a drifting clock against the pass's speed")
     ax.legend(fontsize=8)
     save_figure(fig, path)
 
@@ -177,8 +213,9 @@ def main(argv=None) -> int:
                                      description=__doc__.splitlines()[0])
     parser.add_argument("out", type=pathlib.Path)
     parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
+    parser.add_argument("--shapes", nargs="+", choices=SHAPES, default=list(SHAPES))
     args = parser.parse_args(argv)
-    run(args.out, args.seeds)
+    run(args.out, args.seeds, shapes=tuple(args.shapes))
     return 0
 
 

@@ -257,7 +257,7 @@ class CalibrationSessions:
             if driver is not None:
                 # Out of the views first: the LED held in view would start the pass at once
                 # (a real cell's controller parks the robot at the pass's start likewise).
-                driver.park()
+                driver.park(calibration_pass=True)
                 self._still_frame()
             job = self.service.arm(getattr(driver, "calibration_part", None), None, record=True)
             session.pass_scan_id, session.pass_state = job.scan_id, "recording"

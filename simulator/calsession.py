@@ -14,7 +14,7 @@ import trimesh
 from scanner_core.geometry import angle_between, apply_transform
 from scanner_core.calplan import PlanGeometry, led_targets, sphere_targets
 from scanner_core.calsession import Session
-from simulator.cell import Cell
+from simulator.cell import CALIBRATION_SPEED_SHAPE, Cell
 from simulator.parts import Part, part_from_mesh
 from simulator.render import PartScene, frame_image, FrameTruth
 from simulator.session import simulated_cell
@@ -129,7 +129,7 @@ class _LedScene:
 
 def simulate_session(cell: Cell, *, seed: int = 0, led_count: int = LED_POSITIONS,
                      sphere_count: int = SPHERE_POSITIONS, with_pass: bool = True,
-                     nominal=None) -> Session:
+                     nominal=None, pass_speed_shape: str = CALIBRATION_SPEED_SHAPE) -> Session:
     """A calibration session in ``cell`` (its truth renders the frames).
 
     Parameters
@@ -144,6 +144,9 @@ def simulate_session(cell: Cell, *, seed: int = 0, led_count: int = LED_POSITION
     nominal : Calibration, optional
         What the installer knows before calibrating: the view strips and the LED's offset as
         designed. Default: the reference design's.
+    pass_speed_shape : str
+        The pass's ``PassProfile.speed_shape``: the calibration pass's (``"peak"``), or
+        ``"ramp"``, a scan's (``benchmarks.led_clock`` compares them).
     """
     from simulator.cell import load_cell
 
@@ -170,7 +173,8 @@ def simulate_session(cell: Cell, *, seed: int = 0, led_count: int = LED_POSITION
             yield scene.render(c, np.eye(4), image_rng, with_marker=False)[0]
 
     def pass_devices():
-        sim = simulated_cell(sphere, cell, seed=image_seed)
+        sim = simulated_cell(sphere, cell.with_pass(speed_shape=pass_speed_shape),
+                             seed=image_seed)
         return sim.camera, sim.robot
 
     cam = cell.calibration.camera

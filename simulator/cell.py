@@ -38,7 +38,9 @@ class PassProfile:
 
     The TCP runs along +y of {B} from ``start_y_mm`` to ``end_y_mm`` at ``height_mm``; its
     speed ramps linearly from ``(1 - accel_fraction)`` to ``(1 + accel_fraction)`` times the
-    nominal speed, and the path bows sideways by ``bow_mm`` and rises by ``rise_mm``.
+    nominal speed (``speed_shape`` "ramp"), or up to that at the pass's middle and down again
+    ("peak": symmetric in time, the calibration pass's), and the path bows sideways by
+    ``bow_mm`` and rises by ``rise_mm``.
     """
 
     speed_mm_s: float = 200.0
@@ -51,6 +53,21 @@ class PassProfile:
     rise_mm: float = 1.5
     lead_in_s: float = 0.3
     lead_out_s: float = 0.3
+    speed_shape: str = "ramp"
+
+    def __post_init__(self):
+        if self.speed_shape not in SPEED_SHAPES:
+            raise ValueError(f"PassProfile.speed_shape must be one of {SPEED_SHAPES}, got "
+                             f"{self.speed_shape!r}")
+
+
+#: How the speed changes along a pass (``PassProfile.speed_shape``).
+SPEED_SHAPES = ("ramp", "peak")
+#: The calibration pass's: up to the middle and down again. With the speed ramping up all
+#: the way, a robot clock that drifts along the pass (10-44 ppm in the realistic cells) reads
+#: as a constant clock error of about ``v / a`` times the drift, and the LED's offset takes
+#: the other side: 3-19 um along the pass (``benchmarks.led_clock``).
+CALIBRATION_SPEED_SHAPE = "peak"
 
 
 #: The paper's two configurations (section II and V).

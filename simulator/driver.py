@@ -8,10 +8,12 @@ is behind it.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from scanner_core.cad import check_fits
+from simulator.cell import CALIBRATION_SPEED_SHAPE
 from simulator.live import PassInProgress
 from simulator.parts import simulated
 from simulator.session import misplacement_matrix
@@ -43,6 +45,7 @@ class SimPassDriver:
         self._dressed: dict[int, tuple] = {}  # id -> (the library's part, the simulated one)
         self._scenes = None  # simulator.calsession.StepScenes, made at the first hold
         self._held_at = None  # the TCP position of the emulator's hold, (3,) mm
+        self._calibration_next = False  # the next pass is a calibration session's (park)
 
     def _simulated(self, part):
         """The part as the simulator shows it (the same object every time, so that its
@@ -71,9 +74,13 @@ class SimPassDriver:
 
         return plan_geometry(self.sim.cell, led_offset_t_mm=nominal.marker_offset_t)
 
-    def park(self) -> None:
+    def park(self, *, calibration_pass: bool = False) -> None:
         """Take the TCP out of the views, to where the default pass begins (after a
-        calibration session's last pose: the LED held in view would start the next pass)."""
+        calibration session's last pose: the LED held in view would start the next pass).
+        With `calibration_pass` the next pass is a calibration session's: its speed goes up
+        to the middle and down again (``simulator.cell.CALIBRATION_SPEED_SHAPE``), as the
+        cell's robot program runs it."""
+        self._calibration_next = bool(calibration_pass)
         cell = self.sim.cell
         pose = np.eye(4)
         pose[:3, :3], pose[:3, 3] = cell.gripper_rotation_b, self.sim.idle_tcp_b
@@ -129,10 +136,14 @@ class SimPassDriver:
     def start_pass(self, part, misplacement: np.ndarray | None) -> None:
         """Start the pass once the robot has finished the previous one (its lead-out goes on
         after the scan has ended), as a robot program would."""
+        profile = None
+        if self._calibration_next:
+            self._calibration_next = False
+            profile = replace(self.sim.cell.pass_profile, speed_shape=CALIBRATION_SPEED_SHAPE)
         deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
         while True:
             try:
-                live = self.sim.start_pass(self._simulated(part), misplacement)
+                live = self.sim.start_pass(self._simulated(part), misplacement, profile=profile)
                 break
             except PassInProgress:
                 if time.monotonic() > deadline:

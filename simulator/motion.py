@@ -17,9 +17,12 @@ from simulator.cell import PassProfile
 class PassMotion:
     """TCP position along the pass as a function of time.
 
-    The speed ramps linearly from ``v (1 - a)`` to ``v (1 + a)`` over the pass, so the mean
-    speed is ``v`` and the duration ``L / v``; the path bows sideways (x) by a half sine and
-    rises (z) quadratically with the distance travelled.
+    The speed ramps linearly from ``v (1 - a)`` to ``v (1 + a)`` over the pass ("ramp"), or
+    to ``v (1 + a)`` at its middle and back ("peak"), so the mean speed is ``v`` and the
+    duration ``L / v``; the path bows sideways (x) by a half sine and rises (z) quadratically
+    with the distance travelled. With "peak" the speed is symmetric about the pass's middle:
+    a clock that drifts linearly along the pass then moves the marker in a way neither a
+    constant clock offset nor an offset of the LED does (``benchmarks.led_clock``).
     """
 
     profile: PassProfile
@@ -42,8 +45,16 @@ class PassMotion:
         t = np.asarray(t, dtype=np.float64)
         v, a, dur = p.speed_mm_s, p.accel_fraction, self.duration_s
         tau = np.clip(t, 0.0, dur)
-        inside = v * ((1.0 - a) * tau + a * tau**2 / dur)
         before = v * (1.0 - a) * np.minimum(t, 0.0)
+        if p.speed_shape == "peak":
+            half = 0.5 * dur
+            up = np.minimum(tau, half)
+            down = np.maximum(tau - half, 0.0)
+            # up at 2 a v / dur to v (1 + a) at the middle, then down as fast
+            inside = (v * ((1.0 - a) * up + a * up**2 / half)
+                      + v * ((1.0 + a) * down - a * down**2 / half))
+            return inside + before + v * (1.0 - a) * np.maximum(t - dur, 0.0)
+        inside = v * ((1.0 - a) * tau + a * tau**2 / dur)
         after = v * (1.0 + a) * np.maximum(t - dur, 0.0)
         return inside + before + after
 
@@ -51,6 +62,9 @@ class PassMotion:
         """Speed along y, mm/s."""
         p = self.profile
         tau = np.clip(np.asarray(t, dtype=np.float64), 0.0, self.duration_s)
+        if p.speed_shape == "peak":
+            rise = 1.0 - np.abs(2.0 * tau / self.duration_s - 1.0)  # 0 at the ends, 1 between
+            return p.speed_mm_s * (1.0 - p.accel_fraction + 2.0 * p.accel_fraction * rise)
         return p.speed_mm_s * (1.0 - p.accel_fraction + 2.0 * p.accel_fraction * tau / self.duration_s)
 
     def tcp_position(self, t) -> np.ndarray:
@@ -69,6 +83,8 @@ class PassMotion:
         every frame's pose lookup with it, and a dozen numpy calls on scalars cost about
         20 us a lookup, which the per-frame benchmark would charge to the scanner."""
         p = self.profile
+        if p.speed_shape != "ramp":
+            return self.tcp_position(np.asarray(t, dtype=np.float64))
         v, a, dur = p.speed_mm_s, p.accel_fraction, self.duration_s
         tau = min(max(t, 0.0), dur)
         s = (v * ((1.0 - a) * tau + a * tau * tau / dur) + v * (1.0 - a) * min(t, 0.0)
