@@ -1,0 +1,38 @@
+"""The simulated robot program (``simulator.driver.SimPassDriver``): a calibration session's
+pass, announced by ``park(calibration_pass=True)``, speeds up to its middle and down again;
+the passes of scans keep the cell's own shape."""
+from types import SimpleNamespace
+
+import numpy as np
+
+from simulator.driver import SimPassDriver
+
+
+class _Cell:
+    """What the driver asks of the live cell: its pass, the pose it parks at, the passes."""
+
+    def __init__(self, cell):
+        self.cell, self.idle_tcp_b, self.profiles, self.holds = cell, np.zeros(3), [], []
+
+    def hold(self, pose, truth):
+        self.holds.append(pose)
+
+    def start_pass(self, part, misplacement, *, profile=None):
+        self.profiles.append(profile)
+        return SimpleNamespace(segment=None)
+
+
+def test_only_the_announced_calibration_pass_is_peaked(cell):
+    live = _Cell(cell)
+    driver = SimPassDriver(live)
+    driver._simulated = lambda part: part  # the part itself does not matter here
+    driver.start_pass("demo", None)
+    driver.park(calibration_pass=True)
+    driver.start_pass("demo", None)
+    driver.start_pass("demo", None)
+    driver.park()
+    driver.start_pass("demo", None)
+    shapes = [None if p is None else p.speed_shape for p in live.profiles]
+    assert shapes == [None, "peak", None, None]  # None: the cell's own pass ("ramp")
+    peaked = live.profiles[1]
+    assert peaked.speed_mm_s == cell.pass_profile.speed_mm_s and len(live.holds) == 2
