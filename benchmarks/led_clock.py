@@ -38,7 +38,7 @@ from benchmarks.results import pyplot, save_figure, write_json
 from scanner_core.calsession import calibrate_session
 from scanner_core.crosscheck import _clock_and_offset_rows, _robot_rotations, _track_at
 from scanner_core.pipeline import PipelineParams, camera_frames, run_pass
-from simulator.calsession import simulate_session
+from simulator.calsession import simulate_session, true_robot_clock
 from simulator.cell import load_cell
 from simulator.effects import realistic_cell
 
@@ -49,15 +49,6 @@ SEEDS = (1, 2, 3, 4, 5)
 DRIFT_ITERATIONS = 8
 #: The calibration pass's speed shapes compared (``simulator.cell.SPEED_SHAPES``).
 SHAPES = ("ramp", "peak")
-
-
-def _true_robot_clock(cell, times: np.ndarray) -> np.ndarray:
-    """(N,) the robot's clock at each camera time (mid-exposure), s: the simulator's truth."""
-    effects = cell.effects
-    mid = 0.5e-3 if effects.exposure_blur else 0.0
-    if not (effects.clock_offset_s or effects.clock_drift_ppm):
-        return times + mid
-    return np.array([float(effects.robot_time(t + mid)) for t in times])
 
 
 def _led_on_clock(robot, marker_b, robot_times) -> np.ndarray:
@@ -105,7 +96,7 @@ def _row(seed: int, shape: str, positions=SESSION_POSITIONS) -> dict:
     times = scan.tcp_times
     marker_b = scan.tcp_positions_b + np.einsum("fij,j->fi", scan.tcp_rotations_b,
                                                 nominal.marker_offset_t)
-    true_clock = _true_robot_clock(cell, times)
+    true_clock = true_robot_clock(cell, times)
     on_truth = _led_on_clock(robot, marker_b, true_clock)
     drifting, d0, drift_ppm = _led_with_drift(robot, marker_b, times, calibration.clock_offset_s)
     _, velocity, ok = _track_at(robot, true_clock)
@@ -156,17 +147,27 @@ def run(out_dir, seeds=SEEDS, progress=None, positions=SESSION_POSITIONS, shapes
     return result
 
 
+def _along_pass(row: dict | None, what: str) -> float:
+    """`row`'s figure along the pass (the {T} axis it travels along), um: its LED error
+    ``"fitted"``, ``"true_clock"`` or ``"with_drift"``, or its reported ``"sigma"``; NaN
+    without a row or a sigma."""
+    if row is None:
+        return float("nan")
+    values = row["led_std_um"] if what == "sigma" else row["led_error_um"][what]
+    if values is None:
+        return float("nan")
+    return float(values[int(np.argmax(np.abs(row["pass_direction_t"])))])
+
+
 def _summary(rows) -> dict:
     """Per shape, over the cells, along the pass: the fitted LED's RMS and largest error, the
     true-clock LED's largest, and the largest error in units of the reported sigma."""
     out = {}
     for shape in dict.fromkeys(r["speed_shape"] for r in rows):
         mine = [r for r in rows if r["speed_shape"] == shape]
-        along = [int(np.argmax(np.abs(r["pass_direction_t"]))) for r in mine]
-        fitted = np.array([r["led_error_um"]["fitted"][k] for r, k in zip(mine, along)])
-        truth = np.array([r["led_error_um"]["true_clock"][k] for r, k in zip(mine, along)])
-        sigma = np.array([r["led_std_um"][k] if r["led_std_um"] else np.nan
-                          for r, k in zip(mine, along)])
+        fitted = np.array([_along_pass(r, "fitted") for r in mine])
+        truth = np.array([_along_pass(r, "true_clock") for r in mine])
+        sigma = np.array([_along_pass(r, "sigma") for r in mine])
         out[shape] = {"cells": len(mine), "fitted_rms_um": float(np.sqrt(np.mean(fitted**2))),
                       "fitted_max_um": float(np.max(np.abs(fitted))),
                       "true_clock_max_um": float(np.max(np.abs(truth))),
@@ -187,17 +188,9 @@ def plot(result: dict, path) -> None:
             ("peak", "fitted", "pass speed up then down (now)"),
             ("peak", "true_clock", "on the true clock")]
     for k, (shape, key, label) in enumerate(bars):
-        values = []
-        for seed in seeds:
-            r = by.get((seed, shape))
-            along = int(np.argmax(np.abs(r["pass_direction_t"]))) if r else 0
-            values.append(r["led_error_um"][key][along] if r else np.nan)
-        ax.bar(x + (k - 1) * 0.27, values, 0.27, label=label)
-    sigmas = []
-    for seed in seeds:
-        r = by.get((seed, "peak"))
-        along = int(np.argmax(np.abs(r["pass_direction_t"]))) if r else 0
-        sigmas.append(r["led_std_um"][along] if r and r["led_std_um"] else np.nan)
+        ax.bar(x + (k - 1) * 0.27, [_along_pass(by.get((seed, shape)), key) for seed in seeds],
+               0.27, label=label)
+    sigmas = [_along_pass(by.get((seed, "peak")), "sigma") for seed in seeds]
     ax.errorbar(x, np.zeros(len(seeds)), yerr=sigmas, fmt="none", ecolor="k", capsize=4,
                 label="reported sigma (now)")
     ax.axhline(0.0, color="grey", lw=0.8)

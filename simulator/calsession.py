@@ -187,6 +187,15 @@ def simulate_session(cell: Cell, *, seed: int = 0, led_count: int = LED_POSITION
                                             " realistic"))
 
 
+def true_robot_clock(cell: Cell, camera_times):
+    """The robot's clock (s) at camera time(s) `camera_times` (s), at the middle of the
+    exposure, which is what the marker's time stamp stands for: the simulator's truth, for
+    evaluation only. Minus `camera_times`, the true robot-minus-camera clock offset."""
+    effects = cell.effects
+    mid_exposure_s = 0.5e-3 if effects.exposure_blur else 0.0
+    return effects.robot_time(np.asarray(camera_times, dtype=np.float64) + mid_exposure_s)
+
+
 def evaluate_calibration(calibration, cell: Cell) -> dict:
     """How far a calibration is from the cell's truth (evaluation only: the simulator's truth).
 
@@ -204,10 +213,7 @@ def evaluate_calibration(calibration, cell: Cell) -> dict:
     offset_um = float(abs(plane.signed_distance(centre)[0]) * 1e3)
     mirrors = [float(np.degrees(angle_between(m.plane.normal, t.plane.normal, undirected=True)))
                for m, t in zip(calibration.mirrors, true.mirrors)]
-    effects = cell.effects
-    mid_exposure_s = 0.5e-3 if effects.exposure_blur else 0.0
-    true_clock = float(effects.robot_time(mid_exposure_s)) if effects.clock_offset_s or \
-        effects.clock_drift_ppm else mid_exposure_s
+    true_clock = float(true_robot_clock(cell, 0.0))
     return {"plane_normal_deg": normal_deg, "plane_offset_um": offset_um,
             "camera_centre_mm": float(np.linalg.norm(calibration.camera.origin
                                                      - true.camera.origin)),
