@@ -25,9 +25,13 @@ is registered against the CAD model in {P}, starting from the nominal grasp ^T X
 - **uncertainty**: the covariance of the six motion parameters is the cluster-robust
   sandwich ``H^-1 (sum_f g_f g_f^T) H^-1`` over the frames f (Liang and Zeger 1986): the
   points of one profile share that frame's placement error (the marker's triangulation), so
-  they are not independent, and the sandwich takes that from the residuals themselves. It is
-  scaled by ``PoseParams.sigma_inflation`` (2.6, measured by ``flyscan bench pose``) for what
-  it cannot see: biases shared by every profile that crosses one edge.
+  they are not independent, and the sandwich takes that from the residuals themselves. The
+  edge points along one edge of the model share an offset from it (a rounded edge, the stripe
+  fading as the surface turns away): they are clustered by edge as well (two-way, Cameron,
+  Gelbach and Miller 2011), each edge's residuals corrected for the part of its offset the fit
+  took up (``scanner_core.pose_confidence._two_way_meat``). It is scaled by
+  ``PoseParams.sigma_inflation`` (2.6, measured by ``flyscan bench pose``) for what it still
+  cannot see.
 
 The model is the CAD surface sampled densely with face normals (`SurfaceModel.from_mesh`), or
 any points with normals, such as the simulator's predicted cloud of the same pass
@@ -127,8 +131,8 @@ class PoseParams:
     sigma_inflation : float
         The reported standard deviations are the sandwich estimate times this: what
         ``flyscan bench pose`` measured it takes for the errors of converged poses to stay
-        within 3 sigma (the errors the sandwich cannot see: edge placement biases shared by
-        all the profiles crossing one edge).
+        within 3 sigma (the errors the sandwich cannot see), measured before the sandwich
+        clustered the edge points by edge as well as by profile.
     coarse_step_deg, coarse_extent_deg : float
         The coarse grid of rotation vectors around the nominal: every combination of
         ``-extent..extent`` in ``step`` about the three {T} axes.

@@ -106,6 +106,7 @@ class _Fit:
     residuals: np.ndarray       # (K,)
     weights: np.ndarray         # (K,)
     frames: np.ndarray          # (K,) frame of each inlier
+    curves: np.ndarray          # (K,) model edge curve of each edge row, -1 for surfaces
     centre: np.ndarray          # (3,)
     scale_mm: float             # radius that makes rotations comparable with translations
 
@@ -147,12 +148,12 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, warm: bool = 
     pose, rows = _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params)
     if rows is None:
         rows, _ = _linearise(surface, edges, pose, centre, gates, params)
-    jac, res, w, frames, matched = rows
+    jac, res, w, frames, matched, curves = rows
     inlier_fraction = matched / max(len(surface.points), 1)
     edge_fraction = ((len(res) - matched) / len(edges.points)) if edges is not None else 1.0
     rms = float(np.sqrt(np.sum(w * res**2) / np.sum(w))) if len(res) else np.inf
-    return _Fit(pose, rms, inlier_fraction, edge_fraction, it, jac, res, w, frames, centre,
-                scale)
+    return _Fit(pose, rms, inlier_fraction, edge_fraction, it, jac, res, w, frames, curves,
+                centre, scale)
 
 
 def _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params):
@@ -166,7 +167,7 @@ def _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params
     (`_linearise`'s first value), else None: the caller need not linearise there again.
     """
     rows, _ = _linearise(surface, edges, pose, centre, gates, params)
-    jac, res, w, frames, _ = rows
+    jac, res, w, frames = rows[:4]
     if len(res) < 6:
         return pose, rows
     _, vectors, strong = _directions(jac, w, frames, scale, params)
@@ -182,7 +183,7 @@ def _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params
     step_tol = np.array([params.tol_mm] * 3 + [np.radians(params.tol_deg)] * 3)
     sizes, visited = [], []
     for _ in range(params.max_iterations):
-        (jac, res, w, _, _), _ = _linearise(surface, edges, pose, centre, gates, params)
+        (jac, res, w, *_), _ = _linearise(surface, edges, pose, centre, gates, params)
         if len(res) < 6:
             break
         _, observed = _solve(jac, res, w, scale, params.free_std_mm)
@@ -239,8 +240,9 @@ def _linearise(surface, edges, pose, centre, gates, params):
     """Residuals, Jacobian rows, robust weights and frames of all correspondences at `pose`
     (the rows of weight 0 left out).
 
-    Returns ``(jacobian, residuals, weights, frames, surface_inliers)`` and the robust scale
-    of each kind (surface, edges).
+    Returns ``(jacobian, residuals, weights, frames, surface_inliers, curves)`` (``curves``:
+    the model edge curve each row matched, ``EdgeModel.curves``, -1 for a surface row) and
+    the robust scale of each kind (surface, edges).
     """
     parts, sigmas = [], []
     for terms, rows, gate, noise_mm in ((surface, _surface_rows, gates[0], params.surface_noise_mm),
@@ -248,12 +250,14 @@ def _linearise(surface, edges, pose, centre, gates, params):
         if terms is None:
             sigmas.append(np.inf)
             continue
-        jac, res, w, sigma = rows(terms, pose[None], centre, gate, noise_mm)
+        jac, res, w, sigma, *nearest = rows(terms, pose[None], centre, gate, noise_mm)
         keep = w[0] > 0
-        parts.append((jac[0][keep], res[0][keep], w[0][keep], terms.frames[keep]))
+        curves = (terms.model.curves[nearest[0][0][keep]] if nearest
+                  else np.full(int(keep.sum()), -1, np.int64))
+        parts.append((jac[0][keep], res[0][keep], w[0][keep], terms.frames[keep], curves))
         sigmas.append(float(sigma[0]))
-    jac, res, w, frames = (np.concatenate(x) for x in zip(*parts))
-    return (jac, res, w, frames, len(parts[0][1])), sigmas
+    jac, res, w, frames, curves = (np.concatenate(x) for x in zip(*parts))
+    return (jac, res, w, frames, len(parts[0][1]), curves), sigmas
 
 
 def _nearest(terms: _Terms, local, up, bound):
@@ -322,15 +326,17 @@ def _surface_rows(terms: _Terms, poses, centre, gate, noise_mm):
 def _edge_rows(terms: _Terms, poses, centre, gate, noise_mm):
     """Edge rows, as :func:`_surface_rows`: the distance in (x_T, y_T) from the edge point
     to the model's edge line, i.e. to the vertical plane through it (normal ``d x z_T`` for
-    edge direction d); an edge within 17 degrees of z_T is no line in that plane."""
+    edge direction d); an edge within 17 degrees of z_T is no line in that plane. Returns
+    the model sample each point matched, (P, N), as well."""
     rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
     local = (terms.points[None] - translation[:, None]) @ rotation
     bound = gate + _spacing(terms.model) + _EDGE_SEARCH_MM
     dist, nearest = _nearest(terms, local, rotation[:, 2], bound)
-    return plane_rows(terms.points, terms.points, terms.model.points, terms.model.directions,
+    rows = plane_rows(terms.points, terms.points, terms.model.points, terms.model.directions,
                       nearest, np.isfinite(dist), rotation, translation, centre, gate,
                       noise_mm, -1.0, True, _MIN_EDGE_LEVEL, _MAD_TO_SIGMA, _TUKEY_C,
                       _MIN_SIGMA_MM)
+    return (*rows, nearest)
 
 
 def _spacing(model) -> float:

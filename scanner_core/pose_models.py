@@ -29,6 +29,10 @@ __all__ = ["SurfaceModel", "EdgeModel", "merge_bevels", "outline_adjacency", "BE
 #: Parallel sharp edges of the CAD closer than this (mm, about two pixels' footprint) are
 #: one edge to the scanner: a chamfer's two (`merge_bevels`).
 BEVEL_MM = 0.4
+#: Edge samples within this many spacings whose directions agree within _CURVE_DEG degrees
+#: lie on one edge curve (`EdgeModel.curves`).
+_CURVE_SPACINGS = 2.0
+_CURVE_DEG = 10.0
 #: Where an edge model without edges keeps its one unreachable point, mm.
 _NOWHERE_MM = 1e9
 #: How far from the models their lookup tables (`scanner_core.nearest_table`) answer, mm:
@@ -184,6 +188,31 @@ class EdgeModel:
     def lookup(self) -> NearestTable:
         """As `SurfaceModel.lookup`."""
         return _lookup(self, LOOKUP_BAND_MM["edge"])
+
+    @cached_property
+    def curves(self) -> np.ndarray:
+        """(M,) int64: the edge curve each sample lies on, numbered from 0.
+
+        Samples closer than ``_CURVE_SPACINGS`` spacings whose directions agree within
+        ``_CURVE_DEG`` degrees are on one curve: a straight edge, or a curved one whose
+        facets turn less than that. The scan's points on one edge share an error (the real
+        part's rounding of the CAD's sharp edge, the stripe fading as the surface turns away
+        there), which the pose's covariance takes in by clustering them
+        (``scanner_core.pose_confidence``).
+        """
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        n = len(self.points)
+        if n == 0:
+            return np.zeros(0, np.int64)
+        pairs = cKDTree(self.points).query_pairs(_CURVE_SPACINGS * self.spacing_mm,
+                                                 output_type="ndarray")
+        cosine = np.abs(np.einsum("ij,ij->i", self.directions[pairs[:, 0]],
+                                  self.directions[pairs[:, 1]]))
+        pairs = pairs[cosine > np.cos(np.radians(_CURVE_DEG))]
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
 def _tree(points) -> cKDTree:

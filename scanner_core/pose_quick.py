@@ -60,8 +60,8 @@ def _quick_fits(surface: _Terms, edges: _Terms | None, starts, params, *, iterat
         jac, res, w, _ = _surface_rows(surface, current, centre, gate_mm,
                                        params.surface_noise_mm)
         if edges is not None and len(edges.points):
-            e_jac, e_res, e_w, _ = _edge_rows(edges, current, centre, gate_mm,
-                                              params.edge_noise_mm)
+            e_jac, e_res, e_w, *_ = _edge_rows(edges, current, centre, gate_mm,
+                                               params.edge_noise_mm)
             jac, res, w = (np.concatenate(pair, axis=1)
                            for pair in ((jac, e_jac), (res, e_res), (w, e_w)))
         enough = np.count_nonzero(w > 0, axis=1) >= 6

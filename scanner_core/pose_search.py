@@ -405,7 +405,7 @@ def _weakest_rotation(surface, edges, pose, centre, params, *, weakness: bool = 
     """Unit axis in {T} of the rotation the fit at `pose` pins down least (translations
     free to follow: the Schur complement of the information); z_T when it cannot tell.
     With `weakness`, also the ratio of its information to the strongest rotation's."""
-    (jac, _, w, _, _), _ = _linearise(surface, edges, pose, centre,
+    (jac, _, w, *_), _ = _linearise(surface, edges, pose, centre,
                                       [params.gate_mm * 2] * 2, params)
     if len(w) < 6:
         axis, ratio = np.array([0.0, 0.0, 1.0]), 0.0

@@ -30,10 +30,12 @@ def pose_error(estimate, truth):
     return e[:3, 3], Rotation.from_matrix(e[:3, :3]).as_rotvec(degrees=True)
 
 
-def synthetic_scan(mesh, pose, *, seed=0, density=6.0, frame_sigma_mm=0.0, with_edges=True):
+def synthetic_scan(mesh, pose, *, seed=0, density=6.0, frame_sigma_mm=0.0, with_edges=True,
+                   edge_bias_mm=0.0):
     """What the scanner sees of `mesh` held at `pose`: the faces turned toward it (+z_T),
     sampled along profiles every PROFILE_MM in y_T, with noise; and where each profile
-    crosses a sharp edge next to such a face, an edge point.
+    crosses a sharp edge next to such a face, an edge point: each edge's points moved across
+    it by that edge's own offset, drawn with std `edge_bias_mm` (a rounded edge, say).
 
     Returns points, normals (toward the sensor), frame ids, edge points, edge frame ids.
     """
@@ -53,12 +55,12 @@ def synthetic_scan(mesh, pose, *, seed=0, density=6.0, frame_sigma_mm=0.0, with_
     points = points + shift[frames - frames.min()] + rng.normal(0, SURFACE_NOISE_MM, points.shape)
     if not with_edges:
         return points, normals, frames, None, None
-    edges, edge_frames = _edge_points(mesh, pose, rng)
+    edges, edge_frames = _edge_points(mesh, pose, rng, edge_bias_mm)
     edges = edges + shift[np.clip(edge_frames - frames.min(), 0, len(shift) - 1)]
     return points, normals, frames, edges, edge_frames
 
 
-def _edge_points(mesh, pose, rng):
+def _edge_points(mesh, pose, rng, bias_mm=0.0):
     adjacency = mesh.face_adjacency
     sharp = mesh.face_adjacency_angles > np.radians(30)
     normals_t = mesh.face_normals @ pose[:3, :3].T
@@ -73,6 +75,10 @@ def _edge_points(mesh, pose, rng):
     points = a[seg] + t[seg, lev][:, None] * (b - a)[seg]
     noise = rng.normal(0, EDGE_NOISE_MM, points.shape)
     noise[:, 1] = 0.0
+    if bias_mm > 0:
+        across = np.cross(b - a, [0.0, 0.0, 1.0])
+        across /= np.linalg.norm(across, axis=1, keepdims=True)
+        noise += (rng.normal(0.0, bias_mm, len(segments))[:, None] * across)[seg]
     return points + noise, levels[lev].astype(np.int64)
 
 
@@ -501,6 +507,21 @@ def test_merging_bevels_leaves_a_sharp_box_alone():
     box = trimesh.creation.box(extents=(40.0, 30.0, 10.0))
     merged, plain = EdgeModel.from_mesh(box), EdgeModel.from_mesh(box, bevel_mm=0.0)
     assert_allclose(merged.points, plain.points)
+
+
+def test_edge_curves_are_a_box_s_twelve_edges_and_a_disc_s_two_rims():
+    """`EdgeModel.curves`: the straight edges of a box one each; a 64-facet cylinder's rims
+    (facets turning 5.6 degrees) one each, its sides no sharp edge at all."""
+    box = EdgeModel.from_mesh(trimesh.creation.box(extents=(40.0, 30.0, 10.0)))
+    assert len(np.unique(box.curves)) == 12
+    for curve in np.unique(box.curves):
+        along = box.directions[box.curves == curve]
+        assert np.all(np.abs(along @ along[0]) > 0.999)
+    disc = EdgeModel.from_mesh(trimesh.creation.cylinder(radius=20.0, height=6.0, sections=64))
+    assert len(np.unique(disc.curves)) == 2
+    rims = [disc.points[disc.curves == c, 2] for c in np.unique(disc.curves)]
+    assert sorted(round(float(np.mean(z)), 6) for z in rims) == [-3.0, 3.0]
+    assert len(EdgeModel(np.zeros((0, 3)), np.zeros((0, 3))).curves) == 0
 
 
 def _stepped_scan(mesh, truth, seed):
