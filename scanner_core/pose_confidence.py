@@ -106,10 +106,10 @@ def _two_way_meat(js, weights, residuals, frames, curves, info_inv) -> np.ndarra
     are the rows in scaled units, `info_inv` ((6, 6)) the inverse of their information.
 
     The edge points along one edge share an error that their scatter does not show: at the
-    truth of featuretype's pick 47 in ``flyscan bench place``, the points of each of its 17
-    edges with five or more lay -93 to +99 um off the edge on average (RMS 59 um), 10-23 um
-    apart about that mean on most. Counted as independent, the edges claimed to hold x_T to
-    12.7 um; the pose came out 40.8 um off. A part has few edges, and the fit takes up much
+    truth of featuretype's pick 47 in ``flyscan bench place``, the points of each of its 24
+    edge curves with five or more lay -122 to +90 um off the edge on average (RMS 53 um),
+    19 um apart about that mean (median). Counted as independent, the edges claimed to hold
+    x_T to 12.7 um; the pose came out 40.8 um off. A part has few edges, and the fit takes up much
     of their offsets: the curves' and the intersections' residuals are corrected for their
     leverage (`_leverage_corrected`).
     """
