@@ -252,6 +252,7 @@ def _linearise(surface, edges, pose, centre, gates, params):
             continue
         jac, res, w, sigma, *nearest = rows(terms, pose[None], centre, gate, noise_mm)
         keep = w[0] > 0
+        # `_edge_rows` also gives the model sample each point matched: its edge curve
         curves = (terms.model.curves[nearest[0][0][keep]] if nearest
                   else np.full(int(keep.sum()), -1, np.int64))
         parts.append((jac[0][keep], res[0][keep], w[0][keep], terms.frames[keep], curves))

@@ -206,8 +206,7 @@ class EdgeModel:
         n = len(self.points)
         if n == 0:
             return np.zeros(0, np.int64)
-        pairs = cKDTree(self.points).query_pairs(_CURVE_SPACINGS * self.spacing_mm,
-                                                 output_type="ndarray")
+        pairs = self.tree.query_pairs(_CURVE_SPACINGS * self.spacing_mm, output_type="ndarray")
         cosine = np.abs(np.einsum("ij,ij->i", self.directions[pairs[:, 0]],
                                   self.directions[pairs[:, 1]]))
         pairs = pairs[cosine > np.cos(np.radians(_CURVE_DEG))]
