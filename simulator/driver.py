@@ -8,7 +8,6 @@ is behind it.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 import numpy as np
 
@@ -139,7 +138,7 @@ class SimPassDriver:
         profile = None
         if self._calibration_next:
             self._calibration_next = False
-            profile = replace(self.sim.cell.pass_profile, speed_shape=CALIBRATION_SPEED_SHAPE)
+            profile = self.sim.cell.with_pass(speed_shape=CALIBRATION_SPEED_SHAPE).pass_profile
         deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
         while True:
             try:
