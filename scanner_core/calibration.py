@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from scanner_core.fileio import save_json_atomic
+from scanner_core.planecal import PlaneUncertainty
 from scanner_core.geometry import (NO_DISTORTION, MarkerViews, Mirror, PinholeCamera, Plane,
                                    marker_views)
 
@@ -71,6 +72,7 @@ class Calibration:
     clock_offset_s: float = 0.0
     provenance: dict = field(default_factory=dict, compare=False, repr=False)
     marker_offset_std_mm: np.ndarray | None = None
+    light_plane_uncertainty: PlaneUncertainty | None = None
 
     @property
     def strips(self) -> tuple[tuple[int, int], ...]:
@@ -115,6 +117,8 @@ class Calibration:
             "provenance": self.provenance,
             **({} if self.marker_offset_std_mm is None
                else {"marker_offset_std_mm": np.asarray(self.marker_offset_std_mm).tolist()}),
+            **({} if self.light_plane_uncertainty is None
+               else {"light_plane_uncertainty_b": self.light_plane_uncertainty.to_dict()}),
         }
 
     @classmethod
@@ -166,7 +170,15 @@ class Calibration:
             if not (np.all(marker_std >= 0) and np.all(marker_std <= MAX_MARKER_STD_MM)):
                 raise CalibrationError(f"`marker_offset_std_mm` must be 3 numbers in [0, "
                                        f"{MAX_MARKER_STD_MM:g}] mm, got {marker_std.tolist()}")
-        return cls(camera, plane, tuple(mirrors), direct, marker, clock, provenance, marker_std)
+        plane_std = None
+        if data.get("light_plane_uncertainty_b") is not None:
+            try:
+                plane_std = PlaneUncertainty.from_dict(data["light_plane_uncertainty_b"])
+            except ValueError as exc:
+                raise CalibrationError(f"calibration field `light_plane_uncertainty_b`: {exc}") \
+                    from None
+        return cls(camera, plane, tuple(mirrors), direct, marker, clock, provenance, marker_std,
+                   plane_std)
 
 
 def _columns(obj, where: str, key: str = "columns") -> tuple[int, int]:

@@ -245,6 +245,7 @@ class PassAccumulator:
         )
         scan.points_partly_lit = points["points_partly_lit"]
         scan.placement_std_mm = self.calibration.marker_offset_std_mm
+        scan.light_plane_uncertainty = self.calibration.light_plane_uncertainty
         scan.frames_held_rotation = held
         scan.frames_without_rotation = no_rotation
         scan.tcp_frame_ids = np.array([p.frame_id for p in placed], dtype=np.int64)

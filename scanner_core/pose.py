@@ -29,9 +29,10 @@ is registered against the CAD model in {P}, starting from the nominal grasp ^T X
   edge points along one edge of the model share an offset from it (a rounded edge, the stripe
   fading as the surface turns away): they are clustered by edge as well (two-way, Cameron,
   Gelbach and Miller 2011), each edge's residuals corrected for the part of its offset the fit
-  took up (``scanner_core.pose_confidence._two_way_meat``). It is scaled by
-  ``PoseParams.sigma_inflation`` (2.6, measured by ``flyscan bench pose``) for what it still
-  cannot see.
+  took up (``scanner_core.pose_confidence._two_way_meat``). To it are added what every
+  profile shares and the fit cannot see in the residuals: the calibration's light plane
+  (its uncertainty carried through the fit's response), its marker offset, and the robot's
+  orientation report. ``PoseResult.std_terms`` gives each term's share per axis.
 
 The model is the CAD surface sampled densely with face normals (`SurfaceModel.from_mesh`), or
 any points with normals, such as the simulator's predicted cloud of the same pass
@@ -52,8 +53,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanner_core.pose_confidence import (MIN_COVERAGE, _coverage_flags, _flags, _rival_words, _uncertainty,
-                                          judge)
+from scanner_core.pose_confidence import (MIN_COVERAGE, _coverage_flags, _flags, _rival_words,
+                                          _uncertainty, judge, term_stds)
 from scanner_core.pose_fine import _fine, _subsample, _Terms
 from scanner_core.pose_inputs import (MAX_PROFILE_SPACING_MM, ScanPoseInputs,
                                       add_placement_error, check_inputs, edge_steps)
@@ -76,6 +77,7 @@ _SETTLE_TOL_FACTOR = 10.0
 MIN_POSE_POINTS = 50
 
 AXIS_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
+_STD_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
 
 
 @dataclass(frozen=True)
@@ -129,10 +131,11 @@ class PoseParams:
         of their edge points (the rest off the CAD's sharp edges) and placed the part as
         well as the other parts', yet 48 % of them were refused at 0.8.
     sigma_inflation : float
-        The reported standard deviations are the sandwich estimate times this: what
-        ``flyscan bench pose`` measured it takes for the errors of converged poses to stay
-        within 3 sigma (the errors the sandwich cannot see), measured before the sandwich
-        clustered the edge points by edge as well as by profile.
+        The fit's own terms (the profiles' and the edges' clusters) are multiplied by this:
+        1 (none) by default, since the sandwich clustered two ways holds on its own (the
+        pose's errors across x_T and about z_T, which those terms alone set, are 0.98 to 0.99
+        of their sigmas over 144 picks of eight parts in four realistic cells); a setting
+        for a cell whose scans show an error the sandwich cannot see.
     coarse_step_deg, coarse_extent_deg : float
         The coarse grid of rotation vectors around the nominal: every combination of
         ``-extent..extent`` in ``step`` about the three {T} axes.
@@ -201,7 +204,7 @@ class PoseParams:
     good_inlier_fraction: float = 0.8
     good_edge_fraction: float = 0.8
     act_edge_fraction: float = 0.5
-    sigma_inflation: float = 2.6
+    sigma_inflation: float = 1.0
     coarse_step_deg: float = 15.0
     coarse_extent_deg: float = 15.0
     coarse_points: int = 800
@@ -269,6 +272,11 @@ class PoseResult:
         The one verdict a robot acts on: observable and no flag. False: do not place.
     act_reasons : list of str
         Why not to act; empty when `act`.
+    covariance_terms : dict of str to (6, 6) float64
+        `covariance` as the sum of its terms (``pose_confidence.COVARIANCE_TERMS``: the
+        profiles' noise through the fit, the edges' shared offsets, the inflation, the free
+        motions' slack, the rivals, the calibration's marker offset, the robot's orientation
+        report), each in the units of `covariance`.
     symmetry : dict or None
         The near symmetry that leaves a rotation loose, when one is found
         (``scanner_core.pose_symmetry.name_symmetry``): ``{"label": "87-fold about z_T",
@@ -293,6 +301,12 @@ class PoseResult:
     act: bool = False
     act_reasons: list = field(default_factory=list)
     symmetry: dict | None = None
+    covariance_terms: dict = field(default_factory=dict)
+
+    def std_terms(self) -> dict:
+        """Per term of `covariance` (``pose_confidence.COVARIANCE_TERMS``), the standard
+        deviation it alone gives each axis, signed as its variance (``term_stds``)."""
+        return term_stds(self.covariance_terms)
 
     def misplacement_vector(self) -> np.ndarray:
         """(6,) float64: translation mm and rotation vector degrees of `misplacement`."""
@@ -317,8 +331,9 @@ class PoseResult:
             "observable": bool(self.observable),
             "free_axes": self.free_axes,
             "symmetry": self.symmetry,
-            "std": dict(zip(("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg"),
-                            clean(self.std))),
+            "std": dict(zip(_STD_KEYS, clean(self.std))),
+            "std_terms": {name: dict(zip(_STD_KEYS, clean(values)))
+                          for name, values in self.std_terms().items()},
             "iterations": self.iterations,
             "coarse": self.coarse,
             "flags": list(self.flags),
@@ -382,9 +397,11 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
 
 
 def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, edges_t,
-              edge_frame_ids, edge_model, edge_steps_mm, params: PoseParams) -> PoseResult:
+              edge_frame_ids, edge_model, edge_steps_mm, params: PoseParams,
+              sheet=None) -> PoseResult:
     """:func:`register` without the verdict (``judge``), which `scan_pose` gives once its
-    own flags and the placement's error are in."""
+    own flags and the placement's error are in. `sheet`: the light plane's uncertainty
+    (``pose_confidence._uncertainty``)."""
     t0 = time.perf_counter()
     points, directions, frames = check_inputs(points_t, normals_t, frame_ids)
     agreement = np.cos(np.radians(params.normal_agreement_deg))
@@ -425,7 +442,7 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
     # The other minima on every point: on fewer, a rival that fits as well can go unseen
     # (ADIS16480 seen on its end, bench pose: a rival 152 mdeg away, near the truth, missed).
     fit, rivals = _probe_turns(surface, edges, fit, params)
-    covariance, std, free_axes = _uncertainty(fit, params, rivals)
+    covariance, std, free_axes, terms = _uncertainty(fit, params, rivals, sheet)
     flags = _flags(fit, free_axes, edges is not None, params)
     turned = _turn_deg(before_probes, nominal)
     if turned > params.max_fine_turn_deg:
@@ -438,7 +455,7 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
         matrix=fit.pose, misplacement=fit.pose @ np.linalg.inv(nominal), rms_mm=fit.rms,
         inlier_fraction=fit.inlier_fraction, std=std, free_axes=free_axes,
         covariance=covariance, iterations=fit.iterations, coarse=coarse, flags=flags,
-        rivals=list(rivals))
+        rivals=list(rivals), covariance_terms=terms)
     result.time_ms = (time.perf_counter() - t0) * 1e3
     return result
 
@@ -481,7 +498,9 @@ def inputs_pose(inputs: ScanPoseInputs, surface_model: SurfaceModel, nominal, *,
                        edges_t=inputs.edges if use_edges else None,
                        edge_frame_ids=inputs.edge_frame_ids if use_edges else None,
                        edge_model=edge_model if use_edges else None,
-                       edge_steps_mm=inputs.edge_steps_mm if use_edges else None, params=params)
+                       edge_steps_mm=inputs.edge_steps_mm if use_edges else None, params=params,
+                       sheet=None if inputs.sheet_covariance is None
+                       else (inputs.sheet_frames, inputs.sheet_t, inputs.sheet_covariance))
     result.flags += _coverage_flags(inputs, result.matrix, surface_model)
     placement = inputs.placement_std_mm
     add_placement_error(result, np.zeros(3) if placement is None else placement,

@@ -6,9 +6,11 @@ the scan leaves free, and the flags.
   frame's placement error (the marker's triangulation), so they are not independent, and
   the sandwich takes that from the residuals themselves. The edge points along one edge of
   the model share an error too: they are clustered by edge curve as well, two-way
-  (`_two_way_meat`). It is scaled by ``PoseParams.sigma_inflation`` for what it still
-  cannot see, taken about the {T} origin, and widened by each rival minimum the search
-  found (``scanner_core.pose_search._probe_turns``).
+  (`_two_way_meat`). It is scaled by ``PoseParams.sigma_inflation`` (1 by default), taken
+  about the {T} origin, and widened by each rival minimum the search found
+  (``scanner_core.pose_search._probe_turns``) and by the light plane's uncertainty carried
+  through the fit (`_sheet_response`); ``pose_inputs.add_placement_error`` adds the marker's
+  and the robot's. Each term is kept (``COVARIANCE_TERMS``, `term_stds`).
 - **free motions** (`_free_motions`): the directions the scan does not pin down, in words
   (turns first, then slides along the {T} axes where they can be); the axes they move are
   not reported.
@@ -35,6 +37,11 @@ _AXIS_LABELS = ("x_T", "y_T", "z_T")
 _TOUCHED = 0.2
 # A fit whose residuals exceed this many times the expected scatter is flagged.
 _RMS_FLAG = 5.0
+# The edges' shared offsets rest on the curves beyond the motions they hold (`_shared_offsets`):
+# with fewer than this many such degrees of freedom, their variance is taken this many times,
+# Student's t's nu / (nu - 2) at nu = 3.
+_MIN_FREEDOM = 3
+_FEW_FREEDOM_FACTOR = 3.0
 # A cluster's leverage is capped at 1 minus this (`_leverage_corrected`).
 _MIN_SLACK = 0.05
 # A free motion's turn part (scaled, of a unit motion) below this is round-off: it slides.
@@ -46,31 +53,58 @@ EDGES_NOTE = "edges: "
 MIN_COVERAGE = 0.9
 
 
-def _uncertainty(fit: _Fit, params, rivals=()) -> tuple[np.ndarray, np.ndarray, list]:
-    """Covariance (cluster-robust over frames), per-axis std, and the free axes, about the
-    {T} origin. Each rival minimum (``_probe_turns``) adds its difference's outer product: the
-    scan cannot tell the fit from it, so the spread between them is uncertainty too."""
+#: The terms of a pose's covariance, in the order ``PoseResult.std_terms`` lists them.
+#: ``profiles``: the measurement noise through the fit, the points of a profile clustered
+#: (each frame's placement error); ``edges``: what the edge points along one model edge
+#: share beyond it (the second way of the two-way clustering); ``inflation``: what
+#: ``PoseParams.sigma_inflation`` adds to those two; ``free``: the slack of the motions the
+#: scan leaves free; ``rivals``: the other minima that fit as well; ``light_plane``: the
+#: calibration's light plane, on which every profile was triangulated; ``marker``: the
+#: calibration's marker offset; ``robot``: the robot's orientation report.
+COVARIANCE_TERMS = ("profiles", "edges", "inflation", "free", "rivals", "light_plane", "marker",
+                    "robot")
+
+
+def _uncertainty(fit: _Fit, params, rivals=(), sheet=None) -> tuple[np.ndarray, np.ndarray, list,
+                                                                    dict]:
+    """Covariance (cluster-robust over frames), per-axis std, the free axes and the
+    covariance's terms (``COVARIANCE_TERMS`` but the marker's and the robot's, which
+    ``pose_inputs.add_placement_error`` adds), about the {T} origin. Each rival minimum
+    (``_probe_turns``) adds its difference's outer product: the scan cannot tell the fit from
+    it, so the spread between them is uncertainty too. `sheet` (``(frames, table,
+    covariance)`` of ``ScanPoseInputs``' ``sheet_*``, or None) adds the light plane's
+    (`_sheet_response`)."""
     nan6 = np.full(6, np.nan)
     if len(fit.residuals) < 6:
         return np.full((6, 6), np.nan), nan6, [{"kind": "all", "axis": None,
-                                                 "label": "too few matched points"}]
+                                                 "label": "too few matched points"}], {}
     s = np.array([1.0, 1.0, 1.0, fit.scale_mm, fit.scale_mm, fit.scale_mm])
     js = fit.jacobian / s
     values, vectors, strong = _directions(fit.jacobian, fit.weights, fit.frames, fit.scale_mm,
                                           params)
     info_inv = vectors[:, strong] @ np.diag(1.0 / values[strong]) @ vectors[:, strong].T
-    meat = _two_way_meat(js, fit.weights, fit.residuals, fit.frames, fit.curves, info_inv)
-    cov_scaled = info_inv @ meat @ info_inv * params.sigma_inflation**2
-    cov_centre = cov_scaled / np.outer(s, s) + _free_prior(vectors[:, ~strong], s, params)
+    by_profile, two_way = _two_way_meat(js, fit.weights, fit.residuals, fit.frames, fit.curves,
+                                        info_inv)
+    unscale = 1.0 / np.outer(s, s)
+    profiles = info_inv @ by_profile @ info_inv * unscale
+    sandwich = info_inv @ two_way @ info_inv * unscale
     # About the {T} origin: t_o = t_c + c x w.
     c = fit.centre
     cross = np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
     to_origin = np.eye(6)
     to_origin[:3, 3:] = cross
-    covariance = to_origin @ cov_centre @ to_origin.T
+    terms = {"profiles": profiles, "edges": sandwich - profiles,
+             "inflation": sandwich * (params.sigma_inflation**2 - 1.0),
+             "free": _free_prior(vectors[:, ~strong], s, params)}
+    if sheet is not None:
+        response = _sheet_response(fit, js, info_inv, s, sheet[0], sheet[1])
+        terms["light_plane"] = response @ sheet[2] @ response.T
+    terms = {name: to_origin @ term @ to_origin.T for name, term in terms.items()}
+    terms["rivals"] = np.zeros((6, 6))
     for rival in rivals:
         m = _rival_motion(fit.pose, rival)
-        covariance = covariance + np.outer(m, m)
+        terms["rivals"] = terms["rivals"] + np.outer(m, m)
+    covariance = sum(terms.values())
     free_scaled = vectors[:, ~strong]
     free_axes = _free_motions(free_scaled, s, c)
     std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
@@ -93,74 +127,169 @@ def _uncertainty(fit: _Fit, params, rivals=()) -> tuple[np.ndarray, np.ndarray, 
                 swing = np.maximum(swing, np.abs(turn @ -through + through))
             touched[:3] |= swing > 3.0 * np.nan_to_num(std[:3], nan=np.inf)
         std[touched] = np.nan
-        covariance[touched, :] = np.nan
-        covariance[:, touched] = np.nan
-    return covariance, std, free_axes
+        for term in (covariance, *terms.values()):
+            term[touched, :] = np.nan
+            term[:, touched] = np.nan
+    return covariance, std, free_axes, terms
 
 
-def _two_way_meat(js, weights, residuals, frames, curves, info_inv) -> np.ndarray:
-    """(6, 6) cluster-robust "meat" of the weighted scores, clustered two ways (Cameron,
-    Gelbach and Miller 2011): by profile (`frames`, (K,)) and by the model edge curve an edge
-    row matched (`curves`, (K,), -1 for a surface row, its own cluster):
-    ``M_frames + M_curves - M_both``, its negative eigenvalues clipped to zero. `js` ((K, 6))
-    are the rows in scaled units, `info_inv` ((6, 6)) the inverse of their information.
+def _sheet_response(fit: _Fit, js, info_inv, s, frames, table) -> np.ndarray:
+    """(6, 3): how the fit's motion (mm, rad, about its centre) moves with the light plane's
+    tilts and shift ``theta`` (``scanner_core.planecal.PlaneUncertainty``).
+
+    A point triangulated on the plane lies where its camera ray ``x = C + lambda u`` meets
+    it; the plane moved by ``theta`` moves it along the ray by
+    ``delta x = u (delta - alpha a_1 . (x - c) - beta a_2 . (x - c)) / (n . u)`` (to first
+    order). Its row's residual moves by ``-J_t . delta x`` (``J_t`` the row's translation
+    part: a residual moves with the point as against the model), and the Gauss-Newton step
+    answers ``-H^+ sum_i w_i J_i delta r_i`` in the observable motions. `frames` (F,) and
+    `table` ((F, 5, 3), ``pose_inputs.sheet_in_tcp``) give each row's plane and camera in
+    {T}; a row whose frame is not listed does not move.
+    """
+    order = np.argsort(frames, kind="stable")
+    slot = np.clip(np.searchsorted(frames[order], fit.frames), 0, len(frames) - 1)
+    known = frames[order][slot] == fit.frames
+    rows = table[order[slot]]                               # (K, 5, 3)
+    normal, a1, a2, centre, camera = (rows[:, i] for i in range(5))
+    ray = fit.points - camera
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    along = np.einsum("ki,ki->k", normal, ray)
+    lever = fit.points - centre
+    shift = np.column_stack([-np.einsum("ki,ki->k", a1, lever),
+                             -np.einsum("ki,ki->k", a2, lever),
+                             np.ones(len(lever))]) / along[:, None]
+    moved = -np.einsum("ki,ki->k", fit.jacobian[:, :3], ray)[:, None] * shift    # (K, 3)
+    moved[~known] = 0.0
+    step = -info_inv @ (js.T @ (fit.weights[:, None] * moved))                 # scaled
+    return step / s[:, None]
+
+
+def term_stds(terms: dict) -> dict:
+    """Per term of a pose's covariance (``COVARIANCE_TERMS``: (6, 6), mm and rad), the
+    standard deviation it alone gives each axis (``tx_mm`` ... ``rz_deg``): the square root
+    of its diagonal, negative where the term takes variance away (the edges' term, where the
+    profiles' clustering already counted it), NaN along a free motion. The squares, signed,
+    add up to the reported variances."""
+    out = {}
+    for name in COVARIANCE_TERMS:
+        if name not in terms:
+            continue
+        diag = np.diag(terms[name]).copy()
+        diag[3:] *= np.degrees(1.0) ** 2
+        out[name] = np.sign(diag) * np.sqrt(np.abs(diag))
+    return out
+
+
+def _two_way_meat(js, weights, residuals, frames, curves, info_inv):
+    """Two (6, 6) cluster-robust "meats" of the weighted scores: clustered by profile alone,
+    and clustered two ways (Cameron, Gelbach and Miller 2011): by profile (`frames`, (K,))
+    and by the model edge curve an edge row matched (`curves`, (K,), -1 for a surface row,
+    its own cluster): ``M_frames + [M_curves - M_both]_+``, the bracket's negative
+    eigenvalues clipped to zero: what the edges share adds to the profiles' scatter and never
+    takes from it. (The two-way sum as it stands, its total clipped, lost up to nine tenths
+    of the profiles' variance along a heptagon plate's slides, whose seven edges alone hold
+    them, and put its errors at up to 14 of its sigmas.) `js` ((K, 6)) are the rows in scaled units, `info_inv` ((6, 6)) the inverse of
+    their information. Every cluster's residuals are corrected for its leverage
+    (`_leverage_corrected`, the jackknife's approximation).
 
     The edge points along one edge share an error that their scatter does not show: at the
-    truth of featuretype's pick 47 in ``flyscan bench place``, the points of each of its 24
+    truth of a pick of featuretype in ``flyscan bench place``, the points of each of its 24
     edge curves with five or more lay -122 to +90 um off the edge on average (RMS 53 um),
     19 um apart about that mean (median). Counted as independent, the edges claimed to hold
-    x_T to 12.7 um; the pose came out 40.8 um off. A part has few edges, and the fit takes up much
-    of their offsets: the curves' and the intersections' residuals are corrected for their
-    leverage (`_leverage_corrected`).
+    x_T to 12.7 um; the pose came out 40.8 um off. And a few edge points hold a flat part's
+    slides and turn in its plane, so the fit takes up much of their residuals: uncorrected,
+    the sandwich of a heptagon plate's synthetic scans put its errors at 1.2 to 2.2 times
+    their sigmas (RMS), with no offset on its edges.
     """
-    scores = js * (weights * residuals)[:, None]
-    meat = _summed(scores, frames, small_sample=6)
+    root = np.sqrt(weights)
+    x, e = js * root[:, None], residuals * root
+    by_profile = _leverage_corrected(x, e, frames, info_inv)
     edge = curves >= 0
     if not edge.any():
-        return meat
-    root = np.sqrt(weights[edge])
-    x, e = js[edge] * root[:, None], residuals[edge] * root
-    both = np.stack([frames[edge], curves[edge]], axis=1)
-    meat = (meat + _leverage_corrected(x, e, curves[edge], info_inv)
-            - _leverage_corrected(x, e, both, info_inv))
-    values, vectors = np.linalg.eigh(meat)
-    return (vectors * np.clip(values, 0.0, None)) @ vectors.T
+        return by_profile, by_profile
+    shared = _shared_offsets(x[edge], e[edge], curves[edge], info_inv)
+    return by_profile, by_profile + shared
 
 
-def _summed(scores, keys, *, small_sample: int) -> np.ndarray:
-    """(6, 6): the outer products of `scores` summed within each cluster (rows of `keys`
-    alike), times the small-sample factor G / (G - `small_sample`) over G clusters."""
-    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+def _shared_offsets(x, e, curves, info_inv) -> np.ndarray:
+    """(6, 6) "meat" of the offsets the edge rows of one model edge curve share: each curve
+    c off by its own ``o_c``, drawn with one variance ``tau^2`` for the scan, gives
+    ``tau^2 sum_c g_c g_c^T`` (``g_c = sum_{i in c} x_i``, the curve's pull on the motion).
+
+    ``tau^2`` is pooled over the curves of two or more rows (a random-effects model, method
+    of moments): the mean of ``m_c^2 - s_c^2 / n_c``, ``m_c`` the mean of curve c's residuals
+    corrected for what the fit took up of them (`_cluster_residuals`), ``s_c^2`` their
+    scatter about it; zero when the curves agree within their scatter. Pooled, the variance
+    rests on every curve at once, not on each curve's own residuals (the cluster-robust sum,
+    which with a plate's seven edges put its errors at 1.3 to 1.9 of their sigmas, RMS).
+    `x` ((K, 6)) and `e` ((K,)) are the weighted rows and residuals.
+    """
+    _, inverse, sizes = np.unique(curves, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
-    per_cluster = np.zeros((inverse.max() + 1, scores.shape[1]))
-    np.add.at(per_cluster, inverse, scores)
-    clusters = len(per_cluster)
-    return per_cluster.T @ per_cluster * (clusters / max(clusters - small_sample, 1))
+    corrected = _cluster_residuals(x, e, inverse, info_inv)
+    pull = np.zeros((len(sizes), x.shape[1]))
+    np.add.at(pull, inverse, x)
+    total = np.bincount(inverse, weights=corrected, minlength=len(sizes))
+    squares = np.bincount(inverse, weights=corrected**2, minlength=len(sizes))
+    many = sizes >= 2
+    if not many.any():
+        return np.zeros((x.shape[1], x.shape[1]))
+    mean = total[many] / sizes[many]
+    scatter = (squares[many] - sizes[many] * mean**2) / (sizes[many] - 1)
+    tau2 = max(0.0, float(np.mean(mean**2 - scatter / sizes[many])))
+    # tau^2 rests on the curves beyond the motions they hold: an error over so few degrees of
+    # freedom nu spreads as Student's t, whose variance is nu / (nu - 2) of its scale's
+    freedom = int(many.sum()) - np.linalg.matrix_rank(pull, tol=1e-9 * max(np.abs(pull).max(), 1e-300))
+    tau2 *= freedom / (freedom - 2.0) if freedom > _MIN_FREEDOM else _FEW_FREEDOM_FACTOR
+    return tau2 * pull.T @ pull
+
+
+def _cluster_residuals(x, e, inverse, info_inv) -> np.ndarray:
+    """(K,): each row's residual with what the fit took up of its cluster's given back,
+    ``(I - H_gg)^-1 e_g`` per cluster g (`inverse`, (K,) cluster index, sorted or not), its
+    leverages capped at 1 - ``_MIN_SLACK`` (`_leave_out_moves`)."""
+    order, starts, moves, _ = _leave_out_moves(x, e, inverse, info_inv)
+    cluster = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(e)]))
+    out = np.empty_like(e)
+    out[order] = e[order] + np.einsum("ki,ki->k", x[order], moves[cluster])
+    return out
 
 
 def _leverage_corrected(x, e, keys, info_inv) -> np.ndarray:
     """(6, 6): ``sum_g X_g^T A_g e_g e_g^T A_g X_g`` over the clusters g (rows of `keys`
     alike) of the weighted rows `x` ((K, 6)) and residuals `e` ((K,)), with ``A_g = (I -
     H_gg)^-1``, ``H_gg = X_g info_inv X_g^T`` (Bell and McCaffrey 2002's CR3, the jackknife's
-    approximation): a cluster whose offset the fit took up is scaled back up. A leverage
-    near 1 (one cluster alone holding a motion) is capped at 1 - ``_MIN_SLACK``."""
-    _, inverse, sizes = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
+    approximation): a cluster whose residuals the fit took up is scaled back up. A leverage
+    near 1 (one cluster alone holding a motion) is capped at 1 - ``_MIN_SLACK``
+    (`_leave_out_moves`)."""
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    _, _, moves, (scores, gram) = _leave_out_moves(x, e, inverse.reshape(-1), info_inv)
+    corrected = scores + np.einsum("gij,gj->gi", gram, moves)
+    return corrected.T @ corrected
+
+
+def _leave_out_moves(x, e, inverse, info_inv):
+    """Per cluster g of the rows (`inverse`, (K,) cluster index), ``v_g = L (I - L^T B_g
+    L)^-1 L^T s_g`` (6,): with ``s_g = X_g^T e_g``, ``B_g = X_g^T X_g`` and ``L L^T =
+    info_inv``, ``(I - H_gg)^-1 e_g = e_g + X_g v_g`` (Woodbury), computed in the motion's six
+    dimensions whatever the cluster's size. The eigenvalues of ``L^T B_g L`` are the
+    cluster's leverages, capped at 1 - ``_MIN_SLACK``.
+
+    Returns the rows' order by cluster, each cluster's first row in it, the (G, 6) moves and
+    the (G, 6) scores ``s_g`` with the (G, 6, 6) ``B_g``.
+    """
     order = np.argsort(inverse, kind="stable")
-    starts = np.r_[0, np.cumsum(sizes)[:-1]]
-    total = np.zeros((x.shape[1], x.shape[1]))
-    # the clusters of one size at once: most are a single point (an edge crossed by one
-    # profile), and a part has a few hundred
-    for size in np.unique(sizes):
-        rows = order[starts[sizes == size][:, None] + np.arange(size)]  # (G, size)
-        xg, eg = x[rows], e[rows]
-        slack = np.eye(size) - xg @ info_inv @ xg.transpose(0, 2, 1)
-        values, vectors = np.linalg.eigh(slack)
-        along = np.einsum("gji,gj->gi", vectors, eg) / np.maximum(values, _MIN_SLACK)
-        adjusted = np.einsum("gij,gj->gi", vectors, along)
-        scores = np.einsum("gij,gi->gj", xg, adjusted)
-        total += scores.T @ scores
-    return total
+    starts = np.r_[0, np.nonzero(np.diff(inverse[order]))[0] + 1]
+    xs = x[order]
+    scores = np.add.reduceat(xs * e[order, None], starts, axis=0)
+    gram = np.add.reduceat(xs[:, :, None] * xs[:, None, :], starts, axis=0)
+    values, vectors = np.linalg.eigh(info_inv)
+    root = vectors * np.sqrt(np.clip(values, 0.0, None))                      # L
+    leverages, basis = np.linalg.eigh(root.T @ gram @ root)                   # L^T B_g L
+    slack = np.maximum(1.0 - leverages, _MIN_SLACK)
+    along = np.einsum("gji,gj->gi", basis, scores @ root) / slack
+    moves = np.einsum("gij,gj->gi", basis, along) @ root.T
+    return order, starts, moves, (scores, gram)
 
 
 def _free_prior(free_scaled, s, params) -> np.ndarray:

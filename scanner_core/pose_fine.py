@@ -107,6 +107,7 @@ class _Fit:
     weights: np.ndarray         # (K,)
     frames: np.ndarray          # (K,) frame of each inlier
     curves: np.ndarray          # (K,) model edge curve of each edge row, -1 for surfaces
+    points: np.ndarray          # (K, 3) the scan point of each row, {T}
     centre: np.ndarray          # (3,)
     scale_mm: float             # radius that makes rotations comparable with translations
 
@@ -148,12 +149,12 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, warm: bool = 
     pose, rows = _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params)
     if rows is None:
         rows, _ = _linearise(surface, edges, pose, centre, gates, params)
-    jac, res, w, frames, matched, curves = rows
+    jac, res, w, frames, matched, curves, points = rows
     inlier_fraction = matched / max(len(surface.points), 1)
     edge_fraction = ((len(res) - matched) / len(edges.points)) if edges is not None else 1.0
     rms = float(np.sqrt(np.sum(w * res**2) / np.sum(w))) if len(res) else np.inf
     return _Fit(pose, rms, inlier_fraction, edge_fraction, it, jac, res, w, frames, curves,
-                centre, scale)
+                points, centre, scale)
 
 
 def _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params):
@@ -240,9 +241,10 @@ def _linearise(surface, edges, pose, centre, gates, params):
     """Residuals, Jacobian rows, robust weights and frames of all correspondences at `pose`
     (the rows of weight 0 left out).
 
-    Returns ``(jacobian, residuals, weights, frames, surface_inliers, curves)`` (``curves``:
-    the model edge curve each row matched, ``EdgeModel.curves``, -1 for a surface row) and
-    the robust scale of each kind (surface, edges).
+    Returns ``(jacobian, residuals, weights, frames, surface_inliers, curves, points)``
+    (``curves``: the model edge curve each row matched, ``EdgeModel.curves``, -1 for a
+    surface row; ``points``: each row's scan point) and the robust scale of each kind
+    (surface, edges).
     """
     parts, sigmas = [], []
     for terms, rows, gate, noise_mm in ((surface, _surface_rows, gates[0], params.surface_noise_mm),
@@ -255,10 +257,11 @@ def _linearise(surface, edges, pose, centre, gates, params):
         # `_edge_rows` also gives the model sample each point matched: its edge curve
         curves = (terms.model.curves[nearest[0][0][keep]] if nearest
                   else np.full(int(keep.sum()), -1, np.int64))
-        parts.append((jac[0][keep], res[0][keep], w[0][keep], terms.frames[keep], curves))
+        parts.append((jac[0][keep], res[0][keep], w[0][keep], terms.frames[keep], curves,
+                      terms.points[keep]))
         sigmas.append(float(sigma[0]))
-    jac, res, w, frames, curves = (np.concatenate(x) for x in zip(*parts))
-    return (jac, res, w, frames, len(parts[0][1]), curves), sigmas
+    jac, res, w, frames, curves, points = (np.concatenate(x) for x in zip(*parts))
+    return (jac, res, w, frames, len(parts[0][1]), curves, points), sigmas
 
 
 def _nearest(terms: _Terms, local, up, bound):

@@ -53,6 +53,13 @@ class ScanPoseInputs:
     sparse : str or None
         ``sparse_flag`` of ``Scan.profile_spacing_mm`` (the profiles' on the part): the pose
         reads the spacing through it alone.
+    sheet_frames : (F,) int64 or None
+        The frames of `sheet_t`; None when the calibration did not measure its light plane's
+        uncertainty.
+    sheet_t : (F, 5, 3) float64 or None
+        ``sheet_in_tcp``: per frame, the light plane and the camera in {T}.
+    sheet_covariance : (3, 3) float64 or None
+        ``PlaneUncertainty.covariance``: of the plane's tilts and shift (`sheet_t`'s axes).
     """
 
     cloud: np.ndarray
@@ -63,6 +70,9 @@ class ScanPoseInputs:
     edge_steps_mm: np.ndarray | None
     placement_std_mm: np.ndarray | None
     sparse: str | None
+    sheet_frames: np.ndarray | None = None
+    sheet_t: np.ndarray | None = None
+    sheet_covariance: np.ndarray | None = None
 
     @classmethod
     def of(cls, scan) -> "ScanPoseInputs":
@@ -77,7 +87,8 @@ class ScanPoseInputs:
                    edge_steps_mm=scan_steps(scan),
                    placement_std_mm=None if placement is None else np.asarray(placement,
                                                                               np.float64),
-                   sparse=sparse_flag(scan.profile_spacing_mm))
+                   sparse=sparse_flag(scan.profile_spacing_mm),
+                   **sheet_in_tcp(scan))
 
     def same_as(self, other: "ScanPoseInputs") -> bool:
         """Whether every input is the same, value for value (NaN equal to NaN), in the same
@@ -93,6 +104,40 @@ class ScanPoseInputs:
             elif mine != theirs:
                 return False
         return True
+
+
+def sheet_in_tcp(scan) -> dict:
+    """The light plane's uncertainty as a scan's pose reads it: the plane (its normal `n`,
+    its axes `a_1`, `a_2` and its centre `c`, ``PlaneUncertainty``) and the camera's centre,
+    each in {T} at every placed frame (``x_T = R^T (x_B - p)`` for the frame's TCP rotation
+    `R` and position `p`).
+
+    Returns
+    -------
+    dict
+        ``sheet_frames`` (F,) int64, ``sheet_t`` (F, 5, 3) float64 (rows: `n`, `a_1`, `a_2`,
+        `c`, the camera) and ``sheet_covariance`` (3, 3); all None when the scan's
+        calibration did not measure the plane's uncertainty or the scan placed no frame.
+    """
+    none = {"sheet_frames": None, "sheet_t": None, "sheet_covariance": None}
+    uncertainty = getattr(scan, "light_plane_uncertainty", None)
+    rotations = np.asarray(getattr(scan, "tcp_rotations_b", np.zeros((0, 3, 3))),
+                           dtype=np.float64).reshape(-1, 3, 3)
+    positions = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
+    frames = np.asarray(getattr(scan, "tcp_frame_ids", np.zeros(0)), dtype=np.int64)
+    sensors = np.asarray(getattr(scan, "sensor_positions_t", np.zeros((0, 3))),
+                         dtype=np.float64).reshape(-1, 3)
+    if (uncertainty is None or not len(rotations)
+            or not len(frames) == len(rotations) == len(positions) == len(sensors)):
+        return none
+    n = np.cross(uncertainty.axes_b[0], uncertainty.axes_b[1])
+    directions = np.stack([n, *uncertainty.axes_b])                      # (3, 3) in {B}
+    # R^T v for each frame's R and each direction v: (F, 3, 3)
+    directions_t = np.einsum("fji,kj->fki", rotations, directions)
+    centre_t = np.einsum("fji,fj->fi", rotations, uncertainty.centre_b - positions)
+    table = np.concatenate([directions_t, centre_t[:, None], sensors[:, None]], axis=1)
+    return {"sheet_frames": frames.copy(), "sheet_t": table,
+            "sheet_covariance": np.asarray(uncertainty.covariance, dtype=np.float64)}
 
 
 def add_placement_error(result, std_mm, rotation_std_deg: float = 0.0) -> None:
@@ -111,9 +156,15 @@ def add_placement_error(result, std_mm, rotation_std_deg: float = 0.0) -> None:
     std = np.asarray(std_mm, dtype=np.float64).reshape(3)
     if not (np.isfinite(std).all() and np.all(std >= 0)):
         raise ValueError(f"placement_std_mm must be 3 finite numbers >= 0, got {std.tolist()}")
-    result.covariance = result.covariance.copy()
-    result.covariance[:3, :3] += np.diag(std**2)
-    result.covariance[3:, 3:] += np.eye(3) * np.radians(rotation_std_deg) ** 2
+    marker, robot = np.zeros((6, 6)), np.zeros((6, 6))
+    marker[:3, :3] = np.diag(std**2)
+    robot[3:, 3:] = np.eye(3) * np.radians(rotation_std_deg) ** 2
+    result.covariance = result.covariance + marker + robot
+    if result.covariance_terms:
+        nan = ~np.isfinite(result.covariance)
+        result.covariance_terms = dict(result.covariance_terms, marker=marker, robot=robot)
+        for term in result.covariance_terms.values():
+            term[nan] = np.nan
     with np.errstate(invalid="ignore"):
         variance = np.diag(result.covariance)
         result.std[:3] = np.sqrt(variance[:3])

@@ -187,6 +187,9 @@ class Scan:
     placement_std_mm : (3,) float64 or None
         Standard deviation, mm along the {T} axes, of the error every profile's placement
         shares: the calibration's ``marker_offset_std_mm`` (None: not measured).
+    light_plane_uncertainty : scanner_core.planecal.PlaneUncertainty or None
+        The calibration's ``light_plane_uncertainty``: every profile was triangulated on that
+        plane (None: not measured).
     """
 
     cloud: np.ndarray
@@ -217,6 +220,7 @@ class Scan:
     edges_aside: object = None
     points_partly_lit: int = 0
     placement_std_mm: np.ndarray | None = None
+    light_plane_uncertainty: object = None
     normals: np.ndarray | None = None
 
     @property

@@ -280,6 +280,23 @@ class MirrorModel(PlaneModel):
                                   description=f"[c0, c1) of its view; 0 to {MAX_IMAGE_PX}")
 
 
+class PlaneUncertaintyModel(BaseModel):
+    """``scanner_core.planecal.PlaneUncertainty``: the light plane's covariance."""
+
+    model_config = _strict
+
+    centre_mm: list[CellPoint] = Field(min_length=3, max_length=3,
+                                       description="a point of the plane, mm in {B}")
+    axes: list[Annotated[list[UnitComponent], Field(min_length=3, max_length=3)]] = Field(
+        min_length=2, max_length=2, description="two orthonormal directions in the plane")
+    covariance: list[Annotated[list[Annotated[float, Field(ge=-1.0, le=1.0,
+                                                           allow_inf_nan=False)]],
+                               Field(min_length=3, max_length=3)]] = Field(
+        min_length=3, max_length=3, description="of (tilt along axes[0], tilt along axes[1] "
+                                                "in rad, shift along the normal in mm); each "
+                                                "entry -1 to 1")
+
+
 class CalibrationModel(BaseModel):
     """What the scanner knows of its cell (``scanner_core.calibration.Calibration``): every
     field required but those with a default, none other allowed, each value within what a
@@ -307,6 +324,10 @@ class CalibrationModel(BaseModel):
         description="standard deviation of marker_offset_t_mm along the {T} axes, mm, as "
                     "flyscan calibrate measured it (0 to 10); every pose's translation "
                     "carries it. Null: not measured")
+    light_plane_uncertainty_b: PlaneUncertaintyModel | None = Field(
+        None, description="how well flyscan calibrate fixed the light plane, in {B}: the "
+                          "covariance of its tilts along `axes` and its shift along its normal "
+                          "at `centre_mm`; every pose carries it. Null: not measured")
 
 
 # -- calibration sessions and history (issue 29) ----------------------------------------------

@@ -2,6 +2,8 @@
 uncertainty reaches the calibration file and the pose."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -92,6 +94,28 @@ def test_the_calibration_file_keeps_the_offset_s_uncertainty():
         data["marker_offset_std_mm"] = bad
         with pytest.raises(CalibrationError, match="marker_offset_std_mm"):
             Calibration.from_dict(data)
+
+
+def test_the_calibration_file_keeps_the_light_plane_s_uncertainty():
+    from dataclasses import replace
+
+    from scanner_core.planecal import PlaneUncertainty
+    from simulator.cell import load_cell
+
+    reference_calibration = load_cell().calibration
+    uncertainty = PlaneUncertainty(np.array([0.0, 1.0, -20.0]),
+                                   np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
+                                   np.diag([(25e-6) ** 2, (12e-6) ** 2, 0.0005**2]))
+    calibration = replace(reference_calibration, light_plane_uncertainty=uncertainty)
+    again = Calibration.from_dict(json.loads(json.dumps(calibration.to_dict())))
+    np.testing.assert_array_equal(again.light_plane_uncertainty.covariance,
+                                  uncertainty.covariance)
+    np.testing.assert_array_equal(again.light_plane_uncertainty.centre_b, uncertainty.centre_b)
+    assert Calibration.from_dict(reference_calibration.to_dict()).light_plane_uncertainty is None
+    data = calibration.to_dict()
+    data["light_plane_uncertainty_b"]["covariance"][0][0] = -1.0
+    with pytest.raises(CalibrationError, match="light_plane_uncertainty_b.*semi-definite"):
+        Calibration.from_dict(data)
 
 
 def test_the_pose_carries_the_placement_error_whole():

@@ -65,3 +65,48 @@ def test_a_sheet_that_never_cuts_the_sphere_is_refused():
     frames = [(np.zeros((0, 2)), c) for _, c in _frames(cell, np.random.default_rng(2), miss=True)]
     with pytest.raises(PlaneCalibrationError, match="does the sheet cut the sphere"):
         calibrate_plane(frames, cell.calibration.camera, RADIUS)
+
+
+def test_the_plane_s_uncertainty_matches_its_spread_over_repeated_sessions():
+    """Each frame's stripe off by its own sphere position error (the stage's) and its pixels'
+    noise: over repeated sessions the fitted plane's tilts and shift scatter as
+    ``plane_uncertainty`` says, within the spread of a 40-session estimate."""
+    cell = load_cell(perturb_seed=4)
+    camera, true = cell.calibration.camera, cell.light_plane_b
+    thetas, predicted = [], []
+    for session in range(40):
+        rng = np.random.default_rng([7, session])
+        frames = []
+        for pixels, centre in _frames(cell, rng, count=15):
+            stage_error = rng.normal(0.0, 0.02, 3)          # the sphere not where the stage says
+            frames.append((pixels + rng.normal(0.0, 0.1, pixels.shape), centre + stage_error))
+        fit = calibrate_plane(frames, camera, RADIUS)
+        u = fit.uncertainty
+        n = np.cross(*u.axes_b)
+        tn = true.normal * np.sign(true.normal @ n)
+        to = true.offset * np.sign(true.normal @ n)
+        thetas.append([(tn - n) @ u.axes_b[0], (tn - n) @ u.axes_b[1], to - tn @ u.centre_b])
+        predicted.append(np.sqrt(np.diag(u.covariance)))
+    z = np.array(thetas) / np.array(predicted)
+    rms = np.sqrt(np.mean(z**2, axis=0))
+    # 40 sessions: an RMS of unit normal deviates estimates within about 0.75-1.25
+    assert np.all((rms > 0.7) & (rms < 1.35)), rms
+
+
+def test_a_plane_uncertainty_round_trips_and_refuses_nonsense():
+    from scanner_core.planecal import PlaneUncertainty
+
+    u = PlaneUncertainty(np.array([1.0, 2.0, 3.0]), np.array([[1.0, 0, 0], [0, 0, 1.0]]),
+                         np.diag([1e-9, 4e-10, 1e-6]))
+    back = PlaneUncertainty.from_dict(u.to_dict())
+    np.testing.assert_array_equal(back.covariance, u.covariance)
+    bad = u.to_dict()
+    bad["axes"] = [[1.0, 0, 0], [1.0, 0, 0]]
+    with pytest.raises(ValueError, match="orthonormal"):
+        PlaneUncertainty.from_dict(bad)
+    bad = u.to_dict()
+    bad["covariance"] = [[1e-9, 0, 0], [0, -1e-6, 0], [0, 0, 1e-6]]
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        PlaneUncertainty.from_dict(bad)
+    with pytest.raises(ValueError, match="centre_mm"):
+        PlaneUncertainty.from_dict({"axes": u.to_dict()["axes"]})

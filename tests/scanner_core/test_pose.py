@@ -429,9 +429,9 @@ def test_a_rival_minimum_widens_the_sigma_to_cover_it(block):
     params = PoseParams()
     fit = _fine(_Terms(pts, nrm, frames, model, np.cos(np.radians(params.normal_agreement_deg))),
                 _Terms(edges, None, edge_frames, edge_model), truth, params)
-    _, std, _ = _uncertainty(fit, params)
+    _, std, _, _ = _uncertainty(fit, params)
     rival = misplacement(0.05, 0.0, 0.0, 0.0, 0.0, 1.0) @ fit.pose
-    _, wider, _ = _uncertainty(fit, params, [rival])
+    _, wider, _, _ = _uncertainty(fit, params, [rival])
     assert std[5] < 0.1 and wider[5] >= 1.0 - 1e-6
     assert wider[0] >= 0.05 - 1e-9 and np.all(wider >= std - 1e-12)
 
@@ -843,3 +843,83 @@ def test_the_warm_up_compiles_what_a_pose_runs(block):
                       edge_frame_ids=edge_frames, edge_model=edge_model)
     assert result.coarse
     assert [set(k.signatures) for k in kernels] == compiled
+
+
+def _sheet_table(frames):
+    """Per profile k of `synthetic_scan` (the sheet y_T = k PROFILE_MM, normal +y_T): the
+    plane's normal, axes (z_T, x_T), centre and a camera 430 mm below and 250 mm behind it,
+    in {T}: ``ScanPoseInputs.sheet_t``."""
+    ids = np.unique(frames)
+    table = np.zeros((len(ids), 5, 3))
+    table[:, 0] = [0.0, 1.0, 0.0]
+    table[:, 1] = [0.0, 0.0, 1.0]
+    table[:, 2] = [1.0, 0.0, 0.0]
+    table[:, 3, 1] = ids * PROFILE_MM
+    table[:, 4] = np.column_stack([np.zeros(len(ids)), ids * PROFILE_MM - 250.0,
+                                   np.full(len(ids), -430.0)])
+    return ids, table
+
+
+def _on_moved_sheet(points, frames, ids, table, theta):
+    """`points` as the scanner would triangulate them on the sheet moved by `theta` (its
+    tilts along its axes and its shift, ``PlaneUncertainty``): each moved along its camera
+    ray by the difference between where the ray meets the moved sheet and the sheet, exactly
+    (not to first order); the points' own scatter about the sheet stays."""
+    rows = table[np.searchsorted(ids, frames)]
+    normal, a1, a2, centre, camera = (rows[:, i] for i in range(5))
+    ray = points - camera
+
+    def meets(plane_normal, shift):
+        # camera + lam * ray on the plane: plane_normal . (x - centre) = shift
+        return ((shift - np.einsum("ki,ki->k", plane_normal, camera - centre))
+                / np.einsum("ki,ki->k", plane_normal, ray))
+
+    moved = meets(normal + theta[0] * a1 + theta[1] * a2, theta[2]) - meets(normal, 0.0)
+    return points + moved[:, None] * ray
+
+
+@pytest.mark.parametrize("theta", [(60e-6, 0.0, 0.0), (0.0, -40e-6, 0.0), (0.0, 0.0, 0.004)])
+def test_the_light_plane_s_term_is_what_a_moved_plane_does_to_the_pose(block, theta):
+    """The light plane's term (``light_plane``) is the plane's covariance through the fit's
+    response: for a covariance ``theta theta^T``, its sigma per axis is how far the pose
+    moves when the scan is triangulated on the plane moved by `theta` (its points and edge
+    points moved along their rays), within a few percent of the move."""
+    from scanner_core.pose import _register
+    mesh, nominal, model, edge_model = block
+    truth = misplacement(0.5, -0.5, 0.2, 1.0, -1.0, 2.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=4)
+    ids, table = _sheet_table(np.concatenate([frames, edge_frames]))
+    theta = np.asarray(theta)
+    kwargs = dict(frame_ids=frames, edge_frame_ids=edge_frames, edge_model=edge_model,
+                  edge_steps_mm=None, params=PoseParams())
+    base = _register(pts, nrm, model, nominal, edges_t=edges,
+                     sheet=(ids, table, np.outer(theta, theta)), **kwargs)
+    moved = _register(_on_moved_sheet(pts, frames, ids, table, theta), nrm, model, nominal,
+                      edges_t=_on_moved_sheet(edges, edge_frames, ids, table, theta), **kwargs)
+    dt, dr = pose_error(moved.matrix, base.matrix)
+    shift = np.abs(np.concatenate([dt, dr]))
+    predicted = np.abs(base.std_terms()["light_plane"])
+    assert shift.max() > 0.002                          # the plane's move shows in the pose
+    assert_allclose(predicted, shift, rtol=0.1, atol=0.1 * shift.max())
+
+
+def test_the_terms_add_up_to_the_reported_sigma(block):
+    """``std_terms``: the signed squares of the terms add up to the variance of each axis,
+    and the report lists them per axis in mm and degrees."""
+    from scanner_core.pose_inputs import add_placement_error
+    mesh, nominal, model, edge_model = block
+    truth = misplacement(0.5, -0.5, 0.2, 1.0, -1.0, 2.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=4,
+                                                          frame_sigma_mm=0.003)
+    result = register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
+                      edge_frame_ids=edge_frames, edge_model=edge_model)
+    add_placement_error(result, [0.002, 0.015, 0.001], 0.003)
+    terms = result.std_terms()
+    assert set(terms) == {"profiles", "edges", "inflation", "free", "rivals", "marker", "robot"}
+    total = sum(np.sign(v) * v**2 for v in terms.values())
+    assert_allclose(np.sqrt(total), result.std, rtol=1e-9)
+    assert_allclose(terms["marker"][:3], [0.002, 0.015, 0.001])
+    assert_allclose(terms["robot"][3:], [0.003] * 3)
+    entry = result.to_dict()["std_terms"]
+    assert list(entry["marker"]) == ["tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg"]
+    assert entry["profiles"]["tx_mm"] == pytest.approx(terms["profiles"][0], abs=1e-7)

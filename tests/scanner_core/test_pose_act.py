@@ -240,14 +240,17 @@ def heptagon_plate(height=10.0):
 
 def test_edges_each_off_by_their_own_offset_are_in_the_sigma():
     """Each edge's points 40 um off it on average, its own way (a rounded edge, the stripe
-    fading where the surface turns away; 4-47 um RMS over the parts of a realistic cell):
-    clustered by profile alone, the sigma took the plate's seven edges for hundreds of
-    independent points and missed the error by up to 6.5 of its sigmas (4 poses of 12 beyond
-    3). Clustered by edge as well, every axis's error is within 3 (at most 1.9)."""
+    fading where the surface turns away; 4-47 um RMS over the parts of a realistic cell).
+    Clustered by profile alone, the sigma took the plate's seven edges for hundreds of
+    independent points and missed the error by up to 6.5 of its sigmas. With the offsets the
+    edges share (pooled over the curves, Student's t for their few degrees of freedom) the
+    sigma is honest both ways over 30 picks: the errors' RMS within 0.7 to 1.4 of their
+    sigmas on every axis (30 picks pin an RMS of 1 to about +-0.2), none beyond 5."""
     mesh = heptagon_plate()
     nominal = centred_grasp(mesh)
     surface_model, edge_model = SurfaceModel.from_mesh(mesh), EdgeModel.from_mesh(mesh)
-    for seed in range(12):
+    z = []
+    for seed in range(30):
         rng = np.random.default_rng(seed)
         truth = misplacement(*rng.uniform(-2, 2, 3), *rng.uniform(-4, 4, 3)) @ nominal
         pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=seed,
@@ -256,7 +259,11 @@ def test_edges_each_off_by_their_own_offset_are_in_the_sigma():
                           edge_frame_ids=edge_frames, edge_model=edge_model)
         assert result.free_axes == [] and np.isfinite(result.std).all()
         dt, dr = pose_error(result.matrix, truth)
-        assert_sigmas_bound_errors(result, np.concatenate([dt, dr]))
+        z.append(np.concatenate([dt, dr]) / result.std)
+    z = np.abs(np.array(z))
+    rms = np.sqrt(np.mean(z**2, axis=0))
+    assert np.all((rms >= 0.7) & (rms <= 1.4)), rms
+    assert z.max() < 5.0 and np.mean(z > 3.0) <= 0.02, (z.max(), np.mean(z > 3.0))
 
 
 def test_an_edge_curve_s_offset_taken_up_by_the_fit_is_scaled_back():

@@ -180,6 +180,15 @@ def test_calibration_round_trip_and_a_bad_one_refused(service):
         assert client.calibration()["marker_offset_std_mm"] == [0.001, 0.01, 0.002]
         with pytest.raises(Unprocessable, match="marker_offset_std_mm"):
             client.put_calibration({**calibration, "marker_offset_std_mm": [0.0, -1.0, 0.0]})
+        # ... and how well its light plane is known, which every pose then carries.
+        plane_std = {"centre_mm": [0.0, 1.0, -20.0], "axes": [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]],
+                     "covariance": [[6.25e-10, 0.0, 0.0], [0.0, 1.44e-10, 0.0],
+                                    [0.0, 0.0, 2.5e-7]]}
+        measured = client.put_calibration({**calibration, "light_plane_uncertainty_b": plane_std})
+        assert measured["light_plane_uncertainty_b"] == plane_std
+        with pytest.raises(Unprocessable, match="light_plane_uncertainty_b"):
+            client.put_calibration({**calibration, "light_plane_uncertainty_b": {
+                **plane_std, "axes": [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]}})
         client.put_calibration(calibration)
         assert client.calibration() == calibration
 
