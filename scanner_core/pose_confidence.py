@@ -207,28 +207,33 @@ def _two_way_meat(js, weights, residuals, frames, curves, info_inv):
     edge = curves >= 0
     if not edge.any():
         return by_profile, by_profile
-    shared = _shared_offsets(x[edge], e[edge], curves[edge], info_inv)
+    shared = _shared_offsets(x[edge], e[edge], weights[edge], curves[edge], info_inv)
     return by_profile, by_profile + shared
 
 
-def _shared_offsets(x, e, curves, info_inv) -> np.ndarray:
+def _shared_offsets(x, e, weights, curves, info_inv) -> np.ndarray:
     """(6, 6) "meat" of the offsets the edge rows of one model edge curve share: each curve
     c off by its own ``o_c``, drawn with one variance ``tau^2`` for the scan, gives
-    ``tau^2 sum_c g_c g_c^T`` (``g_c = sum_{i in c} x_i``, the curve's pull on the motion).
+    ``tau^2 sum_c g_c g_c^T``, ``g_c = sum_{i in c} w_i J_i`` the curve's pull on the motion.
 
     ``tau^2`` is pooled over the curves of two or more rows (a random-effects model, method
     of moments): the mean of ``m_c^2 - s_c^2 / n_c``, ``m_c`` the mean of curve c's residuals
     corrected for what the fit took up of them (`_cluster_residuals`), ``s_c^2`` their
     scatter about it; zero when the curves agree within their scatter. Pooled, the variance
     rests on every curve at once, not on each curve's own residuals (the cluster-robust sum,
-    which with a plate's seven edges put its errors at 1.3 to 1.9 of their sigmas, RMS).
-    `x` ((K, 6)) and `e` ((K,)) are the weighted rows and residuals.
+    which with a plate's seven edges put its errors at 1.3 to 1.9 of their sigmas, RMS). It
+    rests on ``nu = sum_c (1 - h_c)`` degrees of freedom, ``h_c`` the leverage of curve c's
+    offset in the fit: an error over few of them spreads as Student's t, whose variance is
+    ``nu / (nu - 2)`` of its scale's (``_FEW_FREEDOM_FACTOR`` for ``nu`` up to
+    ``_MIN_FREEDOM``). `x` ((K, 6)) and `e` ((K,)) are the weighted rows and residuals,
+    `weights` (K,) the rows' weights.
     """
     _, inverse, sizes = np.unique(curves, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
-    corrected = _cluster_residuals(x, e, inverse, info_inv)
+    root = np.sqrt(weights)
+    corrected = _cluster_residuals(x, e, inverse, info_inv) / root
     pull = np.zeros((len(sizes), x.shape[1]))
-    np.add.at(pull, inverse, x)
+    np.add.at(pull, inverse, x * root[:, None])
     total = np.bincount(inverse, weights=corrected, minlength=len(sizes))
     squares = np.bincount(inverse, weights=corrected**2, minlength=len(sizes))
     many = sizes >= 2
@@ -237,9 +242,9 @@ def _shared_offsets(x, e, curves, info_inv) -> np.ndarray:
     mean = total[many] / sizes[many]
     scatter = (squares[many] - sizes[many] * mean**2) / (sizes[many] - 1)
     tau2 = max(0.0, float(np.mean(mean**2 - scatter / sizes[many])))
-    # tau^2 rests on the curves beyond the motions they hold: an error over so few degrees of
-    # freedom nu spreads as Student's t, whose variance is nu / (nu - 2) of its scale's
-    freedom = int(many.sum()) - np.linalg.matrix_rank(pull, tol=1e-9 * max(np.abs(pull).max(), 1e-300))
+    mass = np.bincount(inverse, weights=weights, minlength=len(sizes))
+    leverage = np.einsum("gi,ij,gj->g", pull, info_inv, pull) / mass
+    freedom = float(np.sum(1.0 - np.clip(leverage[many], 0.0, 1.0)))
     tau2 *= freedom / (freedom - 2.0) if freedom > _MIN_FREEDOM else _FEW_FREEDOM_FACTOR
     return tau2 * pull.T @ pull
 
