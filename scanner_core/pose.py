@@ -27,9 +27,10 @@ is registered against the CAD model in {P}, starting from the nominal grasp ^T X
   points of one profile share that frame's placement error (the marker's triangulation), so
   they are not independent, and the sandwich takes that from the residuals themselves. The
   edge points along one edge of the model share an offset from it (a rounded edge, the stripe
-  fading as the surface turns away): they are clustered by edge as well (two-way, Cameron,
-  Gelbach and Miller 2011), each edge's residuals corrected for the part of its offset the fit
-  took up (``scanner_core.pose_confidence._two_way_meat``). To it are added what every
+  fading as the surface turns away): one variance for those offsets, pooled over the scan's
+  edges (a random-effects model), each edge's residuals corrected for the part of its offset
+  the fit took up, is added (``scanner_core.pose_confidence._shared_offsets``). To it are
+  added what every
   profile shares and the fit cannot see in the residuals: the calibration's light plane
   (its uncertainty carried through the fit's response), its marker offset, and the robot's
   orientation report. ``PoseResult.std_terms`` gives each term's share per axis.
@@ -131,11 +132,10 @@ class PoseParams:
         of their edge points (the rest off the CAD's sharp edges) and placed the part as
         well as the other parts', yet 48 % of them were refused at 0.8.
     sigma_inflation : float
-        The fit's own terms (the profiles' and the edges' clusters) are multiplied by this:
-        1 (none) by default, since the sandwich clustered two ways holds on its own (the
-        pose's errors across x_T and about z_T, which those terms alone set, are 0.98 to 0.99
-        of their sigmas over 144 picks of eight parts in four realistic cells); a setting
-        for a cell whose scans show an error the sandwich cannot see.
+        The fit's own terms (the profiles' and the edges') are multiplied by this: 1 (none)
+        by default, since with the edges' shared offsets and the calibration's light plane
+        in, the sigmas hold on their own (``flyscan bench place``); a setting for a cell whose
+        scans show an error none of the terms sees.
     coarse_step_deg, coarse_extent_deg : float
         The coarse grid of rotation vectors around the nominal: every combination of
         ``-extent..extent`` in ``step`` about the three {T} axes.

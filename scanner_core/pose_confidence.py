@@ -5,8 +5,8 @@ the scan leaves free, and the flags.
   H^-1`` over the frames f (Liang and Zeger 1986): the points of one profile share that
   frame's placement error (the marker's triangulation), so they are not independent, and
   the sandwich takes that from the residuals themselves. The edge points along one edge of
-  the model share an error too: they are clustered by edge curve as well, two-way
-  (`_two_way_meat`). It is scaled by ``PoseParams.sigma_inflation`` (1 by default), taken
+  the model share an error too: their offsets are pooled over the scan's edge curves and
+  added (`_two_way_meat`, `_shared_offsets`). It is scaled by ``PoseParams.sigma_inflation`` (1 by default), taken
   about the {T} origin, and widened by each rival minimum the search found
   (``scanner_core.pose_search._probe_turns``) and by the light plane's uncertainty carried
   through the fit (`_sheet_response`); ``pose_inputs.add_placement_error`` adds the marker's
@@ -37,9 +37,9 @@ _AXIS_LABELS = ("x_T", "y_T", "z_T")
 _TOUCHED = 0.2
 # A fit whose residuals exceed this many times the expected scatter is flagged.
 _RMS_FLAG = 5.0
-# The edges' shared offsets rest on the curves beyond the motions they hold (`_shared_offsets`):
-# with fewer than this many such degrees of freedom, their variance is taken this many times,
-# Student's t's nu / (nu - 2) at nu = 3.
+# The edges' shared offsets rest on what the fit leaves of the curves (`_shared_offsets`): with
+# this many degrees of freedom or fewer, their variance is taken this many times, Student's
+# t's nu / (nu - 2) at nu = 3 (at 2 and below it has none).
 _MIN_FREEDOM = 3
 _FEW_FREEDOM_FACTOR = 3.0
 # A cluster's leverage is capped at 1 minus this (`_leverage_corrected`).
@@ -55,8 +55,8 @@ MIN_COVERAGE = 0.9
 
 #: The terms of a pose's covariance, in the order ``PoseResult.std_terms`` lists them.
 #: ``profiles``: the measurement noise through the fit, the points of a profile clustered
-#: (each frame's placement error); ``edges``: what the edge points along one model edge
-#: share beyond it (the second way of the two-way clustering); ``inflation``: what
+#: (each frame's placement error); ``edges``: the offsets the edge points along one model
+#: edge share, pooled over the scan's edges; ``inflation``: what
 #: ``PoseParams.sigma_inflation`` adds to those two; ``free``: the slack of the motions the
 #: scan leaves free; ``rivals``: the other minima that fit as well; ``light_plane``: the
 #: calibration's light plane, on which every profile was triangulated; ``marker``: the
@@ -167,9 +167,8 @@ def _sheet_response(fit: _Fit, js, info_inv, s, frames, table) -> np.ndarray:
 def term_stds(terms: dict) -> dict:
     """Per term of a pose's covariance (``COVARIANCE_TERMS``: (6, 6), mm and rad), the
     standard deviation it alone gives each axis (``tx_mm`` ... ``rz_deg``): the square root
-    of its diagonal, negative where the term takes variance away (the edges' term, where the
-    profiles' clustering already counted it), NaN along a free motion. The squares, signed,
-    add up to the reported variances."""
+    of its diagonal, signed as it (a term that took variance away would be negative), NaN
+    along a free motion. The squares, signed, add up to the reported variances."""
     out = {}
     for name in COVARIANCE_TERMS:
         if name not in terms:
@@ -181,25 +180,22 @@ def term_stds(terms: dict) -> dict:
 
 
 def _two_way_meat(js, weights, residuals, frames, curves, info_inv):
-    """Two (6, 6) cluster-robust "meats" of the weighted scores: clustered by profile alone,
-    and clustered two ways (Cameron, Gelbach and Miller 2011): by profile (`frames`, (K,))
-    and by the model edge curve an edge row matched (`curves`, (K,), -1 for a surface row,
-    its own cluster): ``M_frames + [M_curves - M_both]_+``, the bracket's negative
-    eigenvalues clipped to zero: what the edges share adds to the profiles' scatter and never
-    takes from it. (The two-way sum as it stands, its total clipped, lost up to nine tenths
-    of the profiles' variance along a heptagon plate's slides, whose seven edges alone hold
-    them, and put its errors at up to 14 of its sigmas.) `js` ((K, 6)) are the rows in scaled units, `info_inv` ((6, 6)) the inverse of
-    their information. Every cluster's residuals are corrected for its leverage
-    (`_leverage_corrected`, the jackknife's approximation).
+    """Two (6, 6) cluster-robust "meats" of the weighted scores: clustered by profile
+    (`frames`, (K,)), each cluster's residuals corrected for its leverage
+    (`_leverage_corrected`, the jackknife's approximation); and the same plus the offsets the
+    edge rows of one model edge curve share (`curves`, (K,), -1 for a surface row:
+    `_shared_offsets`), which add to the profiles' scatter and never take from it. `js`
+    ((K, 6)) are the rows in scaled units, `info_inv` ((6, 6)) the inverse of their
+    information.
 
-    The edge points along one edge share an error that their scatter does not show: at the
-    truth of a pick of featuretype in ``flyscan bench place``, the points of each of its 24
-    edge curves with five or more lay -122 to +90 um off the edge on average (RMS 53 um),
-    19 um apart about that mean (median). Counted as independent, the edges claimed to hold
-    x_T to 12.7 um; the pose came out 40.8 um off. And a few edge points hold a flat part's
-    slides and turn in its plane, so the fit takes up much of their residuals: uncorrected,
-    the sandwich of a heptagon plate's synthetic scans put its errors at 1.2 to 2.2 times
-    their sigmas (RMS), with no offset on its edges.
+    The edge points along one edge share an error that their scatter does not show (a
+    rounded edge, the stripe fading as the surface turns away): at the truth of a pick of
+    featuretype in ``flyscan bench place``, the points of each of its 24 edge curves with
+    five or more lay -122 to +90 um off the edge on average (RMS 53 um), 19 um apart about
+    that mean (median). And a few edge points hold a flat part's slides and turn in its
+    plane, so the fit takes up much of their residuals: uncorrected, the sandwich of a
+    heptagon plate's synthetic scans put its errors at 1.2 to 2.2 times their sigmas (RMS),
+    with no offset on its edges.
     """
     root = np.sqrt(weights)
     x, e = js * root[:, None], residuals * root
