@@ -11,10 +11,13 @@ from __future__ import annotations
 import numpy as np
 
 from simulator.cell import load_cell
+from simulator import procedural
 from simulator.parts import Part, block_with_holes_and_steps, load_reference_part, part_from_mesh
 from simulator.session import SimulatedCell, simulated_cell
 
-__all__ = ["REFERENCE_PARTS", "REFERENCE_PART", "DEMO_PART", "demo_part", "bench_part", "demo_pass",
+__all__ = ["REFERENCE_PARTS", "REFERENCE_PART", "DEMO_PART", "PROCEDURAL_PARTS",
+           "VALIDATION_PARTS", "demo_part",
+           "bench_part", "demo_pass",
            "MISPLACEMENT_UP_TO_MM", "MISPLACEMENT_UP_TO_DEG", "MISPLACEMENT_SEED",
            "random_misplacement", "AXES"]
 
@@ -39,15 +42,69 @@ AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 MISPLACEMENT_SEED = 20261
 
 
+#: Procedural parts the benchmarks scan beside the reference ones, by name: each made by
+#: ``simulator.procedural`` (holes and steps, a creased hub and blades, a plate with a step,
+#: a curved crown), no mesh file needed.
+PROCEDURAL_PARTS = {
+    DEMO_PART: procedural.block_with_holes_and_steps,
+    "bracket": procedural.bracket_with_two_holes,
+    "fan_disk": procedural.fan_disk,
+    "crowned_block": procedural.crowned_block,
+}
+
+
+
+
+def _public_mesh(filename: str, size_mm: float):
+    """A public mesh that a registry package ships (pymeshlab's sample meshes: the Stanford
+    bunny, a bone), scaled to `size_mm` across: a part no benchmark here was made on."""
+    def make():
+        from importlib import resources
+
+        import trimesh
+
+        try:
+            path = resources.files("pymeshlab") / "tests" / "sample_meshes" / filename
+        except ModuleNotFoundError:
+            raise ValueError(f"{filename}: the public sample meshes come with pymeshlab, "
+                             f"which is not installed") from None
+        if not path.is_file():
+            raise ValueError(f"{filename}: not among pymeshlab's sample meshes ({path})")
+        mesh = trimesh.load(str(path), force="mesh")
+        mesh.apply_scale(size_mm / float(mesh.extents.max()))
+        return mesh
+    make.__name__ = f"public:{filename}"
+    return make
+
+
+#: Parts for checking the benchmarks' findings on what they were not made on: procedural
+#: parts of other shapes and sizes, a faceted dome, and public meshes.
+VALIDATION_PARTS = {
+    "bracket_wide": lambda: procedural.bracket_with_two_holes(
+        (90.0, 50.0, 8.0), step_height=3.0, step_x=-5.0, hole_radii=(5.0, 2.5)),
+    "block_tall": lambda: procedural.block_with_holes_and_steps((50.0, 35.0, 30.0),
+                                                                hole_radius=5.0),
+    "fan_disk_6": lambda: procedural.fan_disk(38.0, blades=6, blade_pitch_deg=40.0),
+    "dome": lambda: procedural.faceted_dome(35.0),
+    "bunny": _public_mesh("bunny.obj", 70.0),
+    "bone": _public_mesh("bone.ply", 80.0),
+}
+
+
 def demo_part(name: str = DEMO_PART) -> Part:
     """The procedural demo block (holes and steps), named `name` in the figures."""
     return part_from_mesh(block_with_holes_and_steps(), name=name, source=_DEMO_SOURCE)
 
 
 def bench_part(name: str) -> Part:
-    """The demo block for `DEMO_PART`, else the reference part of that name."""
+    """The demo block for `DEMO_PART`, a part of `PROCEDURAL_PARTS` or `VALIDATION_PARTS`,
+    else the reference part of that name."""
     if name == DEMO_PART:
         return demo_part()
+    for registry in (PROCEDURAL_PARTS, VALIDATION_PARTS):
+        if name in registry:
+            return part_from_mesh(registry[name](), name=name,
+                                  source=f"procedural:{registry[name].__name__}")
     return load_reference_part(name)
 
 

@@ -8,9 +8,10 @@ so that two versions of it can be compared on the same scans, and its CPU time d
 depend on what else runs: each scan's pose is computed twice and the faster kept
 (``time.thread_time``; BLAS held to one thread, the KD-tree queries on one worker).
 
-The scans: the demo block and the four reference parts at 400, 200 and 100 mm/s (the point
-count goes as the inverse), three random misplacements each up to 5 mm and 10 degrees (the
-issue's target set, seeded). The quick set: the demo block at 200 mm/s, two scans.
+The scans: the procedural parts (the demo block among them), the four reference parts and
+the parts kept for checks (``benchmarks.parts.VALIDATION_PARTS``: other procedural shapes,
+a faceted dome, public meshes) at 400, 200 and 100 mm/s (the point count goes as the
+inverse), three random misplacements each up to 5 mm and 10 degrees (seeded). The quick set: the demo block at 200 mm/s, two scans.
 
 ``run(out_dir)`` writes ``pose_time.json`` (per scan: part, speed, points, time, stages,
 act, error against the truth; summaries by part and for the scans of up to
@@ -25,8 +26,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from benchmarks.parts import (DEMO_PART, MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG,
-                              MISPLACEMENT_UP_TO_MM, REFERENCE_PARTS, bench_part,
-                              random_misplacement)
+                              MISPLACEMENT_UP_TO_MM, PROCEDURAL_PARTS, REFERENCE_PARTS,
+                              VALIDATION_PARTS, bench_part, random_misplacement)
 from benchmarks.stats import spread
 from benchmarks.results import machine_info, write_json
 from benchmarks.service import TARGET_POSE_P95_MS, TARGET_POSE_POINTS, pose_stages
@@ -46,7 +47,8 @@ REPEATS = 2
 def run(out_dir, quick: bool = False, *, progress=print) -> dict:
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    names = (DEMO_PART,) if quick else (DEMO_PART,) + REFERENCE_PARTS
+    names = (DEMO_PART,) if quick else (tuple(PROCEDURAL_PARTS) + REFERENCE_PARTS
+                                        + tuple(VALIDATION_PARTS))
     speeds = QUICK_SPEEDS_MM_S if quick else SPEEDS_MM_S
     count = QUICK_SCANS_PER_SPEED if quick else SCANS_PER_SPEED
     cell = load_cell()

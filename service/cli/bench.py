@@ -33,10 +33,48 @@ def add_parser(command) -> None:
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
     bench.add_argument("--picks", type=int, default=None,
-                       help="place: picks per part (default 50; --quick 4)")
+                       help="place: picks per part in each cell (default 10; --quick 4)")
+    bench.add_argument("--cells", default=None,
+                       help="place: the realistic cells' perturb seeds, comma-separated "
+                            "(default 1,2,3,4,5; --quick 1)")
+    bench.add_argument("--parts", default=None,
+                       help="place: part names, comma-separated: the reference parts "
+                            "(idler_riser, featuretype, ADIS16480, cycloidal) and the "
+                            "procedural block, bracket, fan_disk, crowned_block (default: all "
+                            "eight; --quick block); for checks on parts the bench was not made "
+                            "on, bracket_wide, block_tall, fan_disk_6, dome and the public "
+                            "meshes bunny and bone")
     bench.add_argument("--meshes", type=Path, default=None,
                        help="folder of the reference meshes and their manifest.json (default: "
                             "$FLYSCAN_MESHES, or ../shared/data/meshes beside a source checkout)")
+
+
+def _seeds(text):
+    """``--cells``: comma-separated whole numbers, or None."""
+    if text is None:
+        return None
+    try:
+        seeds = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise UsageError(f"--cells must be comma-separated whole numbers, got {text!r}") from None
+    if not seeds or min(seeds) < 0:
+        raise UsageError(f"--cells must name at least one perturb seed >= 0, got {text!r}")
+    return seeds
+
+
+def _names(text):
+    """``--parts``: comma-separated names the benchmarks know, or None."""
+    if text is None:
+        return None
+    from benchmarks.parts import DEMO_PART, PROCEDURAL_PARTS, REFERENCE_PARTS, VALIDATION_PARTS
+
+    known = (DEMO_PART,) + tuple(PROCEDURAL_PARTS) + REFERENCE_PARTS + tuple(VALIDATION_PARTS)
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    unknown = [n for n in names if n not in known]
+    if unknown or not names:
+        raise UsageError(f"--parts: unknown part(s) {unknown or text!r}: choose from "
+                         f"{', '.join(dict.fromkeys(known))}")
+    return names
 
 
 def run(args) -> int:
@@ -77,11 +115,14 @@ def run(args) -> int:
         print(json.dumps(limits.get("summary", {}), indent=2))
     else:
         from benchmarks import scan as bench
-    if args.picks is not None and args.what != "place":
-        raise UsageError("--picks is for bench place only")
+    for option in ("picks", "cells", "parts"):
+        if getattr(args, option) is not None and args.what != "place":
+            raise UsageError(f"--{option} is for bench place only")
     if args.picks is not None and args.picks < 1:
         raise UsageError(f"--picks must be at least 1, got {args.picks}")
-    extra = {"picks": args.picks} if args.what == "place" else {}
+    extra = {}
+    if args.what == "place":
+        extra = {"picks": args.picks, "cells": _seeds(args.cells), "parts": _names(args.parts)}
     result = bench.run(args.out, quick=args.quick, **extra)
     print(json.dumps(result.get("summary", {}), indent=2))
     print(f"written to {args.out}")

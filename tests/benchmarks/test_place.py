@@ -64,16 +64,61 @@ def test_z_scores_of_a_pose_entry():
     assert z[3] == pytest.approx(0.0, abs=1e-6) and z[5] == pytest.approx(0.0, abs=1e-6)
 
 
+def _row(std, *, reasons=(), free=(), error=(1.0, -2.0, 0.5, 3.0, -1.0, 2.0)):
+    return {"scanned": True, "std_um_mdeg": list(std), "act_reasons": list(reasons),
+            "free_axes": list(free), "translation_um": list(error[:3]),
+            "rotation_mdeg": list(error[3:]), "act": False}
+
+
+def test_act_at_another_tolerance():
+    from benchmarks.place import act_at
+
+    row = _row([10.0, 20.0, 5.0, 10.0, 12.0, 30.0],
+               reasons=["rz: 3 sigma 0.09 degrees, beyond the act tolerance 0.05 degrees"])
+    assert not act_at(row, 0.05, 0.05)          # 3 sigma of ty 60 um, of rz 90 mdeg
+    assert act_at(row, 0.1, 0.1) and act_at(row, 0.2, 0.2)
+    # a reason the tolerance does not change, a free axis, a rival: never acted on
+    assert not act_at(_row([1.0] * 6, reasons=["partial scan: 80 % of the part"]), 0.2, 0.2)
+    assert not act_at(_row([1.0] * 6, free=["along y_T"]), 0.2, 0.2)
+    assert not act_at(_row([1.0] * 6, reasons=["ambiguous: 1 other minimum beyond"]), 0.2, 0.2)
+
+
+def test_availability_counts_the_right_picks_acted_on():
+    from benchmarks.place import availability
+
+    right = dict(_row([5.0] * 6, error=(10.0, -20.0, 5.0, 10.0, -15.0, 30.0)), act=True)
+    refused = _row([50.0] * 6, error=(1.0,) * 6,
+                   reasons=["tx: 3 sigma 0.15 mm, beyond the act tolerance 0.1 mm"])
+    wrong = dict(_row([5.0] * 6, error=(40.0,) + (0.0,) * 5), act=True)  # beyond a third
+    free = dict(_row([5.0] * 6, error=(0.0,) * 6, free=["about z_T"]))
+    out = availability([right, refused, wrong, free], (0.1, 0.1))
+    assert out["right"] == 2 and out["acted_on"] == 1 and out["share"] == 0.5
+    assert out["refused_for"] == {"3 sigma beyond the act tolerance": 1}
+
+
 def test_quick_bench_place(tmp_path):
     result = run(tmp_path, quick=True, picks=3, progress=lambda line: None)
     assert (tmp_path / "place.png").stat().st_size > 10_000
     on_disk = json.loads((tmp_path / "place.json").read_text())
     assert on_disk["summary"] == json.loads(json.dumps(result["summary"]))
     assert set(result["summary"]["targets"]) == {
-        "placed_p99_um", "placed_p99_mdeg", "acted_outside_tolerance", "act_rate_fixed_parts",
-        "beyond_3_sigma"}
+        "placed_p99_um", "placed_p99_mdeg", "acted_outside_tolerance", "z_rms_lowest",
+        "z_rms_highest", "beyond_3_sigma_share", "availability"}
     picks = result["picks"]
     assert len(picks) == 3 and all(p["scanned"] for p in picks)
+    assert all(p["cell"] == 1 and set(p["std_terms"]) >= {"profiles", "marker", "light_plane"}
+               for p in picks)
+    summary = result["summary"]
+    # the errors' RMS in sigmas, recomputed from the picks
+    z = np.array([p["z"] for p in picks], dtype=float)
+    for i, axis in enumerate(("tx", "ty", "tz", "rx", "ry", "rz")):
+        assert summary["sigma_calibration"]["z_rms"][axis] == pytest.approx(
+            np.sqrt(np.nanmean(z[:, i] ** 2)), rel=1e-4)
+    levels = summary["against_tolerance"]
+    assert [lv["tolerance"]["mm"] for lv in levels] == [0.05, 0.1, 0.2]
+    # a wider tolerance never acts on fewer picks
+    assert levels[0]["acted_on"] <= levels[1]["acted_on"] <= levels[2]["acted_on"]
+    assert levels[1]["acted_on"] == sum(p["act"] for p in picks)
     block = result["per_part"]["block"]
     for key in ("act_rate", "placed_um", "placed_mdeg", "max_abs_z_acted",
                 "max_abs_z_observable", "act_by_level", "act_blocked_by", "pose_ms"):

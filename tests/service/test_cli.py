@@ -396,3 +396,16 @@ def test_a_tolerance_that_is_no_tolerance_is_a_usage_error(tmp_path, capsys, val
     assert code == 2
     assert "--act-tolerance-deg must be finite and > 0" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["place", "--cells", "1,x"], "--cells must be comma-separated whole numbers"),
+    (["place", "--parts", "block,teapot"], "unknown part(s) ['teapot']"),
+    (["place", "--picks", "0"], "--picks must be at least 1"),
+    (["stripe", "--cells", "1"], "--cells is for bench place only"),
+])
+def test_bench_place_options_are_checked(argv, message, tmp_path, capsys):
+    code = main(["bench", *argv, "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
