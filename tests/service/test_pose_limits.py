@@ -27,6 +27,10 @@ MIN_REFERENCE_FRAMES, MIN_REFERENCE_POINTS, MIN_REFERENCE_EDGES = 200, 5000, 50
 #: creeps stops (``pose_fine._settled``) where it ran on to ``max_iterations`` before: what
 #: is left is the linear take-back of the free motion, not a drift.
 FREE_TURN_HELD_DEG = 0.15
+#: The reference cell's scan of the holed cylinder lies 2.0 um off the true surface along
+#: its normals (mean signed error, ``ground_truth.accuracy.mean_signed_um``): a pose carries
+#: that whole, whatever its sigma; a micrometre of margin.
+CLOUD_OFFSET_UM = 3.0
 
 
 @pytest.fixture(scope="module")
@@ -287,8 +291,14 @@ def test_cylinder_turns_freely_about_z_and_is_placed_at_its_axis(bench):
     # A hole 12 mm off the axis fixes the turn: no motion is free and the error about z_T is
     # bounded by its sigma; whether that sigma is within the act tolerance (observable, issue
     # 27) is the tolerance's call: the quick bench's scan holds it to 65 mdeg, beyond 0.1/3.
+    # Beyond their sigmas, the errors are at most the cloud's own offset: this cell's scan
+    # lies 2.0 um off the surface along its normals (its mean signed error, against the
+    # truth), which moves z_T whole; its calibration is the truth, and carries no measured
+    # uncertainty for a term of the sigma to hold it.
     holed = row(result, "symmetry", 12.0)["pose"]
-    assert holed["free_axes"] == [] and holed["max_sigmas"] <= 3.0
+    assert holed["free_axes"] == [] and abs(holed["sigmas"][5]) <= 3.0
+    assert holed["unbounded_rotation_mdeg"] == 0.0
+    assert holed["unbounded_translation_um"] <= CLOUD_OFFSET_UM
 
 
 def test_cylinder_free_turn_is_held_at_its_start(cell):
