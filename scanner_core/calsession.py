@@ -147,8 +147,7 @@ def views_jackknife(points_b, pixels, views, width: int, height: int,
     each of `groups` random groups of positions (from the fit's own camera and mirrors), and
     the plane fitted again through each (`plane_of`: camera -> Plane in {B}). The sphere's
     points come through the direct view's rays, so the views' error tilts and shifts the plane
-    as well: in realistic simulated cells the frames' scatter alone put the plane's true
-    error at 1.7 to 2.7 of its sigmas.
+    as well (docs/calibration.md measures both against the truth).
 
     Returns
     -------

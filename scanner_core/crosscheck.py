@@ -281,12 +281,9 @@ def led_offset_spread(times, marker_b, robot: Robot, clock_offset_s: float, *,
     Not the fit's own standard error, which takes the frames as independent: the clock and
     the offset along the pass trade against each other through the pass's speed, and what
     biases the marker (the LED's blob seen from each view, the robot's report) changes
-    slowly along the pass; its stretches, each with its own clock, disagree by that. Over 16
-    realistic cells (``flyscan calibrate --sim``, every effect, perturb seeds 1-13, 23, 34,
-    45) the LED's error along y_T is 0.3-16 um (RMS 7.4) against these of 2.7-9.3 (RMS
-    6.8): errors of 0.04-2.2 of them, RMS 1.17; the fit's own standard error said 2 um, the
-    stretches' spread undivided 5-19 um. Every profile of a scan shares that error. Across
-    the pass it misses a bias of the LED's blob (1-4.6 um against 0.1-1.2).
+    slowly along the pass; its stretches, each with its own clock, disagree by that. Every
+    profile of a scan shares that error. Across the pass it misses a bias of the LED's blob
+    (docs/calibration.md: both measured against the truth of realistic simulated cells).
 
     Parameters
     ----------

@@ -104,7 +104,7 @@ def plane_uncertainty(points_per_frame, plane: Plane) -> PlaneUncertainty:
     ``theta_f`` the plane fitted without frame f as ``PlaneUncertainty`` describes it. A
     frame's points share its errors (the stage's position of the sphere, the stripe's bias
     on it), so a frame counts as one observation; with a few dozen frames the jackknife
-    holds where the cluster-robust sandwich fell 1.2 to 1.5 times short.
+    holds where a cluster-robust sandwich falls short (docs/calibration.md).
 
     Parameters
     ----------

@@ -189,13 +189,9 @@ def _two_way_meat(js, weights, residuals, frames, curves, info_inv):
     information.
 
     The edge points along one edge share an error that their scatter does not show (a
-    rounded edge, the stripe fading as the surface turns away): at the truth of a pick of
-    featuretype in ``flyscan bench place``, the points of each of its 24 edge curves with
-    five or more lay -122 to +90 um off the edge on average (RMS 53 um), 19 um apart about
-    that mean (median). And a few edge points hold a flat part's slides and turn in its
-    plane, so the fit takes up much of their residuals: uncorrected, the sandwich of a
-    heptagon plate's synthetic scans put its errors at 1.2 to 2.2 times their sigmas (RMS),
-    with no offset on its edges.
+    rounded edge, the stripe fading as the surface turns away), and a few edge points hold a
+    flat part's slides and turn in its plane, so the fit takes up much of their residuals:
+    both are measured in docs/pose.md ("What every edge shares").
     """
     root = np.sqrt(weights)
     x, e = js * root[:, None], residuals * root
@@ -216,9 +212,8 @@ def _shared_offsets(x, e, weights, curves, info_inv) -> np.ndarray:
     of moments): the mean of ``m_c^2 - s_c^2 / n_c``, ``m_c`` the mean of curve c's residuals
     corrected for what the fit took up of them (`_cluster_residuals`), ``s_c^2`` their
     scatter about it; zero when the curves agree within their scatter. Pooled, the variance
-    rests on every curve at once, not on each curve's own residuals (the cluster-robust sum,
-    which with a plate's seven edges put its errors at 1.3 to 1.9 of their sigmas, RMS). It
-    rests on ``nu = sum_c (1 - h_c)`` degrees of freedom, ``h_c`` the leverage of curve c's
+    rests on every curve at once, not on each curve's own residuals, which a part of few
+    edges makes a poor estimate. It rests on ``nu = sum_c (1 - h_c)`` degrees of freedom, ``h_c`` the leverage of curve c's
     offset in the fit: an error over few of them spreads as Student's t, whose variance is
     ``nu / (nu - 2)`` of its scale's (``_FEW_FREEDOM_FACTOR`` for ``nu`` up to
     ``_MIN_FREEDOM``). `x` ((K, 6)) and `e` ((K,)) are the weighted rows and residuals,
