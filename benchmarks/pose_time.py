@@ -126,15 +126,17 @@ def _plot(result: dict, path: pathlib.Path) -> None:
     import matplotlib.pyplot as plt
 
     rows = result["rows"]
-    fig, (ax_points, ax_stages) = plt.subplots(1, 2, figsize=(12, 4.5))
-    for name in dict.fromkeys(r["part"] for r in rows):
+    fig, (ax_points, ax_stages) = plt.subplots(1, 2, figsize=(13, 5))
+    colours = plt.get_cmap("tab20").colors
+    for k, name in enumerate(dict.fromkeys(r["part"] for r in rows)):
         mine = [r for r in rows if r["part"] == name]
-        ax_points.scatter([r["points"] for r in mine], [r["ms"] for r in mine], label=name, s=18)
+        ax_points.scatter([r["points"] for r in mine], [r["ms"] for r in mine], label=name, s=18,
+                          color=colours[k % len(colours)], marker="os^D"[k // 10 % 4])
     ax_points.axhline(TARGET_POSE_P95_MS, color="k", ls="--", lw=1, label="target p95")
     ax_points.axvline(TARGET_POSE_POINTS, color="grey", ls=":", lw=1)
     ax_points.set(xscale="log", xlabel="scan points", ylabel="pose, ms (thread CPU)",
                   title="the pose's time by part and point count")
-    ax_points.legend(fontsize=8)
+    ax_points.legend(fontsize=7, ncol=2)
     stages = ["fine", "coarse", "turn_check", "probes"]
     order = sorted(range(len(rows)), key=lambda i: rows[i]["ms"])
     bottom = np.zeros(len(rows))
