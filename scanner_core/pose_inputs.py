@@ -109,8 +109,8 @@ class ScanPoseInputs:
 def sheet_in_tcp(scan) -> dict:
     """The light plane's uncertainty as a scan's pose reads it: the plane (its normal `n`,
     its axes `a_1`, `a_2` and its centre `c`, ``PlaneUncertainty``) and the camera's centre,
-    each in {T} at every placed frame (``x_T = R^T (x_B - p)`` for the frame's TCP rotation
-    `R` and position `p`).
+    each in {T} at every placed frame with a point or an edge point (``x_T = R^T (x_B - p)``
+    for the frame's TCP rotation `R` and position `p`).
 
     Returns
     -------
@@ -130,6 +130,17 @@ def sheet_in_tcp(scan) -> dict:
     if (uncertainty is None or not len(rotations)
             or not len(frames) == len(rotations) == len(positions) == len(sensors)):
         return none
+    # Only the frames with a point or an edge point: the pose reads no other, and a pass's
+    # frames after the part has left the sheet must not make its inputs differ from the pass
+    # so far's (``scanner_core.finish.pose_ahead``).
+    edge_frames = getattr(scan, "edge_frame_ids", None)
+    seen = np.union1d(np.asarray(scan.frame_ids),
+                      np.zeros(0, np.int64) if edge_frames is None else np.asarray(edge_frames))
+    keep = np.isin(frames, seen)
+    if not keep.any():
+        return none
+    frames, rotations, positions, sensors = (frames[keep], rotations[keep], positions[keep],
+                                             sensors[keep])
     n = np.cross(uncertainty.axes_b[0], uncertainty.axes_b[1])
     directions = np.stack([n, *uncertainty.axes_b])                      # (3, 3) in {B}
     # R^T v for each frame's R and each direction v: (F, 3, 3)

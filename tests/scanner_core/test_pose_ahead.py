@@ -78,6 +78,29 @@ def test_a_pose_ahead_is_kept_when_the_rest_of_the_pass_adds_nothing_it_reads(pa
                                                               atol=0.05)
 
 
+def test_a_pose_ahead_carrying_the_light_plane_is_kept_too(passes):
+    """With the calibration's light plane uncertainty, the pose reads the plane at each
+    frame with a point: the frames the gripper goes on through after the part has left the
+    sheet change nothing, and the pose ahead is kept, its light plane term in."""
+    import copy
+
+    from scanner_core.planecal import PlaneUncertainty
+
+    part, whole, out, _ = passes
+    plane = PlaneUncertainty(np.array([0.0, 0.0, -20.0]),
+                             np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+                             np.diag([(30e-6) ** 2, (12e-6) ** 2, 0.0005**2]))
+    whole, out = copy.copy(whole), copy.copy(out)
+    whole.light_plane_uncertainty = out.light_plane_uncertainty = plane
+    assert len(whole.tcp_frame_ids) > len(out.tcp_frame_ids)
+    ahead = pose_ahead(out, part)
+    kept = finish_pass(whole, EndReason.MARKER_GONE, None, CrossCheckState(), part,
+                       pose_ahead=ahead)
+    assert "ahead" in kept.timings_ms and kept.pose is ahead.pose
+    terms = kept.pose_report["std_terms"]["light_plane"]
+    assert terms["tz_mm"] > 1e-4 and terms["ry_deg"] > 1e-4
+
+
 def test_a_pose_ahead_of_points_still_to_come_is_computed_again(passes):
     part, whole, _, inside = passes
     ahead = pose_ahead(inside, part)
