@@ -32,7 +32,7 @@ from scanner_core.ledpivot import led_from_robot_poses
 from scanner_core.marker import find_markers
 from scanner_core.pipeline import PipelineParams, camera_frames, frame_stripe, run_pass
 from scanner_core.planecal import (PlaneUncertainty, calibrate_plane, jackknife_covariance,
-                                   plane_parameters)
+                                   plane_parameters, sphere_plane)
 from scanner_core.types import MarkerObservation
 from scanner_core.viewcal import calibrate_views, fit_physical, project_views, views_as_mirrors
 
@@ -92,17 +92,19 @@ def calibrate_session(session: Session, params: PipelineParams = PipelineParams(
     camera = views.camera
     progress(f"light plane: the stripe on the sphere in {len(session.sphere_centres_b)} frames")
     stripes = observe_sphere(session.sphere_images(), nominal, params)
-    plane = calibrate_plane(list(zip(stripes, session.sphere_centres_b)), camera,
-                            session.sphere_radius_mm)
+    sphere_frames = list(zip(stripes, session.sphere_centres_b))
+    plane = calibrate_plane(sphere_frames, camera, session.sphere_radius_mm)
     plane_c = plane.plane_b.transformed(camera.rotation, -camera.rotation @ camera.origin)
     progress(f"light plane: {plane.points} points from {plane.frames} frames, "
              f"{plane.rms_mm * 1e3:.1f} um RMS; sphere centres {plane.centre_rms_mm * 1e3:.1f} um RMS")
-    progress(f"light plane: its uncertainty, the views refitted {VIEW_JACKKNIFE_GROUPS} times")
-    plane_uncertainty = views_jackknife(
-        led_positions_b, led_px, views, session.width, session.height,
-        lambda cam: calibrate_plane(list(zip(stripes, session.sphere_centres_b)), cam,
-                                    session.sphere_radius_mm).plane_b,
-        plane.uncertainty, seed=seed)
+    plane_uncertainty = None  # too few sphere frames to tell
+    if plane.uncertainty is not None:
+        progress(f"light plane: its uncertainty, the views refitted {VIEW_JACKKNIFE_GROUPS} "
+                 f"times")
+        plane_uncertainty = views_jackknife(
+            led_positions_b, led_px, views, session.width, session.height,
+            lambda cam: sphere_plane(sphere_frames, cam, session.sphere_radius_mm)[0],
+            plane.uncertainty, seed=seed)
     led_t = nominal.marker_offset_t.copy() if led_fit is None else np.array(led_fit["led_t_mm"])
     calibration = Calibration(camera, Plane(plane_c.normal, plane_c.offset), mirrors,
                               nominal.direct_columns, led_t, nominal.clock_offset_s,

@@ -26,6 +26,8 @@ MIN_INCIDENCE_COS = 0.35
 #: Fewest stripe points a frame must give to count, and fewest frames for a plane.
 MIN_POINTS_PER_FRAME = 20
 MIN_FRAMES = 3
+#: Fewest frames whose leave-one-out fits say how well they fix the plane (`plane_uncertainty`).
+MIN_UNCERTAINTY_FRAMES = 4
 #: Robust weights: Huber's scale in robust sigmas, and the reweighting rounds.
 HUBER_K = 2.0
 REWEIGHT_ROUNDS = 6
@@ -118,19 +120,26 @@ def plane_uncertainty(points_per_frame, plane: Plane) -> PlaneUncertainty:
     PlaneUncertainty
         About the points' centroid, projected onto `plane`.
     """
-    if len(points_per_frame) < 4:
-        raise ValueError(f"a plane's uncertainty needs at least 4 frames, got "
-                         f"{len(points_per_frame)}")
+    if len(points_per_frame) < MIN_UNCERTAINTY_FRAMES:
+        raise ValueError(f"a plane's uncertainty needs at least {MIN_UNCERTAINTY_FRAMES} "
+                         f"frames, got {len(points_per_frame)}")
     n = plane.normal
     centre = np.concatenate(points_per_frame).mean(axis=0)
     centre = centre - n * (n @ centre - plane.offset)  # onto the plane
-    a1 = unit(np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 0.0, 1.0]))
-    axes = np.stack([a1, np.cross(n, a1)])
+    axes = np.stack(in_plane_axes(n))
     thetas = []
     for left_out in range(len(points_per_frame)):
         others = np.concatenate([p for i, p in enumerate(points_per_frame) if i != left_out])
         thetas.append(plane_parameters(fit_plane(others)[0], centre, axes))
     return PlaneUncertainty(centre, axes, jackknife_covariance(thetas))
+
+
+def in_plane_axes(normal) -> tuple[np.ndarray, np.ndarray]:
+    """Two orthonormal (3,) directions in the plane of unit `normal`, ``e_1 x e_2 = normal``:
+    `normal` crossed with x_B (z_B when `normal` lies near x_B), then `normal` crossed with
+    that."""
+    e1 = unit(np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 0.0, 1.0]))
+    return e1, np.cross(normal, e1)
 
 
 def plane_parameters(plane: Plane, centre, axes) -> np.ndarray:
@@ -235,8 +244,7 @@ def circle_centre(points, plane: Plane, radius_mm: float, side_point) -> np.ndar
     squares, Kasa) moved off the plane by ``sqrt(R^2 - r^2)`` towards ``side_point`` (the
     stage's centre says which side). NaN near the equator (``MIN_CAP_HEIGHT``)."""
     n = plane.normal
-    e1 = unit(np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 0.0, 1.0]))
-    e2 = np.cross(n, e1)
+    e1, e2 = in_plane_axes(n)
     origin = n * plane.offset
     x, y = (points - origin) @ e1, (points - origin) @ e2
     a = np.column_stack([2 * x, 2 * y, np.ones(len(x))])
@@ -249,8 +257,56 @@ def circle_centre(points, plane: Plane, radius_mm: float, side_point) -> np.ndar
     return origin + cx * e1 + cy * e2 + side * np.sqrt(h2) * n
 
 
+def sphere_plane(frames, camera: PinholeCamera,
+                 radius_mm: float) -> tuple[Plane, list[np.ndarray], np.ndarray]:
+    """The light plane through the sphere frames' stripe points, robustly (`fit_plane`).
+
+    Parameters
+    ----------
+    frames : sequence of (pixels (N, 2), centre_b (3,))
+        Each frame's stripe pixels on the sphere and the stage's sphere centre in {B}, mm.
+    camera : PinholeCamera
+        The calibrated direct view.
+    radius_mm : float
+
+    Returns
+    -------
+    plane_b : Plane
+        In {B}, mm.
+    points_per_frame : list of (N_f, 3) float64
+        The stripe points of each frame that gave enough of them, mm in {B}.
+    weights : (sum N_f,) float64
+        The fit's robust weights, in the order of those points.
+
+    Raises
+    ------
+    PlaneCalibrationError
+        Fewer than ``MIN_FRAMES`` frames with a stripe on the sphere (the sheet never cuts it),
+        or all centres on one line (the plane would turn about it).
+    """
+    per_frame = []
+    for pixels, centre in frames:
+        pts = sphere_points(pixels, camera, centre, radius_mm)
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        if len(pts) >= MIN_POINTS_PER_FRAME:
+            per_frame.append(pts)
+    if len(per_frame) < MIN_FRAMES:
+        raise PlaneCalibrationError(
+            f"only {len(per_frame)} sphere frame(s) show a stripe on the sphere; at least "
+            f"{MIN_FRAMES} are needed: does the sheet cut the sphere at those positions?")
+    allpts = np.concatenate(per_frame)
+    spread = np.linalg.svd(allpts - allpts.mean(axis=0), compute_uv=False) / np.sqrt(len(allpts))
+    if spread[1] < 1.0:
+        raise PlaneCalibrationError("the stripe points lie on a line: move the sphere across "
+                                    "the sheet, not along one line in it")
+    plane, w = fit_plane(allpts)
+    return plane, per_frame, w
+
+
 def calibrate_plane(frames, camera: PinholeCamera, radius_mm: float) -> PlaneCalibration:
-    """The light plane from sphere frames.
+    """The light plane from sphere frames (`sphere_plane`), how well they agree with it, and
+    how well they fix it (`plane_uncertainty`; None from fewer than
+    ``MIN_UNCERTAINTY_FRAMES`` frames).
 
     Parameters
     ----------
@@ -263,26 +319,11 @@ def calibrate_plane(frames, camera: PinholeCamera, radius_mm: float) -> PlaneCal
     Raises
     ------
     PlaneCalibrationError
-        Fewer than ``MIN_FRAMES`` frames with a stripe on the sphere (the sheet never cuts it),
-        or all centres on one line (the plane would turn about it).
+        As `sphere_plane`, or when the points do not lie on one plane (``MAX_PLANE_RMS_MM``,
+        ``MIN_INLIER_SHARE``).
     """
-    per_frame, centres = [], []
-    for pixels, centre in frames:
-        pts = sphere_points(pixels, camera, centre, radius_mm)
-        pts = pts[np.isfinite(pts).all(axis=1)]
-        if len(pts) >= MIN_POINTS_PER_FRAME:
-            per_frame.append(pts)
-            centres.append(np.asarray(centre, dtype=np.float64))
-    if len(per_frame) < MIN_FRAMES:
-        raise PlaneCalibrationError(
-            f"only {len(per_frame)} sphere frame(s) show a stripe on the sphere; at least "
-            f"{MIN_FRAMES} are needed: does the sheet cut the sphere at those positions?")
+    plane, per_frame, w = sphere_plane(frames, camera, radius_mm)
     allpts = np.concatenate(per_frame)
-    spread = np.linalg.svd(allpts - allpts.mean(axis=0), compute_uv=False) / np.sqrt(len(allpts))
-    if spread[1] < 1.0:
-        raise PlaneCalibrationError("the stripe points lie on a line: move the sphere across "
-                                    "the sheet, not along one line in it")
-    plane, w = fit_plane(allpts)
     inlier = w >= 1.0
     rms = float(np.sqrt(np.mean(plane.signed_distance(allpts[inlier]) ** 2)))
     if rms > MAX_PLANE_RMS_MM or inlier.mean() < MIN_INLIER_SHARE:
@@ -300,5 +341,7 @@ def calibrate_plane(frames, camera: PinholeCamera, radius_mm: float) -> PlaneCal
             continue
         errors.append(float(np.linalg.norm(circle_centre(pts, plane, radius_mm, centre)
                                            - centre)))
+    uncertainty = (plane_uncertainty(per_frame, plane)
+                   if len(per_frame) >= MIN_UNCERTAINTY_FRAMES else None)
     return PlaneCalibration(plane, rms, int(inlier.sum()), len(per_frame), np.array(errors),
-                            plane_uncertainty(per_frame, plane))
+                            uncertainty)

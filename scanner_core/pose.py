@@ -30,10 +30,9 @@ is registered against the CAD model in {P}, starting from the nominal grasp ^T X
   fading as the surface turns away): one variance for those offsets, pooled over the scan's
   edges (a random-effects model), each edge's residuals corrected for the part of its offset
   the fit took up, is added (``scanner_core.pose_confidence._shared_offsets``). To it are
-  added what every
-  profile shares and the fit cannot see in the residuals: the calibration's light plane
-  (its uncertainty carried through the fit's response), its marker offset, and the robot's
-  orientation report. ``PoseResult.std_terms`` gives each term's share per axis.
+  added what every profile shares and the fit cannot see in the residuals: the calibration's
+  light plane (its uncertainty carried through the fit's response), its marker offset, and
+  the robot's orientation report. ``PoseResult.std_terms`` gives each term's share per axis.
 
 The model is the CAD surface sampled densely with face normals (`SurfaceModel.from_mesh`), or
 any points with normals, such as the simulator's predicted cloud of the same pass
@@ -275,8 +274,8 @@ class PoseResult:
     covariance_terms : dict of str to (6, 6) float64
         `covariance` as the sum of its terms (``pose_confidence.COVARIANCE_TERMS``: the
         profiles' noise through the fit, the edges' shared offsets, the inflation, the free
-        motions' slack, the rivals, the calibration's marker offset, the robot's orientation
-        report), each in the units of `covariance`.
+        motions' slack, the rivals, the calibration's light plane and marker offset, the
+        robot's orientation report), each in the units of `covariance`.
     symmetry : dict or None
         The near symmetry that leaves a rotation loose, when one is found
         (``scanner_core.pose_symmetry.name_symmetry``): ``{"label": "87-fold about z_T",

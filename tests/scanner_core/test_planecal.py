@@ -110,3 +110,18 @@ def test_a_plane_uncertainty_round_trips_and_refuses_nonsense():
         PlaneUncertainty.from_dict(bad)
     with pytest.raises(ValueError, match="centre_mm"):
         PlaneUncertainty.from_dict({"axes": u.to_dict()["axes"]})
+
+
+def test_three_frames_fix_a_plane_but_not_its_uncertainty():
+    """The fewest frames a plane takes (``MIN_FRAMES``) leave too few leave-one-out fits to
+    say how well they fix it: the plane, and no uncertainty (taken as not measured)."""
+    from scanner_core.planecal import MIN_FRAMES, MIN_UNCERTAINTY_FRAMES
+
+    cell = load_cell(perturb_seed=4)
+    frames = _frames(cell, np.random.default_rng(3), count=MIN_FRAMES)
+    fit = calibrate_plane(frames, cell.calibration.camera, RADIUS)
+    assert fit.frames == MIN_FRAMES < MIN_UNCERTAINTY_FRAMES and fit.uncertainty is None
+    assert angle_between(fit.plane_b.normal, cell.light_plane_b.normal, undirected=True) < 1e-6
+    more = calibrate_plane(_frames(cell, np.random.default_rng(3), count=MIN_UNCERTAINTY_FRAMES),
+                           cell.calibration.camera, RADIUS)
+    assert more.uncertainty is not None
