@@ -53,6 +53,7 @@ from threadpoolctl import threadpool_limits
 
 from clients.placement import corrected_tcp_place, pose_actionable
 from scanner_core.pose import PoseParams
+from scanner_core.pose_symmetry import nearest_equivalent
 from benchmarks.calibrate import _calibrate
 from benchmarks.parts import (AXES, DEMO_PART, PROCEDURAL_PARTS, REFERENCE_PARTS, bench_part,
                               random_misplacement)
@@ -187,6 +188,9 @@ def pick(part, cell, calibration, values, *, seed: int, point_p, tolerance,
                            for k in ("processing", "cross_check", "pose")})
     if pose is None or "matrix" not in pose:
         return dict(row, observable=False, refused=(pose or {}).get("refused", report.get("reason")))
+    # A part its own turns map onto itself sits the same at each: the truth is the one
+    # nearest the pose.
+    truth = truth @ nearest_equivalent(truth, pose["matrix"], part.surface_model.symmetries)
     scored = score(as_pose_result(pose), truth)
     row.update({k: scored[k] for k in ("translation_um", "rotation_mdeg", "translation_norm_um",
                                        "rotation_angle_mdeg", "std_um_mdeg", "z", "flags",

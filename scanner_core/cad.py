@@ -141,14 +141,15 @@ class PartModel:
 
     def prepare(self) -> float:
         """Build now, and keep, everything a scan's pose uses that does not depend on the
-        scan: the surface and edge models with their KD-trees and lookup tables, the edge
-        model's curves, and the model edges of the edge kinds; the wall time it took, ms (0
-        when all was built). Otherwise the first pose of the part builds them (about 0.5-1.5
-        s for the reference parts) while the robot waits for it."""
+        scan: the surface and edge models with their KD-trees and lookup tables, the part's
+        exact symmetries, the edge model's curves, and the model edges of the edge kinds;
+        the wall time it took, ms (0 when all was built). Otherwise the first pose of the
+        part builds them (about 0.5-1.5 s for the reference parts) while the robot waits."""
         t0 = time.perf_counter()
         for model in (self.surface_model, self.edge_model):
             model.tree  # noqa: B018 - cached_property: built here, kept
             model.lookup  # noqa: B018
+        self.surface_model.symmetries  # noqa: B018
         self.edge_model.curves  # noqa: B018
         self.model_edges  # noqa: B018
         return (time.perf_counter() - t0) * 1e3

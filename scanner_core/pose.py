@@ -53,8 +53,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanner_core.pose_confidence import (MIN_COVERAGE, _coverage_flags, _flags, _rival_words,
-                                          _uncertainty, judge, term_stds)
+from scanner_core.pose_confidence import (EDGES_SEARCH_SIGNIFICANCE, MIN_COVERAGE,
+                                          _coverage_flags, _flags, _rival_words, _uncertainty,
+                                          edges_refute, judge, term_stds)
 from scanner_core.pose_fine import _fine, _subsample, _Terms
 from scanner_core.pose_inputs import (MAX_PROFILE_SPACING_MM, ScanPoseInputs,
                                       add_placement_error, check_inputs, edge_steps)
@@ -62,6 +63,7 @@ from scanner_core.pose_models import (BEVEL_MM, TOWARD_MIN, EdgeModel, SurfaceMo
                                       merge_bevels, outline_adjacency)
 from scanner_core.pose_search import (_better_turn, _coarse, _final_score, _probe_turns,
                                       _turn_deg)
+from scanner_core.pose_symmetry import equivalent_to, nearest_equivalent
 
 __all__ = ["PoseParams", "SurfaceModel", "EdgeModel", "PoseResult", "register", "scan_pose",
            "inputs_pose", "ScanPoseInputs",
@@ -281,6 +283,12 @@ class PoseResult:
         (``scanner_core.pose_symmetry.name_symmetry``): ``{"label": "87-fold about z_T",
         "axis": [x, y, z] in {T}, "fold": 87 or None, "period_deg", "continuous",
         "matched_fraction"}``.
+    part_symmetry : dict or None
+        For a part the CAD's own turns map onto itself
+        (``scanner_core.pose_symmetry.exact_symmetries``): ``{"order": K, "turned_deg"}``,
+        the K turns (the identity among them) that place it the same, and the one the pose
+        was turned by from the fit's minimum to the equivalent nearest the nominal grasp.
+        None for a part without.
     """
 
     matrix: np.ndarray
@@ -301,6 +309,7 @@ class PoseResult:
     act_reasons: list = field(default_factory=list)
     symmetry: dict | None = None
     covariance_terms: dict = field(default_factory=dict)
+    part_symmetry: dict | None = None
 
     def std_terms(self) -> dict:
         """Per term of `covariance` (``pose_confidence.COVARIANCE_TERMS``), the standard
@@ -330,6 +339,7 @@ class PoseResult:
             "observable": bool(self.observable),
             "free_axes": self.free_axes,
             "symmetry": self.symmetry,
+            "part_symmetry": self.part_symmetry,
             "std": dict(zip(_STD_KEYS, clean(self.std))),
             "std_terms": {name: dict(zip(_STD_KEYS, clean(values)))
                           for name, values in self.std_terms().items()},
@@ -415,6 +425,7 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
         if len(e_points):
             edges = _Terms(e_points, None, e_frames, edge_model, steps_mm=steps)
 
+    edge_count = 0 if edges is None else len(edges.points)
     # The search (which minimum) on a subsample; the minimum found settled on every point.
     search = surface
     if len(surface.points) > params.search_points:
@@ -423,7 +434,8 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
     coarse = False
     slid = _turn_deg(fit.pose, nominal) > params.max_fine_turn_deg
     if (slid or fit.inlier_fraction < params.good_inlier_fraction
-            or fit.edge_fraction < params.good_edge_fraction
+            or edges_refute(fit.edge_fraction, edge_count, params.good_edge_fraction,
+                            EDGES_SEARCH_SIGNIFICANCE)
             or _better_turn(search, edges, fit.pose, params)):
         starts = _coarse(search, edges, nominal, params, rng)
         candidate = _fine(search, edges, starts[0], params)
@@ -441,9 +453,23 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
     # The other minima on every point: on fewer, a rival that fits as well can go unseen
     # (ADIS16480 seen on its end, bench pose: a rival 152 mdeg away, near the truth, missed).
     fit, rivals = _probe_turns(surface, edges, fit, params)
+    # A part that maps onto itself under some turns is placed the same by each: the pose is
+    # the one nearest the grasp, and the same minimum turned is no rival.
+    group = model.symmetries
+    equivalents = None
+    if len(group) > 1:
+        rivals = [r for r in rivals if not equivalent_to(fit.pose, r, group,
+                                                         params.act_tolerance_mm,
+                                                         params.act_tolerance_deg)]
+        turn = nearest_equivalent(fit.pose, nominal, group)
+        fit = dataclasses.replace(fit, pose=fit.pose @ turn)
+        rivals = [r @ turn for r in rivals]
+        turned_deg = float(np.degrees(Rotation.from_matrix(turn[:3, :3]).magnitude()))
+        equivalents = {"order": int(len(group)), "turned_deg": round(turned_deg, 6)}
     covariance, std, free_axes, terms = _uncertainty(fit, params, rivals, sheet)
-    flags = _flags(fit, free_axes, edges is not None, params)
-    turned = _turn_deg(before_probes, nominal)
+    flags = _flags(fit, free_axes, edge_count, params)
+    turned = _turn_deg(before_probes @ nearest_equivalent(before_probes, nominal, group),
+                       nominal)
     if turned > params.max_fine_turn_deg:
         flags.append(f"implausible: the fit turned {turned:.0f} degrees from the start, farther "
                      f"than a misplacement the search covers ({params.max_fine_turn_deg:g})")
@@ -454,7 +480,7 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
         matrix=fit.pose, misplacement=fit.pose @ np.linalg.inv(nominal), rms_mm=fit.rms,
         inlier_fraction=fit.inlier_fraction, std=std, free_axes=free_axes,
         covariance=covariance, iterations=fit.iterations, coarse=coarse, flags=flags,
-        rivals=list(rivals), covariance_terms=terms)
+        rivals=list(rivals), covariance_terms=terms, part_symmetry=equivalents)
     result.time_ms = (time.perf_counter() - t0) * 1e3
     return result
 

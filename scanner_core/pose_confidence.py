@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+from scipy.special import bdtr
 
 from scanner_core.pose_fine import _directions, _Fit
 from scanner_core.pose_inputs import ScanPoseInputs
@@ -51,6 +52,11 @@ _FREE_TURN = 1e-8
 EDGES_NOTE = "edges: "
 #: A scan covering less of the part's length along the pass than this is partial.
 MIN_COVERAGE = 0.9
+#: Edge points matched fewer than a right pose's share (``PoseParams.good_edge_fraction``)
+#: refute the pose only when a right pose would match so few this rarely (a binomial tail):
+#: one unmatched edge point of a smooth part's scan tells nothing; the first significance
+#: sends the fit to the coarse search, the second makes it a poor fit.
+EDGES_SEARCH_SIGNIFICANCE, EDGES_POOR_SIGNIFICANCE = 0.05, 0.01
 
 
 #: The terms of a pose's covariance, in the order ``PoseResult.std_terms`` lists them.
@@ -374,16 +380,30 @@ def _rival_words(pose, rival) -> str:
             f"{np.linalg.norm(m[:3]) * 1e3:.0f} um away")
 
 
-def _flags(fit: _Fit, free_axes, with_edges: bool, params: PoseParams) -> list[str]:
+def edges_refute(fraction: float, count: int, share: float, significance: float) -> bool:
+    """Whether `count` edge points of which `fraction` matched the model refute a pose
+    whose right share is `share`: fewer matched than that, and a right pose matching so few
+    or fewer has a probability below `significance` (the binomial's lower tail,
+    ``P(X <= k) = sum_{i<=k} C(n, i) share^i (1 - share)^(n - i)``)."""
+    if count == 0 or fraction >= share:
+        return False
+    matched = int(round(fraction * count))
+    return bool(bdtr(matched, count, share) < significance)
+
+
+def _flags(fit: _Fit, free_axes, edge_count: int, params: PoseParams) -> list[str]:
     flags = []
     if fit.inlier_fraction < params.good_inlier_fraction:
         flags.append(f"poor fit: {fit.inlier_fraction:.0%} of the points match the model")
-    if with_edges and fit.edge_fraction < params.act_edge_fraction:
-        flags.append(f"poor fit: {fit.edge_fraction:.0%} of the edge points match the model's "
-                     "edges")
-    elif with_edges and fit.edge_fraction < params.good_edge_fraction:
-        flags.append(f"{EDGES_NOTE}{fit.edge_fraction:.0%} of the edge points match the "
-                     "model's edges")
+    poor = (fit.edge_fraction < params.act_edge_fraction
+            and edges_refute(fit.edge_fraction, edge_count, params.good_edge_fraction,
+                             EDGES_POOR_SIGNIFICANCE))
+    if poor:
+        flags.append(f"poor fit: {fit.edge_fraction:.0%} of the {edge_count} edge points match "
+                     "the model's edges")
+    elif edge_count and fit.edge_fraction < params.good_edge_fraction:
+        flags.append(f"{EDGES_NOTE}{fit.edge_fraction:.0%} of the {edge_count} edge points "
+                     "match the model's edges")
     if fit.rms > _RMS_FLAG * params.surface_noise_mm:
         flags.append(f"large residuals: {fit.rms * 1e3:.0f} um RMS")
     if free_axes:
@@ -393,8 +413,15 @@ def _flags(fit: _Fit, free_axes, with_edges: bool, params: PoseParams) -> list[s
 
 def _coverage_flags(inputs: ScanPoseInputs, pose, surface_model: SurfaceModel) -> list[str]:
     """Flags a pose cannot raise from its fit alone: profiles too far apart, and a pass that
-    saw only part of the part (the trigger started late, or the pass ended early)."""
+    saw only part of the part: it began or ended with the part in the sheet (the trigger came
+    late, the pass stopped early: ``ScanPoseInputs.in_sheet_at``) and covers less than
+    ``MIN_COVERAGE`` of the length the part's downward faces span along the pass. Faces the
+    camera cannot see from any frame of a whole pass leave its coverage short as well, and
+    say nothing against the pose."""
     flags = [] if inputs.sparse is None else [inputs.sparse]
+    began, ended = inputs.in_sheet_at
+    if not (began or ended):
+        return flags
     normals_t = surface_model.normals @ pose[:3, :3].T
     facing = normals_t[:, 2] > 0.3  # the sensor looks up at the part along -z_T
     if facing.any():
@@ -404,7 +431,9 @@ def _coverage_flags(inputs: ScanPoseInputs, pose, surface_model: SurfaceModel) -
         overlap = min(along.max(), seen.max()) - max(along.min(), seen.min())
         coverage = max(0.0, float(overlap)) / length if length > 0 else 1.0
         if coverage < MIN_COVERAGE:
-            flags.append(f"partial scan: {coverage:.0%} of the part's length along the pass")
+            when = " and ".join(w for w, cut in (("began", began), ("ended", ended)) if cut)
+            flags.append(f"partial scan: {coverage:.0%} of the part's length along the pass "
+                         f"(the pass {when} with the part in the sheet)")
     return flags
 
 

@@ -60,6 +60,9 @@ class ScanPoseInputs:
         ``sheet_in_tcp``: per frame, the light plane and the camera in {T}.
     sheet_covariance : (3, 3) float64 or None
         ``PlaneUncertainty.covariance``: of the plane's tilts and shift (`sheet_t`'s axes).
+    in_sheet_at : tuple of (bool, bool)
+        Whether the part was in the sheet at the pass's first placed frame, and at its last
+        (``cut_ends``): a pass that began or ended on the part saw only some of it.
     """
 
     cloud: np.ndarray
@@ -73,6 +76,7 @@ class ScanPoseInputs:
     sheet_frames: np.ndarray | None = None
     sheet_t: np.ndarray | None = None
     sheet_covariance: np.ndarray | None = None
+    in_sheet_at: tuple = (False, False)
 
     @classmethod
     def of(cls, scan) -> "ScanPoseInputs":
@@ -87,7 +91,7 @@ class ScanPoseInputs:
                    edge_steps_mm=scan_steps(scan),
                    placement_std_mm=None if placement is None else np.asarray(placement,
                                                                               np.float64),
-                   sparse=sparse_flag(scan.profile_spacing_mm),
+                   sparse=sparse_flag(scan.profile_spacing_mm), in_sheet_at=cut_ends(scan),
                    **sheet_in_tcp(scan))
 
     def same_as(self, other: "ScanPoseInputs") -> bool:
@@ -104,6 +108,21 @@ class ScanPoseInputs:
             elif mine != theirs:
                 return False
         return True
+
+
+def cut_ends(scan) -> tuple[bool, bool]:
+    """Whether the pass's first placed frame (``Scan.tcp_frame_ids``) has a point or an edge
+    point, and whether its last has: the part was in the sheet when the pass began (the
+    trigger came late) or when it ended (the pass stopped early). (False, False) for a scan
+    without placed frames. A pose computed once the part has left the sheet reads the same
+    as the whole pass's (``scanner_core.finish.pose_ahead``)."""
+    frames = np.asarray(getattr(scan, "tcp_frame_ids", np.zeros(0)), dtype=np.int64)
+    edge_frames = getattr(scan, "edge_frame_ids", None)
+    seen = np.union1d(np.asarray(scan.frame_ids),
+                      np.zeros(0, np.int64) if edge_frames is None else np.asarray(edge_frames))
+    if not len(frames) or not len(seen):
+        return (False, False)
+    return (bool(seen.min() <= frames.min()), bool(seen.max() >= frames.max()))
 
 
 def sheet_in_tcp(scan) -> dict:

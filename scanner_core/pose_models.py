@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 
 from scanner_core.nearest_table import NearestTable
 from scanner_core.mesh_edges import TOWARD_MIN, boundary_edges, outline_adjacency
+from scanner_core.pose_symmetry import exact_symmetries, surface_moments
 
 __all__ = ["SurfaceModel", "EdgeModel", "merge_bevels", "outline_adjacency", "BEVEL_MM",
            "TOWARD_MIN"]
@@ -52,11 +53,18 @@ class SurfaceModel:
         mm in {P}.
     normals : (M, 3) float64
         Unit outward normals.
+    spacing_mm : float
+        Mean distance between samples.
+    moments : tuple or None
+        The surface's centroid, principal axes and second moments
+        (``pose_symmetry.surface_moments``) of the mesh it was sampled from; None: of the
+        samples, when first needed.
     """
 
     points: np.ndarray
     normals: np.ndarray
     spacing_mm: float = 0.5
+    moments: tuple | None = None
 
     @classmethod
     def from_mesh(cls, mesh, *, spacing_mm: float = 0.25, max_points: int = 400_000,
@@ -82,7 +90,8 @@ class SurfaceModel:
         rng_state = np.random.default_rng(seed)
         points, faces = trimesh.sample.sample_surface(mesh, count, seed=rng_state)
         normals = np.asarray(mesh.face_normals, dtype=np.float64)[faces]
-        return cls(np.asarray(points, dtype=np.float64), normals, float(np.sqrt(area / count)))
+        return cls(np.asarray(points, dtype=np.float64), normals, float(np.sqrt(area / count)),
+                   surface_moments(mesh))
 
     @classmethod
     def from_points(cls, points, normals) -> "SurfaceModel":
@@ -99,6 +108,17 @@ class SurfaceModel:
     @cached_property
     def tree(self) -> cKDTree:
         return _tree(self.points)
+
+    @cached_property
+    def symmetries(self) -> np.ndarray:
+        """(K, 4, 4) float64: the turns in {P} that map the part onto itself, the identity
+        first (``pose_symmetry.exact_symmetries``); built on first use and kept."""
+        if self.moments is None:
+            centroid = self.points.mean(axis=0)
+            moments, axes = np.linalg.eigh(np.cov((self.points - centroid).T))
+        else:
+            centroid, axes, moments = self.moments
+        return exact_symmetries(self, centroid, axes, moments)
 
     @cached_property
     def lookup(self) -> NearestTable:

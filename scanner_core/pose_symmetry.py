@@ -19,6 +19,13 @@ tessellated into 87 facets), "round about x_T" (a shaft whose flat the pass does
 - **round**: the model matches itself, on average over three unrelated turns, within the
   final agreement tolerance (``_FINAL_TOL`` times the scatter): any turn fits nearly as well.
 
+The part's *exact* symmetries (`exact_symmetries`) are another matter: turns that map the
+CAD onto itself (``EXACT_FRACTION`` of its surface within ``EXACT_TOL_MM``), tried about the
+principal axes of its surface (any n-fold turn about an axis whose two perpendicular second
+moments are equal, a half turn about each), closed into a group. Poses that differ by one of
+them place the part the same: the pose reported is the one nearest the nominal grasp
+(`nearest_equivalent`), and a rival that is the pose turned by one is no rival.
+
 Units: mm, degrees in the report.
 """
 from __future__ import annotations
@@ -26,7 +33,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-__all__ = ["name_symmetry", "self_match", "NEAR"]
+__all__ = ["name_symmetry", "self_match", "NEAR", "exact_symmetries", "nearest_equivalent",
+           "equivalent_to", "surface_moments", "EXACT_TOL_MM", "EXACT_FRACTION"]
 
 #: At least this fraction of the model's surface matching itself turned is a near symmetry
 #: (it only names why a rotation the scan holds loosely is loose: a shaft whose flat, 13 % of
@@ -50,6 +58,19 @@ _PERIOD_SLACK_DEG, _PERIOD_SLACK = 0.5, 0.1
 # Periods shorter than 2 degrees (the slack a quarter of them) tell nothing apart.
 _MAX_FOLD = 180
 _AXIS_LABELS = ("x_T", "y_T", "z_T")
+#: A turn maps the part onto itself when this fraction of its samples land within
+#: ``EXACT_TOL_MM`` of its surface: the rest are samples whose neighbours sit on the next
+#: facet. A feature that tells the turns apart (a key, a notch) is more of the surface than
+#: the fraction leaves out, unless smaller than about half a percent of it.
+EXACT_TOL_MM, EXACT_FRACTION = 0.01, 0.995
+# Two second moments of the surface within this relative difference are equal: the axis
+# of the third can carry an n-fold symmetry (n >= 3).
+_EQUAL_MOMENTS = 1e-3
+# The exact symmetry's folds tried about such an axis (periods of 2 degrees and more, as
+# for the near ones), screened on this many samples, and the largest group kept.
+_EXACT_FOLDS = tuple(range(2, _MAX_FOLD + 1))
+_SCREEN_SAMPLES = 500
+_MAX_GROUP = 2 * _MAX_FOLD
 
 
 def name_symmetry(pose, covariance, rivals, free_axes, model, params) -> dict | None:
@@ -126,11 +147,12 @@ def name_symmetry(pose, covariance, rivals, free_axes, model, params) -> dict | 
             "matched_fraction": round(float(matched), 4)}
 
 
-def self_match(model, axis_p, pivot_p, turn_deg: float, tol_mm: float) -> float:
-    """Fraction of (up to ``_SAMPLES`` of) the model's samples that, turned by `turn_deg`
+def self_match(model, axis_p, pivot_p, turn_deg: float, tol_mm: float,
+               samples: int = _SAMPLES) -> float:
+    """Fraction of (up to `samples` of) the model's samples that, turned by `turn_deg`
     about the line through `pivot_p` along the unit `axis_p` (both in {P}), lie within
     `tol_mm` of a nearby sample's plane with normals within 30 degrees."""
-    step = max(1, len(model.points) // _SAMPLES)
+    step = max(1, len(model.points) // samples)
     points, normals = model.points[::step], model.normals[::step]
     turn = Rotation.from_rotvec(np.radians(turn_deg) * np.asarray(axis_p)).as_matrix()
     moved = (points - pivot_p) @ turn.T + pivot_p
@@ -236,3 +258,94 @@ def _axis_words(axis) -> str:
     if abs(axis[main]) > 0.9:
         return _AXIS_LABELS[main]
     return str(np.round(axis * np.sign(axis[main]), 3).tolist())
+
+
+def surface_moments(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The centroid (3,) and the principal axes (3, 3), columns, of a mesh's surface (its
+    area's second moments about the centroid, exact over each triangle:
+    ``A/12 (9 m m^T + sum_k d_k d_k^T)`` for a triangle of area A, centroid m and corners
+    d_k, all about the surface's centroid), with the moments (3,) ascending, mm^2."""
+    tri = np.asarray(mesh.triangles, dtype=np.float64)
+    area = np.asarray(mesh.area_faces, dtype=np.float64)
+    total = float(area.sum())
+    centroid = (area[:, None] * tri.mean(axis=1)).sum(axis=0) / total
+    d = tri - centroid
+    m = d.mean(axis=1)
+    second = (9.0 * np.einsum("f,fi,fj->ij", area, m, m)
+              + np.einsum("f,fki,fkj->ij", area, d, d)) / (12.0 * total)
+    moments, axes = np.linalg.eigh(second)
+    return centroid, axes, moments
+
+
+def exact_symmetries(model, centroid, axes, moments) -> np.ndarray:
+    """The turns that map the part onto itself, as (K, 4, 4) float64 transforms in {P}
+    (the identity first; K = 1 for a part without symmetry).
+
+    Tried about each principal axis through the centroid (`surface_moments`): every fold
+    of ``_EXACT_FOLDS`` about an axis whose perpendicular moments are equal, a half turn
+    about the others; the largest fold that matches (`self_match` at ``EXACT_TOL_MM``, at
+    least ``EXACT_FRACTION``) generates that axis's turns. A part round about an axis (it
+    matches a turn that is no period: ``_ROUND_TURNS_DEG``) has no discrete symmetry there;
+    its free turn is the fit's to hold (``PoseResult.free_axes``).
+    """
+    def turn(axis, angle_deg):
+        t = np.eye(4)
+        t[:3, :3] = Rotation.from_rotvec(np.radians(angle_deg) * axis).as_matrix()
+        t[:3, 3] = centroid - t[:3, :3] @ centroid
+        return t
+
+    def matches(axis, angle_deg):
+        # a turn that maps the part onto itself matches on any subset of the samples
+        return (self_match(model, axis, centroid, angle_deg, EXACT_TOL_MM, _SCREEN_SAMPLES)
+                >= EXACT_FRACTION - 0.01
+                and self_match(model, axis, centroid, angle_deg, EXACT_TOL_MM)
+                >= EXACT_FRACTION)
+
+    generators = []
+    scale = max(float(np.max(moments)), 1e-12)
+    for k in range(3):
+        axis = axes[:, k]
+        others = [moments[j] for j in range(3) if j != k]
+        if abs(others[0] - others[1]) <= _EQUAL_MOMENTS * scale:
+            if matches(axis, _ROUND_TURNS_DEG[0]):
+                continue
+            folds = [n for n in _EXACT_FOLDS if matches(axis, 360.0 / n)]
+        else:
+            folds = [2] if matches(axis, 180.0) else []
+        if folds:
+            generators.append(turn(axis, 360.0 / max(folds)))
+    group = [np.eye(4)]
+    frontier = list(group)
+    while frontier and len(group) < _MAX_GROUP:
+        new = []
+        for g in frontier:
+            for h in generators:
+                product = g @ h
+                if not any(np.allclose(product, e, atol=1e-6) for e in group):
+                    group.append(product)
+                    new.append(product)
+        frontier = new
+    return np.stack(group)
+
+
+def nearest_equivalent(pose, nominal, group) -> np.ndarray:
+    """(4, 4) float64: of the turns `g` in `group` (`exact_symmetries`), whose poses
+    ``pose @ g`` place the part the same, the one that brings the pose's rotation nearest
+    `nominal`'s (the identity when that is `pose` itself)."""
+    pose = np.asarray(pose, dtype=np.float64)
+    if len(group) < 2:
+        return np.eye(4)
+    relative = (pose @ group)[:, :3, :3] @ np.asarray(nominal, dtype=np.float64)[:3, :3].T
+    cos = (np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0
+    return np.array(group[int(np.argmax(cos))])
+
+
+def equivalent_to(pose, other, group, tol_mm: float, tol_deg: float) -> bool:
+    """Whether `other` is `pose` turned by one of the part's symmetries other than the
+    identity, within `tol_mm` (the {T} origin) and `tol_deg`."""
+    for g in group[1:]:
+        d = np.asarray(other) @ np.linalg.inv(np.asarray(pose) @ g)
+        if (np.linalg.norm(d[:3, 3]) <= tol_mm
+                and np.degrees(Rotation.from_matrix(d[:3, :3]).magnitude()) <= tol_deg):
+            return True
+    return False

@@ -303,9 +303,11 @@ def test_bad_input_is_refused(block):
 
 
 def lobed_disc(lobes=38, radius=24.0, amplitude=0.4, key_deg=25.0, key_depth=3.0, height=6.0,
-               n=1520):
+               n=1520, base_apex=None):
     """A cycloidal disc's outline: `lobes` lobes of `amplitude` mm around `radius`, and one
-    keyway (`key_deg` wide, `key_depth` deep) that tells the lobes apart; a prism."""
+    keyway (`key_deg` wide, `key_depth` deep) that tells the lobes apart; a prism. With
+    `base_apex` (x, dz), mm, its base (z = 0) is a low cone whose apex stands dz below it at x
+    off the axis: the lobes still fit the sides, but the part no longer maps onto itself."""
     theta = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
     r = radius + amplitude * np.cos(lobes * theta)
     r[np.degrees(theta) <= key_deg] = radius - key_depth
@@ -313,6 +315,8 @@ def lobed_disc(lobes=38, radius=24.0, amplitude=0.4, key_deg=25.0, key_depth=3.0
     vertices = np.vstack([np.column_stack([ring, np.zeros(n)]),
                           np.column_stack([ring, np.full(n, height)]),
                           [[0.0, 0.0, 0.0], [0.0, 0.0, height]]])
+    if base_apex is not None:
+        vertices[-2] = [base_apex[0], 0.0, -base_apex[1]]
     i = np.arange(n)
     j = (i + 1) % n
     faces = np.vstack([np.column_stack([i, j, n + j]), np.column_stack([i, n + j, n + i]),
@@ -378,15 +382,18 @@ def test_a_lobed_disc_turned_far_about_its_axis_is_found(lobes, amplitude, turn_
 
 
 @pytest.mark.parametrize("turn_deg", [100.0, -170.0, 60.0])
-def test_a_symmetric_lobed_disc_turned_far_is_ambiguous_not_confident(turn_deg):
-    """Without a keyway a 38-lobed disc fits any whole number of lobes off: turned far,
-    whichever lobe the fit settles on, the sweep round finds others that fit as well, and
-    the pose is flagged ambiguous with a wide sigma about the axis. Its turn is held by the
-    lobes as well as many a part's (weakness 0.014-0.016, about ``probe_weakness``), but by
-    its edges alone: at -170 and 60 degrees it was probed for that only, and without it
+def test_a_lobed_disc_alike_on_its_lobes_turned_far_is_ambiguous_not_confident(turn_deg):
+    """Without a keyway a 38-lobed disc fits any whole number of lobes off; a cone on its base,
+    which the sensor does not see, keeps its turns from being the same part. Turned
+    far, whichever lobe the fit settles on, the sweep round finds others that fit as well,
+    and the pose is flagged ambiguous with a wide sigma about the axis. Its turn is held by
+    the lobes as well as many a part's (weakness 0.014-0.016, about ``probe_weakness``), but
+    by its edges alone: at -170 and 60 degrees it was probed for that only, and without it
     came out 170 and 57 degrees off with a sigma of 0.025 degrees."""
-    mesh = lobed_disc(lobes=38, amplitude=0.4, key_deg=-1.0, n=1520)
+    mesh = lobed_disc(lobes=38, amplitude=0.4, key_deg=-1.0, n=1520, base_apex=(6.0, 1.5))
+    assert len(SurfaceModel.from_mesh(mesh).symmetries) == 1
     result, truth = _register_turned(mesh, turn_deg)
+    assert result.part_symmetry is None
     assert any(f.startswith("ambiguous: ") for f in result.flags), result.flags
     _, dr = pose_error(result.matrix, truth)
     lobe = 360.0 / 38
@@ -395,13 +402,37 @@ def test_a_symmetric_lobed_disc_turned_far_is_ambiguous_not_confident(turn_deg):
     assert result.std[5] > 3.0
 
 
+@pytest.mark.parametrize("turn_deg", [100.0, -170.0])
+def test_a_part_its_turns_map_onto_itself_is_placed_at_the_turn_nearest_the_grasp(turn_deg):
+    """A 38-lobed disc without a keyway is the same part turned by any whole number of lobes:
+    every such pose places it the same. Turned far, the pose is the one nearest the nominal
+    grasp (within half a lobe of it), as sure as the lobes make it, with no rival; the
+    truth's own turn nearest it is where it sits."""
+    from scanner_core.pose_symmetry import nearest_equivalent
+
+    mesh = lobed_disc(lobes=38, amplitude=0.4, key_deg=-1.0, n=1520)
+    model = SurfaceModel.from_mesh(mesh)
+    assert len(model.symmetries) == 76  # 38 turns about its axis, each also flipped over
+    result, truth = _register_turned(mesh, turn_deg)
+    assert result.part_symmetry["order"] == 76
+    assert not any(f.startswith("ambiguous: ") for f in result.flags), result.flags
+    turned = np.degrees(np.linalg.norm(Rotation.from_matrix(
+        result.misplacement[:3, :3]).as_rotvec()))
+    assert turned <= 360.0 / 38 / 2 + 1.5  # the misplacement's tilts add up to 1.4 degrees
+    same = truth @ nearest_equivalent(truth, result.matrix, model.symmetries)
+    dt, dr = pose_error(result.matrix, same)
+    assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr)
+    assert result.std[5] < 0.03
+
+
 def test_a_pose_the_scan_cannot_tell_from_a_turned_one_is_flagged_not_confident():
-    """A disc of 90 identical lobes (4 degrees apart) and no keyway, turned half a lobe: the
-    fine fit settles between two lobes, each as good as the other. Probed about its weakest
-    rotation (forced here: ``probe_weakness``), near and all the way round, the fit finds
-    lobes that fit as well, flags the pose ambiguous with them (whole lobes away) and reports
-    a sigma about its axis that covers the lobe; never a confident hundredth of a degree."""
-    mesh = lobed_disc(lobes=90, amplitude=0.4, key_deg=-1.0, n=2880)
+    """A disc of 90 identical lobes (4 degrees apart) and no keyway, a cone on its base the
+    sensor does not see, turned half a lobe: the fine fit settles between two lobes, each as
+    good as the other. Probed about its weakest rotation (forced here: ``probe_weakness``),
+    near and all the way round, the fit finds lobes that fit as well, flags the pose
+    ambiguous with them (whole lobes away) and reports a sigma about its axis that covers
+    the lobe; never a confident hundredth of a degree."""
+    mesh = lobed_disc(lobes=90, amplitude=0.4, key_deg=-1.0, n=2880, base_apex=(6.0, 1.5))
     nominal = centred_grasp(mesh)
     model, edge_model = SurfaceModel.from_mesh(mesh), EdgeModel.from_mesh(mesh)
     truth = misplacement(0.3, -0.2, 0.1, 0.3, -0.2, 2.0) @ nominal
