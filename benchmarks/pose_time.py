@@ -56,11 +56,7 @@ def run(out_dir, quick: bool = False, *, progress=print) -> dict:
     with threadpool_limits(1):
         for p_index, name in enumerate(names):
             part = bench_part(name)
-            t0 = time.perf_counter()
-            for model in (part.surface_model, part.edge_model):
-                model.tree  # noqa: B018 - built once per part, as the service does at arming
-                model.lookup  # noqa: B018
-            prepare_ms = (time.perf_counter() - t0) * 1e3
+            prepare_ms = part.prepare()  # once per part, as the service does at arming
             for speed in speeds:
                 for k in range(count):
                     rng = np.random.default_rng([MISPLACEMENT_SEED, p_index, int(speed), k])

@@ -244,6 +244,14 @@ _RIVAL_SCORE = 0.002
 _RIVAL_Z = 2.0
 # A rival this close to the fit (degrees, mm) is the same minimum.
 _RIVAL_SAME_DEG, _RIVAL_SAME_MM = 0.02, 0.02
+# A probe fitted on the search's points settles within this many times that of the minimum
+# it shares with a fit on every point (the subsample's own scatter), and its score on every
+# point lies within ``_PROBE_MARGIN`` of that fit's: one below the best by more than
+# `_MID_MARGIN` can be neither better nor a rival (``_rival_margin`` is at most
+# ``_PROBE_MARGIN``).
+_MID_SAME = 2.0
+_MID_MARGIN = 2.0 * _PROBE_MARGIN
+_MID_SHARE = 2
 
 
 def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
@@ -270,18 +278,37 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
         return fit, []
     rough, rough_edges = few.rough(), _rough(few_edges)
     own = _agreement(few, few_edges, fit.pose, *_COARSE_TOL_MM)
-    fits = [fit]
     starts = list(_turned(fit.pose, axis, centre, _PROBE_DEG))
     if weakness > _HELD_WEAKNESS:
         starts += _round_seeds(few, few_edges, fit.pose, axis, params)
     quick = _quick_fits(rough, rough_edges, np.stack(starts), params,
                         iterations=_PROBE_ITERATIONS, gate_mm=params.gate_mm * 2)
     scores = _agreements(few, few_edges, quick, *_COARSE_TOL_MM)
+    # Each probe that passes is fitted on the search's share of the points first: many settle
+    # on a minimum already found, or on one that scores clearly below the best, and only the
+    # others are fitted again on every point.
+    share = max(params.search_points // _MID_SHARE, _PROBE_POINTS)
+    mid = (surface.subset(_subsample(len(surface.points), share, rng))
+           if len(surface.points) > share else surface)
+    settled = []
     for pose, score in zip(quick, scores):
         if (score >= own - _PROBE_MARGIN
-                and all(not _same(pose, f.pose, _RIVAL_SAME_DEG * 10, _RIVAL_SAME_MM * 10)
-                        for f in fits)):
-            fits.append(_fine(surface, edges, pose, params))
+                and all(not _same(pose, other, _RIVAL_SAME_DEG * 10, _RIVAL_SAME_MM * 10)
+                        for other in [fit.pose] + [f.pose for f in settled])):
+            probe = _fine(mid, edges, pose, params)
+            if all(not _same(probe.pose, other, _RIVAL_SAME_DEG * _MID_SAME,
+                             _RIVAL_SAME_MM * _MID_SAME)
+                   for other in [fit.pose] + [f.pose for f in settled]):
+                settled.append(probe)
+    fits = [fit]
+    if settled and mid is surface:
+        fits += settled
+    elif settled:
+        tolerances = (_FINAL_TOL * params.surface_noise_mm, _FINAL_TOL * params.edge_noise_mm)
+        on_all = _agreements(surface, edges, np.stack([f.pose for f in settled]), *tolerances)
+        best = max(float(np.max(on_all)), _final_score(surface, edges, fit, params))
+        fits += [_fine(surface, edges, f.pose, params) for f, sc in zip(settled, on_all)
+                 if sc >= best - _MID_MARGIN]
     if len(fits) == 1:
         return fit, []
     scores = [_final_score(surface, edges, f, params) for f in fits]
