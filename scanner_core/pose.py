@@ -430,7 +430,7 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
     search = surface
     if len(surface.points) > params.search_points:
         search = surface.subset(_subsample(len(surface.points), params.search_points, rng))
-    fit = _fine(search, edges, nominal, params)
+    fit = _fine(search, edges, nominal, params, wander=True)
     coarse = False
     slid = _turn_deg(fit.pose, nominal) > params.max_fine_turn_deg
     if (slid or fit.inlier_fraction < params.good_inlier_fraction

@@ -112,10 +112,14 @@ class _Fit:
     scale_mm: float             # radius that makes rotations comparable with translations
 
 
-def _fine(surface: _Terms, edges: _Terms | None, start, params, *, warm: bool = True) -> _Fit:
+def _fine(surface: _Terms, edges: _Terms | None, start, params, *, warm: bool = True,
+          wander: bool = False) -> _Fit:
     """The fit from `start` ((4, 4) ^T X_P, mm) to convergence; the search's quick
     refinements of many starts are ``scanner_core.pose_quick``. Without `warm`, every
-    iteration uses all the points (a start already at a minimum of some of them)."""
+    iteration uses all the points (a start already at a minimum of some of them). With
+    `wander`, a fit whose steps are still ``_WANDER_STEPS`` tolerances or more after
+    ``_WANDER_ITERATIONS`` iterations stops there: it roams between minima, and the caller
+    has the coarse search to turn to."""
     pose = start.copy()
     centre = surface.points.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((surface.points - centre) ** 2, axis=1)))) or 1.0
@@ -145,6 +149,9 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, warm: bool = 
             continue
         if sparse is None and (_settled(sizes, observed, step_tol)
                                or _revisited(visited, pose, step_tol)):
+            break
+        if (wander and it >= _WANDER_ITERATIONS
+                and float(np.max(np.abs(observed) / step_tol)) >= _WANDER_STEPS):
             break
     pose, rows = _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params)
     if rows is None:
@@ -226,6 +233,11 @@ def _jump(previous, delta, scale) -> float:
         return 0.0
     ratio = nb / na
     return ratio / (1.0 - ratio) if ratio <= _JUMP_RATIO else 0.0
+
+
+#: A fit from the nominal grasp still stepping this many tolerances (10 um, 10 mdeg at the
+#: defaults) after this many iterations roams (`_fine`'s `wander`).
+_WANDER_ITERATIONS, _WANDER_STEPS = 20, 1000.0
 
 
 def _settled(sizes: list, step, step_tol) -> bool:
