@@ -244,14 +244,14 @@ _RIVAL_SCORE = 0.002
 _RIVAL_Z = 2.0
 # A rival this close to the fit (degrees, mm) is the same minimum.
 _RIVAL_SAME_DEG, _RIVAL_SAME_MM = 0.02, 0.02
-# A probe fitted on the search's points settles within this many times that of the minimum
-# it shares with a fit on every point (the subsample's own scatter), and its score on every
-# point lies within ``_PROBE_MARGIN`` of that fit's: one below the best by more than
-# `_MID_MARGIN` can be neither better nor a rival (``_rival_margin`` is at most
-# ``_PROBE_MARGIN``).
+# A probe is fitted first on 1/_MID_SHARE of the search's points. It settles within
+# _MID_SAME times that of the minimum it shares with a fit on every point (the subsample's
+# own scatter), and its score on every point lies within ``_PROBE_MARGIN`` of that fit's:
+# one below the best by more than `_MID_MARGIN` can be neither better nor a rival
+# (``_rival_margin`` is at most ``_PROBE_MARGIN``).
+_MID_SHARE = 2
 _MID_SAME = 2.0
 _MID_MARGIN = 2.0 * _PROBE_MARGIN
-_MID_SHARE = 2
 
 
 def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
@@ -262,8 +262,10 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
     distinct minima the scan cannot tell apart, which the uncertainty must then cover.
     Probed: a fit whose weakest rotation is held less than ``probe_weakness``, or by its
     edges alone (its surfaces hold it less than ``_EDGES_ALONE``: a flat part turning in its
-    plane, whose outline may repeat). A quick refinement (the coarse stage's) screens the turns: the
-    probe cost 180-330 ms on featuretype's and cycloidal's scans (bench pose).
+    plane, whose outline may repeat). A quick refinement (the coarse stage's) screens the
+    turns; those that pass are fitted on a share of the points, and on every point only
+    when they settle on a minimum not yet fitted that may score as well (docs/pose.md,
+    "Speed").
     """
     rng = np.random.default_rng(params.seed + 2)
     few = surface.subset(_subsample(len(surface.points), _PROBE_POINTS, rng))
@@ -284,8 +286,8 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
     quick = _quick_fits(rough, rough_edges, np.stack(starts), params,
                         iterations=_PROBE_ITERATIONS, gate_mm=params.gate_mm * 2)
     scores = _agreements(few, few_edges, quick, *_COARSE_TOL_MM)
-    # Each probe that passes is fitted on the search's share of the points first: many settle
-    # on a minimum already found, or on one that scores clearly below the best, and only the
+    # Each probe that passes is fitted on a share of the points first: many settle on a
+    # minimum already found, or on one that scores clearly below the best, and only the
     # others are fitted again on every point.
     share = max(params.search_points // _MID_SHARE, _PROBE_POINTS)
     mid = (surface.subset(_subsample(len(surface.points), share, rng))
