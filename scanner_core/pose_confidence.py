@@ -190,7 +190,8 @@ def _two_way_meat(js, weights, residuals, frames, curves, info_inv):
     (`frames`, (K,)), each cluster's residuals corrected for its leverage
     (`_leverage_corrected`, the jackknife's approximation); and the same plus the offsets the
     edge rows of one model edge curve share (`curves`, (K,), -1 for a surface row:
-    `_shared_offsets`), which add to the profiles' scatter and never take from it. `js`
+    `_shared_offsets`, and what one edge's own residuals hold beyond them), which add to the
+    profiles' scatter and never take from it. `js`
     ((K, 6)) are the rows in scaled units, `info_inv` ((6, 6)) the inverse of their
     information.
 
@@ -206,7 +207,19 @@ def _two_way_meat(js, weights, residuals, frames, curves, info_inv):
     if not edge.any():
         return by_profile, by_profile
     shared = _shared_offsets(x[edge], e[edge], weights[edge], curves[edge], info_inv)
-    return by_profile, by_profile + shared
+    # The pooled variance spreads one edge's offset over all of them: an edge far out of the
+    # others' spread (matched to the CAD's wrong edge, say) shows in its own residuals. What
+    # the edge rows clustered by edge (CR3) hold beyond the same rows by profile and the
+    # pooled term is added where it exceeds them.
+    by_curve = _leverage_corrected(x[edge], e[edge], curves[edge], info_inv)
+    by_frame = _leverage_corrected(x[edge], e[edge], frames[edge], info_inv)
+    return by_profile, by_profile + shared + _positive_part(by_curve - by_frame - shared)
+
+
+def _positive_part(matrix) -> np.ndarray:
+    """The symmetric `matrix` with its negative eigenvalues set to 0."""
+    values, vectors = np.linalg.eigh((matrix + matrix.T) / 2.0)
+    return (vectors * np.clip(values, 0.0, None)) @ vectors.T
 
 
 def _shared_offsets(x, e, weights, curves, info_inv) -> np.ndarray:

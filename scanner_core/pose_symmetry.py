@@ -70,6 +70,8 @@ _EQUAL_MOMENTS = 1e-3
 # for the near ones), screened on this many samples, and the largest group kept.
 _EXACT_FOLDS = tuple(range(2, _MAX_FOLD + 1))
 _SCREEN_SAMPLES = 500
+# A fold whose screened match is within this of the best screened one is matched on all.
+_SCREEN_SLACK = 0.05
 _MAX_GROUP = 2 * _MAX_FOLD
 
 
@@ -110,7 +112,12 @@ def name_symmetry(pose, covariance, rivals, free_axes, model, params) -> dict | 
     folds = _candidate_folds(turns)
     fold, matched = None, 0.0
     if folds:
-        scores = {n: self_match(model, axis_p, pivot_p, 360.0 / n, tight) for n in folds}
+        # screened on a few samples, the best few matched on all
+        screen = {n: self_match(model, axis_p, pivot_p, 360.0 / n, tight, _SCREEN_SAMPLES)
+                  for n in folds}
+        top = max(screen.values())
+        scores = {n: self_match(model, axis_p, pivot_p, 360.0 / n, tight)
+                  for n, f in screen.items() if f >= top - _SCREEN_SLACK}
         best = max(scores.values())
         if best >= NEAR:
             # of the folds that match as well, the one the rivals' turns fit best (a 4.1 degree
@@ -124,7 +131,8 @@ def name_symmetry(pose, covariance, rivals, free_axes, model, params) -> dict | 
             half = self_match(model, axis_p, pivot_p, 180.0 / fold, tight)
             if matched < half + _FOLD_MARGIN:
                 fold = None
-    round_match = float(np.mean([self_match(model, axis_p, pivot_p, t, loose)
+    # a mean over three turns: a few samples each tell 75 % from not
+    round_match = float(np.mean([self_match(model, axis_p, pivot_p, t, loose, _SCREEN_SAMPLES)
                                  for t in _ROUND_TURNS_DEG]))
     is_round = round_match >= NEAR
     if fold is None and not is_round:
