@@ -276,6 +276,8 @@ def surface_moments(mesh) -> tuple[np.ndarray, np.ndarray]:
     tri = np.asarray(mesh.triangles, dtype=np.float64)
     area = np.asarray(mesh.area_faces, dtype=np.float64)
     total = float(area.sum())
+    if not total > 0.0:  # no area: no axes to speak of
+        return tri.reshape(-1, 3).mean(axis=0), np.eye(3), np.zeros(3)
     centroid = (area[:, None] * tri.mean(axis=1)).sum(axis=0) / total
     d = tri - centroid
     m = d.mean(axis=1)

@@ -368,3 +368,18 @@ def test_a_scan_short_of_the_part_is_partial_only_when_the_pass_was_cut(in_sheet
                             placement_std_mm=None, sparse=None, in_sheet_at=in_sheet_at)
     flags = _coverage_flags(inputs, pose, model)
     assert any(f.startswith("partial scan: 50%") for f in flags) == partial, flags
+
+
+def test_a_box_surface_s_moments_and_its_four_turns():
+    """A 10 x 20 x 30 mm box: its surface's second moment along x is (2 * 600 * 25 + 2 * 300 *
+    100 / 12 + 2 * 200 * 100 / 12) / 2200 mm^2, and it maps onto itself under the identity
+    and a half turn about each axis; a box notched on one face, under the identity alone."""
+    from scanner_core.pose_symmetry import surface_moments
+
+    box = trimesh.creation.box(extents=(10.0, 20.0, 30.0))
+    centroid, axes, moments = surface_moments(box)
+    assert np.allclose(centroid, 0.0, atol=1e-9)
+    assert moments[0] == pytest.approx((30000.0 + 5000.0 + 10000.0 / 3.0) / 2200.0)
+    assert abs(axes[0, 0]) == pytest.approx(1.0)
+    assert len(SurfaceModel.from_mesh(box).symmetries) == 4
+    assert len(SurfaceModel.from_mesh(notched_below(box, 3.0)).symmetries) == 1
