@@ -302,18 +302,21 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
                              _RIVAL_SAME_MM * _MID_SAME)
                    for other in [fit.pose] + [f.pose for f in settled]):
                 settled.append(probe)
+    if not settled:
+        return fit, []
+    own_final = _final_score(surface, edges, fit, params)
     fits = [fit]
-    if settled and mid is surface:
+    if mid is surface:
         fits += settled
-    elif settled:
+    else:
         tolerances = (_FINAL_TOL * params.surface_noise_mm, _FINAL_TOL * params.edge_noise_mm)
         on_all = _agreements(surface, edges, np.stack([f.pose for f in settled]), *tolerances)
-        best = max(float(np.max(on_all)), _final_score(surface, edges, fit, params))
+        best = max(float(np.max(on_all)), own_final)
         fits += [_fine(surface, edges, f.pose, params) for f, sc in zip(settled, on_all)
                  if sc >= best - _MID_MARGIN]
     if len(fits) == 1:
         return fit, []
-    scores = [_final_score(surface, edges, f, params) for f in fits]
+    scores = [own_final] + [_final_score(surface, edges, f, params) for f in fits[1:]]
     # Move to a probe's minimum only when it is clearly better (as the coarse stage would);
     # one barely better is a rival, not an answer.
     best = int(np.argmax(scores))
