@@ -18,6 +18,7 @@ from scanner_core.exposure import ExposureController
 from scanner_core.finish import CrossCheckState, finish_pass
 from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
 from scanner_core.pose import PoseParams, PoseResult
+from scanner_core.pose_symmetry import nearest_equivalent
 from scanner_core.trigger import EndReason
 from scanner_core.types import Scan
 from simulator.cell import Cell
@@ -137,7 +138,8 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
         "cell": cell.to_dict(),
     }
     if result is not None:
-        report["ground_truth"]["pose_error"] = pose_error(result, sim.true_grasp)
+        report["ground_truth"]["pose_error"] = pose_error(result, sim.true_grasp,
+                                                          part.surface_model.symmetries)
     if evaluate:
         t0 = time.perf_counter()
         report["ground_truth"]["accuracy"] = cloud_accuracy(
@@ -147,13 +149,17 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
     return scan, report
 
 
-def pose_error(result: PoseResult, true_grasp: np.ndarray) -> dict:
+def pose_error(result: PoseResult, true_grasp: np.ndarray, symmetries=None) -> dict:
     """How far a registered pose is from the truth, per axis, and in reported sigmas.
 
     The error is ``result.matrix @ inv(true_grasp)``: a motion in {T}, translation of the
     {T} origin in um, rotation vector in millidegrees; ``sigmas`` divides each axis by its
-    reported standard deviation (None along a free motion).
+    reported standard deviation (None along a free motion). With `symmetries` ((K, 4, 4),
+    ``SurfaceModel.symmetries``), the truth is its turn nearest the pose: a part its own
+    turns map onto itself sits the same at each.
     """
+    if symmetries is not None:
+        true_grasp = true_grasp @ nearest_equivalent(true_grasp, result.matrix, symmetries)
     e = result.matrix @ np.linalg.inv(true_grasp)
     values = np.concatenate([e[:3, 3] * 1e3, Rotation.from_matrix(e[:3, :3]).as_rotvec(degrees=True) * 1e3])
     std = result.std * np.array([1e3, 1e3, 1e3, 1e3, 1e3, 1e3])

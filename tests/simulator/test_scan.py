@@ -112,3 +112,24 @@ def test_paper_presets(block_part):
         steps = np.diff(scan.tcp_positions_b[:, 1])
         assert_allclose(np.median(steps), spacing, rtol=0.3)
         assert report["ground_truth"]["accuracy"]["rms_um"] <= RMS_TARGET_UM
+
+
+def test_a_part_its_turns_map_onto_itself_is_scored_against_its_nearest_turn():
+    """An octagonal prism misplaced 32 degrees about z_T sits as it would 13 degrees the
+    other way: the pose is that turn (the nearest the grasp) and the ground truth's error is
+    against it, within a few of the pose's sigmas, not 45 degrees off."""
+    import trimesh
+
+    from simulator.parts import part_from_mesh
+
+    octagon = part_from_mesh(trimesh.creation.cylinder(radius=18.0, height=10.0, sections=8),
+                             name="octagon")
+    _, report = run_simulated_scan(octagon, load_cell(),
+                                   misplacement=parse_misplacement("1,-0.5,0.3,1,-0.5,32"),
+                                   seed=3, evaluate=False)
+    pose = report["pose"]
+    assert pose["part_symmetry"]["order"] == 16
+    assert pose["misplacement"]["rotation_deg"][2] == pytest.approx(32.0 - 45.0, abs=0.1)
+    error = report["ground_truth"]["pose_error"]
+    assert max(abs(v) for v in error["rotation_mdeg"]) < 100.0
+    assert max(error["sigmas"]) < 3.0
