@@ -110,6 +110,13 @@ class ScanPoseInputs:
         return True
 
 
+def _seen_frames(scan) -> np.ndarray:
+    """The frames with a point or an edge point, sorted."""
+    edge_frames = getattr(scan, "edge_frame_ids", None)
+    return np.union1d(np.asarray(scan.frame_ids),
+                      np.zeros(0, np.int64) if edge_frames is None else np.asarray(edge_frames))
+
+
 def cut_ends(scan) -> tuple[bool, bool]:
     """Whether the pass's first placed frame (``Scan.tcp_frame_ids``) has a point or an edge
     point, and whether its last has: the part was in the sheet when the pass began (the
@@ -117,9 +124,7 @@ def cut_ends(scan) -> tuple[bool, bool]:
     without placed frames. A pose computed once the part has left the sheet reads the same
     as the whole pass's (``scanner_core.finish.pose_ahead``)."""
     frames = np.asarray(getattr(scan, "tcp_frame_ids", np.zeros(0)), dtype=np.int64)
-    edge_frames = getattr(scan, "edge_frame_ids", None)
-    seen = np.union1d(np.asarray(scan.frame_ids),
-                      np.zeros(0, np.int64) if edge_frames is None else np.asarray(edge_frames))
+    seen = _seen_frames(scan)
     if not len(frames) or not len(seen):
         return (False, False)
     return (bool(seen.min() <= frames.min()), bool(seen.max() >= frames.max()))
@@ -152,9 +157,7 @@ def sheet_in_tcp(scan) -> dict:
     # Only the frames with a point or an edge point: the pose reads no other, and a pass's
     # frames after the part has left the sheet must not make its inputs differ from the pass
     # so far's (``scanner_core.finish.pose_ahead``).
-    edge_frames = getattr(scan, "edge_frame_ids", None)
-    seen = np.union1d(np.asarray(scan.frame_ids),
-                      np.zeros(0, np.int64) if edge_frames is None else np.asarray(edge_frames))
+    seen = _seen_frames(scan)
     keep = np.isin(frames, seen)
     if not keep.any():
         return none

@@ -324,18 +324,20 @@ def exact_symmetries(model, centroid, axes, moments) -> np.ndarray:
             folds = [2] if matches(axis, 180.0) else []
         if folds:
             generators.append(turn(axis, 360.0 / max(folds)))
-    group = [np.eye(4)]
-    frontier = list(group)
-    while frontier and len(group) < _MAX_GROUP:
+    group = np.eye(4)[None]
+    if not generators:
+        return group
+    generators = np.stack(generators)
+    frontier = group
+    while len(frontier) and len(group) < _MAX_GROUP:
         new = []
-        for g in frontier:
-            for h in generators:
-                product = g @ h
-                if not any(np.allclose(product, e, atol=1e-6) for e in group):
-                    group.append(product)
-                    new.append(product)
-        frontier = new
-    return np.stack(group)
+        for product in (frontier[:, None] @ generators[None]).reshape(-1, 4, 4):
+            known = np.concatenate([group, *(p[None] for p in new)])
+            if not np.any(np.all(np.isclose(product, known, atol=1e-6), axis=(1, 2))):
+                new.append(product)
+        frontier = np.array(new).reshape(-1, 4, 4)
+        group = np.concatenate([group, frontier])
+    return group
 
 
 def nearest_equivalent(pose, nominal, group) -> np.ndarray:
