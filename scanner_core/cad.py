@@ -14,6 +14,7 @@ points of {P} to {T}: X_T = R X_P + t.
 """
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -101,6 +102,19 @@ class PartModel:
         import trimesh
 
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+    @cached_property
+    def version(self) -> str:
+        """The part's content hash: 16 hex digits of the SHA-256 of its triangles (vertices in
+        mm, float64; faces, int64), its unit and its nominal grasp. Two models with the same
+        name and another mesh, unit or grasp differ in it; the same content read again (from
+        any file format) keeps it."""
+        digest = hashlib.sha256()
+        digest.update(self.units.encode())
+        for array, dtype in ((self.vertices, np.float64), (self.faces, np.int64),
+                             (self.grasp, np.float64)):
+            digest.update(np.ascontiguousarray(array, dtype=dtype).tobytes())
+        return digest.hexdigest()[:16]
 
     @cached_property
     def bounds(self) -> np.ndarray:

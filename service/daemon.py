@@ -206,6 +206,9 @@ class Service:
         job = self.engine.arm(name, timeout_s, context=misplacement, part_model=held,
                               record_to=self.recordings_dir if record else None)
         job.taught_place = taught  # read by the finisher, a pass (>= 0.1 s) later
+        # The pass is registered against the model armed with, whatever replaces the part
+        # under its name meanwhile (``PUT /parts``): the report names which.
+        job.part_version = None if held is None else held.version
         if record:
             job.info_extra = {"recording": {"path": None, "state": "recording"}}
         with self._jobs_lock:
@@ -257,7 +260,7 @@ class Service:
 
         def go():
             try:
-                self.driver.start_pass(self.parts.get(job.part), job.context)
+                self.driver.start_pass(job.part_model, job.context)
             except Exception as exc:  # the pass never comes: the armed scan will time out
                 log.error("simulated pass for %s not started: %s", job.scan_id, exc)
                 job.note = f"simulated pass not started: {exc}"
@@ -311,16 +314,13 @@ class Service:
             path["publish"] = _ms(when - path.pop("handed"))
             pose_sent.set()
 
-        header = {"scan_id": job.scan_id, "part": job.part}
+        header = {"scan_id": job.scan_id, "part": job.part, "part_version": job.part_version}
         placed = scan.frames > 0
         if placed:
             self.publisher.publish("cloud", {**header, "state": job.state,
                                              "end_reason": scan.end_reason},
                                    scan.cloud, on_sent=on_sent)
-        try:
-            model = self.parts.get(job.part) if job.part is not None else None
-        except KeyError:
-            model = None
+        model = job.part_model
         called = time.monotonic()
 
         def on_pose(pose_report, timings):
@@ -389,6 +389,7 @@ class Service:
         self.publisher.publish("status", {**header, **self.status(), "scan_state": job.state,
                                           "reason": job.reason, "points": info["points"]})
         self.metrics.scan_finished(info)
+        job.part_model = None  # a part replaced since keeps no memory through its old scans
 
     @staticmethod
     def _correction(job: ScanJob, pose: dict | None, model) -> dict | None:
@@ -403,7 +404,8 @@ class Service:
                 "edge_points", "edge_kinds", "end_reason", "timings_ms", "cross_check", "pose", "correction", "latency_ms",
                 "frames_held_rotation", "marker_residual_px")
         return _finite({"scan_id": job.scan_id, "state": job.state, "reason": job.reason,
-                        "part": job.part, "created": job.created, "finished": time.time(),
+                        "part": job.part, "part_version": job.part_version,
+                        "created": job.created, "finished": time.time(),
                         **{k: report.get(k) for k in keys}, **job.info_extra})
 
     @staticmethod
@@ -415,7 +417,7 @@ class Service:
         state = ("processing" if job.state in ("done", "failed") and job.finished is None
                  else job.state)
         return {"scan_id": job.scan_id, "state": state, "reason": job.reason, "part": job.part,
-                "created": job.created,
+                "part_version": job.part_version, "created": job.created,
                 "frames": job.accumulator.frames_seen if job.accumulator is not None else 0,
                 "frames_dropped": job.frames_dropped, "queue_overflows": job.queue_overflows,
                 **job.info_extra}

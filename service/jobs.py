@@ -45,6 +45,8 @@ class ScanJob:
     #: The part's CAD model (``scanner_core.cad.PartModel``) the pass's pose is computed
     #: against before the pass ends; None: no pose ahead.
     part_model: object = None
+    #: `part_model`'s content hash (``PartModel.version``), reported with the scan.
+    part_version: str | None = None
     #: The pose computed before the pass ended (``scanner_core.pose_ahead.PoseAhead``), and
     #: the newest frame with points it was asked for.
     ahead: object = None

@@ -164,6 +164,9 @@ class ScanInfo(BaseModel):
     state: ScanState
     reason: str | None = None
     part: str | None = None
+    part_version: str | None = Field(None, description="the content hash of the part's model "
+                                     "the scan was armed with, and registered against, "
+                                     "whatever replaced the part since")
     created: float
     finished: float | None = None
     frames: int = 0
@@ -191,6 +194,9 @@ class ScanList(BaseModel):
 
 class PartInfo(BaseModel):
     name: str
+    version: str = Field(description="the part's content hash (its triangles, unit and nominal "
+                                     "grasp): a scan names the version it was registered "
+                                     "against")
     units: str
     faces: int
     source: str

@@ -52,7 +52,8 @@ class PartInUse(Exception):
 
 
 def part_info(part: PartModel) -> dict:
-    return {"name": part.name, "units": part.units, "faces": int(len(part.faces)),
+    return {"name": part.name, "version": part.version, "units": part.units,
+            "faces": int(len(part.faces)),
             "source": "built-in" if part.source.startswith("procedural") else "uploaded",
             "extents_mm": np.round(part.extents, 4).tolist(),
             "nominal_grasp": np.asarray(part.grasp).tolist()}

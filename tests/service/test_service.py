@@ -157,6 +157,34 @@ def test_parts_uploaded_with_their_unit_are_scanned(service, tmp_path):
     assert np.ptp(cloud[:, 0]) == pytest.approx(40.0, abs=1.0)
 
 
+def test_a_part_replaced_while_its_scan_is_pending_changes_nothing_in_that_scan(service,
+                                                                                tmp_path):
+    import trimesh
+
+    first, second = tmp_path / "first.stl", tmp_path / "second.stl"
+    trimesh.creation.box(extents=(40.0, 30.0, 10.0)).export(first)
+    trimesh.creation.cylinder(radius=9.0, height=25.0).export(second)
+    with FlyscanClient(service.url) as client:
+        armed = client.upload_part("swapped", first, "mm")
+        armed_version = armed["version"]
+        scan_id = client.arm(part="swapped", misplace=[1.0, -0.5, 0.3, 0.0, 0.0, 4.0])
+        replaced = client.upload_part("swapped", second, "mm")  # 201 while the scan is pending
+        pending = client.scan(scan_id)["state"]
+        scan = client.wait(scan_id, timeout=30)
+        cloud = client.cloud(scan_id)
+        listed = {p["name"]: p for p in client.parts()}["swapped"]
+    assert pending in ("armed", "acquiring", "processing")  # else the test proves nothing
+    assert replaced["version"] != armed_version and listed["version"] == replaced["version"]
+    # The pass held, and the pose registered, the box the scan was armed with.
+    assert scan["state"] == "done" and scan["part_version"] == armed_version
+    assert np.ptp(cloud[:, 0]) > 35.0  # the box turned 4 degrees: 42 mm; the cylinder: 18
+    pose = scan["pose"]  # the fast pass's profiles lie too far apart to act on; it fits well
+    assert not any("poor fit" in reason for reason in pose["act_reasons"])
+    moved = np.array(pose["matrix"]) @ np.linalg.inv(np.array(armed["nominal_grasp"]))
+    turn = np.degrees(np.arccos(np.clip((np.trace(moved[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    assert turn == pytest.approx(4.0, abs=0.3)  # the box's turn nearest its nominal grasp
+
+
 def test_calibration_round_trip_and_a_bad_one_refused(service):
     with FlyscanClient(service.url) as client:
         calibration = client.calibration()

@@ -48,6 +48,19 @@ def test_inch_box(tmp_path):
     assert_allclose(part.extents, [50.8, 25.4, 12.7], atol=LENGTH_TOL_MM)
 
 
+def test_the_version_names_the_content_not_the_file(tmp_path):
+    box = trimesh.creation.box(extents=(30.0, 20.0, 10.0))
+    box.export(tmp_path / "box.ply")
+    box.export(tmp_path / "box.obj")
+    ply = load_part(tmp_path / "box.ply", "mm", name="one")
+    obj = load_part(tmp_path / "box.obj", "mm", name="two")
+    assert ply.version == obj.version and len(ply.version) == 16
+    assert load_part(tmp_path / "box.ply", "cm").version != ply.version
+    assert load_part(tmp_path / "box.ply", "mm", grasp="identity").version != ply.version
+    longer = _box_file(tmp_path, (30.0, 20.0, 10.5), name="longer.stl")
+    assert load_part(longer, "mm").version != ply.version
+
+
 def test_unknown_unit(tmp_path):
     path = _box_file(tmp_path, (10, 10, 10))
     with pytest.raises(PartError, match=r"unknown unit 'furlong'; allowed: mm, cm, m, inch"):
