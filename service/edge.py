@@ -21,6 +21,15 @@ headers first, so it can refuse cheaply what must never cost the service work:
   cached): a client that waits for its answers (every browser and every polling loop) is
   slowed to the pace, and its work with it.
 
+- a write from another site: 403 when its ``Origin`` (or, without one, its ``Referer``) is
+  neither the service's own (the ``Host`` it was asked at) nor one of ``trusted_origins``,
+  with or without a token; and 415 for a write whose body a browser's form could have sent
+  (``FORM_TYPES``), or, but for a part's upload, that says it is not JSON. A page the
+  operator's browser opens can post a form to the cell PC's service without asking anyone
+  (no CORS preflight for a form): this is what stops it arming a scan or rolling the
+  calibration back. A request without ``Content-Type`` (a script's) is read as the route's
+  own kind: a browser's form always says its type.
+
 Which routes are protected: every one that changes something (any method but GET, HEAD and
 OPTIONS) when a token is set, and the reads too with ``protect_reads``, but for the few that
 tell nothing of the cell (``OPEN_PATHS``: health, the status page's shell, the API's docs).
@@ -31,10 +40,12 @@ import asyncio
 import json
 import re
 import secrets
+from urllib.parse import urlsplit
 
 from service.settings import Settings
 
-__all__ = ["EdgeGuard", "BodyTooLarge", "OPEN_PATHS", "body_limit", "read_turn"]
+__all__ = ["EdgeGuard", "BodyTooLarge", "OPEN_PATHS", "FORM_TYPES", "body_limit", "foreign_write",
+           "read_turn"]
 
 #: Paths anyone may read whatever ``protect_reads`` says: they tell nothing of the cell.
 OPEN_PATHS = re.compile(r"^/(health|docs|docs/oauth2-redirect|redoc|openapi\.json|"
@@ -47,6 +58,9 @@ PART_UPLOAD = re.compile(r"^/parts/[^/]+$")
 RETRY_AFTER_S = 1
 #: Bodies declared this small (bytes) take no slot of ``max_concurrent_bodies``.
 SMALL_BODY_BYTES = 64 << 10
+#: What a browser's form (or any cross-site request that asks no one first) may send.
+FORM_TYPES = frozenset({"application/x-www-form-urlencoded", "multipart/form-data",
+                        "text/plain"})
 #: Paths never paced: liveness.
 UNPACED_PATHS = re.compile(r"^/health$")
 #: A read that would wait longer than this for its turn (s) is refused with 503.
@@ -99,6 +113,11 @@ class EdgeGuard:
         # A body refused unread: the connection is closed after the answer, so that the
         # server does not go on receiving (and discarding) what the client still sends.
         unread = {"connection": "close"} if has_body else {}
+        if method not in READS:
+            refused = foreign_write(headers, method, path, settings.trusted_origins)
+            if refused is not None:
+                await _problem(send, *refused, unread)
+                return
         if self._protected(method, path) and not self._authorised(headers):
             await _problem(send, 401, "a valid bearer token is required",
                            {"www-authenticate": "Bearer", **unread})
@@ -209,6 +228,33 @@ class EdgeGuard:
         except BodyTooLarge:
             if not refused:
                 raise
+
+
+def foreign_write(headers: dict, method: str, path: str, trusted=()) -> tuple[int, str] | None:
+    """(status, reason) when a write must be refused as from another site: 403 for an
+    ``Origin`` (or, without one, a ``Referer``) that is neither the ``Host`` asked nor in
+    `trusted`; 415 for a body type a form could send (``FORM_TYPES``), or a type other
+    than JSON but for a part's upload. None when it may go on. `headers` are lower-cased."""
+    for name in ("origin", "referer"):
+        value = headers.get(name)
+        if value is None:
+            continue
+        parts = urlsplit(value) if value != "null" else None
+        origin = "null" if parts is None else f"{parts.scheme}://{parts.netloc}".lower()
+        own = parts is not None and parts.netloc.lower() == headers.get("host", "").lower()
+        if not (own or origin in {t.rstrip("/").lower() for t in trusted}):
+            return 403, (f"a write from another site ({name} {origin}) is refused: only this "
+                         f"service's own pages and trusted_origins may send writes")
+        break
+    media = headers.get("content-type", "").partition(";")[0].strip().lower()
+    if not media:
+        return None
+    upload = method == "PUT" and PART_UPLOAD.match(path)
+    if media in FORM_TYPES or not (upload or media == "application/json"
+                                   or media.endswith("+json")):
+        kind = "the mesh as application/octet-stream" if upload else "application/json"
+        return 415, f"a body of type {media} is refused here: send {kind}"
+    return None
 
 
 def read_turn(now: float, connection_next: float | None, shared_next: float,

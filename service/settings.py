@@ -58,6 +58,10 @@ class Settings(BaseSettings):
                                 description="largest JSON request body, bytes (413 beyond)")
     max_part_bytes: int = Field(64 << 20, ge=1024, le=1 << 30,
                                 description="largest mesh upload, bytes (413 beyond)")
+    trusted_origins: list[str] = Field(
+        default_factory=list,
+        description="origins (scheme://host:port) besides the service's own whose pages may "
+                    "send it writes; any other Origin or Referer on a write is refused (403)")
     max_concurrent_bodies: int = Field(2, ge=1, le=64,
                                        description="request bodies read at once (503 beyond)")
     body_idle_s: float = Field(10.0, gt=0.0, le=600.0,

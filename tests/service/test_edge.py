@@ -299,3 +299,61 @@ def test_bodies_read_at_once_are_bounded(guarded):
     finally:
         for upload in uploads:
             upload.close()
+
+
+@pytest.mark.parametrize("headers, status", [
+    ({"origin": "http://evil.example"}, 403),
+    ({"referer": "http://evil.example/page.html"}, 403),
+    ({"origin": "null"}, 403),
+    ({"origin": "http://127.0.0.1:9", "referer": "http://127.0.0.1:8000/"}, 403),  # Origin wins
+    ({"content-type": "application/x-www-form-urlencoded"}, 415),
+    ({"content-type": "text/plain;charset=UTF-8"}, 415),
+    ({"content-type": "multipart/form-data; boundary=x"}, 415),
+    ({"content-type": "application/octet-stream"}, 415),
+])
+def test_a_write_a_page_of_another_site_could_send_is_refused(headers, status):
+    from service.edge import foreign_write
+
+    got = foreign_write({"host": "127.0.0.1:8000", **headers}, "POST", "/scans")
+    assert got is not None and got[0] == status
+
+
+@pytest.mark.parametrize("headers, method, path", [
+    ({"origin": "http://127.0.0.1:8000", "content-type": "application/json"}, "POST", "/scans"),
+    ({"referer": "http://127.0.0.1:8000/#scans"}, "POST", "/calibration/rollback"),
+    ({"origin": "https://cell-hmi.local:8443"}, "DELETE", "/scans/x"),  # trusted below
+    ({"content-type": "application/octet-stream"}, "PUT", "/parts/bracket"),
+    ({"content-type": "model/stl"}, "PUT", "/parts/bracket"),
+    ({}, "POST", "/scans"),  # a script's request without a type: read as JSON
+])
+def test_writes_of_the_service_own_pages_and_scripts_go_on(headers, method, path):
+    from service.edge import foreign_write
+
+    assert foreign_write({"host": "127.0.0.1:8000", **headers}, method, path,
+                         ["https://cell-hmi.local:8443/"]) is None
+
+
+def _form_post(url, path, **headers):
+    return httpx.post(f"{url}{path}", content=b"part=demo",
+                      headers={"content-type": "application/x-www-form-urlencoded", **headers})
+
+
+def test_cross_site_form_posts_change_nothing_with_or_without_a_token(service, guarded):
+    for running in (service, guarded):
+        before = httpx.get(f"{running.url}/scans", headers=_auth()).json()["scans"]
+        for path in ("/scans", "/calibration/rollback"):
+            refused = _form_post(running.url, path, origin="http://evil.example")
+            assert refused.status_code == 403, refused.text
+            assert "another site" in refused.json()["detail"]
+        # a form the browser posts without an Origin (an old browser, a stripped header)
+        bare = _form_post(running.url, "/scans")
+        assert bare.status_code == 415 and "application/json" in bare.json()["detail"]
+        assert httpx.get(f"{running.url}/scans", headers=_auth()).json()["scans"] == before
+    # the service's own status page arms as before
+    own = httpx.post(f"{service.url}/scans", content=b"{}",
+                     headers={"content-type": "application/json", "origin": service.url})
+    assert own.status_code == 202, own.text
+    from clients import FlyscanClient
+
+    with FlyscanClient(service.url) as client:
+        assert client.wait(own.json()["scan_id"], timeout=30)["state"] == "done"
