@@ -10,6 +10,7 @@ import socket
 import subprocess
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 __all__ = ["free_port", "free_ports", "wait_for", "running_service", "finished_scan", "ServeProcess"]
@@ -69,6 +70,13 @@ def finished_scan(service, scan_id: str, timeout: float, poll: float) -> dict | 
     return wait_for(over, timeout, poll)
 
 
+def _limit_files(n: int) -> None:
+    """In the child before it runs: at most `n` open files, soft and hard."""
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_NOFILE, (n, n))
+
+
 class ServeProcess:
     """A ``flyscan serve --sim`` process on free loopback ports (REST and ZeroMQ), its output
     in ``serve-PORT.log`` beside `data`; started and healthy once constructed (RuntimeError
@@ -84,10 +92,13 @@ class ServeProcess:
         More ``flyscan serve`` options.
     start_timeout_s : float
         How long start-up (imports, JIT warm-up, background frames) may take.
+    file_limit : int, optional
+        The process's open-file limit, soft and hard (a cell PC's usual 1024), else this
+        one's.
     """
 
     def __init__(self, data: Path, *, env: dict | None = None, args=(),
-                 start_timeout_s: float = 60.0):
+                 start_timeout_s: float = 60.0, file_limit: int | None = None):
         import httpx  # the service's own dependency; not needed by the in-process benches
 
         self._httpx = httpx
@@ -101,7 +112,8 @@ class ServeProcess:
         self.process = subprocess.Popen(
             [sys.executable, "-m", "service.cli", "serve", "--sim", "--port", str(self.port),
              "--zmq", self.zmq, "--data", str(data), *args],
-            stdout=self._log_file, stderr=subprocess.STDOUT, env=environ)
+            stdout=self._log_file, stderr=subprocess.STDOUT, env=environ,
+            preexec_fn=None if file_limit is None else partial(_limit_files, file_limit))
         self.wait_healthy(start_timeout_s)
 
     def wait_healthy(self, timeout_s: float = 60.0) -> None:

@@ -105,13 +105,19 @@ scans = APIRouter(prefix="/scans", tags=["scans"], responses=EDGE)
                        422: {"model": Problem, "description": "malformed request"},
                        503: {"model": Problem, "description": "the camera is not streaming"},
                        **NO_ROOM})
-def arm_scan(service: ServiceDep, request: ScanRequest | None = None) -> ScanAccepted:
+async def arm_scan(service: ServiceDep, http: Request,
+                   request: ScanRequest | None = None) -> ScanAccepted:
     request = request or ScanRequest()
     if request.misplace is not None and service.driver is None:
         raise HTTPException(422, "misplace is for simulated mode only")
+    if await http.is_disconnected():
+        # Its client gave up waiting (a crowded service): an armed scan nobody knows of
+        # would take the next pass and answer the controller's retry with 409.
+        raise HTTPException(499, "the client closed the connection before the scan was armed")
     try:
-        job = service.arm(request.part, request.timeout_s, request.misplace,
-                          record=request.record, taught_place=request.taught_place)
+        job = await asyncio.to_thread(
+            service.arm, request.part, request.timeout_s, request.misplace,
+            record=request.record, taught_place=request.taught_place)
     except KeyError:
         raise HTTPException(404, f"unknown part {request.part!r}: see GET /parts") from None
     except PartError as exc:  # a misplacement out of the inspection volume

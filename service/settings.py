@@ -62,6 +62,14 @@ class Settings(BaseSettings):
         default_factory=list,
         description="origins (scheme://host:port) besides the service's own whose pages may "
                     "send it writes; any other Origin or Referer on a write is refused (403)")
+    header_timeout_s: float = Field(10.0, gt=0.0, le=600.0,
+                                    description="a connection that sends no whole request head "
+                                                "this long after opening or after its last "
+                                                "answer is closed, s")
+    max_connections: int | None = Field(None, ge=16, le=1_000_000,
+                                        description="connections served at once; beyond, the "
+                                                    "one idle longest is closed (default: the "
+                                                    "open-file limit less 256, at most 4096)")
     max_concurrent_bodies: int = Field(2, ge=1, le=64,
                                        description="request bodies read at once (503 beyond)")
     body_idle_s: float = Field(10.0, gt=0.0, le=600.0,

@@ -54,6 +54,8 @@ def run(args) -> int:
     from pydantic import ValidationError
 
     from service.api import create_app
+    from service.connections import (connection_bound, guarded_protocol, quiet_crowding,
+                                     raise_file_limit)
     from service.settings import load_settings
 
     try:
@@ -74,9 +76,13 @@ def run(args) -> int:
     print(f"flyscan serve: status page {url}, REST {url}docs, ZeroMQ {settings.zmq}, "
           f"data {settings.data.resolve()}{' (simulated cell)' if settings.sim else ''}",
           flush=True)
+    soft_files, _ = raise_file_limit()
+    quiet_crowding()
+    protocol = guarded_protocol(settings.header_timeout_s,
+                                connection_bound(settings.max_connections, soft_files))
     # Open event streams (a status page left open) must not hold up a Ctrl-C for ever.
     config = uvicorn.Config(create_app(service=service), host=settings.host, port=settings.port,
-                            log_level=args.log_level, access_log=False,
+                            log_level=args.log_level, access_log=False, http=protocol,
                             timeout_graceful_shutdown=SHUTDOWN_GRACE_S)
     server = uvicorn.Server(config)
     try:

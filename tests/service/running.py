@@ -25,8 +25,10 @@ def wait_for(predicate, timeout=30.0, poll=0.02):
 class RunningService(ServeProcess):
     """A ``flyscan serve`` process and where to reach it (``benchmarks.live.ServeProcess``)."""
 
-    def __init__(self, data: Path, *, env: dict | None = None, args=()):
-        super().__init__(data, env=env, args=args, start_timeout_s=START_TIMEOUT_S)
+    def __init__(self, data: Path, *, env: dict | None = None, args=(),
+                 file_limit: int | None = None):
+        super().__init__(data, env=env, args=args, start_timeout_s=START_TIMEOUT_S,
+                         file_limit=file_limit)
 
 
 #: The token of the tests' services that have one.
