@@ -21,7 +21,7 @@ import numpy as np
 from scanner_core.fileio import save_json_atomic
 from scanner_core.planecal import PlaneUncertainty
 from scanner_core.geometry import (NO_DISTORTION, MarkerViews, Mirror, PinholeCamera, Plane,
-                                   marker_views)
+                                   distort_normalized, marker_views, reproject_marker)
 
 #: Rotation matrices read from files must be orthonormal to this tolerance.
 ROTATION_TOL = 1e-6
@@ -283,3 +283,105 @@ def load_calibration(path) -> Calibration:
 
 def save_calibration(path, calibration: Calibration) -> None:
     save_json_atomic(path, calibration.to_dict())
+
+
+#: The bounds of a calibration a real cell can have (`check_cell_geometry`): square pixels
+#: within this ratio, a lens whose distortion moves an image corner by less than this share of
+#: its distance from the centre, the camera this far from the light plane at the image centre
+#: (mm), clocks this far apart (s) and an LED this far from the TCP (mm).
+MAX_PIXEL_ASPECT = 1.1
+MAX_CORNER_DISTORTION = 0.3
+SHEET_DISTANCE_MM = (50.0, 3000.0)
+MAX_CLOCK_OFFSET_S = 3600.0
+MAX_MARKER_OFFSET_MM = 500.0
+#: The inspection volume about the sheet's centre that the views are checked on, mm
+#: (``scanner_core.cad.INSPECTION_VOLUME_MM``), and its samples per axis.
+CHECK_VOLUME_MM = (150.0, 150.0, 100.0)
+CHECK_SAMPLES = 7
+
+
+def check_cell_geometry(calibration: Calibration) -> None:
+    """CalibrationError unless `calibration`, taken whole, describes a cell the scanner can
+    work in (what its fields' own checks cannot see):
+
+    - the pixels square within ``MAX_PIXEL_ASPECT`` and the principal point in the image;
+    - the lens: distortion moving each image corner by less than ``MAX_CORNER_DISTORTION`` of
+      its distance from the centre, and the distorted radius growing with the radius out to
+      the corners (a model that folds the image back cannot be inverted);
+    - the light plane in front of the camera, ``SHEET_DISTANCE_MM`` away along the ray
+      through the principal point: the sheet's centre `S`;
+    - the marker's views: some point of the inspection volume about `S` lies in every view's
+      strip (the direct view and each mirror's), so that a marker there is triangulated;
+    - the clock offset within ``MAX_CLOCK_OFFSET_S`` and the marker offset within
+      ``MAX_MARKER_OFFSET_MM`` of the TCP.
+    """
+    cam = calibration.camera
+    aspect = cam.fx / cam.fy
+    if not 1.0 / MAX_PIXEL_ASPECT <= aspect <= MAX_PIXEL_ASPECT:
+        raise CalibrationError(f"camera fx / fy = {aspect:.4g}: a real camera's pixels are square "
+                               f"within {MAX_PIXEL_ASPECT - 1:.0%}")
+    if not (0.0 <= cam.cx < cam.width and 0.0 <= cam.cy < cam.height):
+        raise CalibrationError(f"the principal point ({cam.cx:g}, {cam.cy:g}) px lies outside "
+                               f"the {cam.width} x {cam.height} image")
+    corners = (np.array([[0.0, 0.0], [cam.width, 0.0], [0.0, cam.height],
+                         [cam.width, cam.height]]) - [cam.cx, cam.cy]) / [cam.fx, cam.fy]
+    steps = np.linspace(0.0, 1.0, 50)[:, None, None] * corners[None]       # (50, 4, 2)
+    distorted = distort_normalized(steps.reshape(-1, 2), cam.distortion).reshape(steps.shape)
+    radius, radius_d = np.linalg.norm(steps, axis=2), np.linalg.norm(distorted, axis=2)
+    moved = np.abs(radius_d[-1] - radius[-1]) / np.maximum(radius[-1], 1e-12)
+    if not (np.all(moved < MAX_CORNER_DISTORTION) and np.all(np.diff(radius_d, axis=0) > 0)):
+        raise CalibrationError(
+            f"camera.distortion {list(np.round(cam.distortion, 6))} moves the image corners by "
+            f"{np.max(moved):.0%} of their radius, or folds the image: no real lens does (at "
+            f"most {MAX_CORNER_DISTORTION:.0%})")
+    plane = calibration.light_plane_c
+    along = float(plane.normal[2])
+    depth = plane.offset / along if abs(along) > 1e-9 else np.inf
+    if not SHEET_DISTANCE_MM[0] <= depth <= SHEET_DISTANCE_MM[1]:
+        raise CalibrationError(
+            f"the light plane meets the ray through the principal point {depth:.4g} mm in front "
+            f"of the camera; a cell's sheet is {SHEET_DISTANCE_MM[0]:g} to "
+            f"{SHEET_DISTANCE_MM[1]:g} mm away")
+    centre = cam.to_base(np.array([[0.0, 0.0, depth]]))[0]
+    axes = [np.linspace(-h / 2, h / 2, CHECK_SAMPLES) for h in CHECK_VOLUME_MM]
+    grid = centre + np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    pixels = reproject_marker(grid, cam, calibration.mirrors)                # (N, V, 2)
+    seen = np.ones(len(grid), bool)
+    for v, (c0, c1) in enumerate(calibration.strips):
+        u, w = pixels[:, v, 0], pixels[:, v, 1]
+        seen &= (u >= c0) & (u < c1) & (w >= 0) & (w < cam.height)
+    if not seen.any():
+        raise CalibrationError(
+            "no point of the inspection volume about the sheet's centre lies in every view "
+            "(the direct view and each mirror's strip): the marker could not be triangulated; "
+            "are the camera's rotation and origin and the mirrors this cell's?")
+    if not abs(calibration.clock_offset_s) <= MAX_CLOCK_OFFSET_S:
+        raise CalibrationError(f"clock_offset_s {calibration.clock_offset_s:g} s: the robot's and "
+                               f"the camera's clocks are within {MAX_CLOCK_OFFSET_S:g} s")
+    offset = float(np.linalg.norm(calibration.marker_offset_t))
+    if not offset <= MAX_MARKER_OFFSET_MM:
+        raise CalibrationError(f"marker_offset_t_mm lies {offset:.4g} mm from the TCP: a gripper's "
+                               f"LED is within {MAX_MARKER_OFFSET_MM:g} mm (given in m?)")
+
+
+def check_marker_track(calibration: Calibration, geometry) -> None:
+    """CalibrationError unless the LED, carried along the cell's pass (``geometry``, a
+    ``scanner_core.calplan.PlanGeometry``: the TCP at x_B = 0 and the pass's height, from its
+    start to its end, turned as in a pass, the LED at the calibration's ``marker_offset_t``),
+    lies in every view's strip somewhere along it: where it does not, no pass is ever
+    triangulated (a camera rotation or origin of another cell)."""
+    track_y = np.linspace(geometry.pass_start_y_mm, geometry.pass_end_y_mm, 81)
+    tcp = np.column_stack([np.zeros_like(track_y), track_y,
+                           np.full_like(track_y, geometry.pass_height_mm)])
+    led = tcp + np.asarray(geometry.tcp_rotation_b) @ np.asarray(calibration.marker_offset_t)
+    pixels = reproject_marker(led, calibration.camera, calibration.mirrors)
+    seen = np.ones(len(led), bool)
+    for v, (c0, c1) in enumerate(calibration.strips):
+        u, w = pixels[:, v, 0], pixels[:, v, 1]
+        seen &= (u >= c0) & (u < c1) & (w >= 0) & (w < calibration.camera.height)
+    if not seen.any():
+        raise CalibrationError(
+            f"along the cell's pass (y_B {geometry.pass_start_y_mm:g} to "
+            f"{geometry.pass_end_y_mm:g} mm at {geometry.pass_height_mm:g} mm) the LED never lies "
+            f"in every view: no pass would be triangulated; are the camera's rotation and origin "
+            f"and the mirrors this cell's?")

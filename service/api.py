@@ -120,8 +120,8 @@ async def arm_scan(service: ServiceDep, http: Request,
             record=request.record, taught_place=request.taught_place)
     except KeyError:
         raise HTTPException(404, f"unknown part {request.part!r}: see GET /parts") from None
-    except PartError as exc:  # a misplacement out of the inspection volume
-        raise HTTPException(422, str(exc)) from None
+    except ValueError as exc:  # a misplacement out of the inspection volume (PartError), a
+        raise HTTPException(422, str(exc)) from None  # taught place beyond the robot's reach
     except EngineBusy as exc:
         raise HTTPException(409, str(exc)) from None
     except EngineFault as exc:

@@ -19,7 +19,8 @@ from collections import OrderedDict
 from pathlib import Path
 
 from clients.placement import correction_entry
-from scanner_core.calibration import Calibration, load_calibration, save_calibration
+from scanner_core.calibration import (Calibration, check_cell_geometry, check_marker_track,
+                                      load_calibration, save_calibration)
 from scanner_core.exposure import ExposureParams
 from scanner_core.pipeline import PipelineParams
 from scanner_core.finish import CrossCheckState
@@ -31,7 +32,7 @@ from service.calsessions import CalibrationSessions
 from service.engine import Engine
 from service.jobs import ScanJob
 from service.metrics import Metrics
-from service.models import taught_place_matrix
+from service.models import check_reach, taught_place_matrix
 from service.parts import DEMO_PART, PartLibrary
 from service.pictures import FramePicture, PreviewPictures
 from service.problems import disk_reason, relative_path, relative_text
@@ -188,6 +189,8 @@ class Service:
         if taught_place is None:
             taught_place = self.settings.taught_place
         taught = None if taught_place is None else taught_place_matrix(taught_place)
+        if taught is not None:
+            check_reach(taught, self.settings.robot_reach_mm)
         name = part or self.default_part
         held = self.parts.get(name) if name is not None else None  # KeyError before arming
         misplacement = None
@@ -470,6 +473,10 @@ class Service:
         """Use and keep a calibration: ValueError if it does not fit the camera, EngineBusy
         during a scan (a pass is never interrupted), OSError if it cannot be saved (then the
         previous one stays)."""
+        check_cell_geometry(calibration)
+        planner = getattr(self.driver, "plan_geometry", None)
+        if planner is not None:
+            check_marker_track(calibration, planner(calibration))
         previous = self.engine.calibration
         self.engine.set_calibration(calibration)
         try:

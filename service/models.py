@@ -104,6 +104,17 @@ def taught_place_matrix(value) -> np.ndarray:
     return rigid_transform(value, "taught_place")
 
 
+def check_reach(taught_mm: np.ndarray, reach_mm: float) -> None:
+    """ValueError unless the taught place pose's TCP ((4, 4), mm in the robot base) lies
+    within `reach_mm` of the base: a pose no robot can reach is a unit slip (mm given as m)
+    or a typing error, and its correction would send the robot there."""
+    distance = float(np.linalg.norm(taught_mm[:3, 3]))
+    if not distance <= reach_mm:
+        raise ValueError(f"taught_place lies {distance / 1e3:.4g} m from the robot base, beyond "
+                         f"its reach ({reach_mm / 1e3:g} m, robot_reach_mm): a UR pose is in "
+                         f"m and rad, a 4x4 in mm")
+
+
 def _rigid_taught_place(value):
     if value is not None:
         taught_place_matrix(value)

@@ -11,7 +11,8 @@ from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict,
                                TomlConfigSettingsSource)
 
-from service.models import TAUGHT_PLACE_DESCRIPTION, TaughtPlace
+from service.models import (TAUGHT_PLACE_DESCRIPTION, TaughtPlace, check_reach,
+                            taught_place_matrix)
 
 
 class Settings(BaseSettings):
@@ -132,6 +133,9 @@ class Settings(BaseSettings):
                           "offset misses; unset: learned from the first cross-checked pass")
     taught_place: TaughtPlace | None = Field(
         None, description=TAUGHT_PLACE_DESCRIPTION + "; used when a scan's request gives none")
+    robot_reach_mm: float = Field(2000.0, gt=0.0, le=10_000.0,
+                                  description="a taught place pose farther than this from the "
+                                              "robot base is refused (422), mm")
     sim_seed: int = Field(0, ge=0)
     sim_clock_offset_s: float = Field(0.0, ge=-1e6, le=1e6,
                                       description="the simulated robot's clock minus the camera's, s")
@@ -157,6 +161,12 @@ class Settings(BaseSettings):
     def _reads_need_a_token(self):
         if self.protect_reads and self.token is None:
             raise ValueError("protect_reads needs a token")
+        return self
+
+    @model_validator(mode="after")
+    def _taught_place_within_reach(self):
+        if self.taught_place is not None:
+            check_reach(taught_place_matrix(self.taught_place), self.robot_reach_mm)
         return self
 
     @field_validator("sim_effects")

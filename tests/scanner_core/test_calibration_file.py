@@ -1,6 +1,7 @@
 """The versioned calibration file (issue 9): versions, distortion, provenance, image size."""
 import json
 
+import numpy as np
 import pytest
 
 from scanner_core.calibration import (CALIBRATION_VERSION, Calibration, CalibrationError,
@@ -61,3 +62,29 @@ def test_another_image_size_is_refused():
     cal.check_image_size(1920, 1200)
     with pytest.raises(CalibrationError, match="1920 x 1200 images, the camera gives 1280 x 1024"):
         cal.check_image_size(1280, 1024)
+
+
+@pytest.mark.parametrize("seed", [None, 3, 17, 41, 88])
+def test_every_cell_s_own_calibration_is_one_a_cell_can_have(seed):
+    from dataclasses import replace
+
+    from scanner_core.calibration import check_cell_geometry, check_marker_track
+    from simulator.calsession import plan_geometry
+    from simulator.cell import load_cell
+    from simulator.effects import realistic_cell
+
+    cell = load_cell(perturb_seed=seed)
+    if seed is not None:
+        cell = realistic_cell(cell, seed=seed)
+    check_cell_geometry(cell.calibration)
+    check_marker_track(cell.calibration, plan_geometry(cell))
+    # the same cell's camera turned 17 degrees about its axis and moved 60 mm: its
+    # views no longer meet the pass's LED
+    cam = cell.calibration.camera
+    turn = np.array([[np.cos(0.3), -np.sin(0.3), 0.0], [np.sin(0.3), np.cos(0.3), 0.0],
+                     [0.0, 0.0, 1.0]])
+    moved = replace(cell.calibration, camera=replace(cam, rotation=turn @ cam.rotation,
+                                                     origin=cam.origin + [60.0, 0.0, 0.0]))
+    with pytest.raises(CalibrationError, match="triangulated"):
+        check_cell_geometry(moved)
+        check_marker_track(moved, plan_geometry(cell))

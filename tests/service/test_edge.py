@@ -189,6 +189,31 @@ def test_each_absurd_calibration_is_refused_naming_the_field(service):
     assert httpx.get(f"{service.url}/calibration").json() == calibration  # none was taken
 
 
+def _changed(calibration: dict, path: str, value) -> dict:
+    out = json.loads(json.dumps(calibration))
+    *parents, leaf = path.split(".")
+    node = out
+    for key in parents:
+        node = node[key]
+    node[leaf] = value
+    return out
+
+
+@pytest.mark.parametrize("path, value, message", [
+    ("camera.fx", 10.0, "square"),
+    ("camera.rotation", [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], "triangulated"),
+    ("camera.origin_mm", [0.0, -225.0, 610.0], "triangulated"),
+    ("camera.distortion", [10.0, 0.0, 0.0, 0.0, 0.0], "corners"),
+    ("clock_offset_s", 1e10, "clocks"),
+    ("marker_offset_t_mm", [1000.0, 0.0, 0.0], "LED is within"),
+])
+def test_a_calibration_no_cell_could_have_is_never_activated(service, path, value, message):
+    calibration = httpx.get(f"{service.url}/calibration").json()
+    response = httpx.put(f"{service.url}/calibration", json=_changed(calibration, path, value))
+    assert response.status_code == 422 and message in response.text, response.text
+    assert httpx.get(f"{service.url}/calibration").json() == calibration
+
+
 def test_meshes_that_are_no_part_are_refused(service, tmp_path):
     import trimesh
 

@@ -109,6 +109,9 @@ def test_without_a_taught_place_in_the_request_the_settings_one_is_used(cell):
     ([0.4, 0.0, 0.1, 0.0, 3.14], "at least 6"),
     ([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.1, 0], [0, 0, 0, 1.0]], "orthonormal"),
     ([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 1.0, 1.0]], "last row"),
+    ([1e300, 0.0, 0.0, 0.0, 0.0, 0.0], "beyond its reach"),
+    ([[1.0, 0, 0, 1e306], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]], "beyond its reach"),
+    ([400.0, -200.0, 100.0, 3.14159, 0.0, 0.0], "a UR pose is in m"),  # mm given as m
 ])
 def test_a_taught_place_that_is_no_rigid_transform_is_refused(cell, taught_place, message):
     response = httpx.post(f"{cell.url}/scans", json={"taught_place": taught_place})

@@ -83,3 +83,12 @@ def test_the_act_tolerance_reaches_the_pose_and_must_be_one(tmp_path):
                          ("act_tolerance_mm", float("nan")), ("robot_rotation_std_deg", -0.1)):
         with pytest.raises(ValidationError, match=field):
             load_settings(None, **{field: value})
+
+
+def test_a_taught_place_beyond_the_robot_s_reach_is_no_setting(tmp_path):
+    with pytest.raises(ValidationError, match="beyond its reach"):
+        load_settings(None, sim=True, data=tmp_path / "data",
+                      taught_place=[0.4, -0.2, 0.1e4, 3.14159, 0.0, 0.0])
+    settings = load_settings(None, sim=True, data=tmp_path / "data", robot_reach_mm=1300.0,
+                             taught_place=[0.4, -0.2, 0.1, 3.14159, 0.0, 0.0])
+    assert settings.robot_reach_mm == 1300.0
