@@ -8,6 +8,7 @@ controller's robot program would. No module of this path imports the simulator.
 """
 from __future__ import annotations
 
+import errno
 import gc
 import json
 import logging
@@ -38,7 +39,7 @@ from service.pictures import FramePicture, PreviewPictures
 from service.problems import disk_reason, relative_path, relative_text
 from service.publisher import Publisher
 from service.settings import Settings
-from service.store import ScanStore
+from service.store import ScanStore, free_bytes
 
 log = logging.getLogger("flyscan.service")
 
@@ -47,6 +48,9 @@ log = logging.getLogger("flyscan.service")
 PUBLISH_WAIT_S = 1.0
 #: Scans kept in memory (also those the store could not take), oldest dropped first.
 RECENT_JOBS = 32
+#: What a stored scan takes per cloud or edge point (its PLY rows), bytes: the room a pose is
+#: only acted on with.
+STORED_BYTES_PER_POINT = 64
 
 
 def build_devices(settings: Settings):
@@ -204,10 +208,13 @@ class Service:
             # 0.1-3 s for the reference parts); never while a pass is acquired or finished
             # (the arm is refused then anyway).
             held.prepare()
+        reserve = int(self.settings.disk_reserve_mb * 2**20)
         if record:
             self._prune_recordings(keep=self.settings.recordings_kept - 1)
+            self._check_room_to_record(reserve)
         job = self.engine.arm(name, timeout_s, context=misplacement, part_model=held,
-                              record_to=self.recordings_dir if record else None)
+                              record_to=self.recordings_dir if record else None,
+                              record_keep_free_bytes=reserve)
         job.taught_place = taught  # read by the finisher, a pass (>= 0.1 s) later
         # The pass is registered against the model armed with, whatever replaces the part
         # under its name meanwhile (``PUT /parts``): the report names which.
@@ -219,6 +226,17 @@ class Service:
             while len(self._jobs) > RECENT_JOBS:
                 self._jobs.popitem(last=False)
         return job
+
+    def _check_room_to_record(self, reserve: int) -> None:
+        """OSError (ENOSPC: 507) unless the data folder's disk has ``reserve`` and a second
+        of frames free: a recording started with less would stop at once."""
+        camera = self.engine.camera
+        second = int(camera.width * camera.height * max(camera.fps, 1.0))
+        free = free_bytes(self.settings.data)
+        if free < reserve + second:
+            raise OSError(errno.ENOSPC, f"no room to record the pass: {free / 2**20:.1f} MB "
+                                        f"free, a second of frames and the scans' reserve "
+                                        f"(disk_reserve_mb) need {(reserve + second) / 2**20:.0f}")
 
     @property
     def recordings_dir(self) -> Path:
@@ -345,6 +363,11 @@ class Service:
             path["pose_checks"] = max(round(timings["pose"] - timings.get("normals", 0.0)
                                             - timings.get("registration", 0.0), 3), 0.0)
             path["handed"] = time.monotonic()
+            no_room = self._no_room_to_store(scan)
+            if no_room is not None and isinstance(pose_report, dict) and "act" in pose_report:
+                # Said before the pose goes out: ZeroMQ and REST must tell the same fate.
+                pose_report["act"] = False
+                pose_report["act_reasons"] = [*pose_report.get("act_reasons", []), no_room]
             correction = self._correction(job, pose_report, model)
             if not self.publisher.publish("pose", {**header, "pose": pose_report,
                                                    "state": job.state,
@@ -393,6 +416,19 @@ class Service:
                                           "reason": job.reason, "points": info["points"]})
         self.metrics.scan_finished(info)
         job.part_model = None  # a part replaced since keeps no memory through its old scans
+
+    def _no_room_to_store(self, scan: Scan) -> str | None:
+        """Why the scan's files would not fit on the data folder's disk (its cloud and edge
+        points at ``STORED_BYTES_PER_POINT``, and its report), or None."""
+        need = STORED_BYTES_PER_POINT * (len(scan.cloud) + len(scan.edges)) + (1 << 20)
+        try:
+            free = free_bytes(self.settings.data)
+        except OSError as exc:
+            return f"the scan cannot be stored: {disk_reason(exc, self.settings.data)}"
+        if free >= need:
+            return None
+        return (f"the scan cannot be stored: {free / 2**20:.1f} MB free, its files need "
+                f"{need / 2**20:.1f} MB")
 
     @staticmethod
     def _correction(job: ScanJob, pose: dict | None, model) -> dict | None:

@@ -162,16 +162,19 @@ class Engine:
     # -- commands ---------------------------------------------------------------------------
 
     def arm(self, part: str | None = None, timeout_s: float | None = None, context=None,
-            record_to: Path | None = None, part_model=None) -> ScanJob:
+            record_to: Path | None = None, part_model=None,
+            record_keep_free_bytes: int = 0) -> ScanJob:
         """Arm the trigger for the next pass; raises EngineBusy or EngineFault. ``context``
         rides on the job to ``on_pass_armed`` (the simulated pass's misplacement). With
         ``record_to`` (a folder that must not exist: RecordingError), every frame from arming
         to the pass's end is recorded with the robot's samples and ``part_model``, the part's
-        CAD model (``scanner_core.recording``)."""
+        CAD model (``scanner_core.recording``); the recording stops rather than leave less
+        than ``record_keep_free_bytes`` free."""
         if not self.cross_check_state.clock_offset_estimated:
             self._coarse_clock_offset()
         with self._lock:
-            job = self._arm_locked(part, timeout_s, context, record_to, part_model)
+            job = self._arm_locked(part, timeout_s, context, record_to, part_model,
+                                   record_keep_free_bytes)
         if self.on_pass_armed is not None:
             self.on_pass_armed(job)
         return job
@@ -198,7 +201,8 @@ class Engine:
         """Robot minus camera clock, s: the one the next pass starts from."""
         return self.cross_check_state.clock_offset_s
 
-    def _arm_locked(self, part, timeout_s, context, record_to, part_model) -> ScanJob:
+    def _arm_locked(self, part, timeout_s, context, record_to, part_model,
+                    record_keep_free_bytes=0) -> ScanJob:
         """Under ``self._lock``."""
         if self.camera_state != "streaming":
             raise EngineFault(f"the camera is {self.camera_state}"
@@ -221,6 +225,7 @@ class Engine:
                 job.recording = LiveRecording(
                     Path(record_to) / job.scan_id, camera=self.camera,
                     calibration=self.calibration, part=part_model,
+                    keep_free_bytes=record_keep_free_bytes,
                     settings={"scan_id": job.scan_id, "part": part,
                               "clock_offset_s": self.clock_offset_s,
                               "cross_check_state": self.cross_check_state.to_dict(),

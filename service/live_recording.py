@@ -9,6 +9,7 @@ scan has been published and stored: it never delays a scan.
 """
 from __future__ import annotations
 
+import errno
 import logging
 import queue
 import threading
@@ -18,6 +19,7 @@ from scanner_core.calibration import Calibration
 from scanner_core.devices import Camera, Robot
 from scanner_core.types import Frame
 from scanner_core.recording import ROBOT_MARGIN_S, PassRecorder, robot_samples
+from service.store import free_bytes
 
 log = logging.getLogger("flyscan.recording")
 
@@ -30,6 +32,9 @@ class LiveRecording:
     ----------
     folder : Path
         Must not exist.
+    keep_free_bytes : int
+        The recording stops (and is removed at its end) rather than leave less than this free
+        on its disk: the scan's own files must still fit.
     camera : Camera
         Gives the image size and fps.
     calibration : Calibration
@@ -42,8 +47,10 @@ class LiveRecording:
     """
 
     def __init__(self, folder: Path, *, camera: Camera, calibration: Calibration,
-                 settings: dict, part=None):
+                 settings: dict, part=None, keep_free_bytes: int = 0):
         self.folder = Path(folder)
+        self.keep_free_bytes = int(keep_free_bytes)
+        self._frame_bytes = int(camera.width) * int(camera.height)
         self._recorder = PassRecorder(self.folder, width=camera.width, height=camera.height,
                                       fps=camera.fps, calibration=calibration, settings=settings,
                                       part=part)
@@ -64,6 +71,11 @@ class LiveRecording:
             if self.error is not None:
                 continue  # drained, not written: the recording is lost already
             try:
+                if free_bytes(self.folder.parent) - self._frame_bytes < self.keep_free_bytes:
+                    # stopped before the scan's own files lack room: the scan goes on
+                    raise OSError(errno.ENOSPC, f"stopped: less than "
+                                                f"{self.keep_free_bytes / 2**20:.0f} MB would be "
+                                                f"left free for the scans (disk_reserve_mb)")
                 self._recorder.add_frame(frame)
             except (OSError, ValueError) as exc:
                 self.error = f"frame {frame.frame_id}: {exc}"

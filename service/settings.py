@@ -106,6 +106,11 @@ class Settings(BaseSettings):
     camera_timeout_s: float = Field(1.0, gt=0, description="no frame this long: the camera stopped")
     retention: int = Field(200, ge=1, description="scans kept on disk; the oldest go first")
     recordings_kept: int = Field(5, ge=1, description="recorded passes kept (2.3 MB a frame)")
+    disk_reserve_mb: float = Field(256.0, ge=0.0, le=1e6,
+                                   description="free space kept for the scans' own files: a "
+                                               "recording stops before it, and an arm that "
+                                               "records with less than it and a second of "
+                                               "frames free is refused (507), MB")
     stripe_method: Literal["cog", "gaussian3", "parabola", "blais_rioux", "lsq_gauss"] = "cog"
     exposure_mode: Literal["fixed", "dynamic", "multiple"] = Field(
         "fixed", description="fixed; dynamic: steered from the previous frames' stripe peaks; "

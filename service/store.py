@@ -149,6 +149,12 @@ class ScanStore:
                 pass
 
 
+def free_bytes(path) -> int:
+    """Bytes free to this process on the file system of `path` (an existing folder)."""
+    stat = os.statvfs(path)
+    return stat.f_bavail * stat.f_frsize
+
+
 def _fsync_dir(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:

@@ -153,6 +153,46 @@ def test_disk_errors_are_507_with_a_relative_reason_and_leave_nothing(cell, monk
     assert client.delete("/parts/block").status_code == 204
 
 
+def test_a_recording_never_costs_the_scan_its_room(cell, monkeypatch):
+    import service.live_recording as live_recording
+
+    client, service = cell
+    recordings = service.settings.data / "recordings"
+    before = sorted(recordings.iterdir()) if recordings.is_dir() else []
+    reserve = int(service.settings.disk_reserve_mb * 2**20)
+    # 228 KB free: no recording is started (the docs' 507), and no scan is armed
+    monkeypatch.setattr(daemon_module, "free_bytes", lambda path: 228 << 10)
+    refused = client.post("/scans", json={"record": True})
+    assert refused.status_code == 507 and "no room to record" in refused.json()["detail"]
+    assert client.get("/status").json()["current_scan_id"] is None
+    monkeypatch.undo()
+    # room for the scan and a few frames: the recording stops at the reserve and is removed,
+    # the scan is done and stored
+    left = iter(range(10, -1000, -1))
+    monkeypatch.setattr(live_recording, "free_bytes",
+                        lambda path: reserve + next(left) * 2_400_000)
+    info = _scan(client, record=True)
+    recording = wait_for(lambda: client.get(f"/scans/{info['scan_id']}").json()
+                         .get("recording", {}).get("state") in ("done", "failed")
+                         and client.get(f"/scans/{info['scan_id']}").json()["recording"])
+    monkeypatch.undo()
+    assert info["state"] == "done" and info["points"] > 0
+    assert recording["state"] == "failed" and "disk_reserve_mb" in recording["error"]
+    assert client.get(f"/scans/{info['scan_id']}/cloud.ply").status_code == 200
+    assert (sorted(recordings.iterdir()) if recordings.is_dir() else []) == before
+
+
+def test_a_pose_whose_scan_cannot_be_stored_is_not_acted_on(cell, monkeypatch):
+    client, service = cell
+    monkeypatch.setattr(daemon_module, "free_bytes", lambda path: 300 << 10)
+    monkeypatch.setattr(service.settings, "taught_place", [0.4, -0.2, 0.1, 3.14159, 0.0, 0.0])
+    info = _scan(client)
+    monkeypatch.undo()
+    pose = info["pose"]
+    assert pose["act"] is False and any("cannot be stored" in r for r in pose["act_reasons"])
+    assert info["correction"]["act"] is False  # what the robot reads says the same
+
+
 def _rmtree_or(fail):
     """``shutil.rmtree`` that fails unless told to ignore errors (the store's cleanup of its
     temporary folder ignores them; its deletion of a scan does not)."""
