@@ -116,6 +116,23 @@ class SessionWriter:
             with open(self.folder / f"{kind}.csv", "w", newline="") as f:
                 csv.writer(f).writerow(ROBOT_HEADER if self.robot else STAGE_HEADER)
 
+    @classmethod
+    def reopen(cls, folder) -> "SessionWriter":
+        """The writer of a folder written before (a service restarted mid-session): what it
+        adds goes after the rows there. SessionError when it is no session folder."""
+        folder = Path(folder)
+        try:
+            meta = json.loads((folder / "session.json").read_text())
+            counts = {}
+            for kind in ("led", "sphere"):
+                with open(folder / f"{kind}.csv", newline="") as f:
+                    counts[kind] = max(sum(1 for row in csv.reader(f) if row) - 1, 0)
+        except (OSError, ValueError) as exc:
+            raise SessionError(f"{folder} is no session folder: {exc}") from None
+        writer = cls.__new__(cls)
+        writer.folder, writer.robot, writer.counts = folder, "sphere_offset_t_mm" in meta, counts
+        return writer
+
     @property
     def pass_folder(self) -> Path:
         return self.folder / "pass"

@@ -11,12 +11,15 @@ in a thread) keeps its calibration as a new version of the history (``service.ca
 not active until asked. In the simulated cell the driver takes the simulated robot to each pose
 (``simulator.driver.SimPassDriver.hold``); the service does not know which.
 
-``DATA/calibration/sessions/<id>/``: the session folder, ``plan.json`` and, once fitted,
-``calibration.json``, ``calibration.report.json`` and ``residuals.png``.
+``DATA/calibration/sessions/<id>/``: the session folder, ``plan.json``, ``service.json`` (the
+steps captured, the pass's and the session's state: written at each change, so that a service
+restarted, even killed, resumes its sessions) and, once fitted, ``calibration.json``,
+``calibration.report.json`` and ``residuals.png``.
 """
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import logging
 import math
 import os
@@ -31,7 +34,7 @@ import numpy as np
 
 from clients.placement import matrix_to_ur_pose, rotvec_to_matrix
 from scanner_core.calplan import (TILT_DEG, TILTED_FRACTION, CalibrationPlan, PlanGeometry,
-                                  make_plan, plan_to_dict)
+                                  make_plan, plan_from_dict, plan_to_dict)
 from scanner_core.calsession import SessionWriter, calibrate_session, load_session
 from scanner_core.calibration import save_calibration
 from scanner_core.fileio import save_json_atomic
@@ -58,6 +61,8 @@ CAPTURE_TIMEOUT_S = 5.0
 PASS_TIMEOUT_S = 120.0
 #: Sessions kept on disk (a session with its pass is about 1 GB); the oldest go first.
 SESSIONS_KEPT = 4
+#: A session's state beside its folder, what a restarted service resumes it from.
+STATE_FILE = "service.json"
 
 
 class NoSuchSession(KeyError):
@@ -85,6 +90,13 @@ class _Session:
     error: str | None = None
     lock: threading.Lock = field(default_factory=threading.Lock)
 
+    def to_dict(self) -> dict:
+        """What ``service.json`` keeps of the session."""
+        return {"captured": [self.captured[i] for i in sorted(self.captured)],
+                "pass_scan_id": self.pass_scan_id, "pass_state": self.pass_state,
+                "state": self.state, "version": self.version, "figures": self.figures,
+                "error": self.error}
+
     def info(self, with_plan: bool = False) -> dict:
         return {"session_id": self.session_id, "state": self.state,
                 "steps": len(self.plan.steps), "captured": len(self.captured),
@@ -94,13 +106,52 @@ class _Session:
 
 
 class CalibrationSessions:
-    """The service's calibration sessions (this process's; a restart ends them)."""
+    """The service's calibration sessions, resumed from the data folder at start."""
 
     def __init__(self, service):
         self.service = service
         self.root = service.settings.data / "calibration" / "sessions"
         self._sessions: dict[str, _Session] = {}
         self._lock = threading.Lock()
+        self._resume()
+
+    def _resume(self) -> None:
+        """The sessions of the data folder, as their ``service.json`` left them: a pass or a
+        fit under way when the service stopped is to be done again."""
+        if not self.root.is_dir():
+            return
+        for folder in sorted(p for p in self.root.iterdir() if p.is_dir()):
+            try:
+                plan_dict = json.loads((folder / "plan.json").read_text())
+                plan = plan_from_dict(plan_dict)
+                kept = (json.loads((folder / STATE_FILE).read_text())
+                        if (folder / STATE_FILE).is_file() else {})
+                session = _Session(folder.name, folder, plan, plan_dict,
+                                   SessionWriter.reopen(folder))
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                log.error("calibration session %s not resumed: %s", folder.name, exc)
+                continue
+            session.captured = {int(c["index"]): c for c in kept.get("captured", [])}
+            for key in ("pass_scan_id", "pass_state", "state", "version", "figures", "error"):
+                if key in kept:
+                    setattr(session, key, kept[key])
+            if session.state == "recording pass":
+                recorded = (session.writer.pass_folder / "recording.json").is_file()
+                session.state = "ready to fit" if recorded else "recording"
+                session.pass_state = "done" if recorded else "not recorded"
+                if not recorded:
+                    session.error = "the service stopped during the pass: record it again"
+            elif session.state == "fitting":
+                session.state = "failed"
+                session.error = "the service stopped during the fit: fit again"
+            self._sessions[session.session_id] = session
+            log.info("calibration session %s resumed: %d of %d steps, %s", session.session_id,
+                     len(session.captured), len(plan.steps), session.state)
+
+    @staticmethod
+    def _save(session: _Session) -> None:
+        """``service.json`` as the session stands (under its lock)."""
+        save_json_atomic(session.folder / STATE_FILE, session.to_dict())
 
     # -- creating ---------------------------------------------------------------------------
     def _geometry(self, request: dict, nominal) -> PlanGeometry:
@@ -153,6 +204,7 @@ class CalibrationSessions:
                                sphere_offset_t_mm=geometry.sphere_offset_t_mm, plan=plan_dict)
         save_json_atomic(folder / "plan.json", plan_dict)
         session = _Session(session_id, folder, plan, plan_dict, writer)
+        self._save(session)
         with self._lock:
             self._sessions[session_id] = session
         return session.info(with_plan=True)
@@ -200,6 +252,7 @@ class CalibrationSessions:
                         "off_plan_mm": float(np.linalg.norm(tcp[:3, 3] - step.tcp_b[:3, 3])),
                         "off_plan_deg": float(np.degrees(np.arccos(np.clip(turn, -1.0, 1.0))))}
             session.captured[index] = captured
+            self._save(session)
             return captured
 
     def _still_frame(self) -> tuple[np.ndarray, np.ndarray, int]:
@@ -262,6 +315,7 @@ class CalibrationSessions:
             job = self.service.arm(getattr(driver, "calibration_part", None), None, record=True)
             session.pass_scan_id, session.pass_state = job.scan_id, "recording"
             session.state = "recording pass"
+            self._save(session)
         threading.Thread(target=self._collect_pass, args=(session, job), daemon=True,
                          name=f"flyscan-calpass-{session_id}").start()
         return session.info()
@@ -287,6 +341,7 @@ class CalibrationSessions:
                 reason = recording.get("error") or (job.info or {}).get("reason") or \
                     f"no recording within {PASS_TIMEOUT_S:g} s"
                 session.error = f"the pass was not recorded: {reason}"
+            self._save(session)
 
     # -- the fit ----------------------------------------------------------------------------
     def fit(self, session_id: str) -> dict:
@@ -299,6 +354,7 @@ class CalibrationSessions:
             if session.pass_state != "done":
                 raise SessionStateError("the pass is not recorded yet")
             session.state, session.error = "fitting", None
+            self._save(session)
         threading.Thread(target=self._fit, args=(session,), daemon=True,
                          name=f"flyscan-calfit-{session_id}").start()
         return session.info()
@@ -321,10 +377,16 @@ class CalibrationSessions:
                             history.residuals_path(entry["version"]))
             with session.lock:
                 session.version, session.figures, session.state = entry["version"], figures, "fitted"
+                self._save(session)
         except Exception as exc:  # the fit's own errors say what the session lacks
             log.exception("calibration session %s: the fit failed", session.session_id)
             with session.lock:
                 session.state, session.error = "failed", f"{type(exc).__name__}: {exc}"
+                try:
+                    self._save(session)
+                except OSError as saved:
+                    log.error("calibration session %s: state not saved: %s",
+                              session.session_id, saved)
 
 
 def _newest_t(robot) -> float:

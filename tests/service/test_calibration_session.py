@@ -175,3 +175,47 @@ def test_a_real_cells_plan_needs_its_pass_and_sphere_holder(cell, tmp_path):
                 "pass_end_y_mm": -100.0, "pass_height_mm": 50.0, "sphere_offset_t_mm": [0, 0, 50]}
     with pytest.raises(ValueError, match="pass_end_y_mm > pass_start_y_mm"):
         sessions.create({"led_count": 12, "sphere_count": 3, **geometry})
+
+
+def test_a_session_survives_a_killed_service(tmp_path):
+    """SIGKILL mid-session: the restarted service has the session, its captured steps and its
+    folder, and goes on with the steps left."""
+    from running import FAST_PASS, RunningService
+    from scanner_core.calsession import load_session
+
+    data = tmp_path / "data"
+    running = RunningService(data, env=FAST_PASS)
+    try:
+        import httpx
+
+        created = httpx.post(f"{running.url}/calibration/sessions",
+                             json={"led_count": 12, "sphere_count": 3}, timeout=30)
+        assert created.status_code == 201, created.text
+        session_id, steps = created.json()["session_id"], created.json()["steps"]
+        for index in (0, 1, 2, 13, 7):
+            answer = httpx.post(f"{running.url}/calibration/sessions/{session_id}/steps/{index}",
+                                timeout=30)
+            assert answer.status_code == 200, answer.text
+        running.process.kill()
+        running.process.wait()
+    finally:
+        running.stop()
+    again = RunningService(data, env=FAST_PASS)
+    try:
+        import httpx
+
+        info = httpx.get(f"{again.url}/calibration/sessions/{session_id}").json()
+        assert info["state"] == "recording" and info["captured"] == 5 and info["steps"] == steps
+        twice = httpx.post(f"{again.url}/calibration/sessions/{session_id}/steps/13", timeout=30)
+        assert twice.status_code == 409  # captured before the kill
+        for index in sorted(set(range(steps)) - {0, 1, 2, 13, 7}):
+            answer = httpx.post(f"{again.url}/calibration/sessions/{session_id}/steps/{index}",
+                                timeout=30)
+            assert answer.status_code == 200, answer.text
+        info = httpx.get(f"{again.url}/calibration/sessions/{session_id}").json()
+        assert info["captured"] == steps
+    finally:
+        again.stop()
+    session = load_session(data / "calibration" / "sessions" / session_id)
+    assert len(session.led_tcp_b) == 12 and len(session.sphere_tcp_b) == 3
+    assert len(list((data / "calibration" / "sessions" / session_id / "led").glob("*.png"))) == 12
