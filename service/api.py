@@ -9,6 +9,7 @@ reason, its paths relative to the data folder (``service.problems``).
 from __future__ import annotations
 
 import asyncio
+import functools
 import shutil
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -19,8 +20,8 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, StreamingResponse
 from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import compile_path
 from fastapi.exception_handlers import http_exception_handler
-from fastapi.routing import APIRoute
 
 from scanner_core.calibration import Calibration, CalibrationError
 from service.daemon import Service
@@ -97,6 +98,7 @@ def put_calibration(body: CalibrationModel, service: ServiceDep) -> dict:
 
 # ---------------------------------------------------------------------------------------------
 scans = APIRouter(prefix="/scans", tags=["scans"], responses=EDGE)
+_HTTP_METHODS = frozenset({"GET", "PUT", "POST", "DELETE", "PATCH", "HEAD"})
 
 
 @scans.post("", status_code=202, response_model=ScanAccepted, dependencies=Auth,
@@ -399,13 +401,25 @@ def create_app(settings: Settings | None = None, *, service: Service | None = No
                           "at most)"})
         if exc.status_code == 405:
             # Starlette's Allow names the methods of the first route whose path matched
-            # (GET of /scans/{id}); the resource also has the others' (its DELETE)
-            allowed = sorted({method for route in app.routes
-                              if isinstance(route, APIRoute)
-                              and route.path_regex.match(request.url.path)
-                              for method in route.methods})
+            # (GET of /scans/{id}); the resource also has the others' (its DELETE). Read from
+            # the API's own description: the routes of included routers are not listed flat.
+            allowed = sorted({method for regex, methods in resources() if regex.match(
+                request.url.path) for method in methods} | {"OPTIONS"})
+            if request.method == "OPTIONS":  # what may be done here: asked, and answered
+                return Response(status_code=204, headers={"Allow": ", ".join(allowed)})
             exc = StarletteHTTPException(405, exc.detail, headers={"Allow": ", ".join(allowed)})
         return await http_exception_handler(request, exc)
+
+    @functools.cache
+    def resources() -> list:
+        """(compiled path, its methods) of every path of the API (``app.openapi()``)."""
+        out = []
+        for path, operations in app.openapi().get("paths", {}).items():
+            methods = {m.upper() for m in operations if m.upper() in _HTTP_METHODS}
+            if "GET" in methods:
+                methods.add("HEAD")
+            out.append((compile_path(path)[0], methods))
+        return out
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:

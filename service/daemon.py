@@ -212,6 +212,8 @@ class Service:
         if record:
             self._prune_recordings(keep=self.settings.recordings_kept - 1)
             self._check_room_to_record(reserve)
+        if self.driver is not None and self.engine.trigger.state.value in ("idle", "fault"):
+            self.driver.before_arm()
         job = self.engine.arm(name, timeout_s, context=misplacement, part_model=held,
                               record_to=self.recordings_dir if record else None,
                               record_keep_free_bytes=reserve)
@@ -281,7 +283,8 @@ class Service:
 
         def go():
             try:
-                self.driver.start_pass(job.part_model, job.context)
+                self.driver.start_pass(job.part_model, job.context,
+                                       wanted=lambda: job.end_monotonic is None)
             except Exception as exc:  # the pass never comes: the armed scan will time out
                 log.error("simulated pass for %s not started: %s", job.scan_id, exc)
                 job.note = f"simulated pass not started: {exc}"

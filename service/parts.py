@@ -38,6 +38,10 @@ MESH_SUFFIXES = (".stl", ".obj", ".ply")
 MIN_THICKNESS_MM = 0.2
 #: The smallest volume of a part's box along its principal axes, mm^3.
 MIN_VOLUME_MM3 = 1.0
+#: The least area a part's triangles cover, as a share of its principal box's largest face:
+#: any surface spanning the box covers about it or more (a plate one side of it, a solid
+#: twice and up, a rod pi / 2), while slivers with no area cover none.
+MIN_AREA_SHARE = 0.05
 STAGING_PREFIX = ".tmp-"
 #: A stored part's scan plan, beside its part.json.
 PLAN_FILE = "plan.json"
@@ -60,9 +64,10 @@ def part_info(part: PartModel) -> dict:
 
 
 def check_solid(part: PartModel) -> None:
-    """PartError unless the part has a thickness and a volume: its vertices' extent along
-    their thinnest principal axis at least `MIN_THICKNESS_MM`, and the box along its principal
-    axes at least `MIN_VOLUME_MM3`."""
+    """PartError unless the part has a thickness, a volume and a surface: its vertices' extent
+    along their thinnest principal axis at least `MIN_THICKNESS_MM`, the box along its
+    principal axes at least `MIN_VOLUME_MM3`, and its triangles' area at least
+    `MIN_AREA_SHARE` of that box's largest face."""
     vertices = np.asarray(part.vertices, np.float64)
     centred = vertices - vertices.mean(axis=0)
     _, _, axes = np.linalg.svd(centred, full_matrices=False)
@@ -73,6 +78,14 @@ def check_solid(part: PartModel) -> None:
     if np.prod(extents) < MIN_VOLUME_MM3:
         raise PartError(f"the mesh has no volume: its box is {np.prod(extents):.3g} mm^3 "
                         f"(a part at least {MIN_VOLUME_MM3} mm^3)")
+    corners = vertices[np.asarray(part.faces)]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
+                                         corners[:, 2] - corners[:, 0]), axis=1).sum()
+    face = np.sort(extents)[-2:].prod()
+    if area < MIN_AREA_SHARE * face:
+        raise PartError(f"the mesh's triangles cover {area:.3g} mm^2, a surface across its "
+                        f"{face:.3g} mm^2 box face covers that or more: its triangles are "
+                        f"slivers with no area, nothing the scanner could register against")
 
 
 def _checked(load) -> PartModel:

@@ -132,17 +132,31 @@ class SimPassDriver:
     def prepare(self, part) -> None:
         self.sim.prepare_pass(self._simulated(part))
 
-    def start_pass(self, part, misplacement: np.ndarray | None) -> None:
+    def before_arm(self) -> None:
+        """Wait (up to ``PREVIOUS_PASS_WAIT_S``) for the robot to finish a pass still under
+        way, as a robot program does before the controller arms the next scan: a pass whose
+        scan timed out before its marker appeared must not be taken by the next scan."""
+        deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
+        while self.sim.pass_active and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    def start_pass(self, part, misplacement: np.ndarray | None, wanted=lambda: True) -> None:
         """Start the pass once the robot has finished the previous one (its lead-out goes on
-        after the scan has ended), as a robot program would."""
+        after the scan has ended), as a robot program would; not at all when ``wanted()`` says
+        False by then (the scan it was for has timed out while the part's pass was prepared:
+        the next scan, of another part, must not take it)."""
         profile = None
         if self._calibration_next:
             self._calibration_next = False
             profile = self.sim.cell.with_pass(speed_shape=CALIBRATION_SPEED_SHAPE).pass_profile
+        simulated = self._simulated(part)
+        self.sim.prepare_pass(simulated, misplacement, profile=profile)  # cached for the start
         deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
         while True:
+            if not wanted():
+                return
             try:
-                live = self.sim.start_pass(self._simulated(part), misplacement, profile=profile)
+                live = self.sim.start_pass(simulated, misplacement, profile=profile)
                 break
             except PassInProgress:
                 if time.monotonic() > deadline:

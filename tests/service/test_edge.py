@@ -11,6 +11,7 @@ import threading
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from running import TOKEN, wait_for
@@ -220,8 +221,14 @@ def test_meshes_that_are_no_part_are_refused(service, tmp_path):
     triangle = trimesh.Trimesh([[0, 0, 0], [30, 0, 0], [0, 30, 0]], [[0, 1, 2]], process=False)
     ply = triangle.export(file_type="ply", encoding="binary")
     claims = ply.replace(b"element face 1\n", b"element face 100000000\n")
+    # slivers spanning a 20 mm cube: thick and voluminous by their vertices, no area
+    rng = np.random.default_rng(5)
+    a, b = rng.uniform(0.0, 20.0, (2, 60, 3))
+    corners = np.stack([a, b, (a + b) / 2 + 1e-5], axis=1).reshape(-1, 3)
+    slivers = trimesh.Trimesh(corners, np.arange(len(corners)).reshape(-1, 3), process=False)
     cases = [(triangle.export(file_type="stl"), "stl", "no thickness"),
-             (claims, "ply", "face 100000000"), (ply, "ply", "no thickness")]
+             (claims, "ply", "face 100000000"), (ply, "ply", "no thickness"),
+             (slivers.export(file_type="ply", encoding="binary"), "ply", "slivers")]
     for content, fmt, problem in cases:
         response = httpx.put(f"{service.url}/parts/flat", params={"units": "mm", "format": fmt},
                              content=content)
@@ -382,3 +389,13 @@ def test_cross_site_form_posts_change_nothing_with_or_without_a_token(service, g
 
     with FlyscanClient(service.url) as client:
         assert client.wait(own.json()["scan_id"], timeout=30)["state"] == "done"
+
+
+def test_options_says_what_may_be_done_at_a_path(service):
+    for path, methods in (("/scans", {"GET", "POST"}), ("/scans/x", {"GET", "DELETE"}),
+                          ("/parts/demo", {"PUT", "DELETE"}), ("/calibration", {"GET", "PUT"})):
+        response = httpx.options(f"{service.url}{path}")
+        allowed = {m.strip() for m in response.headers["allow"].split(",")}
+        assert response.status_code == 204 and methods | {"OPTIONS"} <= allowed, (path, allowed)
+    patch = httpx.patch(f"{service.url}/scans", json={})
+    assert patch.status_code == 405 and "POST" in patch.headers["allow"]

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from numpy.testing import assert_array_equal
 
-from clients import CloudSubscriber, Conflict, FlyscanClient, NotFound, Unauthorized, Unprocessable
+from clients import (CloudSubscriber, Conflict, FlyscanClient, NotFound, ScanFailed, Unauthorized,
+                     Unprocessable)
 from running import FAST_PASS, RunningService
 
 #: The subscriber's first messages after connecting are lost (slow joiner): wait this long.
@@ -183,6 +184,24 @@ def test_a_part_replaced_while_its_scan_is_pending_changes_nothing_in_that_scan(
     moved = np.array(pose["matrix"]) @ np.linalg.inv(np.array(armed["nominal_grasp"]))
     turn = np.degrees(np.arccos(np.clip((np.trace(moved[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
     assert turn == pytest.approx(4.0, abs=0.3)  # the box's turn nearest its nominal grasp
+
+
+def test_a_late_pass_of_a_timed_out_scan_is_never_the_next_scan_s(service, tmp_path):
+    import trimesh
+
+    bar = tmp_path / "bar.stl"
+    trimesh.creation.box(extents=(110.0, 8.0, 8.0)).export(bar)
+    with FlyscanClient(service.url) as client:
+        client.upload_part("late-bar", bar, "mm")
+        # its first pass is prepared (ray-cast) for longer than the scan waits
+        with pytest.raises(ScanFailed, match="timeout") as failed:
+            client.wait(client.arm(part="late-bar", timeout_s=0.05), timeout=30)
+        scan = client.wait(client.arm(), timeout=30)  # the default part, the demo block
+        cloud = client.cloud(scan["scan_id"])
+        demo = {p["name"]: p for p in client.parts()}[scan["part"]]
+    assert failed.value.info["part"] == "late-bar"
+    assert scan["state"] == "done" and scan["part"] != "late-bar"
+    assert np.ptp(cloud[:, 0]) < max(demo["extents_mm"]) + 5.0  # not the 110 mm bar
 
 
 def test_calibration_round_trip_and_a_bad_one_refused(service):

@@ -17,6 +17,9 @@ class _Cell:
     def hold(self, pose, truth):
         self.holds.append(pose)
 
+    def prepare_pass(self, part, misplacement, *, profile=None):
+        return None
+
     def start_pass(self, part, misplacement, *, profile=None):
         self.profiles.append(profile)
         return SimpleNamespace(segment=None)
@@ -36,3 +39,12 @@ def test_only_the_announced_calibration_pass_is_peaked(cell):
     assert shapes == [None, "peak", None, None]  # None: the cell's own pass ("ramp")
     peaked = live.profiles[1]
     assert peaked.speed_mm_s == cell.pass_profile.speed_mm_s and len(live.holds) == 2
+
+
+def test_a_pass_no_longer_wanted_is_not_started(cell):
+    live = _Cell(cell)
+    driver = SimPassDriver(live)
+    driver._simulated = lambda part: part
+    driver.start_pass("demo", None, wanted=lambda: False)  # its scan timed out meanwhile
+    driver.start_pass("demo", None)
+    assert len(live.profiles) == 1
