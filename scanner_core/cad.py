@@ -30,6 +30,7 @@ if TYPE_CHECKING:  # imported where used: ray casting alone needs neither trimes
     import trimesh
 
 __all__ = ["UNITS_MM", "PLAUSIBLE_SIZE_MM", "INSPECTION_VOLUME_MM", "GRIPPER_TOLERANCE_MM",
+           "MODEL_FACES", "simplified_for_scan",
            "PartError", "PartModel", "load_part", "part_from_mesh", "saved_part", "centred_grasp",
            "flat_grasp", "GRASPS", "named_grasp", "check_fits", "canonical_unit",
            "check_rigid_grasp"]
@@ -167,6 +168,12 @@ class PartModel:
         self.edge_model.curves  # noqa: B018
         self.model_edges  # noqa: B018
         return (time.perf_counter() - t0) * 1e3
+
+    def release(self) -> None:
+        """Drop what `prepare` built (and the trimesh object): its memory goes back, and the
+        next scan of the part builds it again. A scan holding one of them keeps it."""
+        for name in ("surface_model", "edge_model", "model_edges", "mesh"):
+            self.__dict__.pop(name, None)
 
     def vertices_t(self) -> np.ndarray:
         """(V, 3) float64, mm: the mesh vertices in {T} under the nominal grasp."""
@@ -332,6 +339,67 @@ def part_from_mesh(mesh: "trimesh.Trimesh", *, name: str, units: str = "mm",
                         f"(got {type(mesh).__name__})")
     return _make_part(mesh.vertices, mesh.faces, name=name, unit=unit, source=source,
                       grasp=grasp)
+
+
+#: A mesh with more triangles than this is simplified for the scanner (`simplified_for_scan`):
+#: the registration samples surfaces every 0.25 mm (``SurfaceModel``) and the scan resolves
+#: about 20 um, so a CAD export of millions of triangles holds nothing more for it, only
+#: memory (about 1 GB for 1.3 M triangles) and preparation time.
+MODEL_FACES = 150_000
+#: ... unless the simplified surface strays this far from the mesh's (99th percentile of
+#: either's samples' distances to the other), mm: then the mesh is kept whole.
+MODEL_DEVIATION_MM = 0.005
+#: Surface samples each way that measure how far the simplified mesh strays.
+DEVIATION_SAMPLES = 3000
+
+
+def simplified_for_scan(part: PartModel, max_faces: int = MODEL_FACES,
+                        tolerance_mm: float = MODEL_DEVIATION_MM) -> tuple[PartModel, dict | None]:
+    """The part as the scanner needs it: its mesh decimated to `max_faces` triangles by
+    quadric error (Garland and Heckbert 1997, ``trimesh``'s ``simplify_quadric_decimation``
+    through ``fast_simplification``) when it has more than twice as many, and kept so when the
+    two surfaces lie within `tolerance_mm` of each other (99th percentile of
+    ``DEVIATION_SAMPLES`` samples of each, measured to the other). The nominal grasp is the
+    part's.
+
+    Returns
+    -------
+    part : PartModel
+        Simplified, or `part` itself.
+    report : dict or None
+        ``faces_from``, ``faces_to``, ``deviation_p99_um``, ``deviation_max_um``,
+        ``kept`` (whether the simplified mesh was kept); None when the mesh was small enough.
+    """
+    import fast_simplification
+    import trimesh
+
+    if len(part.faces) <= 2 * max_faces:
+        return part, None
+    points, triangles = fast_simplification.simplify(  # writable copies: it takes no views
+        np.array(part.vertices, dtype=np.float64), np.array(part.faces, dtype=np.int64),
+        target_count=int(max_faces))
+    simple = trimesh.Trimesh(points, triangles, process=False)
+    deviations = []
+    rng = np.random.default_rng(0)
+    for source, target in ((part.mesh, simple), (simple, part.mesh)):
+        samples, _ = trimesh.sample.sample_surface(source, DEVIATION_SAMPLES,
+                                                   seed=int(rng.integers(2**31)))
+        _, distance, _ = trimesh.proximity.closest_point(target, samples)
+        deviations.append(distance)
+    distance = np.concatenate(deviations)
+    report = {"faces_from": int(len(part.faces)), "faces_to": int(len(simple.faces)),
+              "deviation_p99_um": round(float(np.percentile(distance, 99)) * 1e3, 3),
+              "deviation_max_um": round(float(distance.max()) * 1e3, 3)}
+    report["kept"] = bool(report["deviation_p99_um"] <= tolerance_mm * 1e3)
+    if not report["kept"]:
+        return part, report
+    vertices = np.asarray(simple.vertices, dtype=np.float64)
+    faces = np.asarray(simple.faces, dtype=np.int64)
+    for array in (vertices, faces):
+        array.setflags(write=False)
+    return PartModel(name=part.name, vertices=vertices, faces=faces,
+                     source=f"{part.source} (simplified to {len(faces)} triangles)",
+                     units=part.units, grasp=part.grasp), report
 
 
 def canonical_unit(units) -> str:

@@ -215,7 +215,8 @@ parts = APIRouter(prefix="/parts", tags=["parts"], responses=EDGE)
 
 @parts.get("", response_model=PartList)
 def list_parts(service: ServiceDep) -> dict:
-    return {"parts": [part_info(service.parts.get(n)) for n in service.parts.names()],
+    return {"parts": [part_info(service.parts.get(n), service.parts.simplified(n))
+                      for n in service.parts.names()],
             "default": service.default_part}
 
 
@@ -265,6 +266,7 @@ async def put_part(name: str, request: Request, service: ServiceDep,
                 mesh.write(chunk)
         part = await asyncio.to_thread(library.add_staged, name, staging, units,
                                        suffix=f".{format}", grasp=chosen)
+        await asyncio.to_thread(service.prepare_part, name)
     except (PartError, ValueError) as exc:
         raise HTTPException(422, str(exc)) from None
     except PartQuotaExceeded as exc:
@@ -273,7 +275,7 @@ async def put_part(name: str, request: Request, service: ServiceDep,
         raise _disk_error(service, exc, "the mesh could not be stored") from None
     finally:
         await asyncio.to_thread(shutil.rmtree, staging, True)  # moved into place, or dropped
-    return part_info(part)
+    return part_info(part, library.simplified(name))
 
 
 @parts.delete("/{name}", status_code=204, response_class=Response, dependencies=Auth,

@@ -34,7 +34,7 @@ from service.engine import Engine
 from service.jobs import ScanJob
 from service.metrics import Metrics
 from service.models import check_reach, taught_place_matrix
-from service.parts import DEMO_PART, PartLibrary
+from service.parts import DEMO_PART, PartLibrary, return_memory
 from service.pictures import FramePicture, PreviewPictures
 from service.problems import disk_reason, relative_path, relative_text
 from service.publisher import Publisher
@@ -81,7 +81,9 @@ class Service:
         self.store = ScanStore(settings.data, retention=settings.retention)
         self.parts = PartLibrary(settings.data, builtin=(
             self.driver.builtin_parts() if self.driver is not None else None),
-            max_parts=settings.max_parts)
+            max_parts=settings.max_parts,
+            prepared_budget_bytes=int(settings.prepared_parts_mb * 2**20),
+            load_in_process=False)
         self.publisher = Publisher(settings.zmq, hwm=settings.zmq_hwm)
         self.metrics = Metrics()
         # The status page's pictures, bounded and cached (service.pictures)
@@ -144,7 +146,7 @@ class Service:
         default = None
         if self.default_part is not None:
             default = self.parts.get(self.default_part)  # KeyError: an unknown default part
-            default.prepare()  # its models and their trees built now, not at the first pose
+            self.parts.prepare(self.default_part)  # built now, not at the first pose
         self.publisher.start()
         try:
             if self.driver is not None:
@@ -170,6 +172,7 @@ class Service:
         gc.unfreeze()  # a service started again in this process freezes its own
         self.engine.stop()
         self.publisher.stop()
+        self.parts.close()
         if self.driver is not None:
             self.driver.close()
 
@@ -207,7 +210,7 @@ class Service:
             # rather than after it, while the robot waits (only the first arm of a part pays,
             # 0.1-3 s for the reference parts); never while a pass is acquired or finished
             # (the arm is refused then anyway).
-            held.prepare()
+            self.parts.prepare(name, held)
         reserve = int(self.settings.disk_reserve_mb * 2**20)
         if record:
             self._prune_recordings(keep=self.settings.recordings_kept - 1)
@@ -505,6 +508,16 @@ class Service:
                 if job.finished is None and job.part is not None:
                     in_use[job.part] = f"scanned by scan {job.scan_id} ({job.state})"
         self.parts.remove(name, in_use=in_use)
+        return_memory()  # its models go now, not at some later pass
+
+    def prepare_part(self, name: str) -> None:
+        """Build what a scan's pose needs of `name` now, unless a pass is under way (then the
+        arm builds it): an uploaded part's first arm answers at once."""
+        if self.engine.trigger.state.value in ("idle", "fault"):
+            try:
+                self.parts.prepare(name)
+            except Exception:  # said again, to its caller, by the arm that needs it
+                log.exception("part %s could not be prepared", name)
 
     # -- calibration ------------------------------------------------------------------------
 

@@ -53,7 +53,7 @@ OPEN_PATHS = re.compile(r"^/(health|docs|docs/oauth2-redirect|redoc|openapi\.jso
 #: Methods that only read.
 READS = frozenset({"GET", "HEAD", "OPTIONS"})
 #: Routes whose bodies are meshes (``max_part_bytes``), not JSON requests.
-PART_UPLOAD = re.compile(r"^/parts/[^/]+$")
+PART_UPLOAD = re.compile(r"^/parts/.+$")  # a name with a slash is 404, not 415
 #: Seconds a client refused for lack of a free body slot is told to wait.
 RETRY_AFTER_S = 1
 #: Bodies declared this small (bytes) take no slot of ``max_concurrent_bodies``.

@@ -209,6 +209,10 @@ class PartInfo(BaseModel):
                                      "grasp): a scan names the version it was registered "
                                      "against")
     units: str
+    simplified: dict | None = Field(None, description="a mesh far finer than the scan needs, "
+                                    "simplified for registration: faces_from, faces_to, "
+                                    "deviation_p99_um, deviation_max_um, kept (whether the "
+                                    "simplified model is the part's)")
     faces: int
     source: str
     extents_mm: list[float]

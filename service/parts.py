@@ -8,23 +8,42 @@ placed in its folder gives its nominal grasp at start: the plan's grasp turned b
 direction (it must have been made for that mesh file).
 Every part is checked as ``flyscan scan`` checks it (readable, counts consistent with the
 file, plausible size for its unit, fits the inspection volume at its nominal grasp) and as a
-solid (`check_solid`: a thickness and a volume) before it is accepted. An upload is streamed
-to disk (`staging`, then `add_staged`): its bytes are never held in memory whole.
+solid (`check_solid`: a thickness, a volume and a surface) before it is accepted. An upload
+is streamed to disk (`staging`, then `add_staged`): its bytes are never held in memory whole.
+
+An upload is read, checked and simplified in a process of its own, at low priority, one at a
+time (`PartLibrary.add_staged`): parsing a 60 MB mesh holds an interpreter's lock for seconds,
+which the camera's thread must never wait for. A mesh far finer than the scan needs is
+simplified for registration (``scanner_core.cad.simplified_for_scan``): the model is kept as
+``model.npz`` beside the upload, and ``part.json`` says how far it strays from the mesh.
+
+What a scan's pose needs of a part beyond its mesh (its surface and edge models, their trees
+and tables: ``PartModel.prepare``) is built when the part is uploaded, or when it is armed,
+never while a pass runs (`PartLibrary.prepare`), and kept within a memory budget: past
+``prepared_parts_mb``, the least recently scanned parts give theirs back
+(``PartModel.release``) and build them again when next armed; a part deleted or replaced
+gives them back at once.
 """
 from __future__ import annotations
 
+import ctypes
+import gc
 import json
 import logging
+import multiprocessing
 import os
 import re
 import shutil
 import tempfile
 import threading
+from collections import OrderedDict
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-from scanner_core.cad import GRASPS, PartError, PartModel, check_fits, load_part
+from scanner_core.cad import (GRASPS, PartError, PartModel, check_fits, load_part, saved_part,
+                              simplified_for_scan)
 from scanner_core.scanplan import check_plan_grasp, load_scan_plan
 
 log = logging.getLogger("flyscan.parts")
@@ -55,8 +74,9 @@ class PartInUse(Exception):
     """A part that cannot be deleted now (built in, the default, or a pending scan's)."""
 
 
-def part_info(part: PartModel) -> dict:
+def part_info(part: PartModel, simplified: dict | None = None) -> dict:
     return {"name": part.name, "version": part.version, "units": part.units,
+            "simplified": simplified,
             "faces": int(len(part.faces)),
             "source": "built-in" if part.source.startswith("procedural") else "uploaded",
             "extents_mm": np.round(part.extents, 4).tolist(),
@@ -97,6 +117,61 @@ def _checked(load) -> PartModel:
     return part
 
 
+def read_upload(mesh_path, units: str, name: str, grasp) -> tuple[PartModel, dict | None]:
+    """An uploaded mesh as the scanner's model: read and checked (`check_solid`, fits the
+    volume), simplified when far finer than the scan needs (``simplified_for_scan``), its
+    version computed; and the simplification's report (None: not simplified). PartError (or
+    ValueError) with the reason. What the loader process runs."""
+    part = _checked(lambda: load_part(mesh_path, units, name=name, grasp=_grasp(grasp)))
+    part, simplified = simplified_for_scan(part)
+    part.version  # noqa: B018 - computed here, not in the service's process
+    part.__dict__.pop("mesh", None)  # the trimesh object is rebuilt where needed
+    return part, simplified
+
+
+def _lower_priority() -> None:
+    """The loader process yields the cores to the service's (nice 10)."""
+    try:
+        os.nice(10)
+    except OSError:
+        pass
+
+
+def return_memory() -> None:
+    """Give what Python's objects freed back to the system: collect their cycles (a tree's,
+    a table's), then ask glibc to return its free heap (``malloc_trim``; without it a
+    service that deleted three 170 MB parts kept 500 MB resident)."""
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc: its allocator keeps its own counsel
+        pass
+
+
+def prepared_bytes(part: PartModel) -> int:
+    """What a part's prepared models hold (the arrays of its surface and edge models, their
+    trees and tables, its model edges), bytes: walked through their attributes."""
+    seen, total = set(), 0
+    stack = [part.__dict__.get(k) for k in ("surface_model", "edge_model", "model_edges",
+                                            "mesh")]
+    while stack:
+        item = stack.pop()
+        if item is None or id(item) in seen or isinstance(item, (str, bytes, int, float)):
+            continue
+        seen.add(id(item))
+        if isinstance(item, np.ndarray):
+            total += item.nbytes
+        elif hasattr(item, "data") and hasattr(item, "n") and hasattr(item, "m"):  # cKDTree
+            total += 3 * np.asarray(item.data).nbytes  # its data, indices and nodes
+        elif isinstance(item, dict):
+            stack.extend(item.values())
+        elif isinstance(item, (list, tuple)):
+            stack.extend(item)
+        elif hasattr(item, "__dict__"):
+            stack.extend(vars(item).values())
+    return total
+
+
 class PartLibrary:
     """Parts by name (``scanner_core.cad.PartModel``). Thread-safe.
 
@@ -111,12 +186,21 @@ class PartLibrary:
         Uploaded parts kept at most (an upload of a new name beyond: `PartQuotaExceeded`).
     """
 
-    def __init__(self, root, builtin: dict | None = None, max_parts: int = 100):
+    def __init__(self, root, builtin: dict | None = None, max_parts: int = 100,
+                 prepared_budget_bytes: int = 1 << 30, load_in_process: bool = True):
         self.root = Path(root) / "parts"
         self.max_parts = int(max_parts)
+        self.prepared_budget_bytes = int(prepared_budget_bytes)
+        self.load_in_process = bool(load_in_process)
         self._builtin = dict(builtin or {})
         self._parts: dict[str, PartModel] = {}
+        self._simplified: dict[str, dict] = {}
         self._lock = threading.Lock()
+        self._loader: ProcessPoolExecutor | None = None
+        self._loader_lock = threading.Lock()  # one upload read at a time
+        # name -> (model, bytes) of the prepared parts, least recently scanned first
+        self._prepared: OrderedDict[str, tuple[PartModel, int]] = OrderedDict()
+        self.released = 0  # parts that gave their prepared models back (the budget)
 
     def open(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
@@ -134,8 +218,15 @@ class PartLibrary:
                     plan = load_scan_plan(folder / PLAN_FILE)
                     plan.check_mesh(folder / meta["file"])
                     grasp = plan.nominal_grasp
-                part = load_part(folder / meta["file"], meta["units"], name=folder.name,
-                                 grasp=grasp)
+                if meta.get("model"):  # the simplified model, as it was made
+                    with np.load(folder / meta["model"]) as model:
+                        part = saved_part(model["vertices"], model["faces"], grasp,
+                                          name=folder.name, units=meta["units"],
+                                          source=str(folder / meta["file"]))
+                    self._simplified[folder.name] = meta.get("simplified")
+                else:
+                    part = load_part(folder / meta["file"], meta["units"], name=folder.name,
+                                     grasp=grasp)
                 if (folder / PLAN_FILE).is_file():
                     check_plan_grasp(plan, part.vertices)
                     log.info("part %s: nominal grasp from its plan (%s, turned %g degrees)",
@@ -200,13 +291,19 @@ class PartLibrary:
             if not mesh_path.is_file() or mesh_path.stat().st_size == 0:
                 raise PartError("the mesh file is empty")
             try:
-                part = _checked(lambda: load_part(mesh_path, units, name=name, grasp=_grasp(grasp)))
+                part, simplified = self._read(mesh_path, units, name, grasp)
             except PartError as exc:  # said of the upload, not of a path on the server
                 raise PartError(str(exc).replace(f" ({mesh_path})", "").replace(str(mesh_path),
                                                                                 "the upload")) from None
-            (tmp / "part.json").write_text(json.dumps({
-                "file": mesh_path.name, "units": part.units,
-                "grasp": grasp if isinstance(grasp, str) else np.asarray(part.grasp).tolist()}))
+            meta = {"file": mesh_path.name, "units": part.units,
+                    "grasp": grasp if isinstance(grasp, str) else np.asarray(part.grasp).tolist()}
+            if simplified is not None and simplified["kept"]:
+                np.savez(tmp / "model.npz", vertices=part.vertices, faces=part.faces)
+                # the grasp of the mesh as uploaded, not one of the simplified mesh's
+                meta.update(model="model.npz", grasp=np.asarray(part.grasp).tolist())
+            if simplified is not None:
+                meta["simplified"] = simplified
+            (tmp / "part.json").write_text(json.dumps(meta))
             final = self.root / name
             if final.resolve().parent != self.root.resolve():
                 raise ValueError(f"part name {name!r} is not a plain folder name")
@@ -214,9 +311,82 @@ class PartLibrary:
                 shutil.rmtree(final, ignore_errors=True)
                 os.replace(tmp, final)
                 self._parts[name] = part
+                self._simplified[name] = simplified
+                replaced = self._forget_prepared(name)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
+        if replaced:
+            return_memory()
         return part
+
+    def _read(self, mesh_path: Path, units: str, name: str, grasp):
+        """`read_upload`, in the loader process (one upload at a time) unless
+        ``load_in_process``."""
+        if self.load_in_process:
+            return read_upload(mesh_path, units, name, grasp)
+        with self._loader_lock:
+            if self._loader is None:
+                self._loader = ProcessPoolExecutor(
+                    max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_lower_priority)
+            return self._loader.submit(read_upload, str(mesh_path), units, name, grasp).result()
+
+    def simplified(self, name: str) -> dict | None:
+        """How the part's model was simplified (``simplified_for_scan``'s report), or None."""
+        with self._lock:
+            return self._simplified.get(name)
+
+    def close(self) -> None:
+        with self._loader_lock:
+            if self._loader is not None:
+                self._loader.shutdown(wait=False, cancel_futures=True)
+                self._loader = None
+
+    # -- prepared models within a budget -----------------------------------------------------
+    def prepare(self, name: str, model: PartModel | None = None) -> float:
+        """Build (``PartModel.prepare``) the models a scan of `name` needs, mark it the most
+        recently used, and release the least recently used others' past the budget; the
+        preparation's time, ms (0 when it was prepared). `model`: the part's model a scan
+        holds (default the library's)."""
+        model = self.get(name) if model is None else model
+        resident = _resident_bytes()
+        took = model.prepare()
+        # what it holds: its arrays, or what the process grew by building them (the trees'
+        # and the meshes' own objects), whichever is more
+        size = max(prepared_bytes(model), _resident_bytes() - resident) if took else None
+        released = False
+        with self._lock:
+            previous = self._prepared.pop(name, None)
+            if size is None:
+                size = previous[1] if previous is not None else prepared_bytes(model)
+            self._prepared[name] = (model, size)
+            used = sum(b for _, b in self._prepared.values())
+            for other in list(self._prepared):
+                if used <= self.prepared_budget_bytes or other == name:
+                    continue
+                old, size = self._prepared.pop(other)
+                old.release()
+                used -= size
+                self.released += 1
+                released = True
+                log.info("part %s: its prepared models released (budget %.0f MB)", other,
+                         self.prepared_budget_bytes / 2**20)
+        if released:
+            return_memory()
+        return took
+
+    def prepared_mb(self) -> float:
+        with self._lock:
+            return sum(b for _, b in self._prepared.values()) / 2**20
+
+    def _forget_prepared(self, name: str) -> bool:
+        """Under the lock: the part `name` is replaced or gone; its prepared models with it
+        (`return_memory` gives them back to the system, after the lock)."""
+        entry = self._prepared.pop(name, None)
+        if entry is not None:
+            entry[0].release()
+        return entry is not None
+
 
     def remove(self, name: str, *, in_use: dict[str, str] | None = None) -> None:
         """Delete an uploaded part: KeyError when unknown, PartInUse when built in or named
@@ -237,9 +407,11 @@ class PartLibrary:
                 shutil.rmtree(aside, ignore_errors=True)
                 os.replace(folder, aside)
                 self._parts.pop(name, None)
+                self._forget_prepared(name)
                 shutil.rmtree(aside, ignore_errors=True)  # else gone at the next start
             else:
                 self._parts.pop(name, None)
+                self._forget_prepared(name)
 
 
 def _grasp(kind):
@@ -262,3 +434,12 @@ def grasp_from_query(text: str) -> np.ndarray:
         raise ValueError(f"grasp_matrix must be 16 finite numbers (a 4x4, row-major), got "
                          f"{values.size}")
     return values.reshape(4, 4)
+
+
+def _resident_bytes() -> int:
+    """This process's resident memory, bytes (0 where ``/proc`` does not say)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0

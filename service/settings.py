@@ -90,6 +90,11 @@ class Settings(BaseSettings):
     max_event_streams: int = Field(16, ge=1, le=1024,
                                    description="status pages' event streams open at once (503 "
                                                "beyond)")
+    prepared_parts_mb: float = Field(1024.0, ge=0.0, le=1e6,
+                                     description="memory the parts' prepared models (surface "
+                                                 "and edge models, trees, tables) may hold, "
+                                                 "MB; past it, the least recently scanned give "
+                                                 "theirs back")
     max_parts: int = Field(100, ge=1, le=10_000,
                            description="uploaded parts kept, at most (507 beyond)")
     calibration: Path | None = Field(None, description="calibration JSON; default the reference cell's")

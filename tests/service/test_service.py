@@ -262,7 +262,7 @@ def test_a_part_name_never_reaches_outside_its_folder(service, tmp_path, name):
     quoted = name.replace(".", "%2E").replace("/", "%2F")  # as sent: no client resolves it away
     response = httpx.put(f"{service.url}/parts/{quoted}", params={"units": "mm"},
                          content=stl, headers={"Content-Type": "application/octet-stream"})
-    assert response.status_code in (404, 415, 422), response.text  # 415: no upload route
+    assert response.status_code in (404, 422), response.text
     assert response.status_code == 404 or "part name" in response.json()["detail"]
     assert sorted(p.name for p in service.data.iterdir()) == before  # the data folder intact
     assert (service.data / "scans").is_dir()

@@ -1,0 +1,130 @@
+"""Parts that grow the catalogue: a mesh far finer than the scan needs is simplified, read in a
+process of its own, prepared at upload so that an arm answers at once, kept within a memory
+budget, and its memory returned when it is deleted."""
+import time
+
+import httpx
+import numpy as np
+import pytest
+import trimesh
+
+from running import FAST_PASS, RunningService, wait_for
+from service.parts import PartLibrary
+
+#: An icosphere of 327 680 triangles: more than twice the model's 150 000.
+FINE_SUBDIVISIONS = 7
+
+
+def _rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    raise RuntimeError("no VmRSS")
+
+
+def _upload(url, name, path):
+    response = httpx.put(f"{url}/parts/{name}", params={"units": "mm", "format": "ply"},
+                         content=path.read_bytes(),
+                         headers={"Content-Type": "application/octet-stream"}, timeout=120)
+    assert response.status_code == 201, response.text
+    return response.json()
+
+
+def test_a_fine_mesh_is_simplified_prepared_at_upload_and_its_memory_returned(tmp_path):
+    fine = trimesh.creation.icosphere(subdivisions=FINE_SUBDIVISIONS, radius=25.0)
+    fine_path = tmp_path / "fine.ply"
+    fine.export(fine_path)
+    running = RunningService(tmp_path / "data", env={**FAST_PASS,
+                                                     "FLYSCAN_PREPARED_PARTS_MB": "4096"})
+    try:
+        pid = running.process.pid
+        before = _rss_mb(pid)
+        infos = [_upload(running.url, f"ball{i}", fine_path) for i in range(3)]
+        grown = _rss_mb(pid)
+        for info in infos:
+            simplified = info["simplified"]
+            assert simplified["faces_from"] == len(fine.faces) and simplified["kept"]
+            assert info["faces"] == simplified["faces_to"] <= 150_000
+            assert simplified["deviation_p99_um"] < 5.0
+        t0 = time.monotonic()
+        armed = httpx.post(f"{running.url}/scans", json={"part": "ball0"}, timeout=30)
+        arm_s = time.monotonic() - t0
+        assert armed.status_code == 202 and arm_s < 0.5, (armed.text, arm_s)
+        wait_for(lambda: httpx.get(f"{running.url}/scans/{armed.json()['scan_id']}").json()
+                 ["state"] in ("done", "failed"), timeout=60)
+        for i in range(3):
+            assert httpx.delete(f"{running.url}/parts/ball{i}").status_code == 204
+        after = _rss_mb(pid)
+        print(f"service RSS: {before:.0f} MB, {grown:.0f} MB with three fine parts prepared, "
+              f"{after:.0f} MB after deleting them; arm {arm_s * 1e3:.0f} ms")
+        assert grown - before > 100  # each prepared part holds tens of MB
+        assert after - before < 0.5 * (grown - before)
+    finally:
+        running.stop()
+    # the simplified model is what a restarted service loads: the same version
+    again = RunningService(tmp_path / "data2", env=FAST_PASS)
+    try:
+        first = _upload(again.url, "ball", fine_path)
+        again.stop()
+        again = RunningService(tmp_path / "data2", env=FAST_PASS)
+        listed = {p["name"]: p for p in httpx.get(f"{again.url}/parts").json()["parts"]}
+        assert listed["ball"]["version"] == first["version"]
+        assert listed["ball"]["simplified"] == first["simplified"]
+    finally:
+        again.stop()
+
+
+def test_prepared_parts_stay_within_the_budget(tmp_path):
+    library = PartLibrary(tmp_path, max_parts=10, prepared_budget_bytes=1)
+    library.open()
+    for name, extents in (("a", (30.0, 20.0, 10.0)), ("b", (40.0, 20.0, 10.0)),
+                          ("c", (50.0, 20.0, 10.0))):
+        path = tmp_path / f"{name}.stl"
+        trimesh.creation.box(extents=extents).export(path)
+        library.add_staged(name, _staged(library, path), "mm")
+        library.prepare(name)
+    # a budget of one byte: only the part prepared last keeps its models
+    kept = [n for n in "abc" if "surface_model" in library.get(n).__dict__]
+    assert kept == ["c"] and library.released == 2
+    library.prepare("a")  # armed again: built again, and the others give theirs back
+    assert [n for n in "abc" if "surface_model" in library.get(n).__dict__] == ["a"]
+    assert library.prepared_mb() > 0
+    library.remove("a")
+    assert library.prepared_mb() == 0
+
+
+def _staged(library, path):
+    tmp = library.staging()
+    (tmp / "mesh.stl").write_bytes(path.read_bytes())
+    return tmp
+
+
+def test_the_simplified_model_keeps_the_pose(tmp_path):
+    """The pose of a part registered against its simplified model is its pose against the
+    whole mesh, within the scan's own scatter."""
+    from scanner_core.cad import simplified_for_scan
+    from simulator.cell import load_cell
+    from simulator.parts import part_from_mesh
+    from simulator.session import misplacement_matrix, run_simulated_scan
+
+    from benchmarks.parts import bench_part
+
+    bunny = bench_part("bunny")  # a scanned surface: curved everywhere, no symmetry
+    fine = part_from_mesh(bunny.mesh.subdivide().subdivide(), name="fine-bunny")
+    simple, report = simplified_for_scan(fine)
+    assert report["kept"] and len(simple.faces) < len(fine.faces)
+    misplace = misplacement_matrix([1.0, -0.5, 0.3, 0.5, -0.3, 3.0])
+    scan, _ = run_simulated_scan(fine, load_cell(), misplacement=misplace, seed=1, pose=False)
+    from scanner_core.pose import scan_pose
+
+    whole = scan_pose(scan, fine.surface_model, fine.grasp, edge_model=fine.edge_model)
+    light = scan_pose(scan, simple.surface_model, simple.grasp, edge_model=simple.edge_model)
+    moved = whole.matrix @ np.linalg.inv(light.matrix)
+    from scipy.spatial.transform import Rotation
+
+    # each axis apart by less than half the pose's own standard deviation along it
+    apart = np.concatenate([moved[:3, 3], Rotation.from_matrix(moved[:3, :3]).as_rotvec(
+        degrees=True)])
+    assert np.all(np.abs(apart) < 0.5 * whole.std), (apart, whole.std)
+    assert [f.split(":")[0] for f in light.flags] == [f.split(":")[0] for f in whole.flags]
