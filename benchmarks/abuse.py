@@ -17,7 +17,19 @@ Load patterns (each run against the same service, with ``STORED`` scans on disk)
   the token: the service has one, ``TOKEN``, as a cell on a shared network would);
 - ``slow``: four clients dribbling a chunked upload (``PUT /parts``, 1 KiB every 0.1 s), which
   hold the body slots: the passes are armed all the same (an arm's body is small);
-- ``streams``: forty clients holding ``/events`` open (``max_event_streams`` of them served).
+- ``streams``: forty clients holding ``/events`` open (``max_event_streams`` of them served);
+- ``idle``: 1100 idle TCP connections held open, each reopened as soon as the service closes
+  it (``header_timeout_s``), against the service's open-file limit of 1024 (soft and hard, a
+  cell PC's usual), and ``/health`` asked every 0.2 s;
+- ``uploads``: two clients uploading, over and over, a binary STL at the size limit (1.3 M
+  triangles, 62.5 MiB), each then deleted (the upload is read and simplified in the service's
+  loader process);
+- ``catalogue`` (no passes): parts far finer than the scan needs uploaded one after another
+  under a memory budget for the prepared models (``prepared_parts_mb``), each armed and
+  scanned, then all deleted: each arm's answer time and the service's memory.
+
+The service runs with the open-file limit of 1024 and ``prepared_parts_mb`` at
+``PREPARED_BUDGET_MB``.
 
 For each pass: its state, frames, ``frames_dropped`` and ``queue_overflows`` and its latency
 (``latency_ms``: the last frame to the cloud and to the pose on ZeroMQ); the clients' answers
@@ -60,7 +72,19 @@ PASS_TIMEOUT_S = 60.0
 PAGE_SCANS_PERIOD_S = 1.0
 PAGE_FRAME_PERIOD_S = 0.2
 #: Patterns, in the order they run.
-PATTERNS = ("quiet", "frame", "preview", "scans", "pages", "target", "bodies", "slow", "streams")
+PATTERNS = ("quiet", "frame", "preview", "scans", "pages", "target", "bodies", "slow", "streams",
+            "idle", "uploads", "catalogue")
+#: Idle connections of the ``idle`` pattern, and the service's open-file limit.
+IDLE_CONNECTIONS, FILE_LIMIT = 1100, 1024
+#: Passes of the ``uploads`` pattern (the issue's count), quick or not.
+UPLOAD_PASSES, QUICK_UPLOAD_PASSES = 20, 3
+#: The ``uploads`` pattern's mesh: an icosphere of 20 * 4^8 = 1 310 720 triangles, a binary
+#: STL of 65 536 084 bytes, under ``max_part_bytes`` (64 MiB).
+UPLOAD_SUBDIVISIONS = 8
+#: The ``catalogue`` pattern: parts (icospheres of 327 680 triangles, each its own radius),
+#: and the prepared models' budget (MB) of the service.
+CATALOGUE_PARTS, QUICK_CATALOGUE_PARTS = 8, 3
+PREPARED_BUDGET_MB = 400
 #: A large body, bytes, sent in pieces of 1 MiB; a slow one's pieces and their period.
 BIG_BODY, BIG_PIECE = 200 * 10**6, 1 << 20
 SLOW_PIECE, SLOW_PERIOD_S = 1024, 0.1
@@ -73,16 +97,18 @@ STREAMS = 40
 MEMORY_PERIOD_S = 0.2
 
 
-def _one_pass(client: httpx.Client) -> dict:
-    scan_id = client.post("/scans", json={}).json()["scan_id"]
+def _one_pass(client: httpx.Client, part: str | None = None) -> dict:
+    t0 = time.monotonic()
+    scan_id = client.post("/scans", json={} if part is None else {"part": part}).json()["scan_id"]
+    arm_ms = (time.monotonic() - t0) * 1e3
     deadline = time.monotonic() + PASS_TIMEOUT_S
     while time.monotonic() < deadline:
         info = client.get(f"/scans/{scan_id}").json()
         if info["state"] in ("done", "failed"):
-            return info
+            return {**info, "arm_ms": arm_ms}
         time.sleep(0.1)
     return {"scan_id": scan_id, "state": "timeout", "frames": 0, "frames_dropped": None,
-            "queue_overflows": None, "latency_ms": {}}
+            "queue_overflows": None, "latency_ms": {}, "arm_ms": arm_ms}
 
 
 def _seed(data: Path, count: int) -> None:
@@ -113,7 +139,7 @@ def _big_body():
 
 
 def _clients(url: str, pattern: str, stop: threading.Event, answers: Counter,
-             waits: dict) -> list[threading.Thread]:
+             waits: dict, mesh: Path | None = None) -> list[threading.Thread]:
     lock = threading.Lock()
 
     def count(key, waited_s=None):
@@ -218,7 +244,65 @@ def _clients(url: str, pattern: str, stop: threading.Event, answers: Counter,
                 count(f"page frame {client.get('/frame.png').status_code}")
                 time.sleep(PAGE_FRAME_PERIOD_S)
 
+    def idle():
+        host, port = url.removeprefix("http://").split(":")
+        held: list[socket.socket] = []
+        try:
+            while not stop.is_set():
+                alive = []
+                for sock in held:
+                    try:  # non-blocking: select() takes no descriptor past 1023
+                        closed = not sock.recv(1024)
+                    except BlockingIOError:
+                        closed = False
+                    except OSError:
+                        closed = True
+                    if closed:
+                        sock.close()
+                        count("idle closed by the service")
+                    else:
+                        alive.append(sock)
+                held = alive
+                while len(held) < IDLE_CONNECTIONS:
+                    sock = socket.socket()
+                    sock.setblocking(False)
+                    sock.connect_ex((host, int(port)))
+                    held.append(sock)
+                    count("idle opened")
+                stop.wait(0.5)
+        finally:
+            for sock in held:
+                sock.close()
+
+    def health():
+        with httpx.Client(base_url=url, timeout=10) as client:
+            while not stop.is_set():
+                t0 = time.monotonic()
+                try:
+                    r = client.get("/health")
+                    count(f"health {r.status_code}", time.monotonic() - t0)
+                except httpx.HTTPError as exc:
+                    count(f"health {type(exc).__name__}", time.monotonic() - t0)
+                stop.wait(0.2)
+
+    def uploads():
+        content = mesh.read_bytes()
+        name = f"upload-{threading.get_ident() % 10000}"
+        with httpx.Client(base_url=url, timeout=600, headers=AUTH) as client:
+            while not stop.is_set():
+                t0 = time.monotonic()
+                try:
+                    r = client.put(f"/parts/{name}", params={"units": "mm"}, content=content,
+                                   headers={"Content-Type": "application/octet-stream"})
+                    count(f"upload {r.status_code}", time.monotonic() - t0)
+                    if r.status_code == 201:
+                        client.delete(f"/parts/{name}")
+                except httpx.HTTPError as exc:
+                    count(f"upload {type(exc).__name__}", time.monotonic() - t0)
+
     targets = {
+        "idle": [idle, health],
+        "uploads": [uploads] * 2,
         "quiet": [],
         "frame": [loop(["/frame.png"])] * 4,
         "preview": [loop(["{preview}"])] * 4,
@@ -254,9 +338,9 @@ class _Memory(threading.Thread):
                 return
 
 
-def _pattern(url: str, pid: int, pattern: str, passes: int) -> dict:
+def _pattern(url: str, pid: int, pattern: str, passes: int, mesh: Path | None = None) -> dict:
     stop, answers, waits = threading.Event(), Counter(), defaultdict(list)
-    threads = _clients(url, pattern, stop, answers, waits)
+    threads = _clients(url, pattern, stop, answers, waits, mesh)
     memory = _Memory(pid)
     memory.start()
     for t in threads:
@@ -288,6 +372,7 @@ def _pattern(url: str, pid: int, pattern: str, passes: int) -> dict:
         "answer_wait_ms": {k: spread([v * 1e3 for v in w]) for k, w in sorted(waits.items())},
         "latency_ms": {key: spread([(i.get("latency_ms") or {}).get(key) for i in infos])
                        for key in ("last_frame_to_zmq", "pose_published")},
+        "arm_ms": spread([i.get("arm_ms") for i in infos]),
         "rss_mb": ({"start": memory.samples[0], "max": max(memory.samples),
                     "end": memory.samples[-1]} if memory.samples else {}),
     }
@@ -297,6 +382,59 @@ def _pattern(url: str, pid: int, pattern: str, passes: int) -> dict:
           f"overflows {result['queue_overflows']}, answers {result['answers']}",
           flush=True)
     return result
+
+
+def _catalogue(url: str, pid: int, parts: int, folder: Path) -> dict:
+    """Fine parts uploaded, armed and scanned one after another, then deleted: each arm's
+    answer time, the service's memory after each scan and after the deletions."""
+    import trimesh
+
+    rows = []
+    with httpx.Client(base_url=url, timeout=600, headers=AUTH) as client:
+        rss_start = _rss_mb(pid)
+        for k in range(parts):
+            path = folder / f"ball{k}.stl"
+            trimesh.creation.icosphere(subdivisions=7, radius=20.0 + 2.0 * k).export(path)
+            t0 = time.monotonic()
+            info = client.put(f"/parts/ball{k}", params={"units": "mm"},
+                              content=path.read_bytes(),
+                              headers={"Content-Type": "application/octet-stream"}).json()
+            upload_s = time.monotonic() - t0
+            scan = _one_pass(client, part=f"ball{k}")
+            rows.append({"part": f"ball{k}", "upload_s": round(upload_s, 2),
+                         "faces": info.get("faces"), "simplified": info.get("simplified"),
+                         "arm_ms": round(scan["arm_ms"], 1), "state": scan["state"],
+                         "frames_dropped": scan.get("frames_dropped"),
+                         "rss_mb": round(_rss_mb(pid), 1)})
+            print(f"catalogue: ball{k} ({info.get('faces')} faces) uploaded in {upload_s:.1f} s, "
+                  f"armed in {scan['arm_ms']:.0f} ms, {scan['state']}, service "
+                  f"{rows[-1]['rss_mb']:.0f} MB", flush=True)
+        rss_full = _rss_mb(pid)
+        for k in range(parts):
+            client.delete(f"/parts/ball{k}")
+        time.sleep(1.0)
+        rss_end = _rss_mb(pid)
+    print(f"catalogue: service {rss_start:.0f} MB before, {rss_full:.0f} MB with {parts} parts "
+          f"(budget {PREPARED_BUDGET_MB} MB), {rss_end:.0f} MB after deleting them", flush=True)
+    return {"parts": rows, "rss_start_mb": rss_start, "rss_full_mb": rss_full,
+            "rss_end_mb": rss_end, "budget_mb": PREPARED_BUDGET_MB,
+            "arm_ms": spread([r["arm_ms"] for r in rows]),
+            "rss_max_mb": max(r["rss_mb"] for r in rows)}
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def _upload_mesh(folder: Path) -> Path:
+    import trimesh
+
+    path = folder / "limit.stl"
+    trimesh.creation.icosphere(subdivisions=UPLOAD_SUBDIVISIONS, radius=30.0).export(path)
+    return path
 
 
 def run(out_dir, quick: bool = False, passes: int | None = None, target_passes: int | None = None,
@@ -310,13 +448,24 @@ def run(out_dir, quick: bool = False, passes: int | None = None, target_passes: 
         data = Path(tmp) / "data"
         _seed(data, stored)
         load_before = os.getloadavg()
-        served = ServeProcess(data, env={"FLYSCAN_TOKEN": TOKEN}, start_timeout_s=START_TIMEOUT_S)
+        _raise_file_limit()  # the idle pattern's own sockets
+        mesh = _upload_mesh(Path(tmp)) if "uploads" in patterns else None
+        served = ServeProcess(data, env={"FLYSCAN_TOKEN": TOKEN,
+                                         "FLYSCAN_PREPARED_PARTS_MB": str(PREPARED_BUDGET_MB)},
+                              start_timeout_s=START_TIMEOUT_S, file_limit=FILE_LIMIT)
         try:
             with httpx.Client(base_url=served.url, timeout=60, headers=AUTH) as client:
                 _one_pass(client)  # warm: the first pass of a process builds what it keeps
-            results = {p: _pattern(served.url, served.process.pid, p,
-                                   target_passes if p == "target" else passes)
-                       for p in patterns}
+            results, catalogue = {}, None
+            for p in patterns:
+                if p == "catalogue":
+                    catalogue = _catalogue(served.url, served.process.pid,
+                                           QUICK_CATALOGUE_PARTS if quick else CATALOGUE_PARTS,
+                                           Path(tmp))
+                    continue
+                count = {"target": target_passes,
+                         "uploads": QUICK_UPLOAD_PASSES if quick else UPLOAD_PASSES}.get(p, passes)
+                results[p] = _pattern(served.url, served.process.pid, p, count, mesh)
         finally:
             served.stop()
     summary = {p: {**{k: r[k] for k in ("passes", "failed", "dropped_total",
@@ -324,19 +473,56 @@ def run(out_dir, quick: bool = False, passes: int | None = None, target_passes: 
                    "acquisition_lag_ms": spread(r["acquisition_lag_ms"]),
                    "rss_growth_mb": (r["rss_mb"]["max"] - r["rss_mb"]["start"]
                                      if r["rss_mb"] else None),
-                   "pose_published_p95_ms": r["latency_ms"]["pose_published"].get("p95")}
+                   "pose_published_p95_ms": r["latency_ms"]["pose_published"].get("p95"),
+                   "arm_max_ms": r["arm_ms"].get("max"),
+                   **({"health_max_ms": r["answer_wait_ms"]["health"].get("max"),
+                       "health_answers": {k: v for k, v in r["answers"].items()
+                                          if k.startswith("health")}}
+                      if p == "idle" and "health" in r["answer_wait_ms"] else {})}
                for p, r in results.items()}
+    if catalogue is not None:
+        summary["catalogue"] = {k: catalogue[k] for k in ("rss_start_mb", "rss_max_mb",
+                                                          "rss_end_mb", "budget_mb")}
+        summary["catalogue"]["arm_max_ms"] = catalogue["arm_ms"].get("max")
     result = {"summary": summary, "stored_scans": stored, "loadavg_before": load_before,
-              "loadavg_after": os.getloadavg(), "patterns": results, "machine": machine_info()}
+              "loadavg_after": os.getloadavg(), "patterns": results, "catalogue": catalogue,
+              "file_limit": FILE_LIMIT, "machine": machine_info()}
     write_json(out_dir / "abuse.json", result)
     _chart(result, out_dir / "abuse.png")
     return result
 
 
+def _raise_file_limit() -> None:
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY or soft < hard:
+        resource.setrlimit(resource.RLIMIT_NOFILE,
+                           (hard if hard != resource.RLIM_INFINITY else 65536, hard))
+
+
 def _chart(result: dict, path: Path) -> None:
     plt = pyplot()
     names = list(result["patterns"])
-    fig, (ax_drops, ax_cost) = plt.subplots(1, 2, figsize=(12, 4))
+    catalogue = result.get("catalogue")
+    fig, axes = plt.subplots(1, 3 if catalogue else 2, figsize=(18 if catalogue else 12, 4))
+    ax_drops, ax_cost = axes[:2]
+    if catalogue:
+        ax_parts = axes[2]
+        rows = catalogue["parts"]
+        k = np.arange(1, len(rows) + 1)
+        ax_parts.plot(k, [r["rss_mb"] for r in rows], "o-", label="service memory after its scan, MB")
+        ax_parts.axhline(catalogue["rss_start_mb"] + catalogue["budget_mb"], color="k", ls="--",
+                         lw=0.8, label="memory at start + prepared_parts_mb")
+        ax_parts.axhline(catalogue["rss_end_mb"], color="g", ls=":", lw=1,
+                         label="after deleting them all")
+        arm = ax_parts.twinx()
+        arm.bar(k, [r["arm_ms"] for r in rows], 0.3, color="C1", alpha=0.5)
+        arm.set_ylabel("arm answered in, ms (bars)")
+        ax_parts.set_xlabel("fine parts uploaded, each armed and scanned")
+        ax_parts.legend(fontsize=7, loc="lower right")
+        ax_parts.set_title(f"a growing catalogue ({rows[0]['faces'] if rows else '?'} "
+                           f"triangles a part after simplification)", fontsize=9)
     # what the simulated camera's buffer holds, ms (16 frames at the cell's 162 fps: 99 ms)
     buffer_ms = CAMERA_BUFFER_FRAMES / load_cell().pass_profile.fps * 1e3
     for x, name in enumerate(names):

@@ -43,8 +43,13 @@ NOT_FOUND = {404: {"model": Problem, "description": "no such scan or part"}}
 #: off (``read_interval_s``, ``max_reads_per_s``).
 EDGE = {401: {"model": Problem, "description": "token missing or wrong (reads: with "
                                               "protect_reads)"},
+        403: {"model": Problem, "description": "a write from another site: its Origin (or "
+                                              "Referer) is neither this service's nor one of "
+                                              "trusted_origins"},
         408: {"model": Problem, "description": "the request body stalled (no part of it for "
                                               "body_idle_s)"},
+        415: {"model": Problem, "description": "a write whose body a browser's form could "
+                                              "send, or not JSON (a part's upload: a mesh)"},
         413: {"model": Problem, "description": "the request body is larger than the route's "
                                               "limit (max_body_bytes, max_part_bytes)"},
         503: {"model": Problem, "description": "the service is busy (too many request "

@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import resource
 import time
+from collections import OrderedDict
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
@@ -121,10 +122,12 @@ class GuardedH11Protocol(H11Protocol):
     closed_waiting = 0   # connections closed for want of a request head in time
     evicted = 0          # waiting connections closed to make room for a new one
     refused = 0          # new connections answered 503: every slot busy with a request
+    #: The connections waiting for a request head, longest waiting first (one event loop:
+    #: no lock). Kept in order so that making room costs the same with 10 or 10 000 open.
+    waiting: OrderedDict = OrderedDict()
 
     def connection_made(self, transport) -> None:
         super().connection_made(transport)
-        self._waiting_since = time.monotonic()
         self._head_deadline = None
         if len(self.connections) > self.max_connections and not self._make_room():
             type(self).refused += 1
@@ -135,15 +138,20 @@ class GuardedH11Protocol(H11Protocol):
             return
         self._await_head()
 
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if self.conn.their_state is not h11.IDLE:  # a request head came: busy, not waiting
+            self.waiting.pop(self, None)
+
     def on_response_complete(self) -> None:
         super().on_response_complete()
-        self._waiting_since = time.monotonic()
         self._await_head()
 
     def connection_lost(self, exc) -> None:
         if self._head_deadline is not None:
             self._head_deadline.cancel()
             self._head_deadline = None
+        self.waiting.pop(self, None)
         super().connection_lost(exc)
 
     def _waiting(self) -> bool:
@@ -155,6 +163,8 @@ class GuardedH11Protocol(H11Protocol):
         if self._head_deadline is not None:
             self._head_deadline.cancel()
         if not self.transport.is_closing():
+            self.waiting.pop(self, None)
+            self.waiting[self] = None  # the newest to wait
             self._head_deadline = self.loop.call_later(self.header_timeout_s, self._head_late)
 
     def _head_late(self) -> None:
@@ -164,22 +174,19 @@ class GuardedH11Protocol(H11Protocol):
             self.transport.close()
 
     def _make_room(self) -> bool:
-        """Close the connection that has waited longest for a request head (not this one);
-        False when every other connection is busy with a request."""
-        oldest = None
-        for other in self.connections:
-            if (other is not self and isinstance(other, GuardedH11Protocol) and other._waiting()
-                    and (oldest is None or other._waiting_since < oldest._waiting_since)):
-                oldest = other
-        if oldest is None:
-            return False
-        type(self).evicted += 1
-        oldest.transport.close()
-        return True
+        """Close the connection that has waited longest for a request head (this one is not
+        listed yet); False when every other connection is busy with a request."""
+        while self.waiting:
+            oldest, _ = self.waiting.popitem(last=False)
+            if oldest._waiting():
+                type(self).evicted += 1
+                oldest.transport.close()
+                return True
+        return False
 
 
 def guarded_protocol(header_timeout_s: float, max_connections: int) -> type[GuardedH11Protocol]:
     """A `GuardedH11Protocol` subclass with these bounds (uvicorn's ``http=`` takes a class)."""
     return type("GuardedH11Protocol", (GuardedH11Protocol,),
                 {"header_timeout_s": float(header_timeout_s),
-                 "max_connections": int(max_connections)})
+                 "max_connections": int(max_connections), "waiting": OrderedDict()})

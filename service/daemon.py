@@ -116,6 +116,7 @@ class Service:
         self.calibration_history = CalibrationHistory(settings.data / "calibration" / "history")
         self.calibration_sessions = CalibrationSessions(self)
         self._jobs: OrderedDict[str, ScanJob] = OrderedDict()  # the recent ones, by arming
+        self._between_passes = threading.RLock()  # an arm waits for `between_passes`' work
         self._jobs_lock = threading.Lock()
         self._status_event: tuple[float, str] | None = None  # (when, the status as an SSE)
         self._status_event_lock = threading.Lock()
@@ -192,7 +193,13 @@ class Service:
         that leaves the inspection volume, EngineBusy, EngineFault. With ``record`` the pass
         is also recorded into ``recordings/<scan_id>`` of the data folder. ``taught_place``
         (a UR pose vector, m and rad, or a 4x4 in mm; default the settings') is the taught
-        place pose the finished scan's ``correction`` starts from (ValueError unless rigid)."""
+        place pose the finished scan's ``correction`` starts from (ValueError unless rigid).
+        Waits for work between passes under way (`between_passes`) to end first: a pass never
+        runs beside it."""
+        with self._between_passes:
+            return self._arm(part, timeout_s, misplace, record=record, taught_place=taught_place)
+
+    def _arm(self, part, timeout_s, misplace, *, record, taught_place) -> ScanJob:
         if taught_place is None:
             taught_place = self.settings.taught_place
         taught = None if taught_place is None else taught_place_matrix(taught_place)
@@ -508,16 +515,29 @@ class Service:
                 if job.finished is None and job.part is not None:
                     in_use[job.part] = f"scanned by scan {job.scan_id} ({job.state})"
         self.parts.remove(name, in_use=in_use)
-        return_memory()  # its models go now, not at some later pass
+        self.between_passes(return_memory)  # its models go now, not at some later pass
 
     def prepare_part(self, name: str) -> None:
         """Build what a scan's pose needs of `name` now, unless a pass is under way (then the
         arm builds it): an uploaded part's first arm answers at once."""
-        if self.engine.trigger.state.value in ("idle", "fault"):
+        def prepare():
             try:
                 self.parts.prepare(name)
+            except KeyError:  # deleted meanwhile
+                pass
             except Exception:  # said again, to its caller, by the arm that needs it
                 log.exception("part %s could not be prepared", name)
+        self.between_passes(prepare)
+
+    def between_passes(self, work) -> bool:
+        """Run `work` (a part's preparation, a full garbage collection: seconds or tens of
+        milliseconds holding the interpreter's lock) only while no pass is armed or under
+        way, an arm waiting for it to end; False (not run) during a pass."""
+        with self._between_passes:
+            if self.engine.trigger.state.value not in ("idle", "fault"):
+                return False
+            work()
+            return True
 
     # -- calibration ------------------------------------------------------------------------
 
@@ -551,6 +571,9 @@ class Service:
         status["zmq"] = {"endpoint": self.publisher.bound_endpoint, "sent": self.publisher.sent,
                          "dropped": self.publisher.dropped}
         status["simulated"] = self.driver is not None
+        status["parts"] = {"prepared_mb": round(self.parts.prepared_mb(), 1),
+                           "budget_mb": self.settings.prepared_parts_mb,
+                           "released": self.parts.released}
         return status
 
 

@@ -86,6 +86,9 @@ class Status(BaseModel):
         None, description="marker minus robot track in {T}, mm, subtracted by the cross-check")
     led_correction_from: str | None = Field(None, description="the scan it was learned from, or 'settings'")
     simulated: bool
+    parts: dict | None = Field(None, description="the parts' prepared models: prepared_mb (what "
+                               "they hold), budget_mb (prepared_parts_mb), released (parts that "
+                               "gave theirs back to stay within it)")
 
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]

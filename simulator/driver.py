@@ -22,6 +22,8 @@ __all__ = ["SimPassDriver", "PREVIOUS_PASS_WAIT_S", "CALIBRATION_PART"]
 
 #: The simulated robot finishes its previous pass (its lead-out) before starting the next, s.
 PREVIOUS_PASS_WAIT_S = 5.0
+#: Parts the simulated cell keeps dressed for its ray casting (each holds its scene).
+DRESSED_PARTS = 4
 #: The demo block's name in the service's parts (``service.parts.DEMO_PART``).
 DEMO_PART = "demo"
 #: What a calibration session's pass carries through the sheet in the simulated cell: the
@@ -55,6 +57,8 @@ class SimPassDriver:
             if self.surface != "default":
                 shown = with_surface(shown, self.surface)
             self._dressed[key] = (part, shown)
+            while len(self._dressed) > DRESSED_PARTS:  # a catalogue's parts, not all kept
+                self._dressed.pop(next(iter(self._dressed)))
         return self._dressed[key][1]
 
     def builtin_parts(self) -> dict:

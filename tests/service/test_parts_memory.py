@@ -128,3 +128,43 @@ def test_the_simplified_model_keeps_the_pose(tmp_path):
         degrees=True)])
     assert np.all(np.abs(apart) < 0.5 * whole.std), (apart, whole.std)
     assert [f.split(":")[0] for f in light.flags] == [f.split(":")[0] for f in whole.flags]
+
+
+def test_uploads_during_passes_cost_no_frame(tmp_path):
+    """Two clients upload fine meshes over and over while passes run: the meshes are read
+    and simplified in the loader process, and no pass loses a frame."""
+    import threading
+
+    fine = trimesh.creation.icosphere(subdivisions=FINE_SUBDIVISIONS, radius=25.0)
+    path = tmp_path / "fine.stl"
+    fine.export(path)
+    content = path.read_bytes()
+    running = RunningService(tmp_path / "data", env=FAST_PASS)
+    stop, answers = threading.Event(), []
+
+    def upload(k):
+        with httpx.Client(base_url=running.url, timeout=120) as client:
+            while not stop.is_set():
+                answers.append(client.put(f"/parts/up{k}", params={"units": "mm"}, content=content,
+                                          headers={"Content-Type": "application/octet-stream"})
+                               .status_code)
+    threads = [threading.Thread(target=upload, args=(k,), daemon=True) for k in range(2)]
+    try:
+        for t in threads:
+            t.start()
+        time.sleep(1.0)
+        infos = []
+        with httpx.Client(base_url=running.url, timeout=60) as client:
+            for _ in range(4):
+                scan_id = client.post("/scans", json={}).json()["scan_id"]
+                infos.append(wait_for(lambda: (lambda i: i if i["state"] in ("done", "failed")
+                                               else None)(client.get(f"/scans/{scan_id}").json()),
+                                      timeout=60))
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(120)
+        running.stop()
+    assert [i["state"] for i in infos] == ["done"] * 4
+    assert [i["frames_dropped"] for i in infos] == [0] * 4
+    assert answers and set(answers) == {201}
