@@ -361,6 +361,7 @@ def _pattern(url: str, pid: int, pattern: str, passes: int, mesh: Path | None = 
     result = {
         "passes": len(infos),
         "failed": sum(i["state"] != "done" for i in infos),
+        "failed_reasons": [i.get("reason") for i in infos if i["state"] != "done"],
         "frames": [i["frames"] for i in infos],
         "frames_dropped": dropped,
         "queue_overflows": [i["queue_overflows"] for i in infos],
@@ -401,14 +402,18 @@ def _catalogue(url: str, pid: int, parts: int, folder: Path) -> dict:
                               headers={"Content-Type": "application/octet-stream"}).json()
             upload_s = time.monotonic() - t0
             scan = _one_pass(client, part=f"ball{k}")
+            prepared = client.get("/status").json().get("parts") or {}
             rows.append({"part": f"ball{k}", "upload_s": round(upload_s, 2),
+                         "prepared_mb": prepared.get("prepared_mb"),
+                         "released": prepared.get("released"),
                          "faces": info.get("faces"), "simplified": info.get("simplified"),
                          "arm_ms": round(scan["arm_ms"], 1), "state": scan["state"],
                          "frames_dropped": scan.get("frames_dropped"),
                          "rss_mb": round(_rss_mb(pid), 1)})
             print(f"catalogue: ball{k} ({info.get('faces')} faces) uploaded in {upload_s:.1f} s, "
                   f"armed in {scan['arm_ms']:.0f} ms, {scan['state']}, service "
-                  f"{rows[-1]['rss_mb']:.0f} MB", flush=True)
+                  f"{rows[-1]['rss_mb']:.0f} MB, prepared models {prepared.get('prepared_mb')} "
+                  f"MB ({prepared.get('released')} released)", flush=True)
         rss_full = _rss_mb(pid)
         for k in range(parts):
             client.delete(f"/parts/ball{k}")
@@ -419,7 +424,8 @@ def _catalogue(url: str, pid: int, parts: int, folder: Path) -> dict:
     return {"parts": rows, "rss_start_mb": rss_start, "rss_full_mb": rss_full,
             "rss_end_mb": rss_end, "budget_mb": PREPARED_BUDGET_MB,
             "arm_ms": spread([r["arm_ms"] for r in rows]),
-            "rss_max_mb": max(r["rss_mb"] for r in rows)}
+            "rss_max_mb": max(r["rss_mb"] for r in rows),
+            "prepared_max_mb": max((r["prepared_mb"] or 0.0) for r in rows)}
 
 
 def _rss_mb(pid: int) -> float:
@@ -482,7 +488,8 @@ def run(out_dir, quick: bool = False, passes: int | None = None, target_passes: 
                for p, r in results.items()}
     if catalogue is not None:
         summary["catalogue"] = {k: catalogue[k] for k in ("rss_start_mb", "rss_max_mb",
-                                                          "rss_end_mb", "budget_mb")}
+                                                          "rss_end_mb", "budget_mb",
+                                                          "prepared_max_mb")}
         summary["catalogue"]["arm_max_ms"] = catalogue["arm_ms"].get("max")
     result = {"summary": summary, "stored_scans": stored, "loadavg_before": load_before,
               "loadavg_after": os.getloadavg(), "patterns": results, "catalogue": catalogue,
@@ -512,6 +519,10 @@ def _chart(result: dict, path: Path) -> None:
         rows = catalogue["parts"]
         k = np.arange(1, len(rows) + 1)
         ax_parts.plot(k, [r["rss_mb"] for r in rows], "o-", label="service memory after its scan, MB")
+        ax_parts.plot(k, [r["prepared_mb"] or 0.0 for r in rows], "s-",
+                      label="the parts' prepared models, MB")
+        ax_parts.axhline(catalogue["budget_mb"], color="C1", ls="--", lw=0.8,
+                         label="prepared_parts_mb")
         ax_parts.axhline(catalogue["rss_start_mb"] + catalogue["budget_mb"], color="k", ls="--",
                          lw=0.8, label="memory at start + prepared_parts_mb")
         ax_parts.axhline(catalogue["rss_end_mb"], color="g", ls=":", lw=1,

@@ -13,8 +13,10 @@ exhaust the process's file descriptors, and then the accept loop fails on every 
   a request head is closed to make room (a keep-alive client reconnects; an idle socket is
   gone); when none waits, the new connection is answered 503 and closed;
 - **the file limit** raised to the hard limit at start (`raise_file_limit`), and
-  ``max_connections`` kept below it with room for the camera, the robot and the files
-  (`connection_bound`), so that the accept loop does not run out of descriptors.
+  ``max_connections`` kept below it with room for what is open at start, for a wake-up's
+  worth of accepted connections (``ACCEPT_BACKLOG``, the listening socket's backlog) and for a
+  scan's files (`connection_bound`), so that neither the accept loop nor the store runs out
+  of descriptors.
 
 A failing ``accept`` is logged once per ``LOG_INTERVAL_S`` with the count since
 (`OncePerInterval`), never thousands of times a second.
@@ -22,6 +24,7 @@ A failing ``accept`` is logged once per ``LOG_INTERVAL_S`` with the count since
 from __future__ import annotations
 
 import logging
+import os
 import resource
 import time
 from collections import OrderedDict
@@ -29,14 +32,17 @@ from collections import OrderedDict
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-__all__ = ["GuardedH11Protocol", "OncePerInterval", "connection_bound", "guarded_protocol",
-           "quiet_crowding", "raise_file_limit"]
+__all__ = ["ACCEPT_BACKLOG", "GuardedH11Protocol", "OncePerInterval", "connection_bound",
+           "guarded_protocol", "open_files", "quiet_crowding", "raise_file_limit"]
 
 log = logging.getLogger("flyscan.connections")
 
-#: Descriptors kept for what is not a connection: the camera, the robot, ZeroMQ, the store's
-#: files, the workers' pipes.
-RESERVED_FILES = 256
+#: Descriptors kept, beyond those open at start (the camera, the robot, ZeroMQ, the workers'
+#: pipes), for the work of a scan: the store's files, a recording's, an upload's.
+RESERVED_FILES = 128
+#: Connections the accept loop takes in one wake-up (the listening socket's backlog, which
+#: asyncio also accepts at once): their descriptors are open before any can be closed.
+ACCEPT_BACKLOG = 128
 #: The most connections served at once whatever the file limit: the cell's controller, a few
 #: browsers and subscribers need tens.
 MAX_CONNECTIONS = 4096
@@ -76,12 +82,22 @@ def quiet_crowding(interval_s: float = LOG_INTERVAL_S) -> None:
             logger.addFilter(OncePerInterval(CROWDED_MESSAGES, interval_s))
 
 
-def connection_bound(setting: int | None, soft_file_limit: int) -> int:
+def connection_bound(setting: int | None, soft_file_limit: int, open_now: int = 0) -> int:
     """The connections served at once: `setting` when given, else the soft file limit less
-    ``RESERVED_FILES``, at most ``MAX_CONNECTIONS``; never fewer than 16."""
+    the descriptors open now, ``ACCEPT_BACKLOG`` and ``RESERVED_FILES``, at most
+    ``MAX_CONNECTIONS``; never fewer than 16."""
     if setting is not None:
         return int(setting)
-    return max(16, min(MAX_CONNECTIONS, int(soft_file_limit) - RESERVED_FILES))
+    room = int(soft_file_limit) - int(open_now) - ACCEPT_BACKLOG - RESERVED_FILES
+    return max(16, min(MAX_CONNECTIONS, room))
+
+
+def open_files() -> int:
+    """Descriptors this process has open (0 where ``/proc`` does not say)."""
+    try:
+        return len(os.listdir("/proc/self/fd"))
+    except OSError:
+        return 0
 
 
 class OncePerInterval(logging.Filter):

@@ -70,7 +70,8 @@ class Settings(BaseSettings):
     max_connections: int | None = Field(None, ge=16, le=1_000_000,
                                         description="connections served at once; beyond, the "
                                                     "one idle longest is closed (default: the "
-                                                    "open-file limit less 256, at most 4096)")
+                                                    "open-file limit less the files open at "
+                                                    "start and 256, at most 4096)")
     max_concurrent_bodies: int = Field(2, ge=1, le=64,
                                        description="request bodies read at once (503 beyond)")
     body_idle_s: float = Field(10.0, gt=0.0, le=600.0,

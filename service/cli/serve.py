@@ -54,8 +54,8 @@ def run(args) -> int:
     from pydantic import ValidationError
 
     from service.api import create_app
-    from service.connections import (connection_bound, guarded_protocol, quiet_crowding,
-                                     raise_file_limit)
+    from service.connections import (ACCEPT_BACKLOG, connection_bound, guarded_protocol,
+                                     open_files, quiet_crowding, raise_file_limit)
     from service.settings import load_settings
 
     try:
@@ -79,10 +79,12 @@ def run(args) -> int:
     soft_files, _ = raise_file_limit()
     quiet_crowding()
     protocol = guarded_protocol(settings.header_timeout_s,
-                                connection_bound(settings.max_connections, soft_files))
+                                connection_bound(settings.max_connections, soft_files,
+                                                 open_files()))
     # Open event streams (a status page left open) must not hold up a Ctrl-C for ever.
     config = uvicorn.Config(create_app(service=service), host=settings.host, port=settings.port,
                             log_level=args.log_level, access_log=False, http=protocol,
+                            backlog=ACCEPT_BACKLOG,
                             timeout_graceful_shutdown=SHUTDOWN_GRACE_S)
     server = uvicorn.Server(config)
     try:
