@@ -34,7 +34,7 @@ from service.engine import Engine
 from service.jobs import ScanJob
 from service.metrics import Metrics
 from service.models import check_reach, taught_place_matrix
-from service.parts import DEMO_PART, PartLibrary, return_memory
+from service.parts import DEMO_PART, PartLibrary, return_memory, settle_objects
 from service.pictures import FramePicture, PreviewPictures
 from service.problems import disk_reason, relative_path, relative_text
 from service.publisher import Publisher
@@ -217,7 +217,8 @@ class Service:
             # rather than after it, while the robot waits (only the first arm of a part pays,
             # 0.1-3 s for the reference parts); never while a pass is acquired or finished
             # (the arm is refused then anyway).
-            self.parts.prepare(name, held)
+            if self.parts.prepare(name, held):
+                settle_objects()
         reserve = int(self.settings.disk_reserve_mb * 2**20)
         if record:
             self._prune_recordings(keep=self.settings.recordings_kept - 1)
@@ -391,6 +392,7 @@ class Service:
 
         result = finish(model, on_pose=on_pose)
         report = result.report
+        report["part_version"] = job.part_version
         if result.state == "done" and model is None:
             report["pose"] = {"refused": f"no CAD model for part {job.part!r}"}
         if result.state == "done" and job.taught_place is not None:
@@ -522,7 +524,8 @@ class Service:
         arm builds it): an uploaded part's first arm answers at once."""
         def prepare():
             try:
-                self.parts.prepare(name)
+                if self.parts.prepare(name):
+                    settle_objects()
             except KeyError:  # deleted meanwhile
                 pass
             except Exception:  # said again, to its caller, by the arm that needs it
