@@ -30,6 +30,7 @@ import ctypes
 import gc
 import json
 import logging
+import mmap
 import multiprocessing
 import os
 import re
@@ -452,6 +453,6 @@ def _resident_bytes() -> int:
     """This process's resident memory, bytes (0 where ``/proc`` does not say)."""
     try:
         with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+            return int(f.read().split()[1]) * mmap.PAGESIZE
     except (OSError, ValueError, IndexError):
         return 0
