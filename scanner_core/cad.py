@@ -167,12 +167,19 @@ class PartModel:
         self.surface_model.symmetries  # noqa: B018
         self.edge_model.curves  # noqa: B018
         self.model_edges  # noqa: B018
+        self.__dict__["_prepared"] = True
         return (time.perf_counter() - t0) * 1e3
+
+    @property
+    def prepared(self) -> bool:
+        """Whether `prepare` has built everything a scan's pose needs (and nothing released
+        it since)."""
+        return self.__dict__.get("_prepared", False)
 
     def release(self) -> None:
         """Drop what `prepare` built (and the trimesh object): its memory goes back, and the
         next scan of the part builds it again. A scan holding one of them keeps it."""
-        for name in ("surface_model", "edge_model", "model_edges", "mesh"):
+        for name in ("surface_model", "edge_model", "model_edges", "mesh", "_prepared"):
             self.__dict__.pop(name, None)
 
     def vertices_t(self) -> np.ndarray:

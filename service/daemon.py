@@ -212,13 +212,12 @@ class Service:
             if self.driver is None or held is None:
                 raise ValueError("misplace is for the simulated cell, and a part, only")
             misplacement = self.driver.misplacement(held, misplace)
-        if held is not None and self.engine.trigger.state.value in ("idle", "fault"):
-            # What the pose needs of the part beyond the scan, built before its first pass
-            # rather than after it, while the robot waits (only the first arm of a part pays,
-            # 0.1-3 s for the reference parts); never while a pass is acquired or finished
-            # (the arm is refused then anyway).
-            if self.parts.prepare(name, held):
-                settle_objects()
+        if held is not None and held.prepared:
+            self.parts.prepare(name, held)  # the most recently armed, for the budget
+        # A part not prepared (its upload's preparation skipped during a pass, released by
+        # the budget, not armed since the start) is prepared by the finish, after its pass:
+        # the arm answers at once whatever the part, and no pass waits for a second of
+        # model building (0.1-3 s for the reference parts).
         reserve = int(self.settings.disk_reserve_mb * 2**20)
         if record:
             self._prune_recordings(keep=self.settings.recordings_kept - 1)
@@ -356,6 +355,9 @@ class Service:
                                              "end_reason": scan.end_reason},
                                    scan.cloud, on_sent=on_sent)
         model = job.part_model
+        prepared_here = model is not None and not model.prepared
+        if prepared_here:
+            self.parts.prepare(job.part, model)  # its pass is over (see `arm`)
         called = time.monotonic()
 
         def on_pose(pose_report, timings):
@@ -431,6 +433,8 @@ class Service:
                                           "reason": job.reason, "points": info["points"]})
         self.metrics.scan_finished(info)
         job.part_model = None  # a part replaced since keeps no memory through its old scans
+        if prepared_here:  # before the trigger is idle again: no pass runs beside it
+            settle_objects()
 
     def _no_room_to_store(self, scan: Scan) -> str | None:
         """Why the scan's files would not fit on the data folder's disk (its cloud and edge

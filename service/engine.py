@@ -426,7 +426,9 @@ class Engine:
             return  # the pass has ended: its finish is next
         try:
             scan = accumulator.scan()
-            if job.part_model is not None:
+            # Only with the part's models built: building them holds the interpreter's lock
+            # for a second, which the pass's frames must not wait for (the finish builds them).
+            if job.part_model is not None and job.part_model.prepared:
                 job.ahead = pose_ahead(scan, job.part_model, self.pose_params)
         except Exception:  # the pass's end assembles and computes as ever
             log.exception("scan ahead of %s failed", job.scan_id)

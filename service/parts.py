@@ -363,7 +363,7 @@ class PartLibrary:
         holds (default the library's)."""
         model = self.get(name) if model is None else model
         resident = _resident_bytes()
-        took = model.prepare()
+        took = 0.0 if model.prepared else model.prepare()
         # what it holds: its arrays, or what the process grew by building them (the trees'
         # and the meshes' own objects), whichever is more
         size = max(prepared_bytes(model), _resident_bytes() - resident) if took else None

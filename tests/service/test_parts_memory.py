@@ -168,3 +168,27 @@ def test_uploads_during_passes_cost_no_frame(tmp_path):
     assert [i["state"] for i in infos] == ["done"] * 4
     assert [i["frames_dropped"] for i in infos] == [0] * 4
     assert answers and set(answers) == {201}
+
+
+def test_an_arm_answers_at_once_for_a_part_whose_models_were_released(tmp_path):
+    """A budget of nothing: each part prepared releases the others. The arm of a released
+    part answers at once; the scan's finish builds the models, and the pose comes."""
+    fine = trimesh.creation.icosphere(subdivisions=FINE_SUBDIVISIONS, radius=25.0)
+    path = tmp_path / "fine.ply"
+    fine.export(path)
+    running = RunningService(tmp_path / "data", env={**FAST_PASS,
+                                                     "FLYSCAN_PREPARED_PARTS_MB": "0"})
+    try:
+        _upload(running.url, "first", path)
+        _upload(running.url, "second", path)  # prepared: "first" gives its models back
+        status = httpx.get(f"{running.url}/status").json()["parts"]
+        assert status["released"] >= 1
+        t0 = time.monotonic()
+        armed = httpx.post(f"{running.url}/scans", json={"part": "first"}, timeout=30)
+        arm_s = time.monotonic() - t0
+        assert armed.status_code == 202 and arm_s < 0.5, (armed.text, arm_s)
+        info = wait_for(lambda: (lambda i: i if i["state"] in ("done", "failed") else None)(
+            httpx.get(f"{running.url}/scans/{armed.json()['scan_id']}").json()), timeout=60)
+    finally:
+        running.stop()
+    assert info["state"] == "done" and "matrix" in info["pose"], info.get("pose")
