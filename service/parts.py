@@ -35,10 +35,12 @@ import multiprocessing
 import os
 import re
 import shutil
+import signal
 import tempfile
 import threading
 from collections import OrderedDict
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +65,8 @@ MIN_VOLUME_MM3 = 1.0
 #: twice and up, a rod pi / 2), while slivers with no area cover none.
 MIN_AREA_SHARE = 0.05
 STAGING_PREFIX = ".tmp-"
+#: ``prctl``'s option: the signal a process gets when its parent ends (linux/prctl.h).
+PR_SET_PDEATHSIG = 1
 #: A stored part's scan plan, beside its part.json.
 PLAN_FILE = "plan.json"
 
@@ -130,12 +134,21 @@ def read_upload(mesh_path, units: str, name: str, grasp) -> tuple[PartModel, dic
     return part, simplified
 
 
-def _lower_priority() -> None:
-    """The loader process yields the cores to the service's (nice 10)."""
+def _loader_start() -> None:
+    """In the loader process: yield the cores to the service's (nice 10), and end with the
+    service whatever ends it (Linux's parent-death signal: a worker left behind by a killed
+    service would wait for uploads for ever, holding its 150 MB)."""
     try:
         os.nice(10)
     except OSError:
         pass
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):  # not Linux: the service's close() ends it
+        pass
+    if os.getppid() == 1:  # the service ended before the signal was asked for
+        os._exit(0)
 
 
 def settle_objects() -> None:
@@ -338,11 +351,19 @@ class PartLibrary:
         if self.load_in_process:
             return read_upload(mesh_path, units, name, grasp)
         with self._loader_lock:
-            if self._loader is None:
-                self._loader = ProcessPoolExecutor(
-                    max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_lower_priority)
-            return self._loader.submit(read_upload, str(mesh_path), units, name, grasp).result()
+            for attempt in range(2):
+                if self._loader is None:
+                    self._loader = ProcessPoolExecutor(
+                        max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                        initializer=_loader_start)
+                try:
+                    return self._loader.submit(read_upload, str(mesh_path), units, name,
+                                               grasp).result()
+                except BrokenProcessPool:  # the loader died (killed, out of memory): anew
+                    self._loader = None
+                    if attempt:
+                        raise PartError("the mesh could not be read: its reader process "
+                                        "ended (out of memory?)") from None
 
     def simplified(self, name: str) -> dict | None:
         """How the part's model was simplified (``simplified_for_scan``'s report), or None."""
@@ -350,9 +371,13 @@ class PartLibrary:
             return self._simplified.get(name)
 
     def close(self) -> None:
+        """End the loader process (an upload being read is dropped)."""
         with self._loader_lock:
             if self._loader is not None:
+                workers = list(getattr(self._loader, "_processes", {}).values())
                 self._loader.shutdown(wait=False, cancel_futures=True)
+                for worker in workers:  # not left waiting for work that never comes
+                    worker.terminate()
                 self._loader = None
 
     # -- prepared models within a budget -----------------------------------------------------

@@ -192,3 +192,33 @@ def test_an_arm_answers_at_once_for_a_part_whose_models_were_released(tmp_path):
     finally:
         running.stop()
     assert info["state"] == "done" and "matrix" in info["pose"], info.get("pose")
+
+
+def test_the_loader_process_ends_with_the_service_however_it_ends(tmp_path):
+    import os
+    import subprocess
+
+    box = tmp_path / "box.stl"
+    trimesh.creation.box(extents=(30.0, 20.0, 10.0)).export(box)
+    for ending in ("terminated", "killed"):
+        running = RunningService(tmp_path / ending, env=FAST_PASS)
+        try:
+            assert httpx.put(f"{running.url}/parts/box", params={"units": "mm"},
+                             content=box.read_bytes(),
+                             headers={"Content-Type": "application/octet-stream"},
+                             timeout=60).status_code == 201
+            children = subprocess.run(["ps", "-o", "pid=,args=", "--ppid",
+                                       str(running.process.pid)], capture_output=True,
+                                      text=True).stdout.splitlines()
+            loaders = [int(line.split()[0]) for line in children
+                       if "multiprocessing.spawn" in line or "resource_tracker" in line]
+            assert loaders, children
+            if ending == "killed":
+                running.process.kill()
+                running.process.wait()
+        finally:
+            running.stop()
+
+        def gone():
+            return all(not os.path.exists(f"/proc/{pid}") for pid in loaders) or None
+        assert wait_for(gone, timeout=10), (ending, loaders)
