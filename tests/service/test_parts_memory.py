@@ -23,8 +23,22 @@ def _rss_mb(pid: int) -> float:
     raise RuntimeError("no VmRSS")
 
 
+def _fine_mesh(folder, suffix: str = ".ply"):
+    """The fine icosphere (``FINE_SUBDIVISIONS``) as a mesh and as a file in `folder`."""
+    mesh = trimesh.creation.icosphere(subdivisions=FINE_SUBDIVISIONS, radius=25.0)
+    path = folder / f"fine{suffix}"
+    mesh.export(path)
+    return mesh, path
+
+
+def _with_budget(folder, budget_mb: str) -> RunningService:
+    return RunningService(folder / "data", env={**FAST_PASS,
+                                                "FLYSCAN_PREPARED_PARTS_MB": budget_mb})
+
+
 def _upload(url, name, path):
-    response = httpx.put(f"{url}/parts/{name}", params={"units": "mm", "format": "ply"},
+    response = httpx.put(f"{url}/parts/{name}",
+                         params={"units": "mm", "format": path.suffix.lstrip(".")},
                          content=path.read_bytes(),
                          headers={"Content-Type": "application/octet-stream"}, timeout=120)
     assert response.status_code == 201, response.text
@@ -32,11 +46,8 @@ def _upload(url, name, path):
 
 
 def test_a_fine_mesh_is_simplified_prepared_at_upload_and_its_memory_returned(tmp_path):
-    fine = trimesh.creation.icosphere(subdivisions=FINE_SUBDIVISIONS, radius=25.0)
-    fine_path = tmp_path / "fine.ply"
-    fine.export(fine_path)
-    running = RunningService(tmp_path / "data", env={**FAST_PASS,
-                                                     "FLYSCAN_PREPARED_PARTS_MB": "4096"})
+    fine, fine_path = _fine_mesh(tmp_path)
+    running = _with_budget(tmp_path, "4096")
     try:
         pid = running.process.pid
         before = _rss_mb(pid)
@@ -135,9 +146,7 @@ def test_uploads_during_passes_cost_no_frame(tmp_path):
     and simplified in the loader process, and no pass loses a frame."""
     import threading
 
-    fine = trimesh.creation.icosphere(subdivisions=FINE_SUBDIVISIONS, radius=25.0)
-    path = tmp_path / "fine.stl"
-    fine.export(path)
+    _, path = _fine_mesh(tmp_path, ".stl")
     content = path.read_bytes()
     running = RunningService(tmp_path / "data", env=FAST_PASS)
     stop, answers = threading.Event(), []
@@ -173,11 +182,8 @@ def test_uploads_during_passes_cost_no_frame(tmp_path):
 def test_an_arm_answers_at_once_for_a_part_whose_models_were_released(tmp_path):
     """A budget of nothing: each part prepared releases the others. The arm of a released
     part answers at once; the scan's finish builds the models, and the pose comes."""
-    fine = trimesh.creation.icosphere(subdivisions=FINE_SUBDIVISIONS, radius=25.0)
-    path = tmp_path / "fine.ply"
-    fine.export(path)
-    running = RunningService(tmp_path / "data", env={**FAST_PASS,
-                                                     "FLYSCAN_PREPARED_PARTS_MB": "0"})
+    _, path = _fine_mesh(tmp_path)
+    running = _with_budget(tmp_path, "0")
     try:
         _upload(running.url, "first", path)
         _upload(running.url, "second", path)  # prepared: "first" gives its models back
@@ -203,10 +209,7 @@ def test_the_loader_process_ends_with_the_service_however_it_ends(tmp_path):
     for ending in ("terminated", "killed"):
         running = RunningService(tmp_path / ending, env=FAST_PASS)
         try:
-            assert httpx.put(f"{running.url}/parts/box", params={"units": "mm"},
-                             content=box.read_bytes(),
-                             headers={"Content-Type": "application/octet-stream"},
-                             timeout=60).status_code == 201
+            _upload(running.url, "box", box)
             children = subprocess.run(["ps", "-o", "pid=,args=", "--ppid",
                                        str(running.process.pid)], capture_output=True,
                                       text=True).stdout.splitlines()
