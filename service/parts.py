@@ -402,9 +402,9 @@ class PartLibrary:
             for other in list(self._prepared):
                 if used <= self.prepared_budget_bytes or other == name:
                     continue
-                old, size = self._prepared.pop(other)
+                old, freed = self._prepared.pop(other)
                 old.release()
-                used -= size
+                used -= freed
                 self.released += 1
                 released = True
                 log.info("part %s: its prepared models released (budget %.0f MB)", other,
