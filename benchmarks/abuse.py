@@ -54,7 +54,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from benchmarks.live import ServeProcess
+from benchmarks.live import ServeProcess, resident_mb
 from benchmarks.stats import spread
 from benchmarks.results import machine_info, pyplot, save_figure, write_json
 from simulator.cell import load_cell
@@ -331,11 +331,11 @@ class _Memory(threading.Thread):
     def run(self) -> None:
         while not self.stop.wait(MEMORY_PERIOD_S):
             try:
-                for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
-                    if line.startswith("VmRSS:"):
-                        self.samples.append(int(line.split()[1]) / 1024)
+                rss = resident_mb(self.pid)
             except OSError:
                 return
+            if np.isfinite(rss):
+                self.samples.append(rss)
 
 
 def _pattern(url: str, pid: int, pattern: str, passes: int, mesh: Path | None = None) -> dict:
@@ -392,7 +392,7 @@ def _catalogue(url: str, pid: int, parts: int, folder: Path) -> dict:
 
     rows = []
     with httpx.Client(base_url=url, timeout=600, headers=AUTH) as client:
-        rss_start = _rss_mb(pid)
+        rss_start = resident_mb(pid)
         for k in range(parts):
             path = folder / f"ball{k}.stl"
             trimesh.creation.icosphere(subdivisions=7, radius=20.0 + 2.0 * k).export(path)
@@ -409,16 +409,16 @@ def _catalogue(url: str, pid: int, parts: int, folder: Path) -> dict:
                          "faces": info.get("faces"), "simplified": info.get("simplified"),
                          "arm_ms": round(scan["arm_ms"], 1), "state": scan["state"],
                          "frames_dropped": scan.get("frames_dropped"),
-                         "rss_mb": round(_rss_mb(pid), 1)})
+                         "rss_mb": round(resident_mb(pid), 1)})
             print(f"catalogue: ball{k} ({info.get('faces')} faces) uploaded in {upload_s:.1f} s, "
                   f"armed in {scan['arm_ms']:.0f} ms, {scan['state']}, service "
                   f"{rows[-1]['rss_mb']:.0f} MB, prepared models {prepared.get('prepared_mb')} "
                   f"MB ({prepared.get('released')} released)", flush=True)
-        rss_full = _rss_mb(pid)
+        rss_full = resident_mb(pid)
         for k in range(parts):
             client.delete(f"/parts/ball{k}")
         time.sleep(1.0)
-        rss_end = _rss_mb(pid)
+        rss_end = resident_mb(pid)
     print(f"catalogue: service {rss_start:.0f} MB before, {rss_full:.0f} MB with {parts} parts "
           f"(budget {PREPARED_BUDGET_MB} MB), {rss_end:.0f} MB after deleting them", flush=True)
     return {"parts": rows, "rss_start_mb": rss_start, "rss_full_mb": rss_full,
@@ -426,13 +426,6 @@ def _catalogue(url: str, pid: int, parts: int, folder: Path) -> dict:
             "arm_ms": spread([r["arm_ms"] for r in rows]),
             "rss_max_mb": max(r["rss_mb"] for r in rows),
             "prepared_max_mb": max((r["prepared_mb"] or 0.0) for r in rows)}
-
-
-def _rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
 
 
 def _upload_mesh(folder: Path) -> Path:

@@ -13,7 +13,8 @@ import time
 from functools import partial
 from pathlib import Path
 
-__all__ = ["free_port", "free_ports", "wait_for", "running_service", "finished_scan", "ServeProcess"]
+__all__ = ["free_port", "free_ports", "wait_for", "running_service", "finished_scan", "ServeProcess",
+           "resident_mb"]
 
 
 def free_port() -> int:
@@ -68,6 +69,15 @@ def finished_scan(service, scan_id: str, timeout: float, poll: float) -> dict | 
         return info if info["state"] in ("done", "failed") else None
 
     return wait_for(over, timeout, poll)
+
+
+def resident_mb(pid: int) -> float:
+    """Process `pid`'s resident memory (``VmRSS``), MB; NaN when it has none (OSError when
+    it has ended)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
 
 
 def _limit_files(n: int) -> None:

@@ -346,12 +346,7 @@ def check_cell_geometry(calibration: Calibration) -> None:
     centre = cam.to_base(np.array([[0.0, 0.0, depth]]))[0]
     axes = [np.linspace(-h / 2, h / 2, CHECK_SAMPLES) for h in CHECK_VOLUME_MM]
     grid = centre + np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    pixels = reproject_marker(grid, cam, calibration.mirrors)                # (N, V, 2)
-    seen = np.ones(len(grid), bool)
-    for v, (c0, c1) in enumerate(calibration.strips):
-        u, w = pixels[:, v, 0], pixels[:, v, 1]
-        seen &= (u >= c0) & (u < c1) & (w >= 0) & (w < cam.height)
-    if not seen.any():
+    if not _in_every_view(calibration, grid).any():
         raise CalibrationError(
             "no point of the inspection volume about the sheet's centre lies in every view "
             "(the direct view and each mirror's strip): the marker could not be triangulated; "
@@ -375,14 +370,20 @@ def check_marker_track(calibration: Calibration, geometry) -> None:
     tcp = np.column_stack([np.zeros_like(track_y), track_y,
                            np.full_like(track_y, geometry.pass_height_mm)])
     led = tcp + np.asarray(geometry.tcp_rotation_b) @ np.asarray(calibration.marker_offset_t)
-    pixels = reproject_marker(led, calibration.camera, calibration.mirrors)
-    seen = np.ones(len(led), bool)
-    for v, (c0, c1) in enumerate(calibration.strips):
-        u, w = pixels[:, v, 0], pixels[:, v, 1]
-        seen &= (u >= c0) & (u < c1) & (w >= 0) & (w < calibration.camera.height)
-    if not seen.any():
+    if not _in_every_view(calibration, led).any():
         raise CalibrationError(
             f"along the cell's pass (y_B {geometry.pass_start_y_mm:g} to "
             f"{geometry.pass_end_y_mm:g} mm at {geometry.pass_height_mm:g} mm) the LED never lies "
             f"in every view: no pass would be triangulated; are the camera's rotation and origin "
             f"and the mirrors this cell's?")
+
+
+def _in_every_view(calibration: Calibration, points_b) -> np.ndarray:
+    """(N,) bool: which of the (N, 3) points (mm in {B}) project inside every view's strip of
+    columns and the image's rows (the direct view and each mirror's)."""
+    pixels = reproject_marker(points_b, calibration.camera, calibration.mirrors)  # (N, V, 2)
+    seen = np.ones(len(pixels), bool)
+    for v, (c0, c1) in enumerate(calibration.strips):
+        u, w = pixels[:, v, 0], pixels[:, v, 1]
+        seen &= (u >= c0) & (u < c1) & (w >= 0) & (w < calibration.camera.height)
+    return seen

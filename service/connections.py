@@ -130,14 +130,10 @@ class OncePerInterval(logging.Filter):
 
 class GuardedH11Protocol(H11Protocol):
     """uvicorn's h11 protocol with a request-head deadline and a bound on connections (module
-    notes). `guarded_protocol` gives a subclass with the bounds set; the class attributes
-    count what the guard did (read by the tests and ``GET /status``)."""
+    notes). `guarded_protocol` gives a subclass with the bounds set."""
 
     header_timeout_s: float = 10.0
     max_connections: int = MAX_CONNECTIONS
-    closed_waiting = 0   # connections closed for want of a request head in time
-    evicted = 0          # waiting connections closed to make room for a new one
-    refused = 0          # new connections answered 503: every slot busy with a request
     #: The connections waiting for a request head, longest waiting first (one event loop:
     #: no lock). Kept in order so that making room costs the same with 10 or 10 000 open.
     waiting: OrderedDict = OrderedDict()
@@ -146,7 +142,6 @@ class GuardedH11Protocol(H11Protocol):
         super().connection_made(transport)
         self._head_deadline = None
         if len(self.connections) > self.max_connections and not self._make_room():
-            type(self).refused += 1
             log.warning("connections: %d open, every one busy with a request: new ones are "
                         "answered 503", len(self.connections))
             self.transport.write(BUSY_ANSWER)  # before its request: no h11 cycle to answer in
@@ -186,7 +181,6 @@ class GuardedH11Protocol(H11Protocol):
     def _head_late(self) -> None:
         self._head_deadline = None
         if self._waiting():
-            type(self).closed_waiting += 1
             self.transport.close()
 
     def _make_room(self) -> bool:
@@ -195,7 +189,6 @@ class GuardedH11Protocol(H11Protocol):
         while self.waiting:
             oldest, _ = self.waiting.popitem(last=False)
             if oldest._waiting():
-                type(self).evicted += 1
                 oldest.transport.close()
                 return True
         return False

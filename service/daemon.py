@@ -525,7 +525,7 @@ class Service:
 
     def prepare_part(self, name: str) -> None:
         """Build what a scan's pose needs of `name` now, unless a pass is under way (then the
-        arm builds it): an uploaded part's first arm answers at once."""
+        finish of its first scan builds it): an uploaded part's first pose waits for none."""
         def prepare():
             try:
                 if self.parts.prepare(name):

@@ -18,8 +18,9 @@ simplified for registration (``scanner_core.cad.simplified_for_scan``): the mode
 ``model.npz`` beside the upload, and ``part.json`` says how far it strays from the mesh.
 
 What a scan's pose needs of a part beyond its mesh (its surface and edge models, their trees
-and tables: ``PartModel.prepare``) is built when the part is uploaded, or when it is armed,
-never while a pass runs (`PartLibrary.prepare`), and kept within a memory budget: past
+and tables: ``PartModel.prepare``) is built when the part is uploaded, or by the finish of a
+scan armed without them, never while a pass runs (`PartLibrary.prepare`), and kept within a
+memory budget: past
 ``prepared_parts_mb``, the least recently scanned parts give theirs back
 (``PartModel.release``) and build them again when next armed; a part deleted or replaced
 gives them back at once.
@@ -425,7 +426,6 @@ class PartLibrary:
             entry[0].release()
         return entry is not None
 
-
     def remove(self, name: str, *, in_use: dict[str, str] | None = None) -> None:
         """Delete an uploaded part: KeyError when unknown, PartInUse when built in or named
         in ``in_use`` (part name to why), OSError when the disk refuses (then it stays)."""
@@ -444,12 +444,9 @@ class PartLibrary:
                 aside = self.root / f"{STAGING_PREFIX}deleted-{name}"
                 shutil.rmtree(aside, ignore_errors=True)
                 os.replace(folder, aside)
-                self._parts.pop(name, None)
-                self._forget_prepared(name)
                 shutil.rmtree(aside, ignore_errors=True)  # else gone at the next start
-            else:
-                self._parts.pop(name, None)
-                self._forget_prepared(name)
+            self._parts.pop(name, None)
+            self._forget_prepared(name)
 
 
 def _grasp(kind):

@@ -8,19 +8,12 @@ import numpy as np
 import pytest
 import trimesh
 
+from benchmarks.live import resident_mb
 from running import FAST_PASS, RunningService, wait_for
 from service.parts import PartLibrary
 
 #: An icosphere of 327 680 triangles: more than twice the model's 150 000.
 FINE_SUBDIVISIONS = 7
-
-
-def _rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    raise RuntimeError("no VmRSS")
 
 
 def _fine_mesh(folder, suffix: str = ".ply"):
@@ -50,9 +43,9 @@ def test_a_fine_mesh_is_simplified_prepared_at_upload_and_its_memory_returned(tm
     running = _with_budget(tmp_path, "4096")
     try:
         pid = running.process.pid
-        before = _rss_mb(pid)
+        before = resident_mb(pid)
         infos = [_upload(running.url, f"ball{i}", fine_path) for i in range(3)]
-        grown = _rss_mb(pid)
+        grown = resident_mb(pid)
         for info in infos:
             simplified = info["simplified"]
             assert simplified["faces_from"] == len(fine.faces) and simplified["kept"]
@@ -66,7 +59,7 @@ def test_a_fine_mesh_is_simplified_prepared_at_upload_and_its_memory_returned(tm
                  ["state"] in ("done", "failed"), timeout=60)
         for i in range(3):
             assert httpx.delete(f"{running.url}/parts/ball{i}").status_code == 204
-        after = _rss_mb(pid)
+        after = resident_mb(pid)
         print(f"service RSS: {before:.0f} MB, {grown:.0f} MB with three fine parts prepared, "
               f"{after:.0f} MB after deleting them; arm {arm_s * 1e3:.0f} ms")
         assert grown - before > 100  # each prepared part holds tens of MB
