@@ -32,26 +32,37 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numba import njit
 
 from scanner_core import stripe_passes as passes
 from scanner_core.stripe_estimators import FWHM_PER_SIGMA, SATURATION_DN  # noqa: F401
 from scanner_core.stripe_kernel import (  # noqa: F401  (the gates' constants, documented there)
-    AUTO_COG_PEAK_FRACTION, AUTO_COG_SIGMAS, AUTO_MIN_PEAK_SIGMAS, AUTO_THRESHOLD_SIGMAS,
+    COG_PEAK_FRACTION, COG_SIGMAS, AUTO_MIN_PEAK_SIGMAS, AUTO_THRESHOLD_SIGMAS,
     CONTINUITY_BRIGHTNESS_PX, CONTINUITY_JUMP_CAP_PX, CONTINUITY_MAX_GAP, CORE_WIDTH_FACTOR,
     LINKED_WIDTH_FACTOR, MIN_PIXELS_ABOVE, MIN_WIDTH_PX, NARROW_MIN_SIGMAS, SEPARATE_SIGMAS,
     extract_kernel, window_bounds)
 from scanner_core.validate import check_columns, check_image
 
-__all__ = ["METHODS", "POLICIES", "StripeResult", "extract", "Reason", "estimate_noise",
-           "isolated_runs"]
+__all__ = ["METHODS", "POLICIES", "SIGNALS", "BAYER_PATTERNS", "StripeResult", "extract",
+           "stripe_signal", "Reason", "estimate_noise", "isolated_runs"]
 
 METHODS = ("cog", "gaussian3", "parabola", "blais_rioux", "lsq_gauss")
 _METHOD_CODE = {name: i for i, name in enumerate(METHODS)}
 #: Peak selection policies (see ``extract``); "reject" is the historical behaviour.
 POLICIES = ("strongest", "nearest", "continuity", "reject")
 _POLICY_CODE = {name: i for i, name in enumerate(POLICIES)}
+
+#: What ``stripe_signal`` makes of a frame (see there).
+SIGNALS = ("auto", "mono", "red", "green", "blue", "red_excess", "green_excess", "blue_excess",
+           "colour_excess")
+_CHANNEL = {"red": 0, "green": 1, "blue": 2}
+#: Bayer mosaics by their first row's first two pixels and the second row's first (RGGB: red
+#: at (0, 0)), and the OpenCV conversion that demosaics each (OpenCV names a mosaic by its
+#: second row's second and third pixels).
+BAYER_PATTERNS = {"RGGB": "COLOR_BayerBG2RGB", "BGGR": "COLOR_BayerRG2RGB",
+                  "GRBG": "COLOR_BayerGB2RGB", "GBRG": "COLOR_BayerGR2RGB"}
 
 # A second local maximum counts as a second candidate peak when it reaches this fraction of the
 # main one (weaker ones are ignored: a faint reflection never competes with the stripe).
@@ -214,6 +225,96 @@ def _isolated_runs(row, valid, max_jump_px, min_run, max_gap):
     return out
 
 
+def stripe_signal(frame, signal="auto", *, bayer=None) -> np.ndarray:
+    """The image the stripe is looked for in, from a camera frame.
+
+    A colour camera sees a laser of one colour over surfaces lit by white light: the laser's
+    channel alone also shows the surface's texture (a printed checkerboard under ambient light),
+    while its *colour excess* ``e_k = v_k - (v_i + v_j) / 2`` (``k`` the laser's channel, ``i``,
+    ``j`` the others) is zero on grey surfaces, whatever their brightness, and holds the
+    stripe.  ``colour_excess`` takes the largest excess of the three channels, so that a laser
+    of any one colour stands out without being named.
+
+    Parameters
+    ----------
+    frame : (H, W) uint8 or (H, W, 3) uint8
+        A mono frame, a raw Bayer mosaic (``bayer`` given), or an RGB frame (channels in the
+        order red, green, blue: pypylon's ``RGB8``, scikit-image; an OpenCV ``imread`` gives
+        BGR, reverse it with ``frame[..., ::-1]``).
+    signal : str
+        One of ``SIGNALS``. ``"auto"`` (default): a mono frame as it is, a colour one (or a
+        mosaic) its ``"colour_excess"``. ``"mono"``: a mono frame as it is (a colour one is
+        refused). ``"red"``, ``"green"``, ``"blue"``: that channel. ``"red_excess"``,
+        ``"green_excess"``, ``"blue_excess"``: that channel's excess, rounded half up and
+        clipped to [0, 255]. ``"colour_excess"``: the largest of the three.
+    bayer : str, optional
+        The frame is a raw mosaic with this pattern (one of ``BAYER_PATTERNS``): it is
+        demosaiced (OpenCV's bilinear demosaicing) first.
+
+    Returns
+    -------
+    (H, W) uint8
+        The frame itself for a mono frame, else a new C-contiguous image.
+
+    Raises
+    ------
+    ValueError
+        On a frame that is not uint8 (H, W) or (H, W, 3), an unknown ``signal`` or ``bayer``, a
+        mosaic given as a colour frame, or a colour signal asked of a mono frame.
+    """
+    if signal not in SIGNALS:
+        raise ValueError(f"`signal` must be one of {SIGNALS}, got {signal!r}")
+    frame = np.asarray(frame)
+    if frame.dtype != np.uint8:
+        raise ValueError(f"a frame must be uint8, got {frame.dtype}")
+    if bayer is not None:
+        if bayer not in BAYER_PATTERNS:
+            raise ValueError(f"`bayer` must be one of {tuple(BAYER_PATTERNS)}, got {bayer!r}")
+        if frame.ndim != 2:
+            raise ValueError(f"a Bayer mosaic is (H, W), got shape {frame.shape}")
+        frame = cv2.cvtColor(np.ascontiguousarray(frame), getattr(cv2, BAYER_PATTERNS[bayer]))
+    if frame.ndim == 2:
+        if signal not in ("auto", "mono"):
+            raise ValueError(f"`signal` {signal!r} needs a colour frame (H, W, 3) or a Bayer "
+                             f"mosaic (`bayer`); this frame is mono, shape {frame.shape}")
+        return frame
+    if frame.ndim != 3 or frame.shape[2] != 3:
+        raise ValueError(f"a frame must be (H, W) or (H, W, 3), got shape {frame.shape}")
+    if signal == "mono":
+        raise ValueError("`signal` 'mono' was asked of a colour frame: name a channel or an "
+                         "excess (or 'auto')")
+    if signal == "auto":
+        signal = "colour_excess"
+    if signal in _CHANNEL:
+        return np.ascontiguousarray(frame[:, :, _CHANNEL[signal]])
+    which = -1 if signal == "colour_excess" else _CHANNEL[signal.split("_")[0]]
+    out = np.empty(frame.shape[:2], np.uint8)
+    _colour_excess(frame, which, out)
+    return out
+
+
+@njit(nogil=True, cache=True)
+def _colour_excess(rgb, which, out):
+    """``out = clip(round_half_up(v_k - (v_i + v_j) / 2), 0, 255)`` for channel ``which``, or
+    the largest of the three excesses for ``which = -1``; integer arithmetic."""
+    h, w = out.shape
+    for r in range(h):
+        for c in range(w):
+            v0 = np.int32(rgb[r, c, 0])
+            v1 = np.int32(rgb[r, c, 1])
+            v2 = np.int32(rgb[r, c, 2])
+            if which == 0:
+                e2 = 2 * v0 - v1 - v2
+            elif which == 1:
+                e2 = 2 * v1 - v0 - v2
+            elif which == 2:
+                e2 = 2 * v2 - v0 - v1
+            else:
+                e2 = max(2 * v0 - v1 - v2, 2 * v1 - v0 - v2, 2 * v2 - v0 - v1)
+            e = (e2 + 1) >> 1
+            out[r, c] = np.uint8(min(max(e, 0), 255))
+
+
 def estimate_noise(image) -> tuple[float, float]:
     """Robust background level and noise of a frame from a sparse subsample of its pixels.
 
@@ -239,7 +340,7 @@ def estimate_noise(image) -> tuple[float, float]:
     return passes.noise_estimate(img)
 
 
-def extract(image, method="cog", *, threshold=20.0, window=4, max_width="auto", columns=None,
+def extract(image, method="cog", *, threshold="auto", window=4, max_width="auto", columns=None,
             policy="continuity", expected_row=None, row_min=None, row_max=None,
             saturation="fit", **params) -> StripeResult:
     """Sub-pixel row of the laser stripe in every column of a frame.
@@ -252,9 +353,12 @@ def extract(image, method="cog", *, threshold=20.0, window=4, max_width="auto", 
         One of ``METHODS``:
 
         - ``"cog"``: windowed centre of gravity, rows within ``+-window`` of the argmax, weights
-          ``v - threshold`` for pixels above the threshold [1]_.  Subtracting the threshold
-          (rather than the background) measured best on the reference model (see
-          ``background`` below).
+          ``v - t`` for the pixels above a level ``t`` of the column's own [1]_: ``background +
+          max(COG_SIGMAS * noise, COG_PEAK_FRACTION * (peak - background))``, whatever
+          ``threshold`` is (a level near a dim stripe's top would leave one or two pixels above
+          it, and their centroid is the brightest one's row: pixel locking).  On a bright
+          stripe that level (20 DN on the reference model) measured better than the
+          background (see ``background`` below).
         - ``"gaussian3"``: 3-point Gaussian (parabola through the logarithms) [1]_, [2]_.
         - ``"parabola"``: 3-point parabola through the argmax and its neighbours [1]_.
         - ``"blais_rioux"``: zero crossing of the 4th-order derivative filter
@@ -264,13 +368,13 @@ def extract(image, method="cog", *, threshold=20.0, window=4, max_width="auto", 
           white noise [4]_.
 
         A saturated peak is measured the same way whatever the method (``saturation``).
-    threshold : float or "auto"
-        DN; a column needs a pixel above it to hold a stripe.  ``"auto"``: set from the frame's
-        noise (``estimate_noise``): ``background + AUTO_THRESHOLD_SIGMAS * noise`` (20 DN on the
-        reference model), and every candidate peak must also reach
-        ``background + AUTO_MIN_PEAK_SIGMAS * noise`` (else ``Reason.NO_PEAK``); ``cog`` weighs
-        above a level of its own per column (``AUTO_COG_*``: lower on dim stripes).  Dark
-        surfaces then keep their stripe; ``snr`` says how far to trust it.  Measured on a 30 DN
+    threshold : "auto" or float
+        A column needs a pixel above it to hold a stripe.  ``"auto"`` (default): what stands
+        clear of the frame's own background and noise (``estimate_noise``): ``background +
+        AUTO_THRESHOLD_SIGMAS * noise`` (20 DN on the reference model), and every candidate
+        peak must also reach ``background + AUTO_MIN_PEAK_SIGMAS * noise`` (else
+        ``Reason.NO_PEAK``).  Dark surfaces then keep their stripe; ``snr`` says how far to
+        trust it.  A number: a fixed level, DN.  Measured on a 30 DN
         stripe over 3 DN of noise (``flyscan bench stripe``): 99.9 % of the columns, 0.147 px
         RMS (``cog``), 0.135 (``lsq_gauss``); Cramer-Rao bound 0.130 px.
     window : int
@@ -329,12 +433,11 @@ def extract(image, method="cog", *, threshold=20.0, window=4, max_width="auto", 
     **params
         ``min_width`` (float, px, default ``MIN_WIDTH_PX``): narrower peaks need a neighbour.
         ``double_ratio`` (float, default ``DOUBLE_PEAK_RATIO``).
-        ``background`` (float, DN, default None): for ``cog``, subtract this level instead of the
-        threshold (pixels above the threshold only); for ``gaussian3`` the level subtracted
-        before the logarithms (default 0).  On the reference model (background 10 DN, noise
-        3 DN, 15 k columns) ``cog`` gave 0.026 px RMS subtracting the threshold (20 DN) vs
-        0.038 px subtracting the true background (10 DN), both with |bias| < 0.001 px: the
-        threshold offset down-weights the noisy flanks.  ``gaussian3`` gave 0.038 px either way.
+        ``background`` (float, DN, default None): for ``cog``, subtract this level instead of
+        the column's own (pixels above that level only); for ``gaussian3`` the level
+        subtracted before the logarithms (default 0).  On the reference model (background
+        10 DN, noise 3 DN) ``cog`` measured better subtracting a level near 20 DN than the true
+        background: the offset down-weights the noisy flanks (``docs/stripe.md``).
 
     Returns
     -------

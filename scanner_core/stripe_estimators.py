@@ -15,7 +15,8 @@ from numba import njit
 
 from scanner_core._linsolve import solve_in_place
 
-__all__ = ["SATURATION_DN", "FWHM_PER_SIGMA", "fwhm_width", "count_above", "cog", "parabola",
+__all__ = ["SATURATION_DN", "FWHM_PER_SIGMA", "fwhm_width", "count_above", "cog",
+           "within_window", "width_count_cog", "parabola",
            "gaussian3", "blais_rioux", "lsq_gauss", "saturated_centre", "narrow_clip_centre"]
 
 # Pixel value taken as saturated (uint8 full scale).
@@ -113,6 +114,128 @@ def cog(img, c, a, h, threshold, window, bg, reach):
     if s0 <= 0.0:
         return math.nan
     return a + s1 / s0
+
+
+@njit(nogil=True, cache=True)
+def within_window(img, c, a, h, level, max_walk, threshold, window, t_cog, bg, out):
+    """``width_count_cog`` when the peak lies wholly within ``+-window`` rows of ``a`` (the
+    half-level run ends inside it, the centroid's run does not go on past it, no ``bg``), as
+    fixed-length loops without data-dependent branches: a noisy flank's pixels cross the
+    levels at random, and a branch on each costs more than the reads.  False (``out`` unset)
+    otherwise: call ``width_count_cog`` then (a separate call, since the general walk's frame
+    made this one cost twice as much when they were one function)."""
+    if not (math.isnan(bg) and a > window and a + window < h - 1 and window < max_walk):
+        return False
+    v = float(img[a, c])
+    count = 1.0 if v > threshold else 0.0
+    s0 = max(v - t_cog, 0.0)
+    s1 = 0.0
+    down = 0
+    up = 0
+    alive_down = 1
+    alive_up = 1
+    for d in range(1, window + 1):
+        u = float(img[a - d, c])
+        alive_down = alive_down if u >= level else 0
+        down += alive_down
+        count += 1.0 if u > threshold else 0.0
+        wgt = max(u - t_cog, 0.0)
+        s0 += wgt
+        s1 -= wgt * d
+        u = float(img[a + d, c])
+        alive_up = alive_up if u >= level else 0
+        up += alive_up
+        count += 1.0 if u > threshold else 0.0
+        wgt = max(u - t_cog, 0.0)
+        s0 += wgt
+        s1 += wgt * d
+    if down == window or up == window:
+        return False
+    if float(img[a - window, c]) > t_cog and float(img[a - window - 1, c]) > t_cog:
+        return False  # the centroid's run goes on beyond the window
+    if float(img[a + window, c]) > t_cog and float(img[a + window + 1, c]) > t_cog:
+        return False
+    lo = a - down
+    v1 = float(img[lo, c])
+    left = lo - (v1 - level) / (v1 - float(img[lo - 1, c]))
+    hi = a + up
+    v1 = float(img[hi, c])
+    right = hi + (v1 - level) / (v1 - float(img[hi + 1, c]))
+    out[0] = (right - left) / FWHM_PER_SIGMA
+    out[1] = count
+    out[2] = a + s1 / s0 if s0 > 0.0 else math.nan
+    return True
+
+
+@njit(nogil=True, cache=True)
+def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg, reach, out):
+    """``fwhm_width``, ``count_above`` and ``cog`` of one peak, reading each pixel once.
+
+    The three walk the same pixels about ``a``; a column's pixels lie a frame's row apart in
+    memory, and reading them once is what the frame's time allows.  ``out`` (3,) float64
+    receives the width (px, inf past ``max_walk``), the count of pixels above ``threshold``
+    within ``+-window`` and the centre of gravity above ``t_cog`` (NaN if none), each equal to
+    what the separate function returns (the centroid's sums added in another order)."""
+    off = t_cog if math.isnan(bg) else bg
+    v = float(img[a, c])
+    count = 1.0 if v > threshold else 0.0
+    s0 = v - off if v > t_cog else 0.0
+    s1 = 0.0
+    width_inf = False
+    left = right = 0.0
+    for side in range(2):
+        step = -1 if side == 0 else 1
+        end = 0 if side == 0 else h - 1  # the last row on this side
+        prev = v
+        steps = 0
+        half = True  # still walking the half-level run
+        edge = -0.5 if side == 0 else h - 0.5
+        w_end = a - window if side == 0 else a + window
+        if side == 0 and w_end < 0:
+            w_end = 0
+        if side == 1 and w_end > h - 1:
+            w_end = h - 1
+        run = img[w_end, c] > t_cog  # the run beyond the window starts at its edge pixel
+        r = a
+        while r != end:
+            r += step
+            d = r - a if side == 1 else a - r
+            u = float(img[r, c])
+            if half:
+                if u >= level and steps < max_walk:
+                    steps += 1
+                    if steps >= max_walk:
+                        width_inf = True
+                        half = False
+                else:
+                    if steps >= max_walk:
+                        width_inf = True
+                    else:
+                        # the level crossed between the previous row and this one
+                        edge = (r - step) + step * (prev - level) / (prev - u)
+                    half = False
+            inside = d <= window
+            if inside:
+                if u > threshold:
+                    count += 1.0
+                if u > t_cog:
+                    s0 += u - off
+                    s1 += (u - off) * (r - a)
+            elif run and d <= reach and u > t_cog:
+                s0 += u - off
+                s1 += (u - off) * (r - a)
+            else:
+                run = False
+            prev = u
+            if not half and not inside and not run:
+                break
+        if side == 0:
+            left = edge
+        else:
+            right = edge
+    out[0] = math.inf if width_inf else (right - left) / FWHM_PER_SIGMA
+    out[1] = count
+    out[2] = a + s1 / s0 if s0 > 0.0 else math.nan
 
 
 @njit(nogil=True, cache=True)

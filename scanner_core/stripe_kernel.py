@@ -75,13 +75,18 @@ AUTO_THRESHOLD_SIGMAS = 10.0 / 3.0
 # pixel, which the MIN_PIXELS_ABOVE and width tests then reject.
 AUTO_MIN_PEAK_SIGMAS = 5.0
 
-# With threshold="auto", ``cog`` weighs ``v - t`` above a level ``t`` of its own per column:
-# background + max(AUTO_COG_SIGMAS * noise, AUTO_COG_PEAK_FRACTION * (peak - background)).
+# ``cog`` weighs ``v - t`` above a level ``t`` of its own per column, whatever the threshold:
+# background + max(COG_SIGMAS * noise, COG_PEAK_FRACTION * (peak - background)).
 # On bright stripes the second term rules (10 DN on a 200 DN stripe: the 20 DN that measured best
 # on the reference model); on dim ones the first (measured on 30 DN over 3 DN, RMS: 0.1495 px
 # at 20 DN, 0.1468 at 18.5, 0.1472 at 17, against a Cramer-Rao bound of 0.130).
-AUTO_COG_SIGMAS = 2.8
-AUTO_COG_PEAK_FRACTION = 0.05
+COG_SIGMAS = 2.8
+COG_PEAK_FRACTION = 0.05
+
+# The peak's width, count and centroid are read with the window a compile-time constant when
+# ``window`` is this (the default): the loops over it unrolled, the candidates' pass took half
+# the time.
+UNROLLED_WINDOW = 4
 
 # --- continuity policy (a Viterbi path over the columns, two states per column)
 # Cost, in px of row jump, of choosing a candidate of zero brightness over the brightest one
@@ -153,6 +158,15 @@ def _continuity(ncand, mx, am, sec, a2, expected, c0, choice):
 
 
 @njit(nogil=True, cache=True)
+def _cog_level(med, sig, p):
+    """The level ``cog`` weighs above for a peak ``p`` (DN) over a background ``med`` and a
+    noise ``sig``: it follows the peak and the noise whatever the threshold, since a fixed
+    threshold near a dim stripe's top leaves one or two pixels above it, and their centroid is
+    the brightest pixel's row (pixel locking)."""
+    return med + max(COG_SIGMAS * sig, COG_PEAK_FRACTION * (p - med))
+
+
+@njit(nogil=True, cache=True)
 def _whole_span(k0, k1, n):
     """Columns ``k0 <= j < k1`` of a read span ``n`` wide, widened to all of it when they
     cover half of it (a sequential stream: ``scanner_core.stripe_passes``)."""
@@ -204,6 +218,53 @@ def extract_kernel(img, c0, c1, method, auto, thr, window, max_width, auto_width
                     double_ratio, bg, policy, expected, use_window, rmin, rmax, fit_saturated,
                     med, sig, row, peak, width, reason, saturated, snr, n_peaks)
     return row, peak, width, reason, saturated, snr, n_peaks, med, sig, core
+
+
+@njit(nogil=True, cache=True)
+def _candidates(img, ca, js, je, mx, am, sec, a2, threshold, floor, max_walk, window, med, sig,
+                bg, double_ratio, use_window, rmin, rmax, min_width, ncand, wmain, nmain, ymain,
+                hist):
+    """Each column's candidates (``ncand``), the main one's width, count above the threshold
+    and centre of gravity, and the histogram of the widths; returns the widths counted.  A
+    function of its own, calling the two walks itself (through a function holding both, or
+    inside ``_columns``, the loop ran at half the speed or less)."""
+    h = img.shape[0]
+    stats = np.empty(3)
+    n_widths = 0
+    for j in range(js, je):
+        p = float(mx[j])
+        if not (p > threshold and p >= floor):
+            continue
+        ncand[j] = 1
+        c = ca + j
+        a = int(am[j])
+        level = 0.5 * (p + threshold)
+        t_cog = _cog_level(med, sig, p)
+        if window == UNROLLED_WINDOW:  # a constant: LLVM unrolls the loops over the window
+            fast = est.within_window(img, c, a, h, level, max_walk, threshold, UNROLLED_WINDOW,
+                                     t_cog, bg, stats)
+        else:
+            fast = est.within_window(img, c, a, h, level, max_walk, threshold, window, t_cog,
+                                     bg, stats)
+        if not fast:
+            est.width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
+                                max_walk, stats)
+        wd = stats[0]
+        wmain[j] = wd
+        nmain[j] = stats[1]
+        ymain[j] = stats[2]
+        s = float(sec[j])
+        if s > threshold and s >= floor and s >= double_ratio * p:
+            b = int(a2[j])
+            inside = not use_window or (b >= rmin[c] and b <= rmax[c])
+            apart = not math.isfinite(wd) or abs(b - a) > SEPARATE_SIGMAS * wd
+            if (inside and apart and b > 0 and b < h - 1 and img[b - 1, c] <= img[b, c]
+                    and img[b + 1, c] <= img[b, c]):
+                ncand[j] = 2
+        if p < SATURATION_DN and wd >= min_width and wd < WIDTH_CAP_PX:
+            hist[int(wd / WIDTH_BIN_PX)] += 1
+            n_widths += 1
+    return n_widths
 
 
 @njit(nogil=True, cache=True)
@@ -279,28 +340,14 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
         max_walk = int(math.ceil(max_width * FWHM_PER_SIGMA)) + 2
     ncand = np.zeros(n, np.int8)
     wmain = np.full(n, np.inf)
+    # the main peak's count above the threshold and its centre of gravity, read with its width
+    nmain = np.zeros(n)
+    ymain = np.full(n, np.nan)
+    stats = np.empty(3)
     hist = np.zeros(_WIDTH_BINS, np.int64)
-    n_widths = 0
-    for j in range(js, je):
-        p = float(mx[j])
-        if not (p > threshold and p >= floor):
-            continue
-        ncand[j] = 1
-        c = ca + j
-        a = int(am[j])
-        wd = est.fwhm_width(img, c, a, h, 0.5 * (p + threshold), max_walk)
-        wmain[j] = wd
-        s = float(sec[j])
-        if s > threshold and s >= floor and s >= double_ratio * p:
-            b = int(a2[j])
-            inside = not use_window or (b >= rmin[c] and b <= rmax[c])
-            apart = not math.isfinite(wd) or abs(b - a) > SEPARATE_SIGMAS * wd
-            if (inside and apart and b > 0 and b < h - 1 and img[b - 1, c] <= img[b, c]
-                    and img[b + 1, c] <= img[b, c]):
-                ncand[j] = 2
-        if p < SATURATION_DN and wd >= min_width and wd < WIDTH_CAP_PX:
-            hist[int(wd / WIDTH_BIN_PX)] += 1
-            n_widths += 1
+    n_widths = _candidates(img, ca, js, je, mx, am, sec, a2, threshold, floor, max_walk, window,
+                           med, sig, bg, double_ratio, use_window, rmin, rmax, min_width,
+                           ncand, wmain, nmain, ymain, hist)
     core = max_width
     linked = max_width
     if auto_width:
@@ -338,11 +385,13 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
         if choice[j] == 1:
             p = float(sec[j])
             a = int(a2[j])
-            wd = est.fwhm_width(img, c, a, h, 0.5 * (p + threshold), max_walk)
+            est.width_count_cog(img, c, a, h, 0.5 * (p + threshold), max_walk, threshold,
+                                window, _cog_level(med, sig, p), bg, max_walk, stats)
+            wd, above, y_cog = stats[0], stats[1], stats[2]
         else:
             p = float(mx[j])
             a = int(am[j])
-            wd = wmain[j]
+            wd, above, y_cog = wmain[j], nmain[j], ymain[j]
         peak[c] = p
         snr[c] = (p - med) / sig
         if p >= SATURATION_DN:
@@ -359,7 +408,7 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
             continue
         arow[j] = a
         wsel[j] = wd
-        if wd < min_width or est.count_above(img, c, a, h, threshold, window) < MIN_PIXELS_ABOVE:
+        if wd < min_width or above < MIN_PIXELS_ABOVE:
             if snr[c] < NARROW_MIN_SIGMAS:
                 reason[c] = 5  # TOO_NARROW
                 continue
@@ -378,10 +427,7 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
                 y = est.narrow_clip_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig,
                                            bg_sat)
         elif method == 0:
-            t_cog = threshold
-            if auto:
-                t_cog = med + max(AUTO_COG_SIGMAS * sig, AUTO_COG_PEAK_FRACTION * (p - med))
-            y = est.cog(img, c, a, h, t_cog, window, bg, max_walk)
+            y = y_cog
         elif method == 1:
             y = est.gaussian3(img, c, a, h, bg)
         elif method == 2:

@@ -168,3 +168,45 @@ def test_non_contiguous_image(reference_frame):
     img, _ = reference_frame
     view = img[:, ::2]
     assert_allclose(extract(view).row, extract(np.ascontiguousarray(view)).row, equal_nan=True)
+
+
+def _walks(img, am, threshold, t_cog, window, max_walk):
+    """Per column (width, count, centre) by the separate estimators and by the single walks
+    the kernel calls (``within_window``, else ``width_count_cog``)."""
+    from scanner_core import stripe_estimators as est
+
+    h = img.shape[0]
+    apart, single = [], []
+    out = np.empty(3)
+    for c in range(img.shape[1]):
+        a = int(am[c])
+        level = 0.5 * (float(img[a, c]) + threshold)
+        apart.append((est.fwhm_width(img, c, a, h, level, max_walk),
+                      est.count_above(img, c, a, h, threshold, window),
+                      est.cog(img, c, a, h, t_cog, window, np.nan, max_walk)))
+        if not est.within_window(img, c, a, h, level, max_walk, threshold, window, t_cog,
+                                 np.nan, out):
+            est.width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog,
+                                np.nan, max_walk, out)
+        single.append(tuple(out))
+    return np.array(apart), np.array(single)
+
+
+def test_single_walks_equal_the_separate_estimators():
+    # 200 frames of random stripes (sigma 0.3-8 px, peaks 5-300 DN, noise 0-8 DN, stripes at
+    # the frame's edges), levels and windows: the walks that read each pixel once give what
+    # the three estimators give one by one
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        h, w = 60, 120
+        r = np.arange(h)[:, None]
+        row = rng.uniform(-5, h + 5) + rng.normal(0, 3, w).cumsum() * 0.1
+        img = np.clip(np.round(rng.uniform(0, 40) + rng.uniform(5, 300)
+                               * np.exp(-0.5 * ((r - row) / rng.uniform(0.3, 8)) ** 2)
+                               + rng.normal(0, rng.uniform(0, 8), (h, w))), 0, 255).astype(np.uint8)
+        am = img.argmax(axis=0)
+        threshold = float(rng.uniform(0, 0.9) * img.max(axis=0).min())
+        t_cog = float(rng.uniform(0, 1) * threshold)
+        window, max_walk = int(rng.integers(2, 8)), int(rng.integers(3, 40))
+        apart, single = _walks(img, am, threshold, t_cog, window, max_walk)
+        assert_allclose(single, apart, rtol=0, atol=1e-9, equal_nan=True)
