@@ -58,6 +58,11 @@ _POLICY_CODE = {name: i for i, name in enumerate(POLICIES)}
 SIGNALS = ("auto", "mono", "red", "green", "blue", "red_excess", "green_excess", "blue_excess",
            "colour_excess")
 _CHANNEL = {"red": 0, "green": 1, "blue": 2}
+#: A colour excess is stored this much above zero: a grey surface's excess is zero give or
+#: take the noise, and clipped at zero the noise's lower half would be lost with it (the
+#: frame's noise estimate, which the stripe's floors and levels stand on, would read a
+#: chroma-subsampled JPEG's structured noise as none).
+EXCESS_OFFSET_DN = 16
 #: Bayer mosaics by their first row's first two pixels and the second row's first (RGGB: red
 #: at (0, 0)), and the OpenCV conversion that demosaics each (OpenCV names a mosaic by its
 #: second row's second and third pixels).
@@ -245,8 +250,9 @@ def stripe_signal(frame, signal="auto", *, bayer=None) -> np.ndarray:
         One of ``SIGNALS``. ``"auto"`` (default): a mono frame as it is, a colour one (or a
         mosaic) its ``"colour_excess"``. ``"mono"``: a mono frame as it is (a colour one is
         refused). ``"red"``, ``"green"``, ``"blue"``: that channel. ``"red_excess"``,
-        ``"green_excess"``, ``"blue_excess"``: that channel's excess, rounded half up and
-        clipped to [0, 255]. ``"colour_excess"``: the largest of the three.
+        ``"green_excess"``, ``"blue_excess"``: that channel's excess, rounded half up, plus
+        ``EXCESS_OFFSET_DN``, clipped to [0, 255], and full scale where the channel itself is
+        (its excess is unknown there). ``"colour_excess"``: the largest of the three.
     bayer : str, optional
         The frame is a raw mosaic with this pattern (one of ``BAYER_PATTERNS``): it is
         demosaiced (OpenCV's bilinear demosaicing) first.
@@ -295,7 +301,7 @@ def stripe_signal(frame, signal="auto", *, bayer=None) -> np.ndarray:
 
 @njit(nogil=True, cache=True)
 def _colour_excess(rgb, which, out):
-    """``out = clip(round_half_up(v_k - (v_i + v_j) / 2), 0, 255)`` for channel ``which``, or
+    """``out = clip(round_half_up(v_k - (v_i + v_j) / 2) + EXCESS_OFFSET_DN, 0, 255)`` for channel ``which``, or
     the largest of the three excesses for ``which = -1``; integer arithmetic."""
     h, w = out.shape
     for r in range(h):
@@ -311,21 +317,28 @@ def _colour_excess(rgb, which, out):
                 e2 = 2 * v2 - v0 - v1
             else:
                 e2 = max(2 * v0 - v1 - v2, 2 * v1 - v0 - v2, 2 * v2 - v0 - v1)
-            e = (e2 + 1) >> 1
+            e = ((e2 + 1) >> 1) + EXCESS_OFFSET_DN
+            # where the laser's channel is clipped its excess is unknown, and the brighter the
+            # line the more the others' crosstalk hides it: censored at full scale
+            if which == 0 and v0 == 255 or which == 1 and v1 == 255 or which == 2 and v2 == 255:
+                e = 255
+            elif which == -1 and max(v0, v1, v2) == 255:
+                e = 255
             out[r, c] = np.uint8(min(max(e, 0), 255))
 
 
 def estimate_noise(image) -> tuple[float, float]:
     """Robust background level and noise of a frame from a sparse subsample of its pixels.
 
-    A run of ``stripe_passes.NOISE_RUN_PX`` pixels in every ``NOISE_ROW_STEP``-th row (the runs spread over
-    the width) is histogrammed; the background is the median and the noise
-    (median - lower quartile) / 0.6745, the sigma of a normal distribution with that spread (the
-    lower half because stripe and marker pixels are all bright), both read off the histogram
-    with linear interpolation inside the integer bins (grouped-data quantiles), so that a 3 DN
-    noise is not quantised to whole DN.  The stripe covers well under 1 % of the rows and
-    barely moves the quartiles; a smooth ambient gradient widens the spread and raises the
-    floors, which is the safe side.
+    A run of ``stripe_passes.NOISE_RUN_PX`` pixels in every ``NOISE_ROW_STEP``-th row (the runs
+    spread over the width) is histogrammed, and so are the differences of its pixels
+    ``NOISE_LAG`` columns apart. The background is the values' median; the noise is the
+    differences' median over ``0.6745 sqrt(2)`` (two pixels' independent noise of sigma
+    ``s`` differ by a half-normal of scale ``s sqrt(2)``), both read off the histograms with
+    linear interpolation inside the integer bins (grouped-data quantiles), so that a 3 DN
+    noise is not quantised to whole DN. The stripe runs along the rows and barely changes
+    between neighbouring columns; a printed texture, an ambient gradient or a bright part
+    changes only at its edges, so the noise is the sensor's, not the scene's spread.
 
     Parameters
     ----------

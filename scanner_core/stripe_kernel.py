@@ -83,6 +83,15 @@ AUTO_MIN_PEAK_SIGMAS = 5.0
 COG_SIGMAS = 2.8
 COG_PEAK_FRACTION = 0.05
 
+# A peak's background is read beside it (``local_background``), first window + 2 and
+# 2 * window + 2 rows out; where the peak turns out wider, BACKGROUND_CLEAR_SIGMAS of its
+# sigma-like width and BACKGROUND_FAR_RATIO times that out (a Gaussian is down to 4 % and
+# 0.04 % of its peak there), at most BACKGROUND_ROUNDS times: a blob of sigma 10 px reads its
+# own flank first, and its background by the third round.
+BACKGROUND_CLEAR_SIGMAS = 2.5
+BACKGROUND_FAR_RATIO = 1.6
+BACKGROUND_ROUNDS = 4
+
 # The peak's width, count and centroid are read with the window a compile-time constant when
 # ``window`` is this (the default): the loops over it unrolled, the candidates' pass took half
 # the time.
@@ -158,6 +167,33 @@ def _continuity(ncand, mx, am, sec, a2, expected, c0, choice):
 
 
 @njit(nogil=True, cache=True)
+def local_background(img, c, a, h, near, far, frame_bg):
+    """The background a peak at row ``a`` of column ``c`` stands on, DN.
+
+    On each side the lower of the pixels ``near`` and ``far`` rows out, and the higher of the
+    two sides: the stripe must stand clear of what lies on both sides of it (a JPEG's chroma
+    spread about a coloured line, a bright surface beside it, a texture's edge), not only of
+    the frame's typical level ``frame_bg``, which it never goes under: two pixels are a noisy
+    estimate, and under the frame's level a column of noise alone would pass for a stripe now
+    and then (a dark part in a bright frame still shows its stripe above the frame's level)."""
+    left = right = -1.0
+    if a - far >= 0:
+        left = float(min(img[a - near, c], img[a - far, c]))
+    if a + far <= h - 1:
+        right = float(min(img[a + near, c], img[a + far, c]))
+    return max(frame_bg, left, right)
+
+
+@njit(nogil=True, cache=True)
+def _levels(auto, thr, b, sig):
+    """A column's threshold and peak floor over its background ``b``: ``b + AUTO_*_SIGMAS *
+    sig`` with ``auto``, else the fixed ``thr`` for both."""
+    if auto:
+        return b + AUTO_THRESHOLD_SIGMAS * sig, b + AUTO_MIN_PEAK_SIGMAS * sig
+    return thr, thr
+
+
+@njit(nogil=True, cache=True)
 def _cog_level(med, sig, p):
     """The level ``cog`` weighs above for a peak ``p`` (DN) over a background ``med`` and a
     noise ``sig``: it follows the peak and the noise whatever the threshold, since a fixed
@@ -221,34 +257,54 @@ def extract_kernel(img, c0, c1, method, auto, thr, window, max_width, auto_width
 
 
 @njit(nogil=True, cache=True)
-def _candidates(img, ca, js, je, mx, am, sec, a2, threshold, floor, max_walk, window, med, sig,
-                bg, double_ratio, use_window, rmin, rmax, min_width, ncand, wmain, nmain, ymain,
-                hist):
-    """Each column's candidates (``ncand``), the main one's width, count above the threshold
-    and centre of gravity, and the histogram of the widths; returns the widths counted.  A
-    function of its own, calling the two walks itself (through a function holding both, or
-    inside ``_columns``, the loop ran at half the speed or less)."""
+def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, max_walk, window,
+                med, sig, bg, double_ratio, use_window, rmin, rmax, min_width, ncand, wmain,
+                nmain, ymain, bloc, tloc, hist):
+    """Each column's local background (``bloc``) and threshold (``tloc``), its candidates
+    (``ncand``), the main one's width, count above the threshold and centre of gravity, and the
+    histogram of the widths; returns the widths counted.  A function of its own, calling the
+    two walks itself (through a function holding both, or inside ``_columns``, the loop ran at
+    half the speed or less)."""
     h = img.shape[0]
     stats = np.empty(3)
     n_widths = 0
     for j in range(js, je):
         p = float(mx[j])
-        if not (p > threshold and p >= floor):
-            continue
-        ncand[j] = 1
         c = ca + j
         a = int(am[j])
-        level = 0.5 * (p + threshold)
-        t_cog = _cog_level(med, sig, p)
-        if window == UNROLLED_WINDOW:  # a constant: LLVM unrolls the loops over the window
-            fast = est.within_window(img, c, a, h, level, max_walk, threshold, UNROLLED_WINDOW,
-                                     t_cog, bg, stats)
-        else:
-            fast = est.within_window(img, c, a, h, level, max_walk, threshold, window, t_cog,
-                                     bg, stats)
-        if not fast:
-            est.width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
-                                max_walk, stats)
+        near, far = window + 2, 2 * window + 2
+        b = local_background(img, c, a, h, near, far, med)
+        for _ in range(BACKGROUND_ROUNDS):
+            t_c, f_c = _levels(auto, thr, b, sig)
+            bloc[j] = b
+            tloc[j] = t_c
+            if not (p > t_c and p >= f_c):
+                break
+            level = 0.5 * (p + t_c)
+            t_cog = _cog_level(b, sig, p)
+            if window == UNROLLED_WINDOW:  # a constant: LLVM unrolls the loops over the window
+                fast = est.within_window(img, c, a, h, level, max_walk, t_c, UNROLLED_WINDOW,
+                                         t_cog, bg, stats)
+            else:
+                fast = est.within_window(img, c, a, h, level, max_walk, t_c, window, t_cog,
+                                         bg, stats)
+            if not fast:
+                est.width_count_cog(img, c, a, h, level, max_walk, t_c, window, t_cog, bg,
+                                    max_walk, stats)
+            # a peak wider than the background's pixels are far: they lay on its flanks, read
+            # the background past them
+            reach = BACKGROUND_CLEAR_SIGMAS * stats[0]
+            if not reach > near or not math.isfinite(reach):
+                break
+            near = int(math.ceil(reach))
+            far = int(math.ceil(BACKGROUND_FAR_RATIO * reach))
+            b_out = local_background(img, c, a, h, near, far, med)
+            if b_out == b:
+                break
+            b = b_out
+        if not (p > t_c and p >= f_c):
+            continue
+        ncand[j] = 1
         wd = stats[0]
         wmain[j] = wd
         nmain[j] = stats[1]
@@ -345,9 +401,11 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
     ymain = np.full(n, np.nan)
     stats = np.empty(3)
     hist = np.zeros(_WIDTH_BINS, np.int64)
-    n_widths = _candidates(img, ca, js, je, mx, am, sec, a2, threshold, floor, max_walk, window,
-                           med, sig, bg, double_ratio, use_window, rmin, rmax, min_width,
-                           ncand, wmain, nmain, ymain, hist)
+    bloc = np.full(n, med)
+    tloc = np.full(n, threshold)
+    n_widths = _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor,
+                           max_walk, window, med, sig, bg, double_ratio, use_window, rmin, rmax,
+                           min_width, ncand, wmain, nmain, ymain, bloc, tloc, hist)
     core = max_width
     linked = max_width
     if auto_width:
@@ -372,28 +430,37 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
     arow = np.zeros(n, np.int64)
     wsel = np.full(n, np.inf)
     yrow = np.full(n, np.nan)
-    bg_sat = med if math.isnan(bg) else bg
     for j in range(js, je):
         c = ca + j
         n_peaks[c] = ncand[j]
         if ncand[j] == 0:
             peak[c] = float(mx[j])
-            snr[c] = (float(mx[j]) - med) / sig
+            snr[c] = (float(mx[j]) - bloc[j]) / sig
             o = float(out[j])
             reason[c] = 8 if (o > threshold and o >= floor) else 1  # OUTSIDE_WINDOW / NO_PEAK
             continue
         if choice[j] == 1:
             p = float(sec[j])
             a = int(a2[j])
-            est.width_count_cog(img, c, a, h, 0.5 * (p + threshold), max_walk, threshold,
-                                window, _cog_level(med, sig, p), bg, max_walk, stats)
+            b = local_background(img, c, a, h, window + 2, 2 * window + 2, med)
+            t_c, f_c = _levels(auto, thr, b, sig)
+            if not (p > t_c and p >= f_c):  # the reflection does not stand clear of its own
+                peak[c] = p                 # background
+                snr[c] = (p - b) / sig
+                reason[c] = 1  # NO_PEAK
+                continue
+            est.width_count_cog(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c, window,
+                                _cog_level(b, sig, p), bg, max_walk, stats)
             wd, above, y_cog = stats[0], stats[1], stats[2]
         else:
             p = float(mx[j])
             a = int(am[j])
+            b = bloc[j]
+            t_c = tloc[j]
             wd, above, y_cog = wmain[j], nmain[j], ymain[j]
         peak[c] = p
-        snr[c] = (p - med) / sig
+        snr[c] = (p - b) / sig
+        bg_sat = b if math.isnan(bg) else bg
         if p >= SATURATION_DN:
             if not fit_saturated:
                 reason[c] = 2  # SATURATED
@@ -435,8 +502,8 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
         elif method == 3:
             y = est.blais_rioux(img, c, a, h)
         else:
-            y0 = est.cog(img, c, a, h, threshold, window, math.nan, max_walk)
-            y = est.lsq_gauss(img, c, a, h, threshold, window, y0, wd) if math.isfinite(y0) else y0
+            y0 = est.cog(img, c, a, h, t_c, window, math.nan, max_walk)
+            y = est.lsq_gauss(img, c, a, h, t_c, window, y0, wd) if math.isfinite(y0) else y0
         yrow[j] = y
     # the gates: a narrow peak continued by a neighbour's, a wide one by a chain of them from a
     # stripe within the gate

@@ -35,6 +35,13 @@ NOISE_ROW_STEP = 16
 NOISE_RUN_PX = 64
 # Median minus lower quartile of a normal distribution in sigmas: Phi^-1(0.75).
 HALF_IQR_PER_SIGMA = 0.6744897501960817
+# The noise is read from the differences of pixels this many columns apart along a row: the
+# stripe runs along the rows and barely changes between them, a printed texture or an ambient
+# gradient changes only at its edges (a spread of the values themselves counts the texture as
+# noise), and two columns apart the neighbours share less of a demosaicing's or a JPEG's
+# smoothing than adjacent ones.
+NOISE_LAG = 2
+SQRT2 = 1.4142135623730951
 # Smallest noise accepted (DN): below it the floors would sit within the 1 DN quantisation.
 MIN_NOISE_DN = 1.0
 #: A strip of columns at least this share of the frame's width is read as whole rows (see the
@@ -58,10 +65,11 @@ def quantile_from_hist(hist, total, p):
 
 @njit(nogil=True, cache=True)
 def noise_estimate(img):
-    """(median, (median - lower quartile) / 0.6745) of a sparse subsample, DN; see
+    """(median, noise sigma) of a sparse subsample, DN; see
     ``scanner_core.stripe.estimate_noise``."""
     h, w = img.shape
     hist = np.zeros(256, np.int64)
+    diffs = np.zeros(256, np.int64)
     run = min(NOISE_RUN_PX, w)
     k = 0
     for r in range(NOISE_ROW_STEP // 2, h, NOISE_ROW_STEP):
@@ -69,19 +77,46 @@ def noise_estimate(img):
         # each cost a cache miss), its start stepping across the width by the golden ratio
         c_start = int(((k * 0.6180339887498949) % 1.0) * (w - run + 1))
         k += 1
-        for c in range(c_start, c_start + run):
-            hist[img[r, c]] += 1
+        _sample_run(img, r, c_start, c_start + run, hist, diffs)
     total = float(hist.sum())
     if total == 0.0:  # frames smaller than one step: every pixel
         for r in range(h):
-            for c in range(w):
-                hist[img[r, c]] += 1
+            _sample_run(img, r, 0, w, hist, diffs)
         total = float(hist.sum())
     med = quantile_from_hist(hist, total, 0.5)
-    # the lower half only: every stripe or marker pixel in the sample is bright, so the lower
-    # quartile moves far less than the upper one when they are many (a short frame, a wide stripe)
-    low = med - quantile_from_hist(hist, total, 0.25)
-    return med, max(low / HALF_IQR_PER_SIGMA, MIN_NOISE_DN)
+    n_diffs = float(diffs.sum())
+    if n_diffs == 0.0:
+        # too narrow for a difference: the lower half of the values (every stripe or marker
+        # pixel is bright, so the lower quartile moves far less than the upper one)
+        low = med - quantile_from_hist(hist, total, 0.25)
+        return med, max(low / HALF_IQR_PER_SIGMA, MIN_NOISE_DN)
+    # |v(c + NOISE_LAG) - v(c)| of two pixels with independent noise sigma is half-normal of
+    # scale sigma * sqrt(2): its median is 0.6745 sigma sqrt(2). The first bin holds [0, 0.5)
+    # only (the differences are >= 0).
+    target = 0.5 * n_diffs
+    cum = float(diffs[0])
+    if cum >= target:
+        m = 0.5 * target / cum
+    else:
+        m = diffs.shape[0] - 0.5
+        for j in range(1, diffs.shape[0]):
+            hk = float(diffs[j])
+            if hk > 0.0 and cum + hk >= target:
+                m = j - 0.5 + (target - cum) / hk
+                break
+            cum += hk
+    return med, max(m / (HALF_IQR_PER_SIGMA * SQRT2), MIN_NOISE_DN)
+
+
+@njit(nogil=True, cache=True)
+def _sample_run(img, r, c0, c1, hist, diffs):
+    """Row ``r``'s pixels ``c0 <= c < c1`` into ``hist`` and their differences ``NOISE_LAG``
+    columns apart into ``diffs``."""
+    for c in range(c0, c1):
+        hist[img[r, c]] += 1
+    for c in range(c0, c1 - NOISE_LAG):
+        d = np.int32(img[r, c + NOISE_LAG]) - np.int32(img[r, c])
+        diffs[abs(d)] += 1
 
 
 @njit(nogil=True, cache=True)
