@@ -6,7 +6,7 @@ target's plane in the camera, so the stripe on it must be a straight line in the
 image and, over a set's photographs, its points must lie on one light plane. Per photograph
 the laser's signal is its colour excess (``scanner_core.stripe.stripe_signal``, the same for
 both methods); flyscan's ``extract`` with its defaults is scored beside a naive peak finder (per
-column, the argmax and a 3-point parabola, where the argmax reaches ``BASELINE_DN``).
+column, the argmax and a 3-point parabola, where the argmax reaches ``BASELINE_DN`` of excess).
 
 Per set: the profiles on the target (columns where the line crosses it), the share of them each
 method measures, the RMS about the line (px, undistorted) and about the light plane (um, where
@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from benchmarks.results import write_json
-from scanner_core.stripe import extract, stripe_signal
+from scanner_core.stripe import EXCESS_OFFSET_DN, extract, stripe_signal
 
 __all__ = ["PhotoSet", "SETS", "baseline_rows", "score_set", "run"]
 
@@ -299,8 +299,10 @@ def score_photo(rgb, ps: PhotoSet, rvec, tvec, k, dist) -> dict | None:
     if ps.along == "columns":
         signal = np.ascontiguousarray(signal.T)
     res = extract(signal)
+    # the peak finder's gate counts from the excess's zero, as on the bare excess
+    offset = EXCESS_OFFSET_DN if "excess" in (ps.signal or "excess") else 0.0
     methods = {"flyscan": np.where(res.valid, res.row, np.nan).astype(np.float64),
-               "baseline": baseline_rows(signal)}
+               "baseline": baseline_rows(signal, BASELINE_DN + offset)}
     outline = _outline(ps, rvec, tvec, k, dist)
     f_k = k[0, 0]  # undistorted distances in pixels of the camera's focal length
 

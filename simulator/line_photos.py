@@ -34,6 +34,10 @@ RAMP_START = 0.7
 #: laser at 650 nm: the green filter's tail, the blue filter's smaller one).
 GREEN_CROSSTALK = 0.08
 BLUE_CROSSTALK = 0.02
+#: A colour camera's response (red, green, blue) to a laser of each colour: its own channel,
+#: and the neighbouring filters' tails (a 650 nm red laser; a 532 nm green one, which the
+#: blue filter's tail passes more of than the red's).
+LASER_RGB = {"red": (1.0, GREEN_CROSSTALK, BLUE_CROSSTALK), "green": (0.10, 1.0, 0.15)}
 
 
 @dataclass(frozen=True)
@@ -68,7 +72,11 @@ class LinePhoto:
         and ``BLUE_CROSSTALK`` of it), demosaiced by OpenCV; the image returned is the red
         channel of the BGR result (a strided view, as a user takes it).
     jpeg_quality : int
-        0: none; else the BGR (or grey) frame goes through JPEG at this quality first.
+        0: none; else the BGR (or grey) frame goes through JPEG at this quality first (a colour
+        frame with OpenCV's default 4:2:0 chroma subsampling: the colour at half resolution).
+    laser : str
+        ``""``: a mono frame; ``"red"`` or ``"green"``: an RGB frame (H, W, 3) of that laser
+        (``LASER_RGB``) over grey surfaces, each channel with its own read noise.
     sigma_profile : str
         ``"sine"``: the width varies as a sine over ``sigma_period_px`` columns; ``"ramp"``: it
         stays at the first of ``sigma_px`` over the first ``RAMP_START`` of the columns, then
@@ -92,6 +100,7 @@ class LinePhoto:
     speckle_grain_px: float = 1.5
     bayer: bool = False
     jpeg_quality: int = 0
+    laser: str = ""
     sigma_profile: str = "sine"
     sigma_period_px: float = 400.0
     row_amplitude_px: float = 40.0
@@ -129,7 +138,7 @@ def render_line_photo(photo: LinePhoto, rng: np.random.Generator):
 
     Returns
     -------
-    image : (H, W) uint8
+    image : (H, W) uint8, or (H, W, 3) uint8 RGB with ``photo.laser``
     truth : LineTruth
     """
     h, w = int(photo.height), int(photo.width)
@@ -158,6 +167,8 @@ def render_line_photo(photo: LinePhoto, rng: np.random.Generator):
                       present=peak >= PRESENT_SNR * photo.read_noise_dn)
     if photo.bayer:
         return _through_bayer(photo, stripe, ambient, rng), truth
+    if photo.laser:
+        return _in_colour(photo, stripe, ambient, rng), truth
     image = photo.background_dn + ambient + stripe + rng.normal(0.0, photo.read_noise_dn, (h, w))
     image = np.clip(np.round(image), 0, 255).astype(np.uint8)
     if photo.jpeg_quality:
@@ -202,6 +213,20 @@ def _through_bayer(photo: LinePhoto, stripe, ambient, rng) -> np.ndarray:
     if photo.jpeg_quality:
         bgr = _jpeg(bgr, photo.jpeg_quality)
     return bgr[:, :, 2]
+
+
+def _in_colour(photo: LinePhoto, stripe, ambient, rng) -> np.ndarray:
+    """The RGB frame of a ``photo.laser`` laser over grey surfaces under white light."""
+    if photo.laser not in LASER_RGB:
+        raise ValueError(f"`laser` must be one of {tuple(LASER_RGB)} or '', got {photo.laser!r}")
+    h, w = stripe.shape
+    rgb = np.stack([photo.background_dn + ambient + gain * stripe
+                    + rng.normal(0.0, photo.read_noise_dn, (h, w))
+                    for gain in LASER_RGB[photo.laser]], axis=-1)
+    rgb = np.clip(np.round(rgb), 0, 255).astype(np.uint8)
+    if photo.jpeg_quality:
+        rgb = _jpeg(rgb[:, :, ::-1].copy(), photo.jpeg_quality)[:, :, ::-1]
+    return np.ascontiguousarray(rgb)
 
 
 def _jpeg(image: np.ndarray, quality: int) -> np.ndarray:

@@ -1,0 +1,154 @@
+"""The stripe on frames like the photographs where it once failed: a dim line over a quiet
+floor, a colour camera's line through JPEG's 4:2:0 chroma, a printed checkerboard, a bright
+surface; against the drawn line (``simulator.line_photos``) and beside the naive peak finder
+of ``flyscan bench real`` (per column the argmax and a 3-point parabola)."""
+
+import numpy as np
+import pytest
+
+from benchmarks.real_photos import BASELINE_DN, baseline_rows
+from scanner_core.stripe import BAYER_PATTERNS, EXCESS_OFFSET_DN, extract, stripe_signal
+from simulator.line_photos import LinePhoto, render_line_photo
+
+SEEDS = (0, 1, 2)
+# Share of the rows within 0.02 px of a whole pixel that an unbiased estimator leaves (4 %),
+# with the sampling spread of ~1900 rows.
+WHOLE_PIXEL_MAX = 0.055
+# A dim line as the photographs showed it: peaks of 15-30 DN over 1 DN of noise.
+DIM = dict(background_dn=4.0, read_noise_dn=1.0, sigma_px=(0.8, 1.6))
+
+
+def _measure(photo: LinePhoto, threshold="auto", signal="auto"):
+    """Over SEEDS, per method (flyscan's ``extract``, the baseline): the share of the columns
+    holding a stripe that are measured, the RMS error (px) over the columns both methods
+    measure within 3 px of the line, the share of its measured columns more than 1 px off,
+    the share of the columns holding a stripe it gets within 0.5 px, the share of its rows
+    within 0.02 px of a whole pixel, and its false columns (a row where no stripe is)."""
+    rows = {"flyscan": [], "baseline": []}
+    truths = []
+    for seed in SEEDS:
+        frame, truth = render_line_photo(photo, np.random.default_rng(seed))
+        image = frame if frame.ndim == 2 else stripe_signal(frame, signal)
+        res = extract(image, threshold=threshold)
+        gate = BASELINE_DN + (EXCESS_OFFSET_DN if frame.ndim == 3 else 0.0)
+        rows["flyscan"].append(np.where(res.valid, res.row, np.nan).astype(np.float64))
+        rows["baseline"].append(baseline_rows(image, gate))
+        truths.append(truth)
+    line = np.concatenate([t.row for t in truths])
+    present = np.concatenate([t.present for t in truths])
+    r = {k: np.concatenate(v) for k, v in rows.items()}
+    err = {k: v - line for k, v in r.items()}
+    common = present & np.all([np.abs(e) <= 3.0 for e in err.values()], axis=0)
+    figures = []
+    for name in ("flyscan", "baseline"):
+        ok = np.isfinite(r[name]) & present
+        e = err[name]
+        figures.append({"measured": float(ok.sum() / present.sum()),
+                        "rms": float(np.sqrt(np.mean(e[common] ** 2))),
+                        "beyond_1px": float(np.mean(np.abs(e[ok]) > 1.0)),
+                        "within_half": float(np.mean(np.abs(e[present]) <= 0.5)),
+                        "whole_pixel": float(np.mean(np.abs(r[name][ok]
+                                                            - np.round(r[name][ok])) < 0.02)),
+                        "false": int((np.isfinite(r[name]) & ~present).sum())})
+    return figures
+
+
+@pytest.mark.parametrize("peak_dn", [15.0, 30.0])
+def test_a_dim_line_over_a_quiet_floor_is_a_stripe(peak_dn):
+    """15 and 30 DN over 1 DN of noise (what a dark part shows): with the defaults every
+    column measured, none false, no pixel locking, better than the naive peak finder."""
+    fly, base = _measure(LinePhoto(peak_dn=peak_dn, **DIM))
+    assert fly["measured"] >= 0.995
+    assert fly["false"] == 0
+    assert fly["whole_pixel"] <= WHOLE_PIXEL_MAX
+    assert fly["rms"] < 0.8 * base["rms"]
+
+
+def test_no_pixel_locking_under_a_fixed_threshold():
+    """A fixed 20 DN threshold near a 30 DN line's top leaves one or two pixels above it:
+    the centre still comes from the line's shape, not the brightest pixel's row (which 13 %
+    of the rows sat within 0.02 px of when the threshold weighed the centroid)."""
+    fly, _ = _measure(LinePhoto(peak_dn=30.0, **DIM), threshold=20.0)
+    assert fly["whole_pixel"] <= WHOLE_PIXEL_MAX
+
+
+@pytest.mark.parametrize("photo", [
+    LinePhoto(laser="green", peak_dn=30.0, jpeg_quality=90, **DIM),
+    pytest.param(
+        LinePhoto(laser="green", peak_dn=160.0, background_dn=10.0, read_noise_dn=2.0,
+                  sigma_px=(1.0, 2.0), texture_px=24.0, black_reflectance=0.3, ambient_dn=60.0,
+                  jpeg_quality=85),
+        marks=pytest.mark.xfail(strict=True, reason="the chroma spread to one side of the line "
+                                "is weighed with it: RMS 0.573 against the peak finder's "
+                                "0.538 px (docs/stripe.md, real photographs)")),
+    LinePhoto(laser="red", peak_dn=180.0, read_noise_dn=2.0, sigma_px=(1.5, 3.0),
+              jpeg_quality=95, height=768, width=1152),
+], ids=["dim-green-jpeg", "green-checkerboard-jpeg", "red-jpeg"])
+def test_a_colour_line_through_jpeg(photo):
+    """A colour camera's line through JPEG (4:2:0: the colour excess at half resolution),
+    dim, over a printed checkerboard under ambient light, or bright and red: every column
+    measured, and against the naive peak finder on the same colour excess a smaller RMS,
+    fewer rows off by more than 1 px, no fewer within 0.5 px."""
+    fly, base = _measure(photo)
+    assert fly["measured"] >= 0.995
+    assert fly["false"] == 0
+    assert fly["rms"] < base["rms"]
+    assert fly["beyond_1px"] <= base["beyond_1px"]
+    assert fly["within_half"] >= base["within_half"]
+    assert fly["whole_pixel"] <= WHOLE_PIXEL_MAX
+
+
+def test_a_stripe_on_a_bright_surface():
+    """A line 50 DN over a surface at 190 DN (a white part under ambient light): it stands
+    clear of its own background, not of a fixed level, and is measured whole."""
+    fly, _ = _measure(LinePhoto(peak_dn=50.0, background_dn=10.0, ambient_dn=180.0,
+                                sigma_px=(1.0, 2.0)))
+    assert fly["measured"] >= 0.995
+    assert fly["false"] == 0
+    assert fly["rms"] < 0.1
+
+
+def test_colour_excess():
+    """``v_k - (v_i + v_j) / 2`` rounded half up, kept EXCESS_OFFSET_DN above zero (a grey
+    pixel's excess there), clipped to [0, 255], full scale where the channel itself is."""
+    rgb = np.array([[[10, 50, 11], [100, 100, 100], [0, 0, 255], [255, 240, 250],
+                     [255, 0, 0]]], np.uint8)
+    assert stripe_signal(rgb, "green_excess").tolist() == [[56, 16, 0, 4, 0]]
+    assert stripe_signal(rgb, "red_excess").tolist() == [[0, 16, 0, 255, 255]]
+    assert stripe_signal(rgb, "blue_excess").tolist() == [[0, 16, 255, 19, 0]]
+    # auto on a colour frame: the largest excess (censored wherever a channel clips)
+    assert stripe_signal(rgb).tolist() == [[56, 16, 255, 255, 255]]
+    assert stripe_signal(rgb, "green").tolist() == [[50, 100, 0, 240, 0]]
+    mono = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    assert stripe_signal(mono) is mono
+
+
+@pytest.mark.parametrize("pattern", sorted(BAYER_PATTERNS))
+def test_a_bayer_mosaic_is_demosaiced_before_its_excess(pattern):
+    """A red patch on grey through each mosaic: its red excess stands out where it is."""
+    h, w = 32, 32
+    rgb = np.full((h, w, 3), 60, np.uint8)
+    rgb[8:24, 8:24] = (200, 40, 40)
+    raw = np.empty((h, w), np.uint8)
+    channel = {"R": 0, "G": 1, "B": 2}
+    for i, (dr, dc) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+        raw[dr::2, dc::2] = rgb[dr::2, dc::2, channel[pattern[i]]]
+    red = stripe_signal(raw, "red_excess", bayer=pattern).astype(int)
+    assert red[12:20, 12:20].min() > 140 + EXCESS_OFFSET_DN
+    assert np.abs(red[:4, :4] - EXCESS_OFFSET_DN).max() <= 2
+
+
+def test_stripe_signal_refuses_what_it_cannot_read():
+    rgb = np.zeros((4, 4, 3), np.uint8)
+    with pytest.raises(ValueError, match="signal"):
+        stripe_signal(rgb, "infrared")
+    with pytest.raises(ValueError, match="mono"):
+        stripe_signal(rgb, "mono")
+    with pytest.raises(ValueError, match="colour frame"):
+        stripe_signal(np.zeros((4, 4), np.uint8), "green_excess")
+    with pytest.raises(ValueError, match="uint8"):
+        stripe_signal(rgb.astype(np.uint16))
+    with pytest.raises(ValueError, match="bayer"):
+        stripe_signal(np.zeros((4, 4), np.uint8), bayer="RGBG")
+    with pytest.raises(ValueError, match="Bayer mosaic is"):
+        stripe_signal(rgb, bayer="RGGB")
