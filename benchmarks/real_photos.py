@@ -5,7 +5,8 @@ photograph (its corners or dots found by OpenCV, ``solvePnP`` with the set's cam
 target's plane in the camera, so the stripe on it must be a straight line in the undistorted
 image and, over a set's photographs, its points must lie on one light plane. Per photograph
 the laser's signal is its colour excess (``scanner_core.stripe.stripe_signal``, the same for
-both methods); flyscan's ``extract`` with its defaults is scored beside a naive peak finder (per
+both methods); flyscan's ``extract`` as the pipeline calls it on a colour frame (its defaults
+and ``shoulders``) is scored beside a naive peak finder (per
 column, the argmax and a 3-point parabola, where the argmax reaches ``BASELINE_DN`` of excess).
 
 Per set: the profiles on the target (columns where the line crosses it), the share of them each
@@ -298,7 +299,7 @@ def score_photo(rgb, ps: PhotoSet, rvec, tvec, k, dist) -> dict | None:
     signal = stripe_signal(rgb, ps.signal or f"{ps.laser}_excess")
     if ps.along == "columns":
         signal = np.ascontiguousarray(signal.T)
-    res = extract(signal)
+    res = extract(signal, shoulders=True)  # a colour frame's, as the pipeline measures it
     # the peak finder's gate counts from the excess's zero, as on the bare excess
     offset = EXCESS_OFFSET_DN if "excess" in (ps.signal or "excess") else 0.0
     methods = {"flyscan": np.where(res.valid, res.row, np.nan).astype(np.float64),

@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from scanner_core import marker as marker_mod
@@ -30,7 +31,8 @@ from scanner_core.types import Frame, MarkerObservation, Profile
 from scanner_core.window import volume_rows
 
 __all__ = ["PipelineParams", "observe_marker", "MarkerTracker", "marker_in_view",
-           "frame_stripe", "process_frame", "warm_up", "MASK_ROW_FACTOR"]
+           "marker_image", "stripe_image", "frame_stripe", "process_frame", "warm_up",
+           "MASK_ROW_FACTOR"]
 
 #: The marker's mask spans this many times ``marker_mask_px`` along the columns: the blob's
 #: halo reaches farther along a column than the stripe's rows vary across a few columns.
@@ -109,6 +111,15 @@ class PipelineParams:
     trigger : TriggerParams
     edges : scanner_core.edges.EdgeParams
         Drop-out and step detection along each profile.
+    stripe_signal : str
+        What the stripe is looked for in (``scanner_core.stripe.stripe_signal``): a mono frame
+        as it is, and by default (``"auto"``) a colour frame's (or a mosaic's) largest colour
+        excess, measured with ``shoulders`` (its chroma, which JPEG's 4:2:0 and demosaicing
+        spread about the line); or a channel, or one colour's excess. The LED marker is looked
+        for in the frame's grey (``marker_image``).
+    bayer : str or None
+        The camera's frames are raw Bayer mosaics with this pattern
+        (``scanner_core.stripe.BAYER_PATTERNS``), demosaiced for both.
     partly_lit_ratio : float
         A point dimmer than this share of the same place in the one neighbouring profile that
         sees it was lit for part of the exposure (its surface reached or left the sheet
@@ -135,11 +146,36 @@ class PipelineParams:
     exposure: ExposureParams = field(default_factory=ExposureParams)
     trigger: TriggerParams = field(default_factory=TriggerParams)
     edges: EdgeParams = field(default_factory=EdgeParams)
+    stripe_signal: str = "auto"
+    bayer: str | None = None
     partly_lit_ratio: float = 0.5
 
 
 # ---------------------------------------------------------------------------------------------
 # Per frame
+
+
+def marker_image(image: np.ndarray, params: PipelineParams) -> np.ndarray:
+    """The frame the LED marker is looked for in: a mono frame as it is, a colour one (or a
+    ``params.bayer`` mosaic, demosaiced) in grey (the white LED is bright in every channel,
+    where the colour excess that holds the stripe would lose it).
+
+    Parameters
+    ----------
+    image : (H, W) uint8, or (H, W, 3) uint8 RGB"""
+    if params.bayer is not None:
+        image = cv2.cvtColor(np.ascontiguousarray(image),
+                             getattr(cv2, stripe_mod.BAYER_PATTERNS[params.bayer]))
+    if image.ndim == 3:
+        return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
+    return image
+
+
+def stripe_image(image: np.ndarray, params: PipelineParams) -> tuple[np.ndarray, bool]:
+    """The frame the stripe is looked for in (``params.stripe_signal``), and whether it came
+    from a colour frame (then measured with ``shoulders``, ``scanner_core.stripe.extract``)."""
+    colour = image.ndim == 3 or params.bayer is not None
+    return stripe_mod.stripe_signal(image, params.stripe_signal, bayer=params.bayer), colour
 
 
 def observe_marker(image: np.ndarray, calibration: Calibration, params: PipelineParams,
@@ -148,15 +184,15 @@ def observe_marker(image: np.ndarray, calibration: Calibration, params: Pipeline
 
     Parameters
     ----------
-    image : (H, W) uint8
+    image : (H, W) uint8, or a colour frame (``marker_image``)
     calibration : Calibration
     params : PipelineParams
     near : (3, 2) float64, optional
         Predicted (column, row) per view (NaN: no prediction); each view is searched there
         first, then over its whole strip.
     """
-    pixels = marker_mod.find_markers(image, strips=calibration.strips, params=params.marker,
-                                     near=near)
+    pixels = marker_mod.find_markers(marker_image(image, params), strips=calibration.strips,
+                                     params=params.marker, near=near)
     try:
         position, residual = triangulate_marker(pixels, calibration.camera, calibration.mirrors,
                                                 views=calibration.marker_views)
@@ -240,7 +276,8 @@ def frame_stripe(image: np.ndarray, calibration: Calibration, params: PipelinePa
         row_min, row_max = volume_rows(calibration, tcp_b, rotation_b,
                                        params.inspection_volume_mm,
                                        margin_mm=params.window_margin_mm)
-    result = stripe_mod.extract(image, method=params.stripe_method,
+    signal, colour = stripe_image(image, params)
+    result = stripe_mod.extract(signal, method=params.stripe_method, shoulders=colour,
                                 threshold="auto" if auto else params.stripe_threshold_dn,
                                 columns=calibration.direct_columns, policy=params.stripe_policy,
                                 saturation=params.stripe_saturation, row_min=row_min,

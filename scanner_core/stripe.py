@@ -42,6 +42,7 @@ from scanner_core.stripe_kernel import (  # noqa: F401  (the gates' constants, d
     COG_PEAK_FRACTION, COG_SIGMAS, AUTO_MIN_PEAK_SIGMAS, AUTO_THRESHOLD_SIGMAS,
     CONTINUITY_BRIGHTNESS_PX, CONTINUITY_JUMP_CAP_PX, CONTINUITY_MAX_GAP, CORE_WIDTH_FACTOR,
     LINKED_WIDTH_FACTOR, MIN_PIXELS_ABOVE, MIN_WIDTH_PX, NARROW_MIN_SIGMAS, SEPARATE_SIGMAS,
+    SHOULDER_FRACTION, SHOULDER_RUN_WIDTHS,
     extract_kernel, window_bounds)
 from scanner_core.validate import check_columns, check_image
 
@@ -355,7 +356,7 @@ def estimate_noise(image) -> tuple[float, float]:
 
 def extract(image, method="cog", *, threshold="auto", window=4, max_width="auto", columns=None,
             policy="continuity", expected_row=None, row_min=None, row_max=None,
-            saturation="fit", **params) -> StripeResult:
+            saturation="fit", shoulders=False, **params) -> StripeResult:
     """Sub-pixel row of the laser stripe in every column of a frame.
 
     Parameters
@@ -443,6 +444,13 @@ def extract(image, method="cog", *, threshold="auto", window=4, max_width="auto"
         ``(v - background)^2`` make the residuals' variance uniform [6]_), centre
         ``-b / (2 c)``; the column stays valid with ``saturated`` True.  ``"reject"``: flagged
         ``Reason.SATURATED`` (historical).
+    shoulders : bool
+        ``cog`` weighs only a stripe's top (``SHOULDER_FRACTION`` of its height and up) where
+        the run above its level reaches past the window farther than ``SHOULDER_RUN_WIDTHS``
+        of its width: something lies under the stripe's foot on one side. For a colour
+        camera's excess (``stripe_signal``), whose chroma JPEG's 4:2:0 and demosaicing spread
+        about the line; off for a mono camera, where a speckled line's long run would lose its
+        flanks to it (``docs/stripe.md``).
     **params
         ``min_width`` (float, px, default ``MIN_WIDTH_PX``): narrower peaks need a neighbour.
         ``double_ratio`` (float, default ``DOUBLE_PEAK_RATIO``).
@@ -538,7 +546,7 @@ def extract(image, method="cog", *, threshold="auto", window=4, max_width="auto"
     (row, peak, width, reason, saturated, snr, n_peaks, background, noise,
      gate) = extract_kernel(img, c0, c1, _METHOD_CODE[method], auto, thr, window, gate, auto_width,
                             min_width, double_ratio, bg, _POLICY_CODE[policy], expected,
-                            use_window, rmin, rmax, saturation == "fit")
+                            use_window, rmin, rmax, saturation == "fit", bool(shoulders))
     return StripeResult(row=row, peak=peak, width=width, valid=reason == Reason.OK, reason=reason,
                         saturated=saturated, snr=snr, n_peaks=n_peaks, background_dn=background,
                         noise_dn=noise, width_gate_px=gate)

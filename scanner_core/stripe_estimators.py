@@ -181,6 +181,7 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     count = 1.0 if v > threshold else 0.0
     s0 = v - off if v > t_cog else 0.0
     s1 = 0.0
+    beyond = 0
     width_inf = False
     left = right = 0.0
     for side in range(2):
@@ -224,6 +225,7 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
             elif run and d <= reach and u > t_cog:
                 s0 += u - off
                 s1 += (u - off) * (r - a)
+                beyond += 1
             else:
                 run = False
             prev = u
@@ -236,6 +238,8 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     out[0] = math.inf if width_inf else (right - left) / FWHM_PER_SIGMA
     out[1] = count
     out[2] = a + s1 / s0 if s0 > 0.0 else math.nan
+    if out.shape[0] > 3:
+        out[3] = beyond
 
 
 @njit(nogil=True, cache=True)

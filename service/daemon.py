@@ -93,6 +93,7 @@ class Service:
                                       act_tolerance_deg=settings.act_tolerance_deg,
                                       robot_rotation_std_deg=settings.robot_rotation_std_deg)
         params = PipelineParams(stripe_method=settings.stripe_method,
+                                stripe_signal=settings.stripe_signal, bayer=settings.bayer,
                                 exposure=ExposureParams(mode=settings.exposure_mode,
                                                         target_peak_dn=settings.exposure_target_dn,
                                                         multiple_ratio=settings.exposure_ratio),

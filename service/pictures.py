@@ -20,9 +20,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from scanner_core import stripe
 from scanner_core.calibration import Calibration
 from scanner_core.pipeline import PipelineParams
+from scanner_core.pipeline_frame import frame_stripe, marker_image
 from scanner_core.ply import read_ply
 from scanner_core.types import Frame, MarkerObservation
 
@@ -42,16 +42,17 @@ PNG_COMPRESSION = 3
 
 def frame_png(frame: Frame, marker: MarkerObservation | None, calibration: Calibration,
               params: PipelineParams) -> bytes:
-    """(H, W) uint8 frame -> PNG at ``FRAME_SCALE``: stripe rows in green, marker views circled
-    in red, the view strips outlined. Downscaled first: the drawing and the encoding work on a
-    ninth of the pixels."""
+    """A frame (mono, colour or a mosaic) -> PNG at ``FRAME_SCALE``: its grey, the stripe the
+    pipeline measures (``frame_stripe``) in green, marker views circled in red, the view strips
+    outlined. Downscaled first: the drawing and the encoding work on a ninth of the pixels."""
     s = FRAME_SCALE
-    small = cv2.cvtColor(cv2.resize(frame.image, None, fx=s, fy=s, interpolation=cv2.INTER_AREA),
+    grey = marker_image(frame.image, params)
+    small = cv2.cvtColor(cv2.resize(grey, None, fx=s, fy=s, interpolation=cv2.INTER_AREA),
                          cv2.COLOR_GRAY2BGR)
     h, w = small.shape[:2]
-    result = stripe.extract(frame.image, method=params.stripe_method,
-                            threshold=params.stripe_threshold_dn, columns=calibration.direct_columns)
-    cols = np.nonzero(result.valid)[0]
+    unplaced = MarkerObservation(np.full((3, 2), np.nan), np.full(3, np.nan), float("nan"))
+    result, valid, _ = frame_stripe(frame.image, calibration, params, marker or unplaced)
+    cols = np.nonzero(valid)[0]
     rows = np.clip(np.rint(result.row[cols] * s).astype(int), 0, h - 1)
     small[rows, np.clip((cols * s).astype(int), 0, w - 1)] = (0, 255, 0)
     if marker is not None:

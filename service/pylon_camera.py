@@ -2,7 +2,7 @@
 
 ``--camera pylon:[SERIAL][?option=value&...]`` (:func:`parse_pylon_spec`) makes a
 :class:`PylonCamera`: the camera of that serial number (the first one found without), set
-up through its GenICam nodes: ``PixelFormat`` Mono8, ``Width``, ``Height``, ``OffsetX``,
+up through its GenICam nodes: ``PixelFormat`` Mono8 (or an 8-bit Bayer mosaic), ``Width``, ``Height``, ``OffsetX``,
 ``OffsetY``, ``ExposureTime``, ``Gain``, ``AcquisitionFrameRate`` in free run, or a hardware
 trigger (``TriggerMode`` On on a line). It implements ``scanner_core.devices.Camera`` and
 ``ExposureControl``: the exposure modes of ``scanner_core.exposure`` drive ``ExposureTime``
@@ -37,7 +37,7 @@ from scanner_core.devices import CameraClosed, CameraTimeout
 from scanner_core.types import Frame
 from service.camera_errors import CameraError
 
-__all__ = ["PylonCamera", "PYLON_OPTIONS", "parse_pylon_spec", "set_node"]
+__all__ = ["PylonCamera", "PYLON_OPTIONS", "PIXEL_FORMATS", "parse_pylon_spec", "set_node"]
 
 #: The options of a ``pylon:`` spec and what they are.
 PYLON_OPTIONS = {
@@ -50,7 +50,12 @@ PYLON_OPTIONS = {
     "fps": "frame rate, Hz (AcquisitionFrameRate; with a trigger, the rate expected)",
     "trigger": "off (free run) or the input line of a hardware trigger: line1, line2, line3",
     "images": "Basler's emulator only: serve this folder's images (ImageFilename)",
+    "pixel_format": "Mono8 (default) or a colour camera's raw 8-bit mosaic: BayerRG8, BayerBG8, "
+                    "BayerGR8, BayerGB8 (then set the scanner's bayer to the pattern: RGGB, "
+                    "BGGR, GRBG, GBRG)",
 }
+#: The 8-bit pixel formats the scanner reads: one byte a pixel, a frame (H, W) uint8.
+PIXEL_FORMATS = ("Mono8", "BayerRG8", "BayerBG8", "BayerGR8", "BayerGB8")
 #: Buffers the grab engine queues (MaxNumBuffer): 0.1 s at 162 fps, like a camera's own
 #: buffer; a reader late by more loses frames, and their ids show it.
 GRAB_BUFFERS = 16
@@ -86,7 +91,7 @@ def parse_pylon_spec(rest: str) -> PylonCamera:
         if key not in PYLON_OPTIONS:
             names = ", ".join(PYLON_OPTIONS)
             raise ValueError(f"unknown pylon option {key!r}; the options are {names}")
-        if key in ("trigger", "images"):
+        if key in ("trigger", "images", "pixel_format"):
             options[key] = value
             continue
         try:
@@ -166,7 +171,7 @@ class PylonCamera:
                  height: int | None = None, offset_x: int | None = None,
                  offset_y: int | None = None, exposure_us: float | None = None,
                  gain_db: float | None = None, fps: float | None = None, trigger: str = "off",
-                 images: str | Path | None = None):
+                 images: str | Path | None = None, pixel_format: str = "Mono8"):
         if trigger not in self.TRIGGERS:
             raise ValueError(f"pylon trigger must be one of {', '.join(self.TRIGGERS)}, got {trigger!r}")
         for name, value in (("width", width), ("height", height)):
@@ -178,12 +183,16 @@ class PylonCamera:
         for name, value in (("exposure_us", exposure_us), ("fps", fps)):
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"pylon {name} must be a positive number, got {value!r}")
+        if pixel_format not in PIXEL_FORMATS:
+            raise ValueError(f"pylon pixel_format must be one of {', '.join(PIXEL_FORMATS)}, "
+                             f"got {pixel_format!r}")
         if trigger != "off" and fps is None:
             raise ValueError("a triggered pylon camera needs fps= (the rate the trigger comes at)")
         self.serial = serial
         self.config = {"width": width, "height": height, "offset_x": offset_x,
                        "offset_y": offset_y, "exposure_us": exposure_us, "gain_db": gain_db,
-                       "fps": fps, "trigger": trigger, "images": images}
+                       "fps": fps, "trigger": trigger, "images": images,
+                       "pixel_format": pixel_format}
         self.width = width or 0
         self.height = height or 0
         self.fps = float(fps) if fps is not None else 0.0
@@ -250,7 +259,7 @@ class PylonCamera:
         before the size grows, then the offsets), then what it resulted in."""
         nodes, owner, c = camera.GetNodeMap(), self.description, self.config
         put = lambda name, value, unit="": set_node(nodes, name, value, unit=unit, owner=owner)
-        put("PixelFormat", "Mono8")  # the scanner reads 8-bit mono
+        put("PixelFormat", c["pixel_format"])  # one byte a pixel: mono, or a raw mosaic
         if c["images"] is not None:
             folder = Path(c["images"])
             if not folder.is_dir():

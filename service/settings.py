@@ -118,6 +118,13 @@ class Settings(BaseSettings):
                                                "records with less than it and a second of "
                                                "frames free is refused (507), MB")
     stripe_method: Literal["cog", "gaussian3", "parabola", "blais_rioux", "lsq_gauss"] = "cog"
+    stripe_signal: Literal["auto", "mono", "red", "green", "blue", "red_excess", "green_excess",
+                           "blue_excess", "colour_excess"] = Field(
+        "auto", description="what the stripe is looked for in: a mono frame as it is; a colour "
+                            "frame's (or a Bayer mosaic's) largest colour excess (auto), one "
+                            "channel, or one colour's excess v_k - (v_i + v_j) / 2")
+    bayer: Literal["RGGB", "BGGR", "GRBG", "GBRG"] | None = Field(
+        None, description="the camera's frames are raw Bayer mosaics of this pattern")
     exposure_mode: Literal["fixed", "dynamic", "multiple"] = Field(
         "fixed", description="fixed; dynamic: steered from the previous frames' stripe peaks; "
                              "multiple: two exposures alternating, the better exposed column "

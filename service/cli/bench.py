@@ -11,7 +11,7 @@ __all__ = ["add_parser", "run"]
 
 #: The benchmarks, with what the longer ones measure.
 BENCHMARKS = ("stripe", "scan", "simulate", "service", "pose", "coarse", "hardware", "surfaces",
-              "calibrate", "edges", "place", "abuse", "pose_time", "planning")
+              "calibrate", "edges", "place", "abuse", "pose_time", "planning", "real")
 
 
 def add_parser(command) -> None:
@@ -29,7 +29,12 @@ def add_parser(command) -> None:
                             "(frames dropped per load pattern); pose_time: the pose's own CPU "
                             "time by part, point count and stage; planning: flyscan plan's "
                             "throughput on 1 and 2 workers, task cost, the reference parts' "
-                            "plans against flyscan scan with them, a 100-part catalogue")
+                            "plans against flyscan scan with them, a 100-part catalogue; real: "
+                            "the stripe on public photographs of laser lines on planar targets "
+                            "against a naive peak finder (give the folder of their clones)")
+    bench.add_argument("folder", nargs="?", type=Path, default=None,
+                       help="real: the folder holding clones of the photographs' repositories "
+                            "(benchmarks.real_photos.SETS says which; the bench names any missing)")
     bench.add_argument("--out", type=Path, required=True)
     bench.add_argument("--quick", action="store_true", help="fewer frames/parts (for CI)")
     bench.add_argument("--picks", type=int, default=None,
@@ -108,6 +113,8 @@ def run(args) -> int:
         from benchmarks import pose_time as bench
     elif args.what == "planning":
         from benchmarks import planning as bench
+    elif args.what == "real":
+        from benchmarks import real_photos as bench
     elif args.what == "pose":
         from benchmarks import pose as bench
         from benchmarks import pose_limits
@@ -120,7 +127,14 @@ def run(args) -> int:
             raise UsageError(f"--{option} is for bench place only")
     if args.picks is not None and args.picks < 1:
         raise UsageError(f"--picks must be at least 1, got {args.picks}")
+    if (args.folder is not None) != (args.what == "real"):
+        raise UsageError("bench real needs the folder of the photographs' clones, and only "
+                         "bench real takes a folder")
+    if args.what == "real" and not args.folder.is_dir():
+        raise UsageError(f"bench real: {args.folder} is not a folder")
     extra = {}
+    if args.what == "real":
+        extra = {"folder": args.folder}
     if args.what == "place":
         extra = {"picks": args.picks, "cells": _seeds(args.cells), "parts": _names(args.parts)}
     result = bench.run(args.out, quick=args.quick, **extra)
