@@ -17,7 +17,7 @@ from scanner_core._linsolve import solve_in_place
 
 __all__ = ["SATURATION_DN", "FWHM_PER_SIGMA", "fwhm_width", "count_above", "cog",
            "within_window", "width_count_cog", "parabola", "gaussian3", "blais_rioux",
-           "lsq_gauss", "saturated_centre", "narrow_clip_centre", "clipped_run_middle"]
+           "lsq_gauss", "saturated_centre", "narrow_clip_centre"]
 
 # Pixel value taken as saturated (uint8 full scale).
 SATURATION_DN = 255
@@ -420,28 +420,6 @@ def saturated_centre(img, c, a, h, level, window, bgl, max_walk):
     if abs(mu - mid) > 0.5 * (hi - lo) + 1.0:
         return math.nan
     return mu
-
-
-@njit(nogil=True, cache=True)
-def clipped_run_middle(img, c, a, h, max_walk):
-    """The middle of the clipped run through ``a`` (rows at full scale), where it lies inside
-    the frame and no longer than ``max_walk``; NaN otherwise.
-
-    For a clipped peak whose flanks say nothing (:func:`saturated_centre` and
-    :func:`narrow_clip_centre` failed): a colour excess is censored at full scale wherever the
-    laser's own channel clips (``scanner_core.stripe.stripe_signal``), and beside that run the
-    excess falls to the background at once. The run's two ends are where the line's profile
-    crosses full scale, as far from its centre either side; quantised to half a pixel."""
-    lo = a
-    while lo > 0 and img[lo - 1, c] >= SATURATION_DN and a - lo < max_walk:
-        lo -= 1
-    hi = a
-    while hi < h - 1 and img[hi + 1, c] >= SATURATION_DN and hi - a < max_walk:
-        hi += 1
-    if (lo == 0 or hi == h - 1 or img[lo - 1, c] >= SATURATION_DN
-            or img[hi + 1, c] >= SATURATION_DN):
-        return math.nan
-    return 0.5 * (lo + hi)
 
 
 @njit(nogil=True, cache=True)

@@ -515,8 +515,6 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
             if not math.isfinite(y):  # too few samples for the fit: a narrow stripe?
                 y = est.narrow_clip_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig,
                                            bg_sat)
-            if not math.isfinite(y):  # flanks that say nothing: a censored colour excess
-                y = est.clipped_run_middle(img, c, a, h, max_walk)
         elif method == 0:
             y = y_cog
         elif method == 1:
