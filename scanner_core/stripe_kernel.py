@@ -178,7 +178,7 @@ def _continuity(ncand, mx, am, sec, a2, expected, c0, choice):
             choice[link[j]] = back[j, choice[j]]
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def local_background(img, c, a, h, near, far, frame_bg):
     """The background a peak at row ``a`` of column ``c`` stands on, DN.
 
@@ -285,9 +285,26 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
         p = float(mx[j])
         c = ca + j
         a = int(am[j])
+        # on the frame's background first: a peak that stands clear of it and ends within its
+        # window (its half-height and its centroid's runs) stands on it, and costs no more
+        # reads; another is read against its own (a bright surface beside it, a shoulder, a
+        # wide or a clipped stripe)
+        t_c, f_c = _levels(auto, thr, med, sig)
+        bloc[j] = med
+        tloc[j] = t_c
+        if not (p > t_c and p >= f_c):
+            continue  # its own background lies no lower than the frame's
+        t_cog = _cog_level(med, sig, p)
+        if window == UNROLLED_WINDOW:  # a constant: LLVM unrolls the loops over the window
+            fast = est.within_window(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c,
+                                     UNROLLED_WINDOW, t_cog, bg, stats)
+        else:
+            fast = est.within_window(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c, window,
+                                     t_cog, bg, stats)
+        stats[3] = 0.0
         near, far = BACKGROUND_NEAR_WINDOWS * window, BACKGROUND_FAR_WINDOWS * window
-        b = local_background(img, c, a, h, near, far, med)
-        for _ in range(BACKGROUND_ROUNDS):
+        b = med if fast else local_background(img, c, a, h, near, far, med)
+        for _ in range(BACKGROUND_ROUNDS if not fast else 0):
             t_c, f_c = _levels(auto, thr, b, sig)
             bloc[j] = b
             tloc[j] = t_c

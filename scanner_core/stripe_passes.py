@@ -110,11 +110,12 @@ def noise_estimate(img):
 
 @njit(nogil=True, cache=True)
 def _sample_run(img, r, c0, c1, hist, diffs):
-    """Row ``r``'s pixels ``c0 <= c < c1`` into ``hist`` and their differences ``NOISE_LAG``
-    columns apart into ``diffs``."""
+    """Row ``r``'s pixels ``c0 <= c < c1`` into ``hist``, and the differences ``NOISE_LAG``
+    columns apart of every other one into ``diffs`` (half the run's differences hold the noise
+    to a few per cent, and the histogram's increments are what the estimate costs)."""
     for c in range(c0, c1):
         hist[img[r, c]] += 1
-    for c in range(c0, c1 - NOISE_LAG):
+    for c in range(c0, c1 - NOISE_LAG, 2):
         d = np.int32(img[r, c + NOISE_LAG]) - np.int32(img[r, c])
         diffs[abs(d)] += 1
 
