@@ -104,6 +104,13 @@ BACKGROUND_CLEAR_SIGMAS = 2.5
 BACKGROUND_FAR_RATIO = 1.6
 BACKGROUND_ROUNDS = 4
 
+# A peak at least FLAT_MIN_WIDTH_PX wide whose top (within FLAT_LEVEL of its height) runs
+# longer than FLAT_TOP_WIDTHS of its width plus FLAT_TOP_SLACK_ROWS is a plateau (``_flat_top``).
+FLAT_MIN_WIDTH_PX = 2.0
+FLAT_LEVEL = 0.8
+FLAT_TOP_SLACK_ROWS = 1.5
+FLAT_TOP_WIDTHS = 1.8
+
 # The peak's width, count and centroid are read with the window a compile-time constant when
 # ``window`` is this (the default): the loops over it unrolled, the candidates' pass took half
 # the time.
@@ -194,6 +201,29 @@ def local_background(img, c, a, h, near, far, frame_bg):
     if a + far <= h - 1:
         right = float(min(img[a + near, c], img[a + far, c]))
     return max(frame_bg, left, right)
+
+
+@njit(nogil=True, cache=True)
+def _flat_top(img, c, a, h, b, p, width):
+    """A plateau rather than a peak: the rows joined to ``a`` within ``FLAT_LEVEL`` of the
+    height ``p`` over the background ``b`` run longer than ``FLAT_TOP_WIDTHS`` of the
+    sigma-like ``width`` (a Gaussian's top above 80 % spans 1.34 of its sigma; a lit square of
+    a printed texture or a bright surface is as wide on top as at half height). Peaks narrower
+    than ``FLAT_MIN_WIDTH_PX`` are not judged (too few rows to tell)."""
+    if not (math.isfinite(width) and width >= FLAT_MIN_WIDTH_PX):
+        return False
+    level = b + FLAT_LEVEL * (p - b)
+    limit = int(math.ceil(FLAT_TOP_WIDTHS * width + FLAT_TOP_SLACK_ROWS))
+    top = 1
+    r = a - 1
+    while r >= 0 and img[r, c] >= level and top <= limit:
+        top += 1
+        r -= 1
+    r = a + 1
+    while r < h and img[r, c] >= level and top <= limit:
+        top += 1
+        r += 1
+    return top > limit
 
 
 @njit(nogil=True, cache=True)
@@ -336,6 +366,8 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
         if not (p > t_c and p >= f_c):
             continue
         ncand[j] = 1
+        if not fast and p < SATURATION_DN and _flat_top(img, c, a, h, b, p, stats[0]):
+            stats[0] = math.inf  # a lit surface's plateau, not a peak: too wide
         wd = stats[0]
         wmain[j] = wd
         nmain[j] = stats[1]
