@@ -505,6 +505,8 @@ def run(out_dir: pathlib.Path, folder: pathlib.Path, *, quick: bool = False) -> 
     if not results:
         raise FileNotFoundError("none of the sets is under " + str(folder) + ": clone "
                                 + "; ".join(missing))
+    for line in missing:
+        print(f"bench real: not scored (missing): clone {line}", file=sys.stderr)
     summary = {s["name"]: {m: {k: s[m][k] for k in ("measured_share", "rms_line_px",
                                                      "rms_plane_um", "beyond_1px_share",
                                                      "whole_pixel_share")}

@@ -366,13 +366,15 @@ def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams())
         image += 220.0 * np.exp(-0.5 * ((cols - centre_col) ** 2 + (rows - cam.height / 4.0) ** 2)
                                 / sigma**2)
     pixels = np.clip(image, 0, 255).astype(np.uint8)
+    if params.bayer is None and params.stripe_signal not in ("auto", "mono"):
+        pixels = np.repeat(pixels[:, :, None], 3, axis=2)  # the colour frames it will get
     frame = Frame(pixels, -1, 0.0)
     tracker = MarkerTracker(calibration, params)
     marker = tracker.observe(frame)
     tracker.observe(frame)
     process_frame(frame, calibration, params, marker)
     if params.geometric_window:  # the windowed kernel compiles apart
-        stripe_mod.extract(pixels, columns=calibration.direct_columns, row_min=0.0,
-                           row_max=cam.height / 2.0)
+        stripe_mod.extract(stripe_image(pixels, params)[0], columns=calibration.direct_columns,
+                           row_min=0.0, row_max=cam.height / 2.0)
     tracker.observe(Frame(np.full_like(pixels, 10), -1, 0.0))  # no marker anywhere
     return (time.perf_counter() - t0) * 1e3

@@ -127,17 +127,24 @@ def run(args) -> int:
             raise UsageError(f"--{option} is for bench place only")
     if args.picks is not None and args.picks < 1:
         raise UsageError(f"--picks must be at least 1, got {args.picks}")
-    if (args.folder is not None) != (args.what == "real"):
-        raise UsageError("bench real needs the folder of the photographs' clones, and only "
-                         "bench real takes a folder")
-    if args.what == "real" and not args.folder.is_dir():
-        raise UsageError(f"bench real: {args.folder} is not a folder")
+    if args.folder is not None and args.what != "real":
+        raise UsageError(f"bench {args.what} takes no folder (only bench real does)")
+    if args.what == "real":
+        if args.folder is None:
+            raise UsageError("bench real needs the folder holding clones of "
+                             + ", ".join(f"https://github.com/{s.repository}" for s in bench.SETS)
+                             + " (docs/stripe.md)")
+        if not args.folder.is_dir():
+            raise UsageError(f"bench real: {args.folder} is not a folder")
     extra = {}
     if args.what == "real":
         extra = {"folder": args.folder}
     if args.what == "place":
         extra = {"picks": args.picks, "cells": _seeds(args.cells), "parts": _names(args.parts)}
-    result = bench.run(args.out, quick=args.quick, **extra)
+    try:
+        result = bench.run(args.out, quick=args.quick, **extra)
+    except FileNotFoundError as exc:  # bench real: a set's clone missing or incomplete
+        raise UsageError(str(exc)) from None
     print(json.dumps(result.get("summary", {}), indent=2))
     print(f"written to {args.out}")
     return 0

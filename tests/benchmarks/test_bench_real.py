@@ -111,7 +111,14 @@ def test_flyscan_bench_real_writes_its_figures_and_names_what_is_missing(photogr
     assert [s["name"] for s in result["sets"]] == [SET.name]
     assert result["missing"] and "hjamal3/Light-Stripe-Calibration" in result["missing"][0]
     assert (tmp_path / "real.png").stat().st_size > 10_000
+    assert "not scored (missing): clone https://github.com/hjamal3" in capsys.readouterr().err
     assert main(["bench", "real", "--out", str(tmp_path)]) == 2
-    assert "needs the folder" in capsys.readouterr().err
+    assert "needs the folder holding clones of https://github.com/" in capsys.readouterr().err
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["bench", "real", str(empty), "--out", str(tmp_path)]) == 2
+    assert "none of the sets is under" in capsys.readouterr().err
+    assert main(["bench", "stripe", str(empty), "--out", str(tmp_path)]) == 2
+    assert "bench stripe takes no folder" in capsys.readouterr().err
     assert main(["bench", "real", str(tmp_path / "nowhere"), "--out", str(tmp_path)]) == 2
     assert "is not a folder" in capsys.readouterr().err

@@ -131,7 +131,15 @@ def test_the_simplified_model_keeps_the_pose(tmp_path):
     apart = np.concatenate([moved[:3, 3], Rotation.from_matrix(moved[:3, :3]).as_rotvec(
         degrees=True)])
     assert np.all(np.abs(apart) < 0.5 * whole.std), (apart, whole.std)
-    assert [f.split(":")[0] for f in light.flags] == [f.split(":")[0] for f in whole.flags]
+    # the same verdicts; the note on how many edge points match the model's edges is left out:
+    # the two meshes' feature edges differ (a smooth scanned surface has few, and decimation
+    # moves them), and with 15 edge points one point moves the share across the note's line
+    from scanner_core.pose_confidence import EDGES_NOTE
+
+    def verdicts(flags):
+        return [f.split(":")[0] for f in flags if not f.startswith(EDGES_NOTE)]
+
+    assert verdicts(light.flags) == verdicts(whole.flags)
 
 
 def test_uploads_during_passes_cost_no_frame(tmp_path):
