@@ -284,7 +284,7 @@ def _fit_line(pts: np.ndarray, trials: int = 400):
     return centre, normal
 
 
-def _method_points(rows, along, shape):
+def _method_points(rows, along):
     """Valid profile points (N, 2) in image (x, y) and their profile's column."""
     cols = np.nonzero(np.isfinite(rows))[0]
     r = rows[cols].astype(np.float64)
@@ -313,7 +313,7 @@ def score_photo(rgb, ps: PhotoSet, rvec, tvec, k, dist) -> dict | None:
 
     pts = {}
     for name, rows in methods.items():
-        xy, cols = _method_points(rows, ps.along, rgb.shape)
+        xy, cols = _method_points(rows, ps.along)
         pts[name] = (xy, cols, rows)
     # the line through the points on the target (a profile measured elsewhere in its column,
     # on the floor or a wall, is scored below as off the line)

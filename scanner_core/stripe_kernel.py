@@ -380,11 +380,11 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
                                max_walk)
         s = float(sec[j])
         if s > threshold and s >= floor and s >= double_ratio * p:
-            b = int(a2[j])
-            inside = not use_window or (b >= rmin[c] and b <= rmax[c])
-            apart = not math.isfinite(wd) or abs(b - a) > SEPARATE_SIGMAS * wd
-            if (inside and apart and b > 0 and b < h - 1 and img[b - 1, c] <= img[b, c]
-                    and img[b + 1, c] <= img[b, c]):
+            r2 = int(a2[j])  # the second candidate's row
+            inside = not use_window or (r2 >= rmin[c] and r2 <= rmax[c])
+            apart = not math.isfinite(wd) or abs(r2 - a) > SEPARATE_SIGMAS * wd
+            if (inside and apart and r2 > 0 and r2 < h - 1 and img[r2 - 1, c] <= img[r2, c]
+                    and img[r2 + 1, c] <= img[r2, c]):
                 ncand[j] = 2
         if p < SATURATION_DN and wd >= min_width and wd < WIDTH_CAP_PX:
             hist[int(wd / WIDTH_BIN_PX)] += 1
