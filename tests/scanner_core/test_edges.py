@@ -929,32 +929,3 @@ def test_the_chamfer_fit_over_all_levels_is_the_fit_level_by_level(rng, monkeypa
             assert got[:2] == want[:2] and got[3] == want[3]
             assert_allclose(got[2], want[2], rtol=0, atol=0)
 
-
-def test_a_steps_point_keeps_its_placement_through_a_real_lens():
-    """A bracket's 5 mm step scanned in a cell whose camera has a real lens's distortion: the
-    step's points keep the kernel's placement (half the step back along the range) and move
-    only by what the lens bends their pixel's ray; re-triangulated from the pixel outright,
-    they lay 55 um off (RMS; the drop-outs 18 um). Scored against the CAD's edges."""
-    from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
-    from simulator.cell import cell_with_effects
-    from simulator.evaluate import edge_kind_accuracy
-    from simulator.parts import bracket_with_two_holes, part_from_mesh
-    from simulator.session import simulated_cell
-
-    part = part_from_mesh(bracket_with_two_holes(), name="bracket")
-    cell = cell_with_effects(31, "lens")
-    assert cell.calibration.camera.distorted
-    sim = simulated_cell(part, cell, seed=0)
-    warm_up(cell.calibration)
-    sim.camera.open()
-    sim.robot.connect()
-    try:
-        scan = run_pass(camera_frames(sim.camera), cell.calibration, sim.robot, PipelineParams())
-    finally:
-        sim.camera.close()
-        sim.robot.disconnect()
-    accuracy = edge_kind_accuracy(scan, part.mesh, sim.true_grasp, outlier_mm=0.5)
-    by_kind = accuracy["edges"]["by_kind"]
-    assert by_kind["step"]["count"] >= 25
-    assert by_kind["step"]["rms_inliers_um"] < 35.0
-    assert by_kind["dropout"]["rms_inliers_um"] < 30.0
