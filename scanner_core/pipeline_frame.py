@@ -164,8 +164,7 @@ def marker_image(image: np.ndarray, params: PipelineParams) -> np.ndarray:
     ----------
     image : (H, W) uint8, or (H, W, 3) uint8 RGB"""
     if params.bayer is not None:
-        image = cv2.cvtColor(np.ascontiguousarray(image),
-                             getattr(cv2, stripe_mod.BAYER_PATTERNS[params.bayer]))
+        image = stripe_mod.demosaic(image, params.bayer)
     if image.ndim == 3:
         return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
     return image

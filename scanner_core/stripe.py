@@ -47,7 +47,7 @@ from scanner_core.stripe_kernel import (  # noqa: F401  (the gates' constants, d
 from scanner_core.validate import check_columns, check_image
 
 __all__ = ["METHODS", "POLICIES", "SIGNALS", "BAYER_PATTERNS", "StripeResult", "extract",
-           "stripe_signal", "Reason", "estimate_noise", "isolated_runs"]
+           "stripe_signal", "demosaic", "Reason", "estimate_noise", "isolated_runs"]
 
 METHODS = ("cog", "gaussian3", "parabola", "blais_rioux", "lsq_gauss")
 _METHOD_CODE = {name: i for i, name in enumerate(METHODS)}
@@ -275,11 +275,7 @@ def stripe_signal(frame, signal="auto", *, bayer=None) -> np.ndarray:
     if frame.dtype != np.uint8:
         raise ValueError(f"a frame must be uint8, got {frame.dtype}")
     if bayer is not None:
-        if bayer not in BAYER_PATTERNS:
-            raise ValueError(f"`bayer` must be one of {tuple(BAYER_PATTERNS)}, got {bayer!r}")
-        if frame.ndim != 2:
-            raise ValueError(f"a Bayer mosaic is (H, W), got shape {frame.shape}")
-        frame = cv2.cvtColor(np.ascontiguousarray(frame), getattr(cv2, BAYER_PATTERNS[bayer]))
+        frame = demosaic(frame, bayer)
     if frame.ndim == 2:
         if signal not in ("auto", "mono"):
             raise ValueError(f"`signal` {signal!r} needs a colour frame (H, W, 3) or a Bayer "
@@ -298,6 +294,18 @@ def stripe_signal(frame, signal="auto", *, bayer=None) -> np.ndarray:
     out = np.empty(frame.shape[:2], np.uint8)
     _colour_excess(frame, which, out)
     return out
+
+
+def demosaic(mosaic, bayer: str) -> np.ndarray:
+    """(H, W) uint8 raw Bayer mosaic of pattern ``bayer`` (one of ``BAYER_PATTERNS``) ->
+    (H, W, 3) uint8 RGB, by OpenCV's bilinear demosaicing; ValueError on another pattern or
+    shape."""
+    if bayer not in BAYER_PATTERNS:
+        raise ValueError(f"`bayer` must be one of {tuple(BAYER_PATTERNS)}, got {bayer!r}")
+    mosaic = np.asarray(mosaic)
+    if mosaic.ndim != 2:
+        raise ValueError(f"a Bayer mosaic is (H, W), got shape {mosaic.shape}")
+    return cv2.cvtColor(np.ascontiguousarray(mosaic), getattr(cv2, BAYER_PATTERNS[bayer]))
 
 
 @njit(nogil=True, cache=True)

@@ -121,8 +121,8 @@ def within_window(img, c, a, h, level, max_walk, threshold, window, t_cog, bg, o
     """``width_count_cog`` when the peak lies wholly within ``+-window`` rows of ``a`` (the
     half-level run ends inside it, the centroid's run does not go on past it, no ``bg``), as
     fixed-length loops without data-dependent branches: a noisy flank's pixels cross the
-    levels at random, and a branch on each costs more than the reads.  False (``out`` unset)
-    otherwise: call ``width_count_cog`` then (a separate call, since the general walk's frame
+    levels at random, and a branch on each costs more than the reads (``out[3]``, the run
+    past the window, is 0).  False (``out`` unset) otherwise: call ``width_count_cog`` then (a separate call, since the general walk's frame
     made this one cost twice as much when they were one function)."""
     if not (math.isnan(bg) and a > window and a + window < h - 1 and window < max_walk):
         return False
@@ -164,6 +164,7 @@ def within_window(img, c, a, h, level, max_walk, threshold, window, t_cog, bg, o
     out[0] = (right - left) / FWHM_PER_SIGMA
     out[1] = count
     out[2] = a + s1 / s0 if s0 > 0.0 else math.nan
+    out[3] = 0.0
     return True
 
 
@@ -172,10 +173,11 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     """``fwhm_width``, ``count_above`` and ``cog`` of one peak, reading each pixel once.
 
     The three walk the same pixels about ``a``; a column's pixels lie a frame's row apart in
-    memory, and reading them once is what the frame's time allows.  ``out`` (3,) float64
+    memory, and reading them once is what the frame's time allows.  ``out`` (4,) float64
     receives the width (px, inf past ``max_walk``), the count of pixels above ``threshold``
     within ``+-window`` and the centre of gravity above ``t_cog`` (NaN if none), each equal to
-    what the separate function returns (the centroid's sums added in another order)."""
+    what the separate function returns (the centroid's sums added in another order), and the
+    rows the centroid's run goes on past the window."""
     off = t_cog if math.isnan(bg) else bg
     v = float(img[a, c])
     count = 1.0 if v > threshold else 0.0
@@ -238,8 +240,7 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     out[0] = math.inf if width_inf else (right - left) / FWHM_PER_SIGMA
     out[1] = count
     out[2] = a + s1 / s0 if s0 > 0.0 else math.nan
-    if out.shape[0] > 3:
-        out[3] = beyond
+    out[3] = beyond
 
 
 @njit(nogil=True, cache=True)

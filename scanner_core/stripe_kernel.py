@@ -92,6 +92,10 @@ COG_PEAK_FRACTION = 0.05
 # level: 0.19 against 0.15 sigma RMS on a speckled line of sigma 0.5-6 px.
 BACKGROUND_NEAR_WINDOWS = 3
 BACKGROUND_FAR_WINDOWS = 5
+BACKGROUND_CLEAR_SIGMAS = 2.5
+BACKGROUND_FAR_RATIO = 1.6
+BACKGROUND_ROUNDS = 4
+
 # With ``shoulders``: a centroid's run reaching past the window farther than
 # SHOULDER_RUN_WIDTHS of the stripe's sigma-like width from the peak (a Gaussian's run above
 # 5 % of it reaches 2.45) weighs the stripe's top only, above SHOULDER_FRACTION of its height.
@@ -100,9 +104,6 @@ BACKGROUND_FAR_WINDOWS = 5
 # takes in the chroma spread to one side (0.63 -> 0.23 px RMS on a real green line).
 SHOULDER_RUN_WIDTHS = 4.0
 SHOULDER_FRACTION = 0.3
-BACKGROUND_CLEAR_SIGMAS = 2.5
-BACKGROUND_FAR_RATIO = 1.6
-BACKGROUND_ROUNDS = 4
 
 # A peak at least FLAT_MIN_WIDTH_PX wide whose top (within FLAT_LEVEL of its height) runs
 # longer than FLAT_TOP_WIDTHS of its width plus FLAT_TOP_SLACK_ROWS is a plateau (``_flat_top``).
@@ -319,7 +320,7 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
         # window (its half-height and its centroid's runs) stands on it, and costs no more
         # reads; another is read against its own (a bright surface beside it, a shoulder, a
         # wide or a clipped stripe)
-        t_c, f_c = _levels(auto, thr, med, sig)
+        t_c, f_c = threshold, floor  # the frame's: _levels(auto, thr, med, sig)
         bloc[j] = med
         tloc[j] = t_c
         if not (p > t_c and p >= f_c):
@@ -331,7 +332,6 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
         else:
             fast = est.within_window(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c, window,
                                      t_cog, bg, stats)
-        stats[3] = 0.0
         near, far = BACKGROUND_NEAR_WINDOWS * window, BACKGROUND_FAR_WINDOWS * window
         b = med if fast else local_background(img, c, a, h, near, far, med)
         for _ in range(BACKGROUND_ROUNDS if not fast else 0):
@@ -348,7 +348,6 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
             else:
                 fast = est.within_window(img, c, a, h, level, max_walk, t_c, window, t_cog,
                                          bg, stats)
-            stats[3] = 0.0
             if not fast:
                 est.width_count_cog(img, c, a, h, level, max_walk, t_c, window, t_cog, bg,
                                     max_walk, stats)
@@ -468,14 +467,13 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
     # the main peak's count above the threshold and its centre of gravity, read with its width
     nmain = np.zeros(n)
     ymain = np.full(n, np.nan)
-    stats = np.empty(3)
+    stats = np.empty(4)
     hist = np.zeros(_WIDTH_BINS, np.int64)
     bloc = np.full(n, med)
     tloc = np.full(n, threshold)
     n_widths = _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor,
                            max_walk, window, shoulders, med, sig, bg, double_ratio, use_window,
-                           rmin, rmax,
-                           min_width, ncand, wmain, nmain, ymain, bloc, tloc, hist)
+                           rmin, rmax, min_width, ncand, wmain, nmain, ymain, bloc, tloc, hist)
     core = max_width
     linked = max_width
     if auto_width:

@@ -177,7 +177,7 @@ def _walks(img, am, threshold, t_cog, window, max_walk):
 
     h = img.shape[0]
     apart, single = [], []
-    out = np.empty(3)
+    out = np.empty(4)
     for c in range(img.shape[1]):
         a = int(am[c])
         level = 0.5 * (float(img[a, c]) + threshold)
@@ -188,7 +188,7 @@ def _walks(img, am, threshold, t_cog, window, max_walk):
                                  np.nan, out):
             est.width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog,
                                 np.nan, max_walk, out)
-        single.append(tuple(out))
+        single.append(tuple(out[:3]))
     return np.array(apart), np.array(single)
 
 
