@@ -145,16 +145,15 @@ class PoseParams:
     coarse_iterations : int
         Iterations refining each coarse candidate.
     probe_weakness : float
-        A converged fit whose weakest rotation is held less than this (its information over the
-        strongest rotation's, translations free) is probed with refits from turns of 1 and 2
-        degrees about it, and, unless the scan leaves it free, from the best turns of a sweep
-        all the way round it (a part near-symmetric about it: cycloidal's lobes fit 90
-        degrees off, a many-lobed disc's any whole number of lobes): a minimum that fits
-        clearly better is taken; another that fits as well makes the pose ambiguous, and the
-        spread between them enters its uncertainty. A fit whose surfaces alone hold that
-        rotation little (``_EDGES_ALONE``) is probed too. (Measured at the bench's fits:
-        idler_riser 0.030-0.043, held by its surfaces; ADIS16480 0.0023-0.026, featuretype
-        0.044-0.055, cycloidal 0.016-0.032.)
+        Every converged fit is probed with refits from turns of 1 and 2 degrees about its
+        weakest rotation; one whose weakest rotation is held less than this (its information
+        over the strongest rotation's, translations free) is also probed, unless the scan
+        leaves it free, from the best turns of a sweep all the way round it (a part
+        near-symmetric about it: cycloidal's lobes fit 90 degrees off, a many-lobed disc's
+        any whole number of lobes): a minimum that fits clearly better is taken; another that
+        fits as well makes the pose ambiguous, and the spread between them enters its
+        uncertainty. A fit whose surfaces alone hold that rotation little (``_EDGES_ALONE``)
+        is swept round too.
     coarse_sweep_deg : float
         Step of the finer sweep about the weakest rotation of the best coarse candidates
         (across one step of the grid); the seeds it finds are refined like the grid's. Also

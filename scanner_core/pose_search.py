@@ -260,9 +260,13 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
     Returns the fit (or a probe's, when it scores clearly better: ``_BETTER_TURN``) and the
     others that score as well (within :func:`_rival_margin`, or better) but lie elsewhere:
     distinct minima the scan cannot tell apart, which the uncertainty must then cover.
-    Probed: a fit whose weakest rotation is held less than ``probe_weakness``, or by its
-    edges alone (its surfaces hold it less than ``_EDGES_ALONE``: a flat part turning in its
-    plane, whose outline may repeat). A quick refinement (the coarse stage's) screens the
+    Every fit is probed from turns of ``_PROBE_DEG`` about its weakest rotation: the fine
+    stage from a start far off can stop a degree or two short of a better minimum however
+    firmly the scan holds that rotation, and how firmly it holds it, measured on a few
+    hundred points, varies by a factor of two between subsamples. The sweep all the way
+    round is for a fit whose weakest rotation is held less than ``probe_weakness``, or by
+    its edges alone (its surfaces hold it less than ``_EDGES_ALONE``: a flat part turning in
+    its plane, whose outline may repeat). A quick refinement (the coarse stage's) screens the
     turns; those that pass are fitted on a share of the points, and on every point only
     when they settle on a minimum not yet fitted that may score as well (docs/pose.md,
     "Speed").
@@ -273,15 +277,14 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
         _subsample(len(edges.points), _PROBE_POINTS, rng))
     centre = few.points.mean(axis=0)
     axis, weakness = _weakest_rotation(few, few_edges, fit.pose, centre, params, weakness=True)
-    if weakness > params.probe_weakness and (
-            few_edges is None
-            or _weakest_rotation(few, None, fit.pose, centre, params, weakness=True)[1]
-            > _EDGES_ALONE):
-        return fit, []
+    weakly_held = weakness <= params.probe_weakness or (
+        few_edges is not None
+        and _weakest_rotation(few, None, fit.pose, centre, params, weakness=True)[1]
+        <= _EDGES_ALONE)
     rough, rough_edges = few.rough(), _rough(few_edges)
     own = _agreement(few, few_edges, fit.pose, *_COARSE_TOL_MM)
     starts = list(_turned(fit.pose, axis, centre, _PROBE_DEG))
-    if weakness > _HELD_WEAKNESS:
+    if weakly_held and weakness > _HELD_WEAKNESS:
         starts += _round_seeds(few, few_edges, fit.pose, axis, params)
     quick = _quick_fits(rough, rough_edges, np.stack(starts), params,
                         iterations=_PROBE_ITERATIONS, gate_mm=params.gate_mm * 2)
