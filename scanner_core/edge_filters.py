@@ -337,9 +337,9 @@ def grazing_edges(points_t, sheet_normals_t, cloud_t, cloud_frame_ids, spacing_m
         lone profile says nothing, and only the plane test applies.
     frame_ids : (M,) int, optional
         The profile of each edge point: its neighbourhood is then centred on the nearest
-        cloud point of that profile. A step's point on a wall the camera sees lies half the
-        step's height off the surface (2.5 mm on a 5 mm step), where a neighbourhood about it
-        reaches its own profile's points only and the test would take it for a grazed wall.
+        cloud point of that profile. A step's point lies half the step's height off the
+        surface (2.5 mm on a 5 mm step), where a neighbourhood about it reaches its own
+        profile's points only and the test would take it for a grazed wall.
     radius_mm : float
         Neighbourhood of each edge point: about twice the profiles' spacing at the default
         pass (1.2 mm at 200 mm/s and 162 fps); widened to ``LONE_PROFILE_REACH`` spacings

@@ -482,10 +482,8 @@ def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, peak
           threshold, curl, fx, fy, cx, cy, n, offset, e_a, e_d, out_pc, out):
     """The step edge of the jumps k0..k1 (points k0..k1+1) with its sides llo..k0 and
     k1+1..rhi, in the stretch of stripe k_lo..k_hi, into out_pc (point in {C}) and out (u, v,
-    height, level, direction): half way up a wall seen over adjacent columns, on the near
-    surface's rim of a wall within one column. False when the step is below threshold, has
-    no clean half-height crossing, or its near side curves away up to the run
-    (:func:`_curls`)."""
+    height, level, direction). False when the step is below threshold, has no clean
+    half-height crossing, or its near side curves away up to the run (:func:`_curls`)."""
     lxm, lym, lsl, _ = _fit_line(a, d, llo, k0 + 1)
     rxm, rym, rsl, _ = _fit_line(a, d, k1 + 1, rhi + 1)
     a_b = 0.5 * (a[k0] + a[k1 + 1])
@@ -515,11 +513,11 @@ def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, peak
         u = vcol[p] + f
         v = vrow[p] + f * (vrow[q] - vrow[p])
     else:
-        # the wall stands where the near side's stripe ends (at half its level), its rim
+        # the wall stands where the near side's stripe ends: at half its level
         if h > 0:
-            near, toward, nlo, nhi = p, 1, llo, k0 + 1
+            near, toward, nlo, nhi, flo, fhi = p, 1, llo, k0 + 1, k1 + 1, rhi + 1
         else:
-            near, toward, nlo, nhi = q, -1, k1 + 1, rhi + 1
+            near, toward, nlo, nhi, flo, fhi = q, -1, k1 + 1, rhi + 1, llo, k0 + 1
         if (_curls(vrow, vcol, k0, 1, k_lo, k0 + 1, curl) if h > 0
                 else _curls(vrow, vcol, k1 + 1, -1, k1 + 1, k_hi + 1, curl)):
             return False  # the near side's stripe ends on a surface curving away, not at a rim
@@ -528,6 +526,14 @@ def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, peak
         v = cym + csl * (u - cxm) if nlo <= near < nhi else vrow[near] + csl * (u - vcol[near])
         if not _triangulate(u, v, fx, fy, cx, cy, n, offset, out_pc):
             return False
+        a_n = out_pc[0] * e_a[0] + out_pc[1] * e_a[1] + out_pc[2] * e_a[2]
+        d_n = out_pc[0] * e_d[0] + out_pc[1] * e_d[1] + out_pc[2] * e_d[2]
+        mid = 0.5 * ((lym + lsl * (a_n - lxm)) + (rym + rsl * (a_n - rxm)))
+        for i in range(3):
+            out_pc[i] += (mid - d_n) * e_d[i]  # up the wall to half the step
+        # in the image: half way between the two sides' rows at the wall's column
+        fxm, fym, fsl, _ = _fit_line(vcol, vrow, flo, fhi)
+        v = 0.5 * (v + fym + fsl * (u - fxm))
     out[0], out[1], out[2] = u, v, abs(h)
     out[3] = min(_median_of(vpeak, llo, k0 + 1), _median_of(vpeak, k1 + 1, rhi + 1))
     out[4] = 1.0 if h > 0 else -1.0

@@ -77,8 +77,8 @@ STRIPE_LOSS_DEG = 82.0
 #: within 5 times the expected edge scatter (``PoseParams.edge_noise_mm``, 0.03 mm).
 MODEL_EDGE_TOL_MM = 0.15
 #: A step's or drop-out's near side is the nearest point of its own profile within this, mm:
-#: a profile's points lie about 0.16 mm apart, a step's point on its wall's rim or half the
-#: step's height down a wall the camera sees; a wider reach would take another surface.
+#: a profile's points lie about 0.16 mm apart, a step's point half the step's height (its
+#: near end, computed) from its wall's top; a wider reach would take another surface.
 NEAR_REACH_MM = 1.0
 #: Point-segment pairs per block of the distance search (about 100 MB of temporaries).
 PAIRS_PER_BLOCK = 1_000_000
@@ -291,8 +291,8 @@ def model_distances(points_t, kinds, model: ModelEdges, pose) -> np.ndarray:
     in the (x_T, y_T) plane, as the pose's residual for an edge point (its distance to the
     vertical plane through the edge it matches): a drop-out from the sharp edges and the
     outline seen from the sensor (a rounded rim's stripe ends where it turns away), a step
-    (``kinds`` == ``EdgeKind.STEP``) from the sharp edges (a half-height point on a leaning
-    wall lies off them, and the pose cannot use it either)."""
+    (``kinds`` == ``EdgeKind.STEP``) from the sharp edges (its half-height point on a
+    leaning wall lies off them, and the pose cannot use it either)."""
     points = _points3(points_t, "points_t")
     kinds = np.asarray(kinds).reshape(-1)
     if kinds.shape != (len(points),):

@@ -122,8 +122,8 @@ class EdgePoints:
     pixel : (M, 2) float64
         Where the edge lies in the image, px: the sub-pixel column where it was found, and
         the row of the side's stripe there (a drop-out: ``point_b`` projects to it) or half
-        way between the two sides' rows (a step the camera sees, interpolated half way up its
-        wall) or on the near side's row (a step whose wall it does not see: its rim).
+        way between the two sides' rows (a step: the half-height point ``point_b``, off the
+        sheet's surfaces, projects up to about a column away from it, by perspective).
     point_b : (M, 3) float64
         The edge point in {B}, mm, in the light plane.
     kind : (M,) uint8
@@ -319,8 +319,9 @@ def find_edges(result, valid, camera: PinholeCamera, light_plane_c: Plane, *,
     if camera.distorted and len(pixel):
         # The kernel's rays are the ideal pinhole's: a lens bends them by up to a few pixels at
         # the border. Each point moves by what the bending moves its pixel's point; the
-        # kernel's own placement of a resolved step's point (interpolated along the profile,
-        # off the pixel's ray) is kept.
+        # kernel's own placement of a step's point (half the step back along the range, past
+        # the pixel's ray) is kept. Taken from the pixel's point outright, every step of a
+        # bracket's 5 mm step lay 55 um off in a cell with a real lens (its drop-outs, 18 um).
         pinhole = replace(camera, distortion=NO_DISTORTION)
         point_b = point_b + (triangulate_stripe(pixel, camera, light_plane_c)
                              - triangulate_stripe(pixel, pinhole, light_plane_c))

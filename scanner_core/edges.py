@@ -34,19 +34,17 @@ Along the profile (columns in order):
   (``max(min_step_mm, noise_factor * point-to-point scatter)``) marks a step; a run of up to
   ``max_ramp_px`` such jumps of one sign is one step seen over a few columns (an inclined
   wall, a chamfer). Lines fitted to each side give the relative step height ``h`` at the
-  step, which certifies it. Where the step is resolved (its half-height level falls between
-  two adjacent columns that hold less than half of it: a wall the camera sees) the point is
-  interpolated there, half way up the wall; otherwise (a jump within one column, or across a
-  bridged gap: a wall the camera does not see) the point is the wall's rim on the near
-  surface, a sharp edge of the part: where the near side's stripe falls to half its level, as
+  step; the edge point lies at half of it. Where the step is resolved (its half-height level
+  falls between two adjacent columns that hold less than half of it) the point is
+  interpolated there; otherwise (a jump within one column, or across a bridged gap) the wall
+  stands at the near side's boundary: where the near side's stripe falls to half its level, as
   a drop-out's (a pixel column holding the wall is lit in part by the near surface, in
   proportion to the share of the pixel it covers; a column holding both sides' stripes is
   taken as half lit by each when rejected as a double, and as lit by the near side at
-  ``DOUBLE_SHARE`` of its peak when measured on one of two peaks, ``StripeResult.n_peaks``).
-  Moved ``h / 2`` along ``d`` to the wall's half height, it would lie off a wall that does not
-  run along the range axis by half the step times the angle between them: a sheet tilted a
-  degree from the part's walls put featuretype's 3 mm steps 26 um off, the same way across
-  the part, and its pose 12 um off across the pass (docs/edges.md).
+  ``DOUBLE_SHARE`` of its peak when measured on one of two peaks, ``StripeResult.n_peaks``),
+  and the point is that boundary on the near surface
+  moved by ``h / 2`` along ``d``: walls are taken to run along the range axis (vertical walls
+  in the reference cell), so in {T} the point projects onto the wall's top and bottom edges.
   A step with a side cut short by another edge must be ``SHORT_SIDE_STEP_FACTOR`` times the
   threshold high (a chamfer's slope at the rim of a larger step is no step of its own).
 - **Surfaces curving away.** A side whose rows turn steadily up to its end, past their

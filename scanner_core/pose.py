@@ -382,9 +382,8 @@ def register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids=Non
         The part's sharp edges in {P}.
     edge_steps_mm : (M,) float, optional
         Per edge point, the height of its step (``Scan.edge_size_mm`` of a step point), 0 or
-        NaN for a drop-out: a step's point on a wall the camera sees lies half of it from
-        the edge it was found at, and is matched from there as well. Default: every point a
-        drop-out.
+        NaN for a drop-out: a step's point lies half of it from the edge it was found at,
+        and is matched from there. Default: every point a drop-out.
     params : PoseParams
 
     Returns

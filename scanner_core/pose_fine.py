@@ -280,13 +280,11 @@ def _nearest(terms: _Terms, local, up, bound):
     """Distance to and index of the nearest model point within `bound` mm (inf and the
     model's size beyond it) of each point of `local` ((..., N, 3), the scan in {P}).
 
-    A step's edge point on a wall the camera sees lies half the step's height from the edge
-    it was found at, up or down the wall (paper section II), and as far from the wall's
-    other edge: matched from where it lies, it finds either, or another edge near the wall's
-    middle. It is matched from half its step above and below it along z_T (`up`, z_T in
-    {P}, (..., 3)) as well, and keeps the nearest of the three matches: the edge it came
-    from (a step's point on its wall's rim, a wall the camera does not see, is nearest
-    where it lies).
+    A step's edge point lies half the step's height from the edge it was found at, up or
+    down the wall (paper section II), and as far from the wall's other edge: matched from
+    where it lies, it finds either, or another edge near the wall's middle. It is matched
+    from half its step above and below it along z_T (`up`, z_T in {P}, (..., 3)) as well,
+    and keeps the nearest of the three matches: the edge it came from.
     """
     shape = local.shape[:-1]
     if terms.approximate:

@@ -138,8 +138,8 @@ class SurfaceModel:
 class EdgeModel:
     """Points along the part's sharp edges with the edge's direction, in {P}, and a KD-tree.
 
-    An edge point of the scan (where a profile crosses an edge: a drop-out, or a step, on its
-    wall's rim or half way up it) lies on the vertical wall through the edge, so it constrains
+    An edge point of the scan (where a profile crosses an edge: a drop-out or a step, placed
+    at half the step's height) lies on the vertical wall through the edge, so it constrains
     the part across the edge in the (x_T, y_T) plane only: its residual is the distance to the
     vertical plane through the edge line. That is what the surfaces cannot give: a part whose
     visible faces are all level slides and turns freely over them. A step's point is matched

@@ -194,10 +194,10 @@ def _wall_distances(points: np.ndarray, segments: np.ndarray, face_normals: np.n
     across the wall (and beyond the edge's ends along it), for points within
     ``WALL_REACH_MM`` of the edge up or down the wall.
 
-    A step's point on a riser the camera sees sits at half the step's height on it (paper
-    section II); when the riser leans (the part turned about x_T or y_T), that point lies off
-    the (x_T, y_T) projection of the riser's top and bottom edges by half the height times
-    the lean's tangent, by design. Across the riser itself, it is off by its own error only.
+    A step's point sits at half the step's height on its riser (paper section II); when the
+    riser leans (the part turned about x_T or y_T), that point lies off the (x_T, y_T)
+    projection of the riser's top and bottom edges by half the height times the lean's
+    tangent, by design. Across the riser itself, it is off by its own error only.
 
     Parameters
     ----------
@@ -294,13 +294,12 @@ def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kin
     The sharp edges (:func:`sharp_edges`: faces meeting at more than ``feature_angle_deg``,
     plus boundary edges) are placed in {T} by the true grasp. Each edge point's distance to
     the nearest of them is measured in the (x_T, y_T) plane: the scanner looks along z_T, so
-    a vertical wall's top and bottom edges project onto one line, and a step's edge point, on
-    the wall's rim or half way up a wall the camera sees (paper section II), lies on that
-    line. The 3-D distance is reported for information, to the sharp edges only: for a step
-    half way up its wall it includes half the step height by design. Walls tilted away from
-    z_T (a misplacement's rotation) move such a point off the projected line by half the step
-    height times the tilt's tangent; with ``kinds``, a step point is also measured across the
-    wall it lies on
+    a vertical wall's top and bottom edges project onto one line, and a step's edge point,
+    placed at half the step height on the wall (paper section II), lies on that line. The
+    3-D distance is reported for information, to the sharp edges only: for a step it
+    includes half the step height by design. Walls tilted away from z_T (a misplacement's
+    rotation) move a step point off the projected line by half the step height times the
+    tilt's tangent; with ``kinds``, a step point is also measured across the wall it lies on
     (:func:`_wall_distances`), and the nearer of the two counts. A drop-out (every point,
     without ``kinds``) is also measured to the outline seen along z_T
     (:func:`outline_edges`): where a rounded or drafted rim turns away from the sensor, the

@@ -517,25 +517,21 @@ def step_profile(geometry, wall_col, near_left=True, lo=700, hi=1100):
 
 @pytest.mark.parametrize("near_left", [True, False])
 @pytest.mark.parametrize("wall_col", [900, 1203])
-def test_step_edge_of_an_unseen_wall_on_its_near_rim(geometry, wall_col, near_left):
-    """A wall the camera does not see (the range jumps within one column): the step's edge
-    point is where the near surface ends, on the wall's rim, a sharp edge of the part, and
-    its height is the two sides' difference. The wall's half height along the range axis
-    would put it off the wall by half the step times the tilt between the range axis and the
-    wall (a step 3 mm high in a sheet tilted by a degree: 26 um)."""
+def test_step_edge_at_half_height_on_the_wall(geometry, wall_col, near_left):
     profile, a_wall = step_profile(geometry, wall_col, near_left, lo=wall_col - 150,
                                    hi=wall_col + 150)
     edges = edges_of(geometry, make(profile))
     steps = edges.kind == EdgeKind.STEP
     assert steps.sum() == 1 and (~steps).sum() == 2  # and the two ends of the stripe
     i = np.nonzero(steps)[0][0]
-    assert_allclose(edges.point_b[i], sheet_point_b(geometry, a_wall, NEAR_MM), atol=EXACT_MM)
+    assert_allclose(edges.point_b[i], sheet_point_b(geometry, a_wall, 0.5 * (NEAR_MM + FAR_MM)),
+                    atol=EXACT_MM)
     assert_allclose(edges.size_mm[i], FAR_MM - NEAR_MM, atol=EXACT_MM)
     assert edges.direction[i] == (1 if near_left else -1)
-    # in the image: at the wall's column, on the near side's row
+    # in the image: at the wall's column, half way between the two sides' rows
     col = wall_col + (0.5 if near_left else -0.5)
-    assert_allclose(edges.pixel[i], [col, surface_at(geometry, [col], NEAR_MM)[1][0]],
-                    atol=1e-3)
+    rows = [surface_at(geometry, [col], r)[1][0] for r in (NEAR_MM, FAR_MM)]
+    assert_allclose(edges.pixel[i], [col, np.mean(rows)], atol=1e-3)
 
 
 def test_chamfer_at_a_steps_rim_is_no_step_of_its_own(geometry):
@@ -599,9 +595,9 @@ def test_step_with_its_wall_inside_a_column(geometry, phase, near_left):
         assert abs(phase) <= DOUBLE_COLUMN_TOL_PX
     else:
         assert_allclose(edges.pixel[i, 0], column + phase, atol=SUBPIXEL_TOL_PX)
-    # the point: the near surface's end at that column, on the wall's rim
+    # the point: the near surface's end at that column, moved up the wall to half the step
     a_found = surface_at(geometry, [edges.pixel[i, 0]], NEAR_MM)[0][0]
-    assert_allclose(edges.point_b[i], sheet_point_b(geometry, a_found, NEAR_MM),
+    assert_allclose(edges.point_b[i], sheet_point_b(geometry, a_found, 0.5 * (NEAR_MM + FAR_MM)),
                     atol=EXACT_MM)
     assert edges.direction[i] == (1 if near_left else -1)
 
@@ -660,7 +656,7 @@ def test_step_with_stripe_noise(geometry, rng, row_noise_px):
         edges = edges_of(geometry, make(profile, rng, row_noise_px))
         steps = edges.kind == EdgeKind.STEP
         assert steps.sum() == 1
-        expected = sheet_point_b(geometry, a_wall, NEAR_MM)
+        expected = sheet_point_b(geometry, a_wall, 0.5 * (NEAR_MM + FAR_MM))
         assert np.linalg.norm(edges.point_b[steps][0] - expected) < NOISY_MM * row_noise_px / 0.03
 
 
