@@ -479,11 +479,13 @@ def _near_end(near, toward, nlo, nhi, cols, vpeak, double, peak):
 
 @njit(nogil=True, cache=True)
 def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, peak, double,
-          threshold, curl, fx, fy, cx, cy, n, offset, e_a, e_d, out_pc, out):
+          threshold, curl, fx, fy, cx, cy, n, offset, e_a, e_d, out_pc, out_move, out):
     """The step edge of the jumps k0..k1 (points k0..k1+1) with its sides llo..k0 and
-    k1+1..rhi, in the stretch of stripe k_lo..k_hi, into out_pc (point in {C}) and out (u, v,
-    height, level, direction). False when the step is below threshold, has no clean
-    half-height crossing, or its near side curves away up to the run (:func:`_curls`)."""
+    k1+1..rhi, in the stretch of stripe k_lo..k_hi, into out_pc (point in {C}), out_move
+    (how far it was moved from the near side's end up the wall, {C}, mm: zero where it was
+    interpolated on the profile) and out (u, v, height, level, direction). False when the
+    step is below threshold, has no clean half-height crossing, or its near side curves away
+    up to the run (:func:`_curls`)."""
     lxm, lym, lsl, _ = _fit_line(a, d, llo, k0 + 1)
     rxm, rym, rsl, _ = _fit_line(a, d, k1 + 1, rhi + 1)
     a_b = 0.5 * (a[k0] + a[k1 + 1])
@@ -505,6 +507,8 @@ def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, peak
     if p < 0:
         return False  # noise larger than the step
     q = p + 1
+    for i in range(3):
+        out_move[i] = 0.0
     if cols[q] - cols[p] == 1 and abs(d[q] - d[p]) <= RESOLVED_STEP_FRACTION * abs(h):
         # resolved over adjacent columns: interpolate on the profile
         f = -e_p / (e_q - e_p)
@@ -530,7 +534,8 @@ def _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, peak
         d_n = out_pc[0] * e_d[0] + out_pc[1] * e_d[1] + out_pc[2] * e_d[2]
         mid = 0.5 * ((lym + lsl * (a_n - lxm)) + (rym + rsl * (a_n - rxm)))
         for i in range(3):
-            out_pc[i] += (mid - d_n) * e_d[i]  # up the wall to half the step
+            out_move[i] = (mid - d_n) * e_d[i]  # up the wall to half the step
+            out_pc[i] += out_move[i]
         # in the image: half way between the two sides' rows at the wall's column
         fxm, fym, fsl, _ = _fit_line(vcol, vrow, flo, fhi)
         v = 0.5 * (v + fym + fsl * (u - fxm))
@@ -548,6 +553,7 @@ def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offse
     valid = valid_in.copy()
     dark = dark_in.copy()
     pc = np.empty(3)
+    move = np.zeros(3)
     for c in range(w):  # a ray that misses the sheet (or a NaN row) is no stripe
         if valid[c] and not (row[c] == row[c]
                              and _triangulate(float(c), row[c], fx, fy, cx, cy, n, offset, pc)):
@@ -564,9 +570,10 @@ def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offse
     out_peak = np.empty(m_max)
     out_dir = np.empty(m_max, np.int8)
     out_end = np.full((m_max, 8), np.nan)
+    out_move = np.zeros((m_max, 3))
     if nv == 0:
         return (out_px[:0], out_pc[:0], out_kind[:0], out_size[:0], out_peak[:0], out_dir[:0],
-                out_end[:0], math.nan)
+                out_end[:0], out_move[:0], math.nan)
     starts, ends = _segments(cols, dark_cum, min_gap, max_bridge)
     n_seg = starts.shape[0]
     # the profile in the sheet: points in {C}, in-plane (a, d), columns, rows and peaks
@@ -656,15 +663,16 @@ def _edges_kernel(row, peak, valid_in, dark_in, double, fx, fy, cx, cy, n, offse
             cut_short = k0 - llo + 1 < side_px or rhi - k1 < side_px
             if _step(k0, k1, llo, rhi, k_lo, k_hi, cols, a, d, pts, vcol, vrow, vpeak, peak,
                      double, threshold, curl, fx, fy, cx, cy, n, offset, e_a, e_d, pc,
-                     res) and not (
+                     move, res) and not (
                          cut_short and res[2] < SHORT_SIDE_STEP_FACTOR * threshold):
                 out_px[count, 0], out_px[count, 1] = res[0], res[1]
                 out_pc[count, :] = pc
                 out_kind[count] = 1
+                out_move[count, :] = move
                 out_size[count] = res[2]
                 out_peak[count] = res[3]
                 out_dir[count] = 1 if res[4] > 0 else -1
                 count += 1
     return (out_px[:count].copy(), out_pc[:count].copy(), out_kind[:count].copy(),
             out_size[:count].copy(), out_peak[:count].copy(), out_dir[:count].copy(),
-            out_end[:count].copy(), noise)
+            out_end[:count].copy(), out_move[:count].copy(), noise)

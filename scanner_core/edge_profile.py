@@ -159,6 +159,12 @@ class EdgePoints:
     per_px_b : (M, 3) float64
         Drop-out: how the point moves in {B}, mm, when its column moves one px outward along
         its side's rows. NaN for a step.
+    up_wall_b : (M, 3) float64
+        Step on a wall the camera does not see: how far the point was moved from the near
+        side's end to half the step's height, along the sheet's range axis, in {B}, mm (the
+        wall is taken to run that way; ``scanner_core.pipeline_accumulate`` turns the move
+        along the gripper's z_T). Zero for a step interpolated on a wall the camera sees,
+        and for a drop-out.
     """
 
     pixel: np.ndarray
@@ -171,6 +177,7 @@ class EdgePoints:
     noise_mm: float = float("nan")
     stripe_end: np.ndarray | None = None
     per_px_b: np.ndarray | None = None
+    up_wall_b: np.ndarray | None = None
 
     def __post_init__(self):
         m = len(self.kind)
@@ -178,9 +185,13 @@ class EdgePoints:
             object.__setattr__(self, "stripe_end", np.full((m, 5), np.nan, np.float32))
         if self.per_px_b is None:
             object.__setattr__(self, "per_px_b", np.full((m, 3), np.nan))
-        if np.shape(self.stripe_end) != (m, 5) or np.shape(self.per_px_b) != (m, 3):
-            raise ValueError(f"`stripe_end` and `per_px_b` must be ({m}, 5) and ({m}, 3), got "
-                             f"{np.shape(self.stripe_end)} and {np.shape(self.per_px_b)}")
+        if self.up_wall_b is None:
+            object.__setattr__(self, "up_wall_b", np.zeros((m, 3)))
+        if (np.shape(self.stripe_end) != (m, 5) or np.shape(self.per_px_b) != (m, 3)
+                or np.shape(self.up_wall_b) != (m, 3)):
+            raise ValueError(f"`stripe_end`, `per_px_b` and `up_wall_b` must be ({m}, 5), "
+                             f"({m}, 3) and ({m}, 3), got {np.shape(self.stripe_end)}, "
+                             f"{np.shape(self.per_px_b)} and {np.shape(self.up_wall_b)}")
 
     def __len__(self) -> int:
         return len(self.kind)
@@ -309,7 +320,7 @@ def find_edges(result, valid, camera: PinholeCamera, light_plane_c: Plane, *,
         double[_mask(np.asarray(n_peaks) >= 2, w, "result.n_peaks") & valid] = 2
     n = np.asarray(light_plane_c.normal, dtype=np.float64)
     p = params
-    pixel, point_c, kind, size, pk, direction, end, noise = _edges_kernel(
+    pixel, point_c, kind, size, pk, direction, end, move_c, noise = _edges_kernel(
         row, peak, valid, dark, double, float(camera.fx), float(camera.fy), float(camera.cx),
         float(camera.cy), n, float(light_plane_c.offset), e_a, e_d, int(p.min_gap_px),
         int(p.max_bridge_px), int(p.min_run_px), int(p.side_px), float(p.min_step_mm),
@@ -326,9 +337,10 @@ def find_edges(result, valid, camera: PinholeCamera, light_plane_c: Plane, *,
         point_b = point_b + (triangulate_stripe(pixel, camera, light_plane_c)
                              - triangulate_stripe(pixel, pinhole, light_plane_c))
     per_px_b = np.einsum("ij,jk->ik", end[:, 5:8], camera.rotation)  # {C} -> {B}, no BLAS
+    up_wall_b = np.einsum("ij,jk->ik", move_c, camera.rotation)
     stripe_end = end[:, :5].astype(np.float32)
     return EdgePoints(pixel, point_b, kind, size, pk.astype(np.float32), direction, along_b,
-                      float(noise), stripe_end, per_px_b)
+                      float(noise), stripe_end, per_px_b, up_wall_b)
 
 
 # ---------------------------------------------------------------------------------------------
