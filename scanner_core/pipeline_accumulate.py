@@ -283,8 +283,8 @@ def _up_the_wall(edges: EdgePoints, tcp, rotation) -> np.ndarray:
     """(M, 3) float64: the profile's edge points in {T}, mm, each step's moved from its near
     side's end up the wall along z_T rather than along the sheet's range axis
     (``EdgePoints.up_wall_b``): the pose matches a step's point from half its height above
-    and below it along z_T, and a sheet leaning a degree from the part's walls put a 3 mm
-    step's point 26 um off its wall when moved along the range axis."""
+    and below it along z_T, and where the sheet leans from the part's walls a move along its
+    range axis leaves the wall by half the step times the lean."""
     points = base_to_tcp(edges.point_b, tcp, rotation)
     move = edges.up_wall_b @ rotation  # {B} -> {T}
     points[:, :2] -= move[:, :2]       # up the wall along z_T only

@@ -19,9 +19,11 @@ is registered against the CAD model in {P}, starting from the nominal grasp ^T X
   grasp that looks good: one a lobe off matches every edge point but a keyway's. OpenCV's
   point-pair features (Drost et al. 2010), measured against it by ``flyscan bench coarse``,
   led to 11 of 16 poses where it found 15, in about 5 times the time, after 39-258 s of
-  training per part. A converged fit whose weakest turn is held loosely is also refitted
-  from turns near it and from the best turns of a sweep all the way round it
-  (`_probe_turns`): a round part picked from a bin can sit any turn off its nominal.
+  training per part. Every converged fit is also refitted from turns near it about its
+  weakest rotation, and one whose weakest turn is held loosely from the best turns of a
+  sweep all the way round it (`_probe_turns`): a fit from a start far off can stop a degree
+  or two short of the truth, and a round part picked from a bin can sit any turn off its
+  nominal.
 - **uncertainty**: the covariance of the six motion parameters is the cluster-robust
   sandwich ``H^-1 (sum_f g_f g_f^T) H^-1`` over the frames f (Liang and Zeger 1986): the
   points of one profile share that frame's placement error (the marker's triangulation), so
