@@ -87,7 +87,7 @@ class SimPassDriver:
         cell = self.sim.cell
         pose = np.eye(4)
         pose[:3, :3], pose[:3, 3] = cell.gripper_rotation_b, self.sim.idle_tcp_b
-        self.sim.hold(pose, None)
+        self._after_the_pass(lambda: self.sim.hold(pose, None))
         if self.emulator is not None:
             self.emulator.set_track(self.sim.start_clock(), self.sim.robot.clock_offset_s,
                                     cell.gripper_rotation_b, pose[:3, 3])
@@ -97,13 +97,15 @@ class SimPassDriver:
         """Take the TCP to a calibration step's pose ((4, 4) ^B X_T, mm) and hold it there, as
         the cell controller's robot program would: the camera shows the LED (``led``) or the
         sphere in the sheet (``sphere``), the robot reports the pose (with a real robot's
-        errors, the RTDE emulator with its orientation error)."""
+        errors, the RTDE emulator with its orientation error). A pass's lead-out still under
+        way is finished first, as for :meth:`start_pass`."""
         from simulator.calsession import StepScenes
 
         if self._scenes is None:
             self._scenes = StepScenes(self.sim.cell)
         tcp_b = np.asarray(tcp_b, dtype=np.float64)
-        self.sim.hold(tcp_b, self._scenes.truth(kind, tcp_b))
+        truth = self._scenes.truth(kind, tcp_b)
+        self._after_the_pass(lambda: self.sim.hold(tcp_b, truth))
         if self.emulator is not None:
             cell = self.sim.cell
             self.emulator.set_track(self.sim.start_clock(), self.sim.robot.clock_offset_s,
@@ -155,23 +157,31 @@ class SimPassDriver:
             profile = self.sim.cell.with_pass(speed_shape=CALIBRATION_SPEED_SHAPE).pass_profile
         simulated = self._simulated(part)
         self.sim.prepare_pass(simulated, misplacement, profile=profile)  # cached for the start
-        deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
-        while True:
-            if not wanted():
-                return
-            try:
-                live = self.sim.start_pass(simulated, misplacement, profile=profile)
-                break
-            except PassInProgress:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.01)
+        live = self._after_the_pass(
+            lambda: self.sim.start_pass(simulated, misplacement, profile=profile), wanted)
+        if live is None:
+            return
         if self.emulator is not None:
             if self._held_at is not None:  # back in the pass's orientation after a hold
                 self.emulator.set_track(self.sim.start_clock(), self.sim.robot.clock_offset_s,
                                         self.sim.cell.gripper_rotation_b, self._held_at)
                 self._held_at = None
             self.emulator.add_segment(live.segment)
+
+    def _after_the_pass(self, move, wanted=lambda: True):
+        """``move()`` once the robot has finished the pass under way (its lead-out goes on
+        after the scan has ended: the robot program moves on only after it), waiting up to
+        ``PREVIOUS_PASS_WAIT_S``; None without moving when ``wanted()`` says False first."""
+        deadline = time.monotonic() + PREVIOUS_PASS_WAIT_S
+        while True:
+            if not wanted():
+                return None
+            try:
+                return move()
+            except PassInProgress:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.01)
 
     def close(self) -> None:
         if self.emulator is not None:

@@ -6,6 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from simulator.driver import SimPassDriver
+from simulator.live import PassInProgress
 
 
 class _Cell:
@@ -14,13 +15,22 @@ class _Cell:
     def __init__(self, cell):
         self.cell, self.idle_tcp_b, self.profiles, self.holds = cell, np.zeros(3), [], []
 
+    busy_calls = 0  # how many more calls find the previous pass's lead-out under way
+
+    def _busy(self):
+        if self.busy_calls > 0:
+            self.busy_calls -= 1
+            raise PassInProgress("the simulated robot is in a pass")
+
     def hold(self, pose, truth):
+        self._busy()
         self.holds.append(pose)
 
     def prepare_pass(self, part, misplacement, *, profile=None):
         return None
 
     def start_pass(self, part, misplacement, *, profile=None):
+        self._busy()
         self.profiles.append(profile)
         return SimpleNamespace(segment=None)
 
@@ -48,3 +58,16 @@ def test_a_pass_no_longer_wanted_is_not_started(cell):
     driver.start_pass("demo", None, wanted=lambda: False)  # its scan timed out meanwhile
     driver.start_pass("demo", None)
     assert len(live.profiles) == 1
+
+
+def test_the_robot_finishes_a_pass_s_lead_out_before_it_parks_or_holds(cell):
+    """A scan is done when the marker has left; the robot's lead-out goes on a little longer,
+    and a calibration step asked for then must wait for it, not fail."""
+    live = _Cell(cell)
+    driver = SimPassDriver(live)
+    driver._scenes = SimpleNamespace(truth=lambda kind, tcp_b: None)
+    live.busy_calls = 3
+    driver.hold("led", np.eye(4))
+    live.busy_calls = 2
+    driver.park()
+    assert len(live.holds) == 2 and live.busy_calls == 0
