@@ -1,4 +1,4 @@
-"""Benchmark of the web side against the camera (issue 28): passes armed over REST on a real
+"""Benchmark of the web side against the camera: passes armed over REST on a real
 ``flyscan serve --sim`` process while clients loop on the read endpoints nobody needs a token
 for, and what each pass lost.
 

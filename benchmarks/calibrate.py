@@ -1,4 +1,4 @@
-"""Calibration from data (issue 9): its error against the session's size and the stage's noise,
+"""Calibration from data: its error against the session's size and the stage's noise,
 and the cloud in the realistic cell, effect by effect.
 
 Three parts, each row a simulated session (``simulator.calsession``) calibrated by the scanner
@@ -15,7 +15,7 @@ Three parts, each row a simulated session (``simulator.calsession``) calibrated 
   and on the cell's true geometry. Effects whose uncalibrated cloud stays within 10 % of the
   ideal cell's do not matter to the cloud.
 
-The targets (issue 9): views held out at most 0.05 px RMS; the light plane's normal within
+The targets: views held out at most 0.05 px RMS; the light plane's normal within
 0.005 degrees and offset within 10 um; sphere centres within 20 um; the scan on the calibration
 within 1.5x the scan on the truth and at most 30 um RMS.
 """

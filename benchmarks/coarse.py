@@ -1,7 +1,7 @@
 """Benchmark of the pose's coarse stage: flyscan's search seeded by the nominal grasp
 (`scanner_core.pose`) against OpenCV contrib's point-pair features
 (``cv2.ppf_match_3d_PPF3DDetector``; Drost et al., "Model globally, match locally", CVPR 2010),
-the candidate issue 8 names, on the same scans.
+the candidate the pose's search names, on the same scans.
 
 For each reference part (quick: the procedural block), PPF is trained once on the CAD surface
 (the samples the fine stage registers against, `SurfaceModel.from_mesh`, subsampled to

@@ -1,4 +1,4 @@
-"""Edges at soft creases and on walls (issue 25): edge points per part and per edge kind.
+"""Edges at soft creases and on walls: edge points per part and per edge kind.
 
 Every row is one simulated pass of the reference cell (the pass ``simulator.session
 .run_simulated_scan`` makes, driven here so that the frames' truth is kept), its edge points
@@ -7,7 +7,7 @@ over 30 degrees and, for drop-outs, the outline seen along z_T; in the (x_T, y_T
 *false* beyond 0.5 mm). Three edge clouds per pass:
 
 - **before**: the edge cloud with the points set aside as turned away put back (the scanner
-  without ``scanner_core.edge_kinds.turned_away``; the step placement of issue 25 is in it);
+  without ``scanner_core.edge_kinds.turned_away``; the step placement is in it);
 - **model-free**: the scan's own edge cloud (drop-outs and steps), what the pose registers;
 - **with the model**: after registration against the CAD (``scanner_core.pose.scan_pose``),
   the points off every model edge set aside too (``edge_kinds.reclassify_with_model``; its
@@ -23,7 +23,7 @@ Parts: the procedural ones of ``simulator.parts`` (faceted domes with creases of
 holes and a 5 mm step, the bracket turned 35 degrees about z and leaning 6 degrees about y
 (its step's wall leaning under its top edge), a crowned block, the demo block) and the four
 reference parts, these at the misplacements and seeds ``flyscan bench pose`` scans them at.
-The target (issue 25): the model-free edge cloud within 30 um RMS (inliers, as ``bench pose``
+The target: the model-free edge cloud within 30 um RMS (inliers, as ``bench pose``
 scores) with fewer than 5 % of its points false, on every part.
 
 ``run(out_dir)`` writes ``edges.json`` and ``edges.png`` into ``out_dir`` and returns the dict;

@@ -8,7 +8,7 @@ LED offset along the pass direction also does: only the pass's changes of speed 
 apart, and a robot clock that drifts along a pass whose speed only grows reads as a constant
 clock error. For each realistic cell (``--perturb-seed``, every effect) and each shape of the
 calibration pass's speed (``"ramp"``: up all the way, a scan's; ``"peak"``: up to the middle
-and down again, the calibration's since 2026-11-27), this bench calibrates as ``flyscan
+and down again, the calibration pass's), this bench calibrates as ``flyscan
 calibrate --sim`` does, runs the calibration pass again and fits the LED three ways on the
 same marker positions:
 

@@ -32,7 +32,7 @@ _DEMO_SOURCE = "procedural:block_with_holes_and_steps"
 #: time.
 DEMO_PASS_SEED = 3
 
-#: The issue's target set of misplacements (issue 8): up to this far from the nominal grasp,
+#: The issue's target set of misplacements: up to this far from the nominal grasp,
 #: mm and degrees, in random directions.
 MISPLACEMENT_UP_TO_MM, MISPLACEMENT_UP_TO_DEG = 5.0, 10.0
 #: The six axes of a misplacement or a pose error: a translation (mm) and a rotation vector.

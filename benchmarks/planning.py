@@ -1,4 +1,4 @@
-"""``flyscan bench planning``: the scan planner (``planning``, issue 30) measured.
+"""``flyscan bench planning``: the scan planner (``planning``) measured.
 
 Phases, each writing ``OUT/<phase>.json`` (``phase(out)`` runs one alone), gathered by
 `combine` into ``OUT/bench_planning.json`` and ``OUT/bench_planning.png``:

@@ -5,7 +5,7 @@ at the cell's default pass (``simulator.session.run_simulated_scan``), with the 
 processing time (marker + profiles + scan; rendering the frames, ``acquire``, excluded) set
 against the camera time of the pass, and the cloud scored against the true surface. Then the
 paper's two pass presets (1 m/s at 162 fps, 50 mm/s at 16 fps) for one part with ``"cog"``.
-Last, every part in the realistic cell of issue 9 (``simulator.effects``), on the calibration
+Last, every part in the realistic cell (``simulator.effects``), on the calibration
 the scanner makes there and on the cell's true geometry: the accuracy beside the ideal cell's.
 
 Everything runs on one thread (``threadpoolctl`` limits BLAS/OpenMP to 1; the numba kernels are
@@ -44,7 +44,7 @@ PRESETS = ("fast", "slow")
 TARGET_RMS_UM = 20.0
 TARGET_P99_UM = 60.0
 #: Points matched to no true stripe sample of their frame, per 10k points. Was 0 points: since
-#: the stripe's floors follow the noise (issue 12), dim columns at grazing incidence count, with
+#: the stripe's floors follow the noise, dim columns at grazing incidence count, with
 #: their noise: on the block one column of a 19 DN stripe came back 0.6 px off (quality 32 DN).
 TARGET_UNMATCHED_PER_10K = 1.0
 TARGET_REALTIME_FACTOR = 1.0
@@ -174,7 +174,7 @@ def _summary(rows: list[dict], presets: list[dict]) -> dict:
     }
 
 
-#: The realistic cell of issue 9: every effect of ``simulator.effects``, this perturbation.
+#: The realistic cell: every effect of ``simulator.effects``, this perturbation.
 REALISTIC_PERTURB_SEED = 1
 
 

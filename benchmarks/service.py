@@ -9,7 +9,7 @@
    pass's last frame to its cloud on ZeroMQ, the process's memory after every pass, and the CPU
    the processing takes against the camera time.
 
-3. The pose's latency (issue 27): passes of every part (the quick set: the demo block) at
+3. The pose's latency: passes of every part (the quick set: the demo block) at
    several pass speeds, so several point counts, at random misplacements (the issue's target
    set, seeded), through the same service with each reference part uploaded to it: from the
    pass's last frame to the pose's message on ZeroMQ (``latency_ms.pose_published``), its
@@ -57,7 +57,7 @@ TARGET_LATENCY_P99_MS = 100.0
 TARGET_MEMORY_GROWTH = 0.05
 #: A pass must be over within this long, s (the default pass takes about 2 s).
 PASS_TIMEOUT_S = 30.0
-#: The pose's target (issue 27): from the pass's last frame to the pose on ZeroMQ, p95 at
+#: The pose's target: from the pass's last frame to the pose on ZeroMQ, p95 at
 #: most this, ms, for scans of up to `TARGET_POSE_POINTS` points, one worker core.
 TARGET_POSE_P95_MS = 150.0
 TARGET_POSE_POINTS = 20_000

@@ -1,4 +1,4 @@
-"""Real surfaces (issue 12): the cloud of dark, matte and shiny parts under each exposure mode.
+"""Real surfaces: the cloud of dark, matte and shiny parts under each exposure mode.
 
 Every row is one simulated pass (``simulator.session.run_simulated_scan``) of a part whose
 surface is one of ``simulator.surfaces.SURFACES``, scanned with one exposure mode of
@@ -6,7 +6,7 @@ surface is one of ``simulator.surfaces.SURFACES``, scanned with one exposure mod
 matched to no true stripe). Four parts:
 
 - **presets**: each preset with each exposure mode ("fixed", "dynamic", "multiple"), and with
-  the pipeline as it was before issue 12 (fixed floors, double peaks and clipped peaks
+  the pipeline with its earlier defaults (fixed floors, double peaks and clipped peaks
   rejected, no geometric window) at the fixed exposure, for the ratio;
 - **effects**: what each effect of the shiny preset does to the cloud, one at a time (the
   specular lobe alone, the one-bounce reflections added, the full preset) at the fixed and the
@@ -52,7 +52,7 @@ __all__ = ["run", "PRESETS", "BEFORE_ISSUE_12"]
 
 PRESETS = ("matte", "dark", "shiny")
 REFERENCE_PRESET = "matte"
-#: The pipeline's stripe settings before issue 12, for the ratio.
+#: The pipeline's earlier stripe settings, for the ratio.
 BEFORE_ISSUE_12 = dict(stripe_floor="fixed", stripe_policy="reject", stripe_saturation="reject",
                        geometric_window=False)
 FULL_PARTS = (DEMO_PART, REFERENCE_PART)
@@ -61,7 +61,7 @@ QUICK_ALBEDOS = (1.0, 0.12, 0.03)
 SPECULARS = (0.0, 2.0, 5.0, 10.0, 20.0, 50.0)
 QUICK_SPECULARS = (0.0, 10.0, 50.0)
 SWEEP_LOBE_DEG = 15.0
-#: Issue 12's targets for the shiny preset against the matte one.
+#: The targets for the shiny preset against the matte one.
 TARGET_POINT_RATIO = 0.95
 TARGET_RMS_RATIO = 1.5
 SEED = 0
@@ -85,7 +85,7 @@ def scan_row(part: Part, surface: Surface, mode: str, cell, *, pipeline: dict | 
         "surface": label or "custom",
         "surface_params": dataclasses.asdict(surface),
         "exposure": mode,
-        "pipeline": "before issue 12" if pipeline else "current",
+        "pipeline": "earlier defaults" if pipeline else "current",
         "frames": int(report["frames"]),
         "points": int(report["points"]),
         "rms_um": _finite(accuracy.get("rms_um")),
@@ -253,9 +253,9 @@ def _plot_presets(ax, rows, colors, part_name):
         x += 0.6
     ax.set_xticks(ticks)
     ax.set_xticklabels(labels, fontsize=6, rotation=60, ha="right")
-    ax.set_yscale("log")  # the pipeline before issue 12 reached 0.65 mm on the shiny idler
+    ax.set_yscale("log")  # the pipeline's earlier defaults reached 0.65 mm on the shiny idler
     ax.set_ylabel("cloud RMS, um, log (text: points / matte preset's, same exposure)")
-    ax.set_title(f"{part_name}: presets x exposure (red: pipeline before issue 12)", fontsize=9)
+    ax.set_title(f"{part_name}: presets x exposure (red: the earlier defaults)", fontsize=9)
 
 
 def _plot_effects(ax, rows, colors):

@@ -1,4 +1,4 @@
-"""A calibration session from frames to a calibration file (``flyscan calibrate``, issue 9).
+"""A calibration session from frames to a calibration file (``flyscan calibrate``).
 
 Three steps, each through the scanner's own detectors:
 

@@ -204,7 +204,7 @@ def _robot_rotations(robot: Robot, times: np.ndarray) -> np.ndarray | None:
 
 def estimate_led_and_clock(times, marker_b, robot: Robot, *, initial_offset_s: float = 0.0,
                            iterations: int = OFFSET_ITERATIONS) -> tuple[np.ndarray, float, float]:
-    """The LED's offset from the TCP in {T} and the clock offset, from one pass (issue 9).
+    """The LED's offset from the TCP in {T} and the clock offset, from one pass.
 
     Solves ``M_i = p(t_i + d) + R(t_i + d) m`` for ``m`` (the LED in {T}, mm) and ``d`` (robot
     minus camera clock, s) by Gauss-Newton: ``M_i`` the marker's triangulated positions, ``p``

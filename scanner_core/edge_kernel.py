@@ -78,7 +78,7 @@ END_FACE_PX = 3
 #: (``simulator.parts.bracket_with_two_holes``), its wall leaning 2 to 6 degrees under its top
 #: edge: the second peak held 0.28-0.6 of the chosen one (10th-90th percentiles, median 0.41
 #: to 0.5); 0.47-1.1 (median 0.62) where both sides lit the column in part at the wall's end.
-#: Taken as none (before issue 25), the steps landed 0.34 px inside the near side on average
+#: Taken as none (the earlier default), the steps landed 0.34 px inside the near side on average
 #: (step RMS 76 um at a 6-degree lean); as half the near side's level, 0.35 px past it at the
 #: wall's ends; as 0.65 of the chosen peak (the middle of DOUBLE_PEAK_RATIO..1), 0.27 px past.
 DOUBLE_SHARE = 0.45

@@ -63,7 +63,7 @@ class PipelineParams:
         (``scanner_core.stripe``, ``threshold="auto"``: 20 DN on the reference model) and a
         column is kept when its peak SNR reaches ``min_peak_snr``, so that a dark part's stripe
         (30 DN over 3 DN of noise) still counts, its ``quality`` (the peak) saying how much to
-        trust it.  ``"fixed"``: ``stripe_threshold_dn`` and ``min_peak_dn`` (before issue 12).
+        trust it.  ``"fixed"``: ``stripe_threshold_dn`` and ``min_peak_dn`` (the earlier default).
         On the block's reference pass (cog) "auto" gave 10.85 um RMS and 1 unmatched point in
         10.6k against 10.36 um and 0 with the fixed floors: the grazing columns of 30-40 DN come
         back, with their tenths of a pixel.
@@ -76,11 +76,11 @@ class PipelineParams:
     stripe_policy : str
         Which peak is the stripe where a column holds two (``scanner_core.stripe.POLICIES``);
         default "continuity": under a reflection at half the stripe's brightness it keeps the
-        true stripe in every column.  "reject" drops such columns (before issue 12).
+        true stripe in every column.  "reject" drops such columns (the earlier default).
     stripe_saturation : str
         ``"fit"`` (default): clipped peaks are measured from their flanks
         (``scanner_core.stripe``: up to 10x full scale to ~0.02 px RMS) and flagged
-        ``saturated``; ``"reject"``: dropped (before issue 12).
+        ``saturated``; ``"reject"``: dropped (the earlier default).
     marker : scanner_core.marker.MarkerParams
     marker_mask_px : float
         Stripe columns closer than this to the marker in the direct view are dropped: the LED

@@ -313,7 +313,7 @@ def _free_prior(free_scaled, s, params) -> np.ndarray:
     bounded only by what a pick can leave (``PoseParams.prior_mm``, ``prior_deg``).
 
     A free slide along a prism's length tilted 0.5 degrees from y_T moves x_T by 9 um per mm
-    it slides: the L-block of issue 27, 5 mm off along its free axis, came out 44 um off in
+    it slides: an L-block 5 mm off along its free axis, came out 44 um off in
     x_T and 26 um in z_T with sigmas of 3 and 0.5 um. With this prior those axes' sigmas are
     87 and 52 um: they bound their errors, and the pose is not acted on.
     """

@@ -12,6 +12,7 @@ import asyncio
 import functools
 import shutil
 from contextlib import asynccontextmanager
+from importlib.metadata import version as package_version
 from pathlib import Path
 from typing import Annotated
 
@@ -384,7 +385,7 @@ def create_app(settings: Settings | None = None, *, service: Service | None = No
 
     # The documentation pages' scripts are served by the service itself: a cell network is
     # often offline (fastapi-offline ships Swagger UI and ReDoc).
-    app = FastAPIOffline(title="flyscan", version="0.2.0", lifespan=lifespan,
+    app = FastAPIOffline(title="flyscan", version=package_version("flyscan"), lifespan=lifespan,
                          description="In-flight laser-line 3D scanner: arm a scan, fetch its cloud.")
     app.state.service = service
     for router in (system, scans, parts, calibrations, page):

@@ -1,4 +1,4 @@
-"""The REST API of calibration sessions and of the calibration history (issue 29).
+"""The REST API of calibration sessions and of the calibration history.
 
 - ``POST /calibration/sessions`` a session and its plan (``PlanRequest``); ``GET
   /calibration/sessions/{id}`` its state; ``POST .../steps/{index}`` capture a plan's pose

@@ -1,4 +1,4 @@
-"""Calibration sessions recorded by the service, with the robot (issue 29).
+"""Calibration sessions recorded by the service, with the robot.
 
 A session follows a plan (``scanner_core.calplan``): the cell controller takes the robot to
 each of the plan's TCP poses in turn and asks the service to capture it

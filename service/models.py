@@ -354,7 +354,7 @@ class CalibrationModel(BaseModel):
                           "at `centre_mm`; every pose carries it. Null: not measured")
 
 
-# -- calibration sessions and history (issue 29) ----------------------------------------------
+# -- calibration sessions and history ----------------------------------------------
 
 #: A rotation vector, rad (UR's convention): each component within 2 pi.
 RotationVector = Annotated[list[Annotated[float, Field(ge=-6.3, le=6.3, allow_inf_nan=False)]],

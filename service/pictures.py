@@ -1,6 +1,6 @@
 """The status page's pictures: the latest frame with what the scanner found on it, and the
 last cloud seen from below. Drawn with OpenCV (a few ms), on request only, and bounded: the
-camera, the trigger and the pipeline share the process (issue 28).
+camera, the trigger and the pipeline share the process.
 
 - ``FramePicture``: ``/frame.png`` is rendered at most once per camera frame and at most every
   ``FRAME_PERIOD_S``, one render at a time; every client in between gets the same cached bytes.

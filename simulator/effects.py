@@ -1,4 +1,4 @@
-"""What a real cell does that the ideal simulated one does not (issue 9's "realistic cell").
+"""What a real cell does that the ideal simulated one does not (the "realistic cell").
 
 Each effect has a setting and a plausible default for a real cell; the reference cell has them
 all off, ``realistic_cell`` turns on some or all of them. The scanner is told none of it: it

@@ -289,7 +289,7 @@ def edge_distances(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, ki
 def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kinds=None,
                   feature_angle_deg: float = 30.0, outlier_mm: float = 0.5) -> dict:
     """Distances from edge points to the CAD's sharp edges, and from drop-outs also to the
-    part's outline (issue 8's edge target).
+    part's outline (the edge target).
 
     The sharp edges (:func:`sharp_edges`: faces meeting at more than ``feature_angle_deg``,
     plus boundary edges) are placed in {T} by the true grasp. Each edge point's distance to
@@ -347,7 +347,7 @@ def edge_accuracy(edges_t, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *, kin
 
 
 # ---------------------------------------------------------------------------------------------
-# Edge kinds of a scan (issue 25): the edge cloud and what the scan set aside, by the truth
+# Edge kinds of a scan: the edge cloud and what the scan set aside, by the truth
 
 
 def edge_kind_accuracy(scan, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *,

@@ -2,7 +2,7 @@
 
 The reference model (``simulator.imaging``) draws the stripe the scanner's cell makes: one
 width (sigma 1.5 px), a uniform surface, a dark background. A photograph of a laser line on a
-real object shows more, and the stripe extractor must hold on it (issue 25): the line's width
+real object shows more, and the stripe extractor must hold on it: the line's width
 changes along its length (sigma 0.7 to 4.7 px along one line on a colour camera at 640 x 480,
 from defocus and the surface's angle), a printed texture changes its brightness every few
 pixels (and, where a texture edge crosses the line, within one column's cross-section), ambient

@@ -1,5 +1,5 @@
 """Procedural test parts, built with trimesh and manifold3d: the demo block and the unseen
-cases of issue 25 (soft creases, holes and a step, a curved surface).
+cases beyond the reference parts (soft creases, holes and a step, a curved surface).
 
 Every function returns a watertight ``trimesh.Trimesh`` in mm, in its part frame {P}, its
 features described in ``mesh.metadata["features"]``; ``simulator.parts.part_from_mesh`` (or
@@ -108,7 +108,7 @@ def _require_boolean_engine() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# Procedural parts with soft creases, curved surfaces and holes (issue 25)
+# Procedural parts with soft creases, curved surfaces and holes
 # --------------------------------------------------------------------------------------------
 
 #: Default slopes (degrees from level) of a faceted dome's tiers, from its flat top outward:

@@ -1,7 +1,7 @@
 """How a part's surface returns the laser: a diffuse albedo, a specular lobe, one bounce.
 
 The reference image model's stripe (200 DN at gain 1) is a matte white surface lit head-on.
-Real parts differ (issue 12): a dark anodised part returns a tenth of that, machined metal
+Real parts differ: a dark anodised part returns a tenth of that, machined metal
 returns little diffusely but glints many times over full scale where the laser's mirror
 direction meets the camera, and a shiny concave part throws part of the laser onto another of
 its own surfaces, which shows as a second stripe. Per stripe sample, the brightness relative to
@@ -65,7 +65,7 @@ class Surface:
             raise ValueError(f"surface `mirror` is a share of the laser's power, got {self.mirror}")
 
 
-#: Presets (issue 12). Plausible numbers, not measurements of one material:
+#: Presets. Plausible numbers, not measurements of one material:
 #: - matte: sand-cast or bead-blasted metal, a near-Lambertian grey (80 % of white);
 #: - dark: black anodised aluminium, ~8 % diffuse reflectance, a weak broad sheen;
 #: - shiny: machined (turned or milled) aluminium: little diffuse return from the tool marks,

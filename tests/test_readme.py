@@ -17,9 +17,8 @@ In the prose, an inline ```flyscan COMMAND --option``` names a command and optio
 every relative link and image exists, and every ``#anchor`` is a heading of its page. The README
 shows every ``docs/bench_*.png`` and links every ``docs/*.md``.
 
-``PENDING`` lists the options the README documents before the CLI has them (issue 26: the pass
-finisher gives ``flyscan scan`` any source). A line that uses one is checked without it, for
-real, and then with it, expected to fail (strict): when the CLI lands these tests pass, strict
+``PENDING`` lists the options the README documents before the CLI has them. A line that
+uses one is checked without it, for real, and then with it, expected to fail (strict): when the CLI lands these tests pass, strict
 xfail fails them, and the entry must be removed from ``PENDING``.
 """
 from __future__ import annotations
@@ -45,7 +44,7 @@ PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 #: (command, option) -> how many values the option takes: options documented ahead of the CLI.
 PENDING: dict = {}
-PENDING_REASON = "lands with the pass finisher (issue 26)"
+PENDING_REASON = "lands with the pass finisher"
 #: Seconds a ``python -m MODULE --help`` may take.
 HELP_TIMEOUT_S = 60.0
 #: Top-level folders whose paths a command writes to, not reads from.
@@ -424,8 +423,8 @@ def test_the_readme_shows_every_chart_and_links_every_page():
 
 def test_the_readme_stays_short():
     lines = (ROOT / "README.md").read_text(encoding="utf-8").splitlines()
-    # issue 26: about 300 lines; issue 27 asked for a worked case of acting on the pose in it
-    assert len(lines) < 320, f"README.md has {len(lines)} lines (issues 26 and 27: under 320)"
+    # about 300 lines, with a worked case of acting on the pose
+    assert len(lines) < 320, f"README.md has {len(lines)} lines (under 320)"
 
 
 def test_the_check_found_the_commands():

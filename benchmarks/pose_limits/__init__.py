@@ -1,4 +1,4 @@
-"""Where the scan's methods fail: edge and pose error as the conditions worsen (issue 8, item 4).
+"""Where the scan's methods fail: edge and pose error as the conditions worsen.
 
 Five factors, each grown from the reference cell until the method breaks, one simulated pass
 (``simulator.session.run_simulated_scan``) per level, part and trial:

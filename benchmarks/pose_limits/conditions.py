@@ -54,7 +54,7 @@ FACTORS = (
     Factor("noise", "read noise (reference 3 DN)", "DN", (3, 6, 10, 15, 20, 25), (3, 15, 25)),
     Factor("speed", "pass speed at 162 fps (reference 200 mm/s)", "mm/s",
            (200, 400, 700, 1000, 1500, 2500, 4000), (200, 1000, 2500)),
-    # to 800 x full scale: since the width gates follow the frame (issue 25) the clipped
+    # to 800 x full scale: since the width gates follow the frame the clipped
     # plateaus that continue the stripe are measured, and the pose first breaks past 200 x
     Factor("saturation", "stripe peak (full scale 255 DN, reference 200 DN)", "DN",
            (200, 400, 1000, 2000, 3000, 5000, 10000, 20000, 50000, 100000, 200000),

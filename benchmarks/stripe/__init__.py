@@ -7,11 +7,11 @@ several read-noise levels, next to the Cramer-Rao bound.  Frames come from the r
 model (``simulator.imaging``): speckle off for the noise sweep (the bound ignores speckle), and the
 reference model with speckle on as a separate figure.
 
-Scenes beyond the reference model (issue 25, ``benchmarks.stripe.scenes``): lines as
+Scenes beyond the reference model (``benchmarks.stripe.scenes``): lines as
 photographs show them (widths 0.5-6 px, texture, speckle, a colour camera's channel), and the
 pipeline's stripe call on frames of the reference cell against a copy of each frame.
 
-Real surfaces (issue 12): the valid fraction and RMS error of every estimator against the stripe's
+Real surfaces: the valid fraction and RMS error of every estimator against the stripe's
 peak from 5 DN to 10 times full scale (dark parts to clipped specular ones), with the fixed and the
 noise-derived ("auto") floors and the historical handling of saturation (rejected) for reference,
 the break points of each method marked (valid fraction below 90 % or RMS above 0.1 px); and the

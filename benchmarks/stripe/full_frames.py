@@ -125,7 +125,7 @@ def method_figures(ref_frames, ref_truth, sweep, crb, copy_ms) -> dict:
 
 
 def variant_times(ref_frames, ref_truth, copy_ms) -> dict:
-    """The options of issue 12 that cost time (the defaults are timed by `method_figures`):
+    """The options that cost time (the defaults are timed by `method_figures`):
     name -> ms per frame."""
     bounds = (np.full(FRAME_WIDTH, ROW_RANGE[0] - 20.0), np.full(FRAME_WIDTH, ROW_RANGE[1] + 20.0))
     windows = {id(img): (rows - REFERENCE_WINDOW_ROWS / 2, rows + REFERENCE_WINDOW_ROWS / 2)

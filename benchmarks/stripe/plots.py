@@ -80,7 +80,7 @@ def _plot_dynamic_range(result: dict, ax_valid, ax_rms, ax_cog) -> None:
         draw(ax_valid, ax_rms, m, f"C{i}", "-", m)
     draw(ax_cog, None, "cog", "C0", "-", "cog, threshold 20 DN")
     draw(ax_cog, None, "cog auto", "C1", "--", "cog, threshold auto")
-    draw(ax_cog, None, "cog, saturation rejected (before issue 12)", "gray", ":",
+    draw(ax_cog, None, "cog, saturation rejected (the earlier default)", "gray", ":",
          "cog, saturation rejected (before)")
     for ax in (ax_valid, ax_rms, ax_cog):
         ax.set_xscale("log")
@@ -99,7 +99,7 @@ def _plot_dynamic_range(result: dict, ax_valid, ax_rms, ax_cog) -> None:
     ax_rms.legend(fontsize=7)
     ax_cog.axhline(rule["min_valid"], color="gray", ls=":")
     ax_cog.set_ylabel("valid fraction")
-    ax_cog.set_title("cog valid fraction: fixed vs auto floors, and before issue 12")
+    ax_cog.set_title("cog valid fraction: fixed vs auto floors, and the earlier default")
     ax_cog.legend(fontsize=7)
 
 

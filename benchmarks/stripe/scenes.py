@@ -1,4 +1,4 @@
-"""The stripe extractor on scenes beyond the reference model (issue 25), for ``bench stripe``.
+"""The stripe extractor on scenes beyond the reference model, for ``bench stripe``.
 
 1. Lines as photographs show them (``simulator.line_photos``): sigma from 0.5 to 6 px, a width
    varying along the line, 2-D speckle, a printed checkerboard under it (with and without
@@ -11,7 +11,7 @@
    continuity, the saturation fit, the direct view's columns, the geometric window of the
    frame's TCP) against a copy of the frame, timed frame by frame in the same run.
 
-`scenes_target` holds the first to issue 25's target; `demo_cell_frames` times the second on
+`scenes_target` holds the first to its target; `demo_cell_frames` times the second on
 the demo block's pass.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ from simulator.line_photos import LinePhoto, render_line_photo
 __all__ = ["SCENES", "photographed", "cell_frames", "demo_cell_frames", "scenes_target",
            "TARGET_MEASURED", "TARGET_CELL_RATIO"]
 
-#: Issue 25: at least this share of the columns holding a stripe measured, none false ...
+#: at least this share of the columns holding a stripe measured, none false ...
 TARGET_MEASURED = 0.99
 #: ... and the stripe on a frame of the reference cell within this many copies of the frame.
 TARGET_CELL_RATIO = 2.5

@@ -1,4 +1,4 @@
-"""``bench stripe`` on real surfaces (issue 12): the valid fraction and RMS error of every
+"""``bench stripe`` on real surfaces: the valid fraction and RMS error of every
 estimator against the stripe's peak from 5 DN to 10 times full scale (dark parts to clipped
 specular ones), with the fixed and the noise-derived ("auto") floors and the historical handling
 of saturation (rejected), the break points of each marked; and the share of the columns on the
@@ -25,7 +25,7 @@ SWEEP_ROW_RANGE = (40.0, 216.0)
 # Where a method breaks: valid fraction below this or RMS error above that.
 BREAK_MIN_VALID = 0.9
 BREAK_MAX_RMS_PX = 0.1
-# Issue 12 targets on the sweep.
+# The targets on the sweep.
 TARGET_SAT_PEAK_DN = 1530.0  # 6x full scale
 TARGET_SAT_MIN_VALID = 0.98
 TARGET_SAT_MAX_RMS_PX = 0.08
@@ -69,7 +69,7 @@ def _breaks(peaks, valid, rms) -> dict:
 def _sweep_series() -> dict:
     series = {m: (m, {}) for m in stripe.METHODS}
     series.update({f"{m} auto": (m, {"threshold": "auto"}) for m in stripe.METHODS})
-    series["cog, saturation rejected (before issue 12)"] = ("cog", {"saturation": "reject"})
+    series["cog, saturation rejected (the earlier default)"] = ("cog", {"saturation": "reject"})
     return series
 
 
@@ -139,7 +139,7 @@ def reflections(n_frames: int, rng: np.random.Generator) -> dict:
 
 
 def surface_targets(dynamic: dict, reflections: dict) -> dict:
-    """Issue 12's targets on the sweep and the reflections."""
+    """The targets on the sweep and the reflections."""
     def at(name, peak):
         i = PEAKS_DN.index(peak)
         d = dynamic[name]

@@ -1,5 +1,5 @@
 """``flyscan calibrate --url``: a calibration session recorded by a running service, fitted
-there, and its calibration written here (issue 29).
+there, and its calibration written here.
 
 Without ``--session-id`` the whole session is run: a plan (``POST /calibration/sessions``),
 every pose captured, the pass recorded, the fit; the service must be able to take its robot to

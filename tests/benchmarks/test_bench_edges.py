@@ -1,4 +1,4 @@
-"""The edges benchmark (issue 25), quick: its files, its figures per part and edge kind."""
+"""The edges benchmark, quick: its files, its figures per part and edge kind."""
 import json
 
 from benchmarks import edges as bench

@@ -1,4 +1,4 @@
-"""``flyscan bench stripe`` in its quick form: the figures it writes, issue 25's among them."""
+"""``flyscan bench stripe`` in its quick form: the figures it writes, among them."""
 import json
 
 from benchmarks import stripe as bench
@@ -19,7 +19,7 @@ def test_writes_the_scenes_and_the_cell_frames(tmp_path):
         for key in ("fixed_20dn", "auto"):
             f = figures[key]
             assert f["columns_with_stripe"] > 300  # one 640-column frame per scene (quick)
-            if figures["held_to_target"]:  # issue 25: >= 99 % measured, none false
+            if figures["held_to_target"]:  # >= 99 % measured, none false
                 assert f["measured_fraction"] >= TARGET_MEASURED, (name, key, f)
                 assert f["false_columns"] == 0, (name, key, f)
     assert saved["summary"]["photographed_lines"]["met"]

@@ -1,4 +1,4 @@
-"""The real-surfaces benchmark's pieces, and issue 12's cloud target on the demo block."""
+"""The real-surfaces benchmark's pieces, and its cloud target on the demo block."""
 import pytest
 
 from benchmarks import surfaces as bench
@@ -19,7 +19,7 @@ def rows(block_part):
 
 
 def test_shiny_part_with_exposure_control_meets_the_target(rows):
-    """Issue 12: the shiny preset with dynamic or multiple exposure keeps >= 95 % of the matte
+    """the shiny preset with dynamic or multiple exposure keeps >= 95 % of the matte
     preset's points, RMS within 1.5x. Measured on the block: dynamic 0.97 of the points at
     0.99x the RMS of the matte preset at the fixed exposure; multiple 1.00 and 1.13x against the
     matte preset at multiple exposure (one measurement per column per pair of frames)."""

@@ -1,4 +1,4 @@
-"""flyscan plan (issue 30): a catalogue of three small procedural parts and a broken file on a
+"""flyscan plan: a catalogue of three small procedural parts and a broken file on a
 LocalCluster of two process workers, one of which is killed mid-run; the same results as
 in process; a rerun that computes nothing; the plan read back by flyscan scan and the
 service."""

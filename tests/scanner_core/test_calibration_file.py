@@ -1,4 +1,4 @@
-"""The versioned calibration file (issue 9): versions, distortion, provenance, image size."""
+"""The versioned calibration file: versions, distortion, provenance, image size."""
 import json
 
 import numpy as np

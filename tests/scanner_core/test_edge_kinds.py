@@ -1,4 +1,4 @@
-"""Edge kinds (issue 25): the near side's view and light margins on analytic surfaces, the
+"""Edge kinds: the near side's view and light margins on analytic surfaces, the
 model's edges and the edge points off them, the counts per kind."""
 import numpy as np
 import pytest

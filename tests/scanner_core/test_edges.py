@@ -645,7 +645,7 @@ def test_step_beside_a_column_of_two_peaks(geometry, share, near_left):
         u = edges.pixel[steps[0], 0]
         if tol is not None:
             assert abs(u - expected) <= tol
-        else:  # as before issue 25: at the border of the near side's last column
+        else:  # as the earlier default: at the border of the near side's last column
             assert_allclose(u, column + (-0.5 if near_left else 0.5), atol=1e-9)
 
 

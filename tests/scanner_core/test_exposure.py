@@ -1,4 +1,4 @@
-"""Exposure control (issue 12): the dynamic step, the split into time and gain, the
+"""Exposure control: the dynamic step, the split into time and gain, the
 multiple-exposure merge, and convergence on a surface whose brightness changes mid-pass."""
 from dataclasses import replace
 

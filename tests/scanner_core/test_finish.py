@@ -121,7 +121,7 @@ class _LostAfter:
 
 
 def test_frames_on_a_held_rotation_flag_the_check_with_their_fraction(simulated_pass):
-    """A robot lost for part of a pass (issue 28: 81 of 225 frames on a held rotation, and a
+    """A robot lost for part of a pass (81 of 225 frames on a held rotation, and a
     check over the other frames' samples that passed): the check is flagged and says how many
     frames and what fraction. Frames held only because
     the robot's reports came late, all checked since, flag nothing."""

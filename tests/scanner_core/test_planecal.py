@@ -1,4 +1,4 @@
-"""The light plane from a sphere (issue 9): recovery, outliers, a sheet that misses the sphere."""
+"""The light plane from a sphere: recovery, outliers, a sheet that misses the sphere."""
 import numpy as np
 import pytest
 

@@ -149,7 +149,7 @@ def test_a_free_slide_s_slack_is_in_the_other_axes_sigmas(tilt_deg):
                                   reach_mm=55.0)
     assert [a["label"] for a in result.free_axes] == ["along y_T"]
     assert not result.act and not result.observable
-    assert abs(error[0]) > 0.03  # the case is the one issue 27 describes
+    assert abs(error[0]) > 0.03  # the case: off beyond the tolerance
     assert_sigmas_bound_errors(result, error)
 
 

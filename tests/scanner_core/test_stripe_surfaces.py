@@ -1,4 +1,4 @@
-"""Stripe extraction on real surfaces (issue 12): saturation, reflections, dark parts.
+"""Stripe extraction on real surfaces: saturation, reflections, dark parts.
 
 Analytic frames from the reference image model (``simulator.imaging``: Gaussian stripe sigma
 1.5 px, background 10 DN, read noise 3 DN, speckle 0.1, clipped at 255) with the exact stripe rows
@@ -16,7 +16,7 @@ HEIGHT = 256
 N_COLUMNS = 4000
 REFERENCE = ImageModel()
 
-# Issue 12 targets.
+# The targets.
 SAT_MIN_VALID = 0.98  # stripes up to 6x full scale before clipping
 SAT_MAX_RMS_PX = 0.08
 REFLECTION_MIN_ON_STRIPE = 0.98  # reflection at half brightness 20-40 rows away
@@ -288,7 +288,7 @@ def test_frame_stripe_floors(cell):
     assert np.all(res.snr[auto] >= PipelineParams().min_peak_snr)
     with pytest.raises(ValueError, match="`stripe_floor`"):
         frame_stripe(img, cal, PipelineParams(stripe_floor="dark"), no_marker)
-    # saturation: measured by the pipeline's default, dropped on request (before issue 12)
+    # saturation: measured by the pipeline's default, dropped on request (the earlier default)
     img = render_image(h, w, REFERENCE, np.random.default_rng(123), stripe_cols=cols,
                        stripe_rows=truth[c0:c1], stripe_gain=np.full(cols.size, 1530.0 / 200.0))
     _, kept, _ = frame_stripe(img, cal, PipelineParams(stripe_saturation="reject"), no_marker)

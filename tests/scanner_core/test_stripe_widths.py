@@ -1,4 +1,4 @@
-"""Stripe widths beyond the reference model (issue 25): the gates follow the frame.
+"""Stripe widths beyond the reference model: the gates follow the frame.
 
 Frames from ``simulator.line_photos``: a laser line as a photograph shows it (its width
 varying along its length, a printed checkerboard under it, 2-D speckle, a colour camera's
@@ -15,7 +15,7 @@ from scanner_core.stripe import Reason, extract
 from simulator.imaging import ImageModel, render_image
 from simulator.line_photos import LinePhoto, render_line_photo
 
-# Issue 25's target: at least 99 % of the columns holding a stripe measured, none false.
+# The target: at least 99 % of the columns holding a stripe measured, none false.
 MIN_MEASURED = 0.99
 # A row farther than this plus two of the line's sigmas from its centre is not on the line.
 SEEDS = (0, 1)

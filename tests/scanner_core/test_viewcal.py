@@ -1,4 +1,4 @@
-"""The views from LED positions (issue 9): the ladder of models, recovery, outliers, refusals."""
+"""The views from LED positions: the ladder of models, recovery, outliers, refusals."""
 from dataclasses import replace
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""The geometric window (issue 12): the rows the inspection volume can light, per column."""
+"""The geometric window: the rows the inspection volume can light, per column."""
 import numpy as np
 import pytest
 

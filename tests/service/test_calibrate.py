@@ -1,4 +1,4 @@
-"""flyscan calibrate (issue 9): a simulated session in a cell the scanner does not know."""
+"""flyscan calibrate: a simulated session in a cell the scanner does not know."""
 import json
 import subprocess
 import sys

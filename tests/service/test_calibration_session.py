@@ -1,4 +1,4 @@
-"""A calibration recorded through the service with the robot (issue 29): in the realistic
+"""A calibration recorded through the service with the robot: in the realistic
 simulated cell (perturbed, every effect, the robot's reported poses noisy and turned a little),
 the simulated robot goes through the plan, the service records the session folder, fits it
 into a new version of the history; the figures reach ``flyscan calibrate --sim``'s, the folder
@@ -21,7 +21,7 @@ PERTURB_SEED = 3
 #: short enough for a test: about 35 s of captures at 0.2 s a pose; 40 sphere poses as
 #: `calibrate --sim` has (16 left the plane normal at 0.004-0.006 degrees).
 LED_POSES, SPHERE_POSES = 120, 40
-#: The targets (issue 29, as issue 9's for `flyscan calibrate --sim`).
+#: The targets (as for `flyscan calibrate --sim`).
 VIEWS_HELDOUT_PX = 0.05
 PLANE_NORMAL_DEG = 0.005
 PLANE_OFFSET_UM = 10.0

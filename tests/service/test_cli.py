@@ -220,7 +220,7 @@ def test_serve_without_devices_says_what_to_do(tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------------------------
-# What a new user trips on (issue 11)
+# What a new user trips on
 # --------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("option", ["--misplace", "--laser", "--camera"])

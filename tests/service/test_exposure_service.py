@@ -1,4 +1,4 @@
-"""Exposure control in the service (issue 12): a dark part in the live simulated cell, its
+"""Exposure control in the service: a dark part in the live simulated cell, its
 exposure steered while the pass streams, and what /status says of it."""
 import pytest
 

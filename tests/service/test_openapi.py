@@ -58,3 +58,15 @@ def test_every_status_the_edge_gives_is_declared(service):
             assert {"401", "413", "503"} <= declared, (method, path, declared)
             if method in ("put", "post", "delete"):
                 assert {"422", "507"} <= declared, (method, path)
+
+
+def test_the_api_s_version_is_the_package_s(service):
+    """One version, the package's (pyproject.toml), in the API's schema."""
+    import tomllib
+    from pathlib import Path
+
+    import httpx
+
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())
+    info = httpx.get(f"{service.url}/openapi.json").json()["info"]
+    assert info["version"] == pyproject["project"]["version"]

@@ -1,4 +1,4 @@
-"""Where the methods fail (issue 8, item 4): the quick failure-mode benchmark, and the graceful
+"""Where the methods fail: the quick failure-mode benchmark, and the graceful
 behaviour pinned at each break: flags and refusals, never silent garbage.
 
 The cases where the pose is confidently wrong today (no flag, an error above target beyond
@@ -18,7 +18,7 @@ from simulator.motion import PassMotion
 from simulator.session import misplacement_matrix, run_simulated_scan
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-#: Issue 8's targets.
+#: The targets.
 POSE_T_UM, POSE_R_MDEG = pl.TARGET_TRANSLATION_UM, pl.TARGET_ROTATION_MDEG
 #: The reference pass of the demo block gives about 225 profiles, 10k points, 120 edge points.
 MIN_REFERENCE_FRAMES, MIN_REFERENCE_POINTS, MIN_REFERENCE_EDGES = 200, 5000, 50
@@ -176,10 +176,10 @@ def test_sparse_profiles_never_give_a_confidently_wrong_pose(cell, demo):
 # --------------------------------------------------------------------------------------------
 
 def test_saturated_stripe_keeps_an_honest_pose(bench):
-    """Clipped stripes are measured from their flanks (issue 12), so a stripe at 4x full scale
+    """Clipped stripes are measured from their flanks, so a stripe at 4x full scale
     keeps its points and an honest pose (measured: 24.5 um off along tx at 2.9 reported sigma
     on one trial of the full run, within target on the others). The plateaus widen with the
-    peak; the width gate follows the frame (issue 25), so at 200x (50 000 DN) a third of the
+    peak; the width gate follows the frame, so at 200x (50 000 DN) a third of the
     points are still measured (3595 of 10425 on the quick trial) and the pose, 126 um off, says
     so in its sigma; at 800x (945 points, no edge) the pose is flagged, never silently wrong."""
     _, result = bench

@@ -1,4 +1,4 @@
-"""Reads paced at the edge (issue 28): a connection's reads answered at most every
+"""Reads paced at the edge: a connection's reads answered at most every
 ``read_interval_s``, all reads at most ``max_reads_per_s``, a read whose turn is too far off
 refused with 503; liveness and reads with the token not paced. The schedule as a function,
 then counts of answers over real HTTP against ``flyscan serve --sim`` (an upper bound the pace

@@ -41,7 +41,7 @@ def _same_report(report, live):
 
 
 def test_record_then_replay_gives_the_live_report(service, recorded, tmp_path):
-    """Issue 26: the recording keeps the part and the cross-check's state the pass started
+    """the recording keeps the part and the cross-check's state the pass started
     from, so that the replay gives the live report, pose and cross-check included."""
     folder, scan_id = recorded
     replayed = _flyscan("replay", folder, "--out", str(tmp_path / "replay"))

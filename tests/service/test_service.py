@@ -214,14 +214,14 @@ def test_calibration_round_trip_and_a_bad_one_refused(service):
             client.put_calibration(broken)
         with pytest.raises(Unprocessable, match="version: Input should be 1 or 2"):
             client.put_calibration({**calibration, "version": 3})
-        # A calibration file of issue 9 (a lens, a clock offset, its provenance) goes through.
+        # A calibration file (a lens, a clock offset, its provenance) goes through.
         lens = {**calibration, "camera": {**calibration["camera"],
                                           "distortion": [-0.08, 0.12, 2e-4, -1e-4, 0.0]},
                 "clock_offset_s": 0.0125, "provenance": {"cell": "test"}}
         back = client.put_calibration(lens)
         assert back["camera"]["distortion"] == lens["camera"]["distortion"]
         assert back["clock_offset_s"] == 0.0125 and back["provenance"] == {"cell": "test"}
-        # ... and one that says how well its marker offset is known (issue 27) keeps it.
+        # ... and one that says how well its marker offset is known keeps it.
         measured = client.put_calibration({**calibration, "marker_offset_std_mm": [0.001, 0.01, 0.002]})
         assert measured["marker_offset_std_mm"] == [0.001, 0.01, 0.002]
         assert client.calibration()["marker_offset_std_mm"] == [0.001, 0.01, 0.002]

@@ -1,4 +1,4 @@
-"""The web side bounded (issue 28): the status page's pictures drawn at a bounded rate and
+"""The web side bounded: the status page's pictures drawn at a bounded rate and
 cached, the scan list served from the store's index, previews waiting for a render bounded.
 Real HTTP against ``flyscan serve --sim`` in its own process; counts, never timings."""
 import json

@@ -1,4 +1,4 @@
-"""Edges at soft creases and on walls (issue 25), end to end against the truth: a faceted dome's
+"""Edges at soft creases and on walls, end to end against the truth: a faceted dome's
 drop-outs where the stripe leaves the camera's view or the light at a soft crease, set aside
 as turned away; a leaning wall's steps; the report's counts per edge kind."""
 import numpy as np
@@ -11,7 +11,7 @@ from simulator.evaluate import DROPOUT_CAUSES, dropout_causes, edge_distances, e
 from simulator.parts import bracket_with_two_holes, faceted_dome, part_from_mesh
 from simulator.session import misplacement_matrix, run_simulated_scan, simulated_cell
 
-#: Issue 25's target for edge points: RMS to the true edges (inliers, as bench pose scores)
+#: The target for edge points: RMS to the true edges (inliers, as bench pose scores)
 #: and the share farther than FALSE_MM from every true edge.
 TARGET_RMS_UM, TARGET_FALSE, FALSE_MM = 30.0, 0.05, 0.5
 

@@ -1,4 +1,4 @@
-"""The realistic cell's effects (issue 9): each does what it says, and only when switched on."""
+"""The realistic cell's effects: each does what it says, and only when switched on."""
 from dataclasses import replace
 
 import numpy as np

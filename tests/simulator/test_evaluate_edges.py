@@ -1,5 +1,5 @@
 """Edge accuracy against the CAD's sharp edges: analytic cases, then the edges of a simulated
-pass of the demo part (paper section II; issue 8's target: 30 um RMS, under 5 % beyond 0.5 mm)."""
+pass of the demo part (paper section II; target: 30 um RMS, under 5 % beyond 0.5 mm)."""
 import numpy as np
 import pytest
 import trimesh

@@ -1,4 +1,4 @@
-"""The procedural parts of issue 25: watertight, their dimensions, their creases and holes."""
+"""The procedural parts: watertight, their dimensions, their creases and holes."""
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose

@@ -1,4 +1,4 @@
-"""Surfaces of the simulated world (issue 12): albedo, specular lobe, one bounce, exposure."""
+"""Surfaces of the simulated world: albedo, specular lobe, one bounce, exposure."""
 import numpy as np
 import pytest
 import trimesh
