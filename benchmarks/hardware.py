@@ -50,11 +50,13 @@ def cross_checks(passes: int, data: pathlib.Path) -> dict:
     from scanner_core.recording import load_recording
     from scanner_core.replay import replay_recording
     from service.settings import Settings
+    from simulator.driver import SimulatedCellOptions
 
-    settings = Settings(sim=True, robot=f"ur://{free_loopback_host(130)}", data=data,
-                        zmq=f"tcp://127.0.0.1:{free_port()}", sim_clock_offset_s=3.5)
+    settings = Settings(robot=f"ur://{free_loopback_host(130)}", data=data,
+                        zmq=f"tcp://127.0.0.1:{free_port()}")
     rows, replays = [], []
-    with running_service(settings) as service:
+    with running_service(settings, SimulatedCellOptions(clock_offset_s=3.5),
+                         robot=settings.robot) as service:
         wait_for(lambda: service.engine.robot.connected, 10.0)
         kinds = [("consistent", [0.0, 0.0, 0.0]), ("across", [INCONSISTENCY_MM, 0.0, 0.0]),
                  ("along", [0.0, INCONSISTENCY_MM, 0.0])]

@@ -48,12 +48,19 @@ def wait_for(predicate, timeout: float, poll: float = 0.01):
 
 
 @contextlib.contextmanager
-def running_service(settings):
-    """The service of `settings` (``service.cli.serve.service_for``), started; stopped on the
-    way out, whatever happened."""
-    from service.cli.serve import service_for
+def running_service(settings, options=None, *, robot: str | None = None):
+    """The service of `settings` on the simulated cell of `options`
+    (``simulator.driver.SimulatedCellOptions``; None: the reference cell), started; with
+    `robot` (``ur://HOST``) the simulated robot is served by an RTDE emulator at HOST and read
+    through the real ur-rtde client. Stopped on the way out, whatever happened."""
+    from service.daemon import Service
+    from service.ur_robot import URRobot, parse_robot_url
+    from simulator.driver import SimulatedCellOptions, simulated_cell_devices
 
-    service = service_for(settings)
+    devices = simulated_cell_devices(options or SimulatedCellOptions(),
+                                     rtde_host=None if robot is None else parse_robot_url(robot),
+                                     robot_client=URRobot)
+    service = Service(settings, devices=devices)
     service.start()
     try:
         yield service
@@ -120,7 +127,7 @@ class ServeProcess:
         environ = {**os.environ, "OPENBLAS_NUM_THREADS": "1", **(env or {})}
         self._log_file = open(self.log, "w")
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--sim", "--port", str(self.port),
+            [sys.executable, "-m", "flyscan", "serve", "--sim", "--port", str(self.port),
              "--zmq", self.zmq, "--data", str(data), *args],
             stdout=self._log_file, stderr=subprocess.STDOUT, env=environ,
             preexec_fn=None if file_limit is None else partial(_limit_files, file_limit))

@@ -133,10 +133,13 @@ def rerun(out: Path) -> dict:
 
 
 def measured(out: Path) -> dict:
-    """``flyscan scan --plan`` of each reference part: reported sigmas against the plan's."""
+    """A scan of each reference part as its plan says (``flyscan scan --plan``'s pass, the
+    reference cell): reported sigmas against the plan's."""
     from scanner_core.cad import load_part
     from scanner_core.scanplan import load_scan_plan
-    from service.cli import main
+    from simulator.cell import cell_with_effects
+    from simulator.parts import simulated
+    from simulator.session import misplacement_matrix, run_simulated_scan
 
     folder, plans = _reference_folder(), out / "reference" / "plans"
     manifest = json.loads((folder / "manifest.json").read_text())
@@ -146,27 +149,23 @@ def measured(out: Path) -> dict:
         plan_path = plans / name / "plan.json"
         predicted = json.loads(plan_path.read_text())["chosen"]["predicted"]["std"]
         rng = np.random.default_rng([30, index])
+        plan = load_scan_plan(plan_path)
         held = load_part(folder / file_name, manifest[file_name]["units"],
-                         grasp=load_scan_plan(plan_path).nominal_grasp)
+                         grasp=plan.nominal_grasp)
+        cell = cell_with_effects(None, "none").with_pass(speed_mm_s=plan.speed_mm_s, fps=plan.fps)
         for seed in MEASURED_SEEDS:
             for misplaced in (False, True):
                 values = _fitting_misplacement(held, rng) if misplaced else np.zeros(6)
-                scan_out = out / "measured" / f"{name}-{seed}-{int(misplaced)}"
-                argv = ["scan", "--part", str(folder / file_name), "--units",
-                        manifest[file_name]["units"], "--plan", str(plan_path), "--seed",
-                        str(seed), "--no-eval", "--out", str(scan_out)]
-                if misplaced:
-                    argv += ["--misplace", ",".join(f"{v:.6f}" for v in values)]
-                with _quiet():
-                    code = main(argv)
-                report = json.loads((scan_out / "report.json").read_text())
+                _, report = run_simulated_scan(simulated(held), cell,
+                                               misplacement=misplacement_matrix(values),
+                                               seed=seed, evaluate=False)
                 pose = report.get("pose") or {}
                 std = pose.get("std") or {}
                 ratios = {a: (predicted[a] / std[a] if predicted.get(a) and std.get(a) else None)
                           for a in predicted}
                 worst = max((max(r, 1 / r) for r in ratios.values() if r), default=None)
                 rows.append({"part": name, "seed": seed, "misplacement": values.tolist(),
-                             "exit": code, "observable": pose.get("observable"),
+                             "observable": pose.get("observable"),
                              "free_axes": [f["label"] for f in pose.get("free_axes", [])],
                              "std": std, "ratio_predicted_over_measured": ratios,
                              "worst_factor": worst, "sigmas_off": (report.get("ground_truth", {})
@@ -197,16 +196,6 @@ def _fitting_misplacement(part, rng) -> np.ndarray:
             continue
         return values
     raise RuntimeError(f"no misplacement of the set leaves {part.name} in the volume")
-
-
-class _quiet:
-    """stdout silenced (flyscan scan's lines) for the measured scans."""
-
-    def __enter__(self):
-        self._old, sys.stdout = sys.stdout, io.StringIO()
-
-    def __exit__(self, *exc):
-        sys.stdout = self._old
 
 
 def fastpath(out: Path) -> dict:

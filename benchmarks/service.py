@@ -149,12 +149,12 @@ class _Receiver(threading.Thread):
 def passes(count: int, *, speed_mm_s: float | None = None) -> dict:
     """``count`` consecutive passes through the service in simulated mode."""
     from service.settings import Settings
+    from simulator.driver import SimulatedCellOptions
 
     with tempfile.TemporaryDirectory() as tmp:
         zmq = f"tcp://127.0.0.1:{free_port()}"
-        settings = Settings(sim=True, data=pathlib.Path(tmp), zmq=zmq, retention=10,
-                            sim_speed_mm_s=speed_mm_s)
-        with running_service(settings) as service:
+        settings = Settings(data=pathlib.Path(tmp), zmq=zmq, retention=10)
+        with running_service(settings, SimulatedCellOptions(speed_mm_s=speed_mm_s)) as service:
             rows = _passes(service, zmq, count)
     return _summarise(rows)
 
@@ -273,6 +273,7 @@ def pose_latency(quick: bool = False, ahead_frames: int | None = None) -> dict:
     `ahead_frames`: the service's ``pose_ahead_frames`` (None: its default; 0: the pose is
     computed at the pass's end only)."""
     from service.settings import Settings
+    from simulator.driver import SimulatedCellOptions
 
     names = (DEMO_PART,) if quick else (DEMO_PART, *REFERENCE_PARTS)
     speeds = QUICK_POSE_SPEEDS if quick else POSE_SPEEDS
@@ -280,11 +281,11 @@ def pose_latency(quick: bool = False, ahead_frames: int | None = None) -> dict:
     rows = []
     for s_index, speed in enumerate(speeds):
         with tempfile.TemporaryDirectory() as tmp:
-            settings = Settings(sim=True, data=pathlib.Path(tmp), zmq=f"tcp://127.0.0.1:{free_port()}",
-                                retention=10, sim_speed_mm_s=speed,
-                                **({} if ahead_frames is None
-                                   else {"pose_ahead_frames": ahead_frames}))
-            with running_service(settings) as service, pose_stages() as spent:
+            settings = Settings(data=pathlib.Path(tmp), zmq=f"tcp://127.0.0.1:{free_port()}",
+                                retention=10, **({} if ahead_frames is None
+                                                 else {"pose_ahead_frames": ahead_frames}))
+            options = SimulatedCellOptions(speed_mm_s=speed)
+            with running_service(settings, options) as service, pose_stages() as spent:
                 for p_index, name in enumerate(names):
                     in_library = _upload(service, name)
                     rng = np.random.default_rng([MISPLACEMENT_SEED, p_index, s_index])

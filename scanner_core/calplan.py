@@ -17,8 +17,7 @@ cell's volume:
 - the ``pass``: the robot carries the sphere through the sheet, as in a scan.
 
 Poses are given in UR's convention (:func:`plan_to_dict`): the TCP in the robot's base, x, y, z
-in metres and a rotation vector in radians, ready for a URScript ``movel(p[...])``; the
-conversion is ``clients.placement``'s, the one place it is made. The geometry assumes {B} as
+in metres and a rotation vector in radians, ready for a URScript ``movel(p[...])`` (``scanner_core.rtde.ur_pose_to_matrix``). The geometry assumes {B} as
 the reference cell puts it: passes run along +y_B at x_B = 0 and the sheet lies near y_B = 0.
 """
 from __future__ import annotations
@@ -27,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from clients.placement import matrix_to_ur_pose, ur_pose_to_matrix
+from scanner_core.rtde import matrix_to_ur_pose, ur_pose_to_matrix
 
 __all__ = ["TILT_DEG", "TILTED_FRACTION", "PlanGeometry", "PlanStep", "CalibrationPlan", "make_plan", "led_targets",
            "sphere_targets", "plan_to_dict", "plan_from_dict", "PLAN_FORMAT", "TILT_AXES"]

@@ -151,7 +151,7 @@ class SessionWriter:
         if not cv2.imwrite(str(self.folder / kind / name), image):
             raise OSError(f"could not write {self.folder / kind / name}")
         if self.robot:
-            from clients.placement import matrix_to_ur_pose
+            from scanner_core.rtde import matrix_to_ur_pose
 
             row = [name] + [repr(float(v)) for v in matrix_to_ur_pose(tcp_b)] + [int(samples)]
         else:
@@ -273,7 +273,7 @@ def load_session(folder) -> Session:
         tcp = None
         positions = values
         if robot:
-            from clients.placement import ur_pose_to_matrix
+            from scanner_core.rtde import ur_pose_to_matrix
 
             tcp = np.array([ur_pose_to_matrix(v) for v in values]).reshape(-1, 4, 4)
             offset = sphere_t if kind == "sphere" else nominal.marker_offset_t

@@ -27,10 +27,16 @@ from __future__ import annotations
 import re
 import struct
 
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from scanner_core.geometry_model import check_rigid
+
 __all__ = ["RTDE_PORT", "PROTOCOL_VERSION", "MAX_FREQUENCY_HZ", "HEADER", "packet",
            "REQUEST_PROTOCOL_VERSION", "GET_URCONTROL_VERSION", "SETUP_OUTPUTS", "SETUP_INPUTS",
            "START", "PAUSE", "DATA_PACKAGE", "TEXT_MESSAGE", "OUTPUT_TYPES", "TYPE_FORMATS",
-           "output_type", "output_setup", "parse_output_setup", "data_package"]
+           "output_type", "output_setup", "parse_output_setup", "data_package",
+           "ur_pose_to_matrix", "matrix_to_ur_pose"]
 
 #: The RTDE port of a UR controller; ur-rtde's receive interface cannot use another.
 RTDE_PORT = 30004
@@ -132,3 +138,27 @@ def data_package(types) -> struct.Struct:
     """The layout of a data package (``U``) for a recipe of these type names: uint8 recipe id,
     then each variable's values."""
     return struct.Struct(">B" + "".join(TYPE_FORMATS[t] for t in types))
+
+
+# -- the controller's pose: [x, y, z] m and a rotation vector, rad -----------------------------
+
+def ur_pose_to_matrix(ur_pose) -> np.ndarray:
+    """A UR pose ``[x, y, z, rx, ry, rz]`` (m; rotation vector: axis times angle, rad), as the
+    controller reports and takes it -> (4, 4) float64 rigid transform, mm.
+
+    ValueError unless six finite numbers."""
+    v = np.asarray(ur_pose, dtype=np.float64)
+    if v.shape != (6,) or not np.all(np.isfinite(v)):
+        raise ValueError(f"a UR pose must be six finite numbers [x, y, z (m), rx, ry, rz (rad)], "
+                         f"got {np.asarray(ur_pose).tolist()!r}")
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_rotvec(v[3:]).as_matrix()
+    m[:3, 3] = v[:3] * 1000.0
+    return m
+
+
+def matrix_to_ur_pose(matrix) -> np.ndarray:
+    """(4, 4) rigid transform, mm -> a UR pose (6,) float64: [x, y, z] m and the rotation
+    vector, rad, its angle in [0, pi]. ValueError unless a rigid transform."""
+    m = check_rigid(matrix)
+    return np.concatenate([m[:3, 3] / 1000.0, Rotation.from_matrix(m[:3, :3]).as_rotvec()])

@@ -28,7 +28,10 @@ import numpy as np
 from scanner_core.geometry import check_rigid
 
 __all__ = ["PLAN_FORMAT", "PlanError", "ScanPlan", "load_scan_plan", "turned_grasp",
-           "file_sha256", "check_plan_grasp"]
+           "file_sha256", "check_plan_grasp", "MIN_PROFILES", "too_few_profiles"]
+
+#: Profiles a pass must give on the part, at least, for its pose to be asked for.
+MIN_PROFILES = 5
 
 #: The ``format`` field of a plan file this module reads.
 PLAN_FORMAT = "flyscan-plan/1"
@@ -172,3 +175,18 @@ def check_plan_grasp(plan: ScanPlan, vertices) -> None:
     if not np.allclose(expected, plan.nominal_grasp, atol=_GRASP_TOL_MM):
         raise PlanError(f"the plan of part {plan.part!r}: its nominal_grasp is not its base "
                         f"grasp turned {plan.pass_direction_deg:g} degrees about z_T")
+
+
+def too_few_profiles(part, speed_mm_s: float, fps: float) -> str | None:
+    """Why a pass at ``speed_mm_s`` (mm/s) and ``fps`` (frames/s) cannot scan ``part`` (a
+    ``scanner_core.cad.PartModel``; it moves along y_T through the sheet): its frames are
+    ``speed_mm_s / fps`` mm apart, too far for ``MIN_PROFILES`` profiles over the part's
+    extent along y_T. None when they are near enough."""
+    spacing = speed_mm_s / fps
+    length = float(part.extents_t[1])
+    if length / spacing >= MIN_PROFILES:
+        return None
+    need = MIN_PROFILES * speed_mm_s / length
+    return (f"at {speed_mm_s:g} mm/s and {fps:g} fps the frames are {spacing:.3g} mm apart, "
+            f"too few for the part's {length:.1f} mm along the pass (at least {MIN_PROFILES} "
+            f"profiles): raise --fps to {need:.3g} or more, or lower --speed")

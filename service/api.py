@@ -111,8 +111,6 @@ _HTTP_METHODS = frozenset({"GET", "PUT", "POST", "DELETE", "PATCH", "HEAD"})
 async def arm_scan(service: ServiceDep, http: Request,
                    request: ScanRequest | None = None) -> ScanAccepted:
     request = request or ScanRequest()
-    if request.misplace is not None and service.driver is None:
-        raise HTTPException(422, "misplace is for simulated mode only")
     if await http.is_disconnected():
         # Its client gave up waiting (a crowded service): an armed scan nobody knows of
         # would take the next pass and answer the controller's retry with 409.

@@ -32,13 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
-from clients.placement import matrix_to_ur_pose, rotvec_to_matrix
 from scanner_core.calplan import (TILT_DEG, TILTED_FRACTION, CalibrationPlan, PlanGeometry,
                                   make_plan, plan_from_dict, plan_to_dict)
 from scanner_core.calsession import SessionWriter, calibrate_session, load_session
 from scanner_core.calibration import save_calibration
 from scanner_core.fileio import save_json_atomic
 from scanner_core.recording import robot_samples
+from scanner_core.rtde import matrix_to_ur_pose, ur_pose_to_matrix
 from service.engine import EngineBusy
 
 log = logging.getLogger("flyscan.calibration")
@@ -155,11 +155,9 @@ class CalibrationSessions:
 
     # -- creating ---------------------------------------------------------------------------
     def _geometry(self, request: dict, nominal) -> PlanGeometry:
-        """The plan's geometry: the request's fields, the rest the simulated cell's."""
-        base = None
-        planner = getattr(self.service.driver, "plan_geometry", None)
-        if planner is not None:
-            base = planner(nominal)
+        """The plan's geometry: the request's fields, the rest the cell's driver's (a
+        simulated cell knows its own; a real cell's installer gives them)."""
+        base = self.service.driver.plan_geometry(nominal)
         given = {"tcp_rotation": request.get("tcp_rotation"),
                  "pass_start_y_mm": request.get("pass_start_y_mm"),
                  "pass_end_y_mm": request.get("pass_end_y_mm"),
@@ -170,8 +168,8 @@ class CalibrationSessions:
             raise ValueError(f"a real cell's plan needs {', '.join(missing)} (the pass and the "
                              f"sphere's holder: docs/commissioning.md)")
         pick = lambda key, default: default if given[key] is None else given[key]
-        rotation = (rotvec_to_matrix(given["tcp_rotation"]) if given["tcp_rotation"] is not None
-                    else base.tcp_rotation_b)
+        rotation = (base.tcp_rotation_b if given["tcp_rotation"] is None
+                    else ur_pose_to_matrix([0.0, 0.0, 0.0, *given["tcp_rotation"]])[:3, :3])
         geometry = PlanGeometry(
             rotation, float(pick("pass_start_y_mm", base and base.pass_start_y_mm)),
             float(pick("pass_end_y_mm", base and base.pass_end_y_mm)),
@@ -242,8 +240,7 @@ class CalibrationSessions:
             if engine.trigger.state.value not in ("idle", "fault"):
                 raise EngineBusy(f"a scan is {engine.trigger.state.value}: capture after it")
             step = session.plan.steps[index]
-            if self.service.driver is not None:
-                self.service.driver.hold(step.kind, step.tcp_b)
+            self.service.driver.hold(step.kind, step.tcp_b)
             image, tcp, samples = self._still_frame()
             name = session.writer.add(step.kind, image, tcp_b=tcp, samples=samples)
             turn = (np.trace(step.tcp_b[:3, :3].T @ tcp[:3, :3]) - 1.0) / 2.0
@@ -307,12 +304,11 @@ class CalibrationSessions:
             if session.state != "recording":
                 raise SessionStateError(f"the session is {session.state}")
             driver = self.service.driver
-            if driver is not None:
-                # Out of the views first: the LED held in view would start the pass at once
-                # (a real cell's controller parks the robot at the pass's start likewise).
-                driver.park(calibration_pass=True)
-                self._still_frame()
-            job = self.service.arm(getattr(driver, "calibration_part", None), None, record=True)
+            # Out of the views first: the LED held in view would start the pass at once (a
+            # real cell's controller has parked the robot at the pass's start already).
+            driver.park(calibration_pass=True)
+            self._still_frame()
+            job = self.service.arm(driver.calibration_part, None, record=True)
             session.pass_scan_id, session.pass_state = job.scan_id, "recording"
             session.state = "recording pass"
             self._save(session)

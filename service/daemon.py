@@ -2,9 +2,10 @@
 
 ``Service.start``/``stop`` are what the FastAPI lifespan calls. The devices are handed in
 (``Service(settings, devices=...)``) or, for a real cell, built from the settings
-(:func:`build_devices`); nothing downstream knows which. With a driver (the simulated cell's,
-``simulator.driver.SimPassDriver``) arming also sends the robot through the sheet, as a cell
-controller's robot program would. No module of this path imports the simulator.
+(:func:`build_devices`); nothing downstream knows which. The cell's driver
+(``service.driver.PassDriver``) is told of every arm, capture and park: a real cell's does
+nothing (its controller moves the robot), a simulated cell's sends its robot through the sheet.
+No module of this path imports the simulator.
 """
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ from scanner_core.trigger import TriggerParams
 from scanner_core.types import Scan
 from service.calhistory import CalibrationHistory, open_history
 from service.calsessions import CalibrationSessions
+from service.driver import ControllerDriven, PassDriver
 from service.engine import Engine
 from service.jobs import ScanJob
 from service.metrics import Metrics
@@ -56,18 +58,16 @@ STORED_BYTES_PER_POINT = 64
 def build_devices(settings: Settings):
     """(camera, robot, driver, calibration) of a real cell: ``settings.camera``
     (``service.cameras``) and ``settings.robot`` (``service.robots``: a UR robot, a
-    recording's samples, or none); no driver, no calibration but the one given. Simulated
+    recording's samples, or none); the cell controller drives the robot
+    (``service.driver.ControllerDriven``), no calibration but the one given. Simulated
     devices are handed to the service by whoever wires them (``flyscan serve --sim``)."""
     from service.cameras import open_camera
     from service.robots import open_robot
 
-    if settings.sim:
-        raise ValueError("simulated devices are wired in by the command line "
-                         "(service.cli.serve.service_for), not built here")
     if settings.camera is None:
         raise ValueError("no camera: give --camera SPEC (opencv:0, video:FILE, "
                          "genicam:PRODUCER.cti, pylon:SERIAL, replay:FOLDER) or run with --sim")
-    return open_camera(settings.camera), open_robot(settings.robot), None, None
+    return open_camera(settings.camera), open_robot(settings.robot), ControllerDriven(), None
 
 
 class Service:
@@ -79,8 +79,10 @@ class Service:
         self.calibration_path = settings.data / "calibration.json"
         self._default_calibration = default_calibration
         self.store = ScanStore(settings.data, retention=settings.retention)
-        self.parts = PartLibrary(settings.data, builtin=(
-            self.driver.builtin_parts() if self.driver is not None else None),
+        if not isinstance(self.driver, PassDriver):
+            raise TypeError(f"the driver must follow service.driver.PassDriver, got "
+                            f"{type(self.driver).__name__}")
+        self.parts = PartLibrary(settings.data, builtin=self.driver.builtin_parts() or None,
             max_parts=settings.max_parts,
             prepared_budget_bytes=int(settings.prepared_parts_mb * 2**20),
             load_in_process=False)
@@ -151,14 +153,13 @@ class Service:
             self.parts.prepare(self.default_part)  # built now, not at the first pose
         self.publisher.start()
         try:
-            if self.driver is not None:
-                self.driver.start()
-                # The default part's pass is rendered (and the simulator's kernels compiled)
-                # before the camera streams: a compiling kernel holds the GIL for a second,
-                # and the acquisition thread would lose frames meanwhile. The first scan
-                # does not wait for it either.
-                if default is not None:
-                    self.driver.prepare(default)
+            self.driver.start()
+            # The default part's pass is readied (a simulated cell's rendered, its kernels
+            # compiled) before the camera streams: a compiling kernel holds the GIL for a
+            # second, and the acquisition thread would lose frames meanwhile. The first scan
+            # does not wait for it either.
+            if default is not None:
+                self.driver.prepare(default)
             # Start-up's long-lived objects (the part's models, the prepared pass: about
             # 160 000) leave the garbage collector's care. A full collection over them takes
             # about 54 ms, 9 frames at 162 fps: it had paused the acquisition thread mid-pass,
@@ -175,8 +176,7 @@ class Service:
         self.engine.stop()
         self.publisher.stop()
         self.parts.close()
-        if self.driver is not None:
-            self.driver.close()
+        self.driver.close()
 
     @property
     def default_part(self) -> str | None:
@@ -210,8 +210,6 @@ class Service:
         held = self.parts.get(name) if name is not None else None  # KeyError before arming
         misplacement = None
         if misplace is not None:
-            if self.driver is None or held is None:
-                raise ValueError("misplace is for the simulated cell, and a part, only")
             misplacement = self.driver.misplacement(held, misplace)
         if held is not None and held.prepared:
             self.parts.prepare(name, held)  # the most recently armed, for the budget
@@ -223,7 +221,7 @@ class Service:
         if record:
             self._prune_recordings(keep=self.settings.recordings_kept - 1)
             self._check_room_to_record(reserve)
-        if self.driver is not None and self.engine.trigger.state.value in ("idle", "fault"):
+        if self.engine.trigger.state.value in ("idle", "fault"):
             self.driver.before_arm()
         job = self.engine.arm(name, timeout_s, context=misplacement, part_model=held,
                               record_to=self.recordings_dir if record else None,
@@ -289,18 +287,15 @@ class Service:
                 log.error("scan %s: the recording's place not stored: %s", job.scan_id, exc)
 
     def _on_pass_armed(self, job: ScanJob) -> None:
-        if self.driver is None:
-            return
-
         def go():
             try:
                 self.driver.start_pass(job.part_model, job.context,
                                        wanted=lambda: job.end_monotonic is None)
             except Exception as exc:  # the pass never comes: the armed scan will time out
-                log.error("simulated pass for %s not started: %s", job.scan_id, exc)
-                job.note = f"simulated pass not started: {exc}"
+                log.error("the pass for %s not started: %s", job.scan_id, exc)
+                job.note = f"the cell's pass not started: {exc}"
 
-        threading.Thread(target=go, name="flyscan-sim-pass", daemon=True).start()
+        threading.Thread(target=go, name="flyscan-driver-pass", daemon=True).start()
 
     def _on_scan(self, job: ScanJob, scan: Scan, finish) -> None:
         """Finisher thread: `_finish_scan`; whatever it raises fails the scan with the reason,
@@ -554,9 +549,9 @@ class Service:
         during a scan (a pass is never interrupted), OSError if it cannot be saved (then the
         previous one stays)."""
         check_cell_geometry(calibration)
-        planner = getattr(self.driver, "plan_geometry", None)
-        if planner is not None:
-            check_marker_track(calibration, planner(calibration))
+        geometry = self.driver.plan_geometry(calibration)
+        if geometry is not None:
+            check_marker_track(calibration, geometry)
         previous = self.engine.calibration
         self.engine.set_calibration(calibration)
         try:
@@ -578,7 +573,7 @@ class Service:
         status = self.engine.status()
         status["zmq"] = {"endpoint": self.publisher.bound_endpoint, "sent": self.publisher.sent,
                          "dropped": self.publisher.dropped}
-        status["simulated"] = self.driver is not None
+        status["simulated"] = self.driver.simulated
         status["parts"] = {"prepared_mb": round(self.parts.prepared_mb(), 1),
                            "budget_mb": self.settings.prepared_parts_mb,
                            "released": self.parts.released}

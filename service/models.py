@@ -7,7 +7,8 @@ import numpy as np
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
-from clients.placement import rigid_transform, ur_pose_to_matrix
+from clients.placement import rigid_transform
+from scanner_core.rtde import ur_pose_to_matrix
 
 RunState = Literal["idle", "armed", "scanning", "processing", "fault"]
 ScanState = Literal["armed", "scanning", "processing", "done", "failed"]

@@ -2,14 +2,13 @@
 command line, in rising priority. Secrets (the bearer token) are never defaulted."""
 from __future__ import annotations
 
-import re
-
+import tomllib
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
-from pydantic_settings import (BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict,
-                               TomlConfigSettingsSource)
+from pydantic_settings import (BaseSettings, InitSettingsSource, PydanticBaseSettingsSource,
+                               SettingsConfigDict)
 
 from service.models import (TAUGHT_PLACE_DESCRIPTION, TaughtPlace, check_reach,
                             taught_place_matrix)
@@ -20,9 +19,6 @@ class Settings(BaseSettings):
 
     Attributes
     ----------
-    sim : bool
-        Simulated devices (the reference cell): arming a scan also sends the simulated robot
-        through the sheet.
     host, port : str, int
         REST bind address; 127.0.0.1 unless told otherwise.
     zmq : str
@@ -40,13 +36,13 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="FLYSCAN_", extra="forbid")
 
-    sim: bool = False
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     zmq: str = "tcp://127.0.0.1:5556"
     zmq_hwm: int = Field(100, ge=1, description="ZeroMQ send high-water mark, messages")
-    robot: str | None = Field(None, description="ur://HOST for a UR robot (ur-rtde); with --sim "
-                                                "an RTDE emulator is started at HOST")
+    robot: str | None = Field(None, description="ur://HOST for a UR robot (ur-rtde); in a "
+                                                "simulated cell an RTDE emulator is started at "
+                                                "HOST")
     camera: str | None = Field(None, description="opencv:0, video:FILE, gstreamer:PIPELINE, "
                                                  "genicam:PRODUCER.cti[#SERIAL], "
                                                  "pylon:[SERIAL][?options], replay:FOLDER")
@@ -154,22 +150,6 @@ class Settings(BaseSettings):
     robot_reach_mm: float = Field(2000.0, gt=0.0, le=10_000.0,
                                   description="a taught place pose farther than this from the "
                                               "robot base is refused (422), mm")
-    sim_seed: int = Field(0, ge=0)
-    sim_clock_offset_s: float = Field(0.0, ge=-1e6, le=1e6,
-                                      description="the simulated robot's clock minus the camera's, s")
-    sim_surface: Literal["default", "matte", "dark", "shiny"] = Field(
-        "default", description="the simulated parts' surface (simulator.surfaces)")
-    sim_perturb_seed: int | None = Field(
-        None, ge=0, description="the simulated cell's geometry (and effects) perturbed, as "
-                                "flyscan scan --perturb-seed")
-    sim_effects: str = Field(
-        "none", description="the simulated cell's real-cell effects: all, none or a comma-"
-                            "separated choice of lens, exposure, clocks, robot, led (the live "
-                            "cell draws the lens and the LED; it does not blur frames nor add "
-                            "robot report errors)")
-    sim_speed_mm_s: float | None = Field(None, gt=0, le=5000)
-    sim_fps: float | None = Field(None, gt=0, le=2000)
-
     @field_validator("token", mode="before")
     @classmethod
     def _empty_token_is_none(cls, value):
@@ -187,16 +167,6 @@ class Settings(BaseSettings):
             check_reach(taught_place_matrix(self.taught_place), self.robot_reach_mm)
         return self
 
-    @field_validator("sim_effects")
-    @classmethod
-    def _effects_list(cls, value: str) -> str:
-        # Only the form here: the simulated cell knows its effects and names an unknown one
-        # when it is built (the service's real path never imports the simulator).
-        if not re.fullmatch(r"\s*[A-Za-z_]+(\s*,\s*[A-Za-z_]+)*\s*", value):
-            raise ValueError(f"must be all, none or a comma-separated list of effect names, "
-                             f"got {value!r}")
-        return value
-
     @field_validator("zmq")
     @classmethod
     def _zmq_endpoint(cls, value: str) -> str:
@@ -210,21 +180,30 @@ class Settings(BaseSettings):
                                    env_settings: PydanticBaseSettingsSource,
                                    dotenv_settings: PydanticBaseSettingsSource,
                                    file_secret_settings: PydanticBaseSettingsSource):
-        return (init_settings, env_settings, TomlConfigSettingsSource(settings_cls),
-                file_secret_settings)
+        return init_settings, env_settings, file_secret_settings
 
 
-def load_settings(config: Path | None = None, **overrides) -> Settings:
-    """Settings from ``config`` (TOML), the environment and ``overrides`` (None values are
-    left out, so that an option not given on the command line does not hide the file's)."""
-    overrides = {k: v for k, v in overrides.items() if v is not None}
-    if config is None:
-        return Settings(**overrides)
+def read_settings_file(config: Path) -> dict:
+    """The settings of a TOML file, as read (FileNotFoundError, tomllib.TOMLDecodeError)."""
     config = Path(config)
     if not config.is_file():
         raise FileNotFoundError(f"settings file not found: {config}")
+    with config.open("rb") as f:
+        return tomllib.load(f)
+
+
+def load_settings(config: Path | dict | None = None, **overrides) -> Settings:
+    """Settings from ``config`` (a TOML file, or its settings already read), the environment
+    and ``overrides``, in rising priority (None values are left out, so that an option not
+    given on the command line does not hide the file's)."""
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    data = read_settings_file(config) if isinstance(config, (str, Path)) else dict(config or {})
 
     class FileSettings(Settings):
-        model_config = SettingsConfigDict(**{**Settings.model_config, "toml_file": config})
+        @classmethod
+        def settings_customise_sources(cls, settings_cls, init_settings, env_settings,
+                                       dotenv_settings, file_secret_settings):
+            return (init_settings, env_settings, InitSettingsSource(settings_cls, data),
+                    file_secret_settings)
 
     return FileSettings(**overrides)

@@ -1,13 +1,15 @@
 """The simulated robot's passes, driven as a cell controller's robot program would drive a
 real one: when the service arms a scan, the simulated robot carries the part through the sheet.
 
-``flyscan serve --sim`` hands a :class:`SimPassDriver` to the service with the simulated
-camera and robot (``service.cli.simdevices``); the service only calls it, never knows what
-is behind it.
+``flyscan serve --sim`` hands the service the devices of :func:`simulated_cell_devices`: the
+simulated camera and robot, and a :class:`SimPassDriver` (``service.driver.PassDriver``); the
+service only calls it, never knows what is behind it.
 """
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -18,7 +20,8 @@ from simulator.parts import simulated
 from simulator.session import misplacement_matrix
 from simulator.surfaces import with_surface
 
-__all__ = ["SimPassDriver", "PREVIOUS_PASS_WAIT_S", "CALIBRATION_PART"]
+__all__ = ["SimPassDriver", "SimulatedCellOptions", "CellDevices", "simulated_cell_devices",
+           "PREVIOUS_PASS_WAIT_S", "CALIBRATION_PART"]
 
 #: The simulated robot finishes its previous pass (its lead-out) before starting the next, s.
 PREVIOUS_PASS_WAIT_S = 5.0
@@ -37,6 +40,7 @@ class SimPassDriver:
     emulator (``--sim --robot ur://HOST``) the emulator serves the same track to the real
     ur-rtde client. Every part is simulated with ``surface`` (``simulator.surfaces``)."""
 
+    simulated = True
     calibration_part = CALIBRATION_PART
 
     def __init__(self, sim, emulator=None, surface: str = "default"):
@@ -116,7 +120,9 @@ class SimPassDriver:
     def misplacement(self, part, values):
         """The misplacement ``[tx, ty, tz, rx, ry, rz]`` (mm, degrees) the simulated robot's
         part is held with, as a transform in {T}; PartError when it leaves the inspection
-        volume, ValueError unless six finite numbers. None for None."""
+        volume, ValueError unless six finite numbers or without a part. None for None."""
+        if values is not None and part is None:
+            raise ValueError("misplace needs a part to misplace")
         matrix = misplacement_matrix(values)
         if matrix is not None:
             check_fits(part, pose=matrix @ part.grasp)
@@ -186,3 +192,70 @@ class SimPassDriver:
     def close(self) -> None:
         if self.emulator is not None:
             self.emulator.stop()
+
+
+@dataclass(frozen=True)
+class SimulatedCellOptions:
+    """The simulated cell a service is given.
+
+    Attributes
+    ----------
+    seed : int
+        The frames' noise.
+    clock_offset_s : float
+        The simulated robot's clock minus the camera's, s.
+    surface : str
+        The parts' surface (``simulator.surfaces``): default, matte, dark or shiny.
+    perturb_seed : int or None
+        The cell's geometry (and effects) perturbed, as ``flyscan scan --perturb-seed``.
+    effects : str
+        A real cell's effects (``simulator.effects``): all, none or a comma-separated choice.
+    speed_mm_s, fps : float or None
+        The pass's speed (mm/s) and the camera's frame rate; None: the cell's.
+    """
+
+    seed: int = 0
+    clock_offset_s: float = 0.0
+    surface: str = "default"
+    perturb_seed: int | None = None
+    effects: str = "none"
+    speed_mm_s: float | None = None
+    fps: float | None = None
+
+
+class CellDevices(NamedTuple):
+    """What ``service.daemon.Service(settings, devices=...)`` takes."""
+
+    camera: object
+    robot: object
+    driver: SimPassDriver
+    calibration: object
+
+
+def simulated_cell_devices(options: SimulatedCellOptions = SimulatedCellOptions(), *,
+                           rtde_host: str | None = None,
+                           robot_client: Callable[[str], object] | None = None) -> CellDevices:
+    """The simulated cell's camera, robot, driver and calibration (its truth) for a service.
+
+    With ``rtde_host`` an RTDE emulator (its own process, started with the driver) serves the
+    simulated robot's track at that host, and the robot handed over is ``robot_client(host)``
+    (``service.ur_robot.URRobot``: the real ur-rtde client). ValueError for unknown effects."""
+    from simulator.cell import cell_with_effects
+    from simulator.live import LiveSimCell
+
+    cell = cell_with_effects(options.perturb_seed, options.effects)
+    changes = {k: v for k, v in (("speed_mm_s", options.speed_mm_s), ("fps", options.fps))
+               if v is not None}
+    if changes:
+        cell = cell.with_pass(**changes)
+    sim = LiveSimCell(cell, seed=options.seed, clock_offset_s=options.clock_offset_s)
+    if rtde_host is None:
+        return CellDevices(sim.camera, sim.robot, SimPassDriver(sim, surface=options.surface),
+                           cell.calibration)
+    if robot_client is None:
+        raise ValueError("an RTDE host needs the robot client that reads it")
+    from simulator.rtde_emulator import RtdeEmulator
+
+    return CellDevices(sim.camera, robot_client(rtde_host),
+                       SimPassDriver(sim, RtdeEmulator(rtde_host), options.surface),
+                       cell.calibration)

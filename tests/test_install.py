@@ -34,7 +34,7 @@ def _flyscan(installed, *argv, env=None):
     # The installed copy comes first on the path; the checkout's own folder is not on it.
     environment = {**os.environ, "PYTHONPATH": str(target), **(env or {})}
     environment.pop("FLYSCAN_MESHES", None) if env is None else None
-    return subprocess.run([sys.executable, "-m", "service.cli", *argv], cwd=root,
+    return subprocess.run([sys.executable, "-m", "flyscan", *argv], cwd=root,
                           env=environment, capture_output=True, text=True, timeout=300)
 
 

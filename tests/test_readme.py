@@ -2,7 +2,7 @@
 
 Nothing is run. In the code blocks of ``README.md`` and ``docs/*.md``:
 
-- a ``flyscan ...`` line parses with the CLI's own parser (``service.cli.parse_args``), and
+- a ``flyscan ...`` line parses with the CLI's own parser (``flyscan.parse_args``), and
   every option it names is one ``flyscan <command> --help`` lists (argparse would also take
   an abbreviation);
 - a ``python -m MODULE ...`` line names a module that exists, and ``python -m MODULE ... --help``
@@ -134,14 +134,14 @@ ITEMS = _collect()
 
 @functools.lru_cache(maxsize=None)
 def _parse_args():
-    """The CLI's own argument parsing, ``service.cli.parse_args`` (or ``_parse_args``): it
+    """The CLI's own argument parsing, ``flyscan.parse_args`` (or ``_parse_args``): it
     builds the parser and parses, as ``flyscan`` does, without running the command."""
-    from service import cli
+    import flyscan as cli
 
     for name in ("parse_args", "_parse_args"):
         if callable(getattr(cli, name, None)):
             return getattr(cli, name)
-    pytest.fail("service.cli has no parse_args: point tests/test_readme.py at the CLI's "
+    pytest.fail("flyscan has no parse_args: point tests/test_readme.py at the CLI's "
                 "parser builder")
 
 

@@ -39,13 +39,9 @@ def demo_part() -> Part:
 
 def _cli_refusal(part: Part, cell: Cell) -> str | None:
     """What ``flyscan scan`` says of this pass before running it (too few profiles), or None."""
-    from service.cli import UsageError, check_frame_spacing as _check_frame_spacing
+    from scanner_core.scanplan import too_few_profiles
 
-    try:
-        _check_frame_spacing(part, cell.pass_profile.speed_mm_s, cell.pass_profile.fps)
-    except UsageError as exc:
-        return str(exc)
-    return None
+    return too_few_profiles(part, cell.pass_profile.speed_mm_s, cell.pass_profile.fps)
 
 
 def _verdict(row: dict) -> str:

@@ -75,7 +75,7 @@ def side_by_side(part: Part, cell, *, rays: int = SIDE_RAYS, runs: int = SIDE_RU
         outs = {"flyscan": pathlib.Path(tmp) / "flyscan.ply",
                 "open3d": pathlib.Path(tmp) / "open3d.ply"}
         commands = {
-            "flyscan": [sys.executable, "-m", "service.cli", "simulate", *common, "--units",
+            "flyscan": [sys.executable, "-m", "flyscan", "simulate", *common, "--units",
                         "mm", "--grasp", "identity", "--out", str(outs["flyscan"])],
             "open3d": [sys.executable, "-m", "benchmarks.open3d_sweep", *common,
                        "--out", str(outs["open3d"])],

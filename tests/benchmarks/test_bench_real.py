@@ -12,7 +12,7 @@ import pytest
 
 from benchmarks import real_photos
 from benchmarks.real_photos import PhotoSet, score_set
-from service.cli import main
+from flyscan import main
 
 FOCAL_PX, WIDTH, HEIGHT = 900.0, 640, 480
 PATTERN, PITCH_MM = (9, 6), 15.0

@@ -191,3 +191,22 @@ def test_ur_pose_round_trip_and_units(rng):
 def test_a_ur_pose_must_be_six_finite_numbers(vector):
     with pytest.raises(ValueError, match="six finite numbers"):
         ur_pose_to_matrix(vector)
+
+
+def test_the_clients_ur_poses_are_the_scanner_s(rng):
+    """The clients convert UR poses with numpy alone (they import nothing of the project);
+    the scanner's own conversion (``scanner_core.rtde``) gives the same, 180 degrees
+    included (where r and -r are the same turn, the matrices agree)."""
+    from scanner_core.rtde import matrix_to_ur_pose as scanner_to_ur
+    from scanner_core.rtde import ur_pose_to_matrix as scanner_from_ur
+
+    angles = np.concatenate([rng.uniform(0.0, np.pi, 200), [0.0, 1e-9, np.pi]])
+    for angle in angles:
+        axis = rng.normal(size=3)
+        ur = np.concatenate([rng.uniform(-1.0, 1.0, 3), angle * axis / np.linalg.norm(axis)])
+        assert_allclose(scanner_from_ur(ur), ur_pose_to_matrix(ur), atol=1e-12)
+        matrix = ur_pose_to_matrix(ur)
+        assert_allclose(scanner_from_ur(scanner_to_ur(matrix)),
+                        ur_pose_to_matrix(matrix_to_ur_pose(matrix)), atol=1e-9)
+        if angle < np.pi - 1e-6:
+            assert_allclose(scanner_to_ur(matrix), matrix_to_ur_pose(matrix), atol=1e-9)

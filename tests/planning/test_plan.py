@@ -18,7 +18,7 @@ from planning.evaluate import PLAN_SEED, evaluate
 from planning.run import local_cluster, plan_catalogue
 from scanner_core.cad import part_from_mesh
 from scanner_core.scanplan import PlanError, load_scan_plan, turned_grasp
-from service.cli import main
+from flyscan import main
 
 # The test's candidates: few and quick (the fast pass has 45 frames).
 OPTIONS = dict(turn_step_deg=90.0, presets=("fast",), resting=1)

@@ -69,7 +69,7 @@ def test_thin_sliver_is_degenerate_but_a_small_triangle_is_kept():
 
 def test_simulate_on_a_binary_stl_never_imports_trimesh(sphere_stl, tmp_path):
     """The command that only ray-casts stays free of trimesh's (and scipy's) import time."""
-    script = ("import sys\nfrom service.cli import main\n"
+    script = ("import sys\nfrom flyscan import main\n"
               f"code = main(['simulate', '--part', {str(sphere_stl)!r}, '--units', 'mm', "
               f"'--out', {str(tmp_path / 'cloud.ply')!r}, '--step', '0.5', '--rays', '200'])\n"
               "print(code, sorted(m for m in ('trimesh', 'scipy.spatial', 'scipy.optimize') "

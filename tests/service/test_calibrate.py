@@ -9,7 +9,7 @@ import pytest
 
 from scanner_core.geometry import angle_between
 from scanner_core.calsession import SessionError, load_session, write_session
-from service.cli import main
+from flyscan import main
 from simulator.calsession import simulate_session
 from simulator.cell import load_cell
 from simulator.effects import EFFECTS, realistic_cell

@@ -38,7 +38,7 @@ def recorded(tmp_path_factory):
     (client, service, the session's info, the cell's truth)."""
     from benchmarks.live import free_port
     from service.api import create_app
-    from service.cli.simdevices import simulated_devices
+    from flyscan.simdevices import SimSettings, simulated_devices
     from service.daemon import Service
     from service.settings import Settings
 
@@ -49,10 +49,11 @@ def recorded(tmp_path_factory):
     # cell's), not the perturbed cell's truth; the LED sits off the drawing by tenths of a mm.
     folder = tmp_path_factory.mktemp("cal")
     save_calibration(folder / "design.json", load_cell().calibration)
-    settings = Settings(sim=True, sim_perturb_seed=PERTURB_SEED, sim_effects="all",
-                        sim_speed_mm_s=1000.0, data=folder / "data",
-                        calibration=folder / "design.json", zmq=f"tcp://127.0.0.1:{free_port()}")
-    service = Service(settings, devices=simulated_devices(settings))
+    settings = Settings(data=folder / "data", calibration=folder / "design.json",
+                        zmq=f"tcp://127.0.0.1:{free_port()}")
+    sim = SimSettings(sim=True, sim_perturb_seed=PERTURB_SEED, sim_effects="all",
+                      sim_speed_mm_s=1000.0)
+    service = Service(settings, devices=simulated_devices(sim))
     with serve_in_thread(create_app(service=service)) as client:
         created = client.post("/calibration/sessions",
                               json={"led_count": LED_POSES, "sphere_count": SPHERE_POSES})
@@ -114,7 +115,7 @@ def test_the_service_recorded_calibration_reaches_the_figures_of_calibrate_sim(r
 def test_the_session_folder_is_the_one_calibrate_session_reads(recorded, tmp_path):
     """``flyscan calibrate --session`` on the folder the service wrote gives the service's
     calibration (the same fit of the same files)."""
-    from service.cli import main
+    from flyscan import main
 
     client, service, info, _ = recorded
     folder = service.calibration_sessions.root / info["session_id"]
@@ -126,7 +127,7 @@ def test_the_session_folder_is_the_one_calibrate_session_reads(recorded, tmp_pat
 
 
 def test_activation_only_when_asked_never_in_a_pass_and_rollback_is_exact(recorded, tmp_path):
-    from service.cli import main
+    from flyscan import main
 
     client, service, info, _ = recorded
     before = client.get("/calibration").json()  # the design's: fitted is not active
@@ -164,8 +165,9 @@ def test_a_real_cells_plan_needs_its_pass_and_sphere_holder(cell, tmp_path):
     from types import SimpleNamespace
 
     from service.calsessions import CalibrationSessions
+    from service.driver import ControllerDriven
 
-    service = SimpleNamespace(settings=SimpleNamespace(data=tmp_path), driver=None,
+    service = SimpleNamespace(settings=SimpleNamespace(data=tmp_path), driver=ControllerDriven(),
                               engine=SimpleNamespace(calibration=cell.calibration))
     sessions = CalibrationSessions(service)
     with pytest.raises(ValueError, match="a real cell's plan needs tcp_rotation, pass_start_y_mm, "

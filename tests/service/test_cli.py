@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from scanner_core.ply import read_ply
-from service.cli import main
+from flyscan import main
 from simulator.parts import block_with_holes_and_steps
 
 REPORT_KEYS = {"frames", "frames_dropped", "points", "edge_points", "timings_ms", "pose", "ground_truth"}
@@ -93,7 +93,7 @@ def test_too_large_part(tmp_path, capsys):
 
 def test_console_script_exit_code(tmp_path):
     """The installed command, as a user runs it, fails non-zero on a bad unit."""
-    exe = [sys.executable, "-m", "service.cli"]
+    exe = [sys.executable, "-m", "flyscan"]
     proc = subprocess.run([*exe, "scan", "--demo", "--units", "parsec", "--out", str(tmp_path / "o")],
                           capture_output=True, text=True)
     assert proc.returncode == 2
@@ -225,7 +225,7 @@ def test_serve_without_devices_says_what_to_do(tmp_path, capsys):
 
 @pytest.mark.parametrize("option", ["--misplace", "--laser", "--camera"])
 def test_number_lists_may_start_with_a_minus(option):
-    from service.cli.common import join_number_lists as _join_number_lists
+    from flyscan.common import join_number_lists as _join_number_lists
     assert _join_number_lists(["simulate", option, "-1,0,-2", "--out", "x"]) == \
         ["simulate", f"{option}=-1,0,-2", "--out", "x"]
     # Another option after it is left alone, as is a value without a minus.

@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 from scanner_core.ply import read_ply
-from service.cli import main
+from flyscan import main
 from simulator.parts import block_with_holes_and_steps
 
 

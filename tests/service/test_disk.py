@@ -14,7 +14,8 @@ import service.engine as engine_module
 import service.parts as parts_module
 import service.store as store_module
 from service.api import create_app
-from service.cli.serve import service_for
+from flyscan.serve import service_for
+from flyscan.simdevices import SimSettings
 from service.settings import Settings
 from running import FAST_PASS, RunningService, free_port, serve_in_thread, wait_for
 
@@ -22,9 +23,8 @@ from running import FAST_PASS, RunningService, free_port, serve_in_thread, wait_
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
     data = tmp_path_factory.mktemp("disk") / "data"
-    settings = Settings(sim=True, data=data, zmq=f"tcp://127.0.0.1:{free_port()}",
-                        sim_speed_mm_s=1000.0)
-    service = service_for(settings)
+    settings = Settings(data=data, zmq=f"tcp://127.0.0.1:{free_port()}")
+    service = service_for(settings, SimSettings(sim=True, sim_speed_mm_s=1000.0))
     with serve_in_thread(create_app(service=service)) as client:
         yield client, service
 

@@ -16,6 +16,7 @@ from scanner_core.devices import CameraTimeout, TcpPose
 from scanner_core.pipeline import PipelineParams
 from scanner_core.trigger import TriggerParams
 from scanner_core.types import Frame
+from service.driver import ControllerDriven
 from service.api import create_app
 from service.daemon import Service
 from simulator.driver import SimPassDriver
@@ -33,7 +34,7 @@ CAMERA_TIMEOUT_S = 0.3
 @pytest.fixture
 def sim_service(tmp_path, cell):
     sim = LiveSimCell(cell.with_pass(speed_mm_s=1000.0), seed=4)
-    settings = Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0",
+    settings = Settings(data=tmp_path / "data", zmq="tcp://127.0.0.1:0",
                         camera_timeout_s=CAMERA_TIMEOUT_S)
     service = Service(settings, devices=(sim.camera, sim.robot, SimPassDriver(sim), cell.calibration))
     with serve_in_thread(create_app(service=service)) as client:
@@ -94,14 +95,20 @@ def test_a_late_read_shows_as_the_pass_acquisition_lag_without_losing_frames(sim
 
 def test_an_armed_scan_without_a_pass_times_out(tmp_path, cell):
     sim = LiveSimCell(cell, seed=1)
-    settings = Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0")
-    service = Service(settings, devices=(sim.camera, sim.robot, None, cell.calibration))
-    with serve_in_thread(create_app(service=service)) as client:  # no driver: nobody moves the robot
+    settings = Settings(data=tmp_path / "data", zmq="tcp://127.0.0.1:0")
+    service = Service(settings, devices=(sim.camera, sim.robot, ControllerDriven(),
+                                         cell.calibration))
+    # A real cell's driver: the cell controller moves the robot, and nobody does here.
+    with serve_in_thread(create_app(service=service)) as client:
         scan_id = client.post("/scans", json={"timeout_s": 0.3}).json()["scan_id"]
         info = wait_for(lambda: finished(client, scan_id))
         assert info["state"] == "failed" and info["reason"].startswith("timeout")
         assert client.get(f"/scans/{scan_id}/cloud.ply").status_code == 409
-        assert client.get("/status").json()["state"] == "idle"
+        status = client.get("/status").json()
+        assert status["state"] == "idle" and status["simulated"] is False
+        # nor can it put the part anywhere but where the gripper took it
+        refused = client.post("/scans", json={"misplace": [1, 0, 0, 0, 0, 0]})
+        assert refused.status_code == 422 and "simulated cell only" in refused.text
 
 
 class StuckMarkerCamera:
@@ -193,7 +200,7 @@ def test_a_cold_start_loses_no_frame(tmp_path):
         from simulator.live import LiveSimCell
         cell = load_cell()
         sim = LiveSimCell(cell, seed=1)
-        settings = Settings(sim=True, data={str(tmp_path / "data")!r}, zmq="tcp://127.0.0.1:0")
+        settings = Settings(data={str(tmp_path / "data")!r}, zmq="tcp://127.0.0.1:0")
         service = Service(settings, devices=(sim.camera, sim.robot, SimPassDriver(sim),
                                              cell.calibration))
         service.start()
@@ -217,7 +224,7 @@ def test_start_up_objects_are_left_out_of_garbage_collection(tmp_path, cell):
     import gc
 
     sim = LiveSimCell(cell, seed=1)
-    service = Service(Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0"),
+    service = Service(Settings(data=tmp_path / "data", zmq="tcp://127.0.0.1:0"),
                       devices=(sim.camera, sim.robot, SimPassDriver(sim), cell.calibration))
     assert gc.get_freeze_count() == 0
     service.start()
@@ -274,7 +281,7 @@ def test_a_stalled_consumer_never_stalls_acquisition(tmp_path, cell, monkeypatch
 
     monkeypatch.setattr(engine_mod, "measure_frame", slow)
     sim = LiveSimCell(cell.with_pass(speed_mm_s=1000.0), seed=5)
-    settings = Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0", workers=1,
+    settings = Settings(data=tmp_path / "data", zmq="tcp://127.0.0.1:0", workers=1,
                         queue_frames=4)
     service = Service(settings, devices=(sim.camera, sim.robot, SimPassDriver(sim), cell.calibration))
     with serve_in_thread(create_app(service=service)) as client:
@@ -297,7 +304,7 @@ def test_a_stalled_consumer_never_stalls_acquisition(tmp_path, cell, monkeypatch
 
 def test_stopping_during_a_pass_stores_it_as_failed(tmp_path, cell):
     sim = LiveSimCell(cell.with_pass(speed_mm_s=100.0), seed=6)  # a slow pass: still running
-    settings = Settings(sim=True, data=tmp_path / "data", zmq="tcp://127.0.0.1:0")
+    settings = Settings(data=tmp_path / "data", zmq="tcp://127.0.0.1:0")
     service = Service(settings, devices=(sim.camera, sim.robot, SimPassDriver(sim), cell.calibration))
     with serve_in_thread(create_app(service=service)) as client:
         scan_id = client.post("/scans", json={}).json()["scan_id"]

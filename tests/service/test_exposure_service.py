@@ -3,7 +3,8 @@ exposure steered while the pass streams, and what /status says of it."""
 import pytest
 
 from service.api import create_app
-from service.cli.serve import service_for
+from flyscan.serve import service_for
+from flyscan.simdevices import SimSettings
 from service.settings import Settings
 from simulator.imaging import NOMINAL_EXPOSURE_US
 from running import serve_in_thread, wait_for
@@ -15,9 +16,9 @@ def finished(client, scan_id):
 
 
 def _scan(tmp_path, mode):
-    settings = Settings(sim=True, data=tmp_path / mode, zmq="tcp://127.0.0.1:0",
-                        sim_surface="dark", exposure_mode=mode)
-    with serve_in_thread(create_app(service=service_for(settings))) as client:
+    settings = Settings(data=tmp_path / mode, zmq="tcp://127.0.0.1:0", exposure_mode=mode)
+    service = service_for(settings, SimSettings(sim=True, sim_surface="dark"))
+    with serve_in_thread(create_app(service=service)) as client:
         scan_id = client.post("/scans", json={}).json()["scan_id"]
         info = wait_for(lambda: finished(client, scan_id), timeout=60)
         camera = client.get("/status").json()["camera"]

@@ -8,7 +8,8 @@ import pytest
 from clients.ply import parse_ply, xyz_array
 from scanner_core.crosscheck import DEFAULT_TOLERANCE_MM
 from service.api import create_app
-from service.cli.serve import service_for
+from flyscan.serve import service_for
+from flyscan.simdevices import SimSettings
 from scanner_core.recording import load_recording
 from scanner_core.replay import replay_recording
 from simulator.rtde_emulator import free_loopback_host
@@ -28,11 +29,11 @@ def _scan(client, **request):
 
 @pytest.fixture(scope="module")
 def robot_service(tmp_path_factory):
-    settings = Settings(sim=True, robot=f"ur://{free_loopback_host(60)}",
+    settings = Settings(robot=f"ur://{free_loopback_host(60)}",
                         data=tmp_path_factory.mktemp("hil") / "data",
-                        zmq=f"tcp://127.0.0.1:{free_port()}", sim_speed_mm_s=1000.0,
-                        sim_clock_offset_s=CLOCK_OFFSET_S)
-    service = service_for(settings)
+                        zmq=f"tcp://127.0.0.1:{free_port()}")
+    service = service_for(settings, SimSettings(sim=True, sim_speed_mm_s=1000.0,
+                                                sim_clock_offset_s=CLOCK_OFFSET_S))
     with serve_in_thread(create_app(service=service)) as client:
         wait_for(lambda: client.get("/status").json()["robot"]["connected"], timeout=10)
         yield client, service

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from scanner_core.geometry import Mirror
-from service import cli
+import flyscan as cli
+from scanner_core.scanplan import MIN_PROFILES
 from benchmarks import pose_limits as pl
 from simulator.cell import load_cell, marker_pixels
 from simulator.motion import PassMotion
@@ -132,7 +133,7 @@ def test_noisy_pose_is_flagged_or_bounded_by_its_sigma(bench):
 def test_cli_refuses_a_pass_with_too_few_profiles(tmp_path, capsys, bench):
     _, result = bench
     fast = row(result, "speed", 2500)
-    assert fast["profiles_on_part"] < cli.MIN_PROFILES
+    assert fast["profiles_on_part"] < MIN_PROFILES
     assert "raise --fps" in fast["cli_refusal"]
     out = tmp_path / "scan"
     status = cli.main(["scan", "--demo", "--speed", "2500", "--out", str(out)])

@@ -20,6 +20,7 @@ from scanner_core.pipeline_accumulate import PREVIOUS_PROFILE_FRAMES  # noqa: E4
 from scanner_core.pipeline import (PipelineParams, camera_frames, frame_stripe,  # noqa: E402
                                    observe_marker, run_pass, warm_up)
 from clients.ply import parse_ply, xyz_array  # noqa: E402
+from service.driver import ControllerDriven
 from service import pylon_camera  # noqa: E402
 from service.camera_errors import CameraError  # noqa: E402
 from service.cameras import open_camera  # noqa: E402
@@ -183,7 +184,7 @@ def test_a_pass_through_the_service_gives_the_simulated_cameras_cloud(emulated, 
     robot = LiveSimCell(cell).robot
     settings = Settings(data=tmp_path / "data", zmq=f"tcp://127.0.0.1:{free_port()}",
                         camera=_spec(folder), arm_timeout_s=30.0)
-    service = Service(settings, devices=(open_camera(settings.camera), robot, None,
+    service = Service(settings, devices=(open_camera(settings.camera), robot, ControllerDriven(),
                                          cell.calibration))
     with serve_in_thread(create_app(service=service)) as client:
         def newest_id():

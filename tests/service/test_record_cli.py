@@ -11,7 +11,7 @@ from clients.ply import parse_ply, xyz_array
 
 
 def _flyscan(*args, timeout=120):
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "flyscan", *args], capture_output=True,
                           text=True, timeout=timeout)
 
 

@@ -44,11 +44,11 @@ def test_the_simulated_cell_can_be_a_realistic_one(monkeypatch):
     """sim_perturb_seed and sim_effects build the service's simulated cell as ``flyscan scan
     --perturb-seed --effects`` does: its default calibration is that cell's truth, lens and
     all; an unknown effect is named."""
-    from service.cli.simdevices import simulated_devices
+    from flyscan.simdevices import load_sim_settings, simulated_devices
     from simulator.cell import cell_with_effects
 
-    settings = load_settings(None, sim=True, sim_perturb_seed=3, sim_effects="lens,led")
-    camera, robot, driver, calibration = simulated_devices(settings)
+    sim = load_sim_settings(None, sim=True, sim_perturb_seed=3, sim_effects="lens,led")
+    camera, robot, driver, calibration = simulated_devices(sim)
     try:
         truth = cell_with_effects(3, "lens,led").calibration
         assert calibration.camera.distorted
@@ -58,20 +58,20 @@ def test_the_simulated_cell_can_be_a_realistic_one(monkeypatch):
         camera.close()
     # the settings check the form; the simulated cell, which knows its effects, the names
     with pytest.raises(ValidationError, match="sim_effects"):
-        load_settings(None, sim_effects="lens,,fog!")
+        load_sim_settings(None, sim_effects="lens,,fog!")
     with pytest.raises(ValueError, match="fog"):
-        simulated_devices(load_settings(None, sim=True, sim_effects="lens,fog"))
+        simulated_devices(load_sim_settings(None, sim=True, sim_effects="lens,fog"))
 
 
 def test_the_act_tolerance_reaches_the_pose_and_must_be_one(tmp_path):
     """The cell's placement tolerance (settings) is what the service's poses are judged by;
     none that is not positive is accepted."""
-    from service.cli.simdevices import simulated_devices
+    from flyscan.simdevices import SimSettings, simulated_devices
     from service.daemon import Service
 
-    settings = load_settings(None, sim=True, data=tmp_path / "data", act_tolerance_mm=0.02,
+    settings = load_settings(None, data=tmp_path / "data", act_tolerance_mm=0.02,
                              act_tolerance_deg=0.03, robot_rotation_std_deg=0.01)
-    devices = simulated_devices(settings)
+    devices = simulated_devices(SimSettings(sim=True))
     try:
         service = Service(settings, devices=devices)
         assert service.pose_params.act_tolerance_mm == 0.02
@@ -87,8 +87,30 @@ def test_the_act_tolerance_reaches_the_pose_and_must_be_one(tmp_path):
 
 def test_a_taught_place_beyond_the_robot_s_reach_is_no_setting(tmp_path):
     with pytest.raises(ValidationError, match="beyond its reach"):
-        load_settings(None, sim=True, data=tmp_path / "data",
+        load_settings(None, data=tmp_path / "data",
                       taught_place=[0.4, -0.2, 0.1e4, 3.14159, 0.0, 0.0])
-    settings = load_settings(None, sim=True, data=tmp_path / "data", robot_reach_mm=1300.0,
+    settings = load_settings(None, data=tmp_path / "data", robot_reach_mm=1300.0,
                              taught_place=[0.4, -0.2, 0.1, 3.14159, 0.0, 0.0])
     assert settings.robot_reach_mm == 1300.0
+
+
+def test_one_settings_file_for_the_service_and_its_simulated_cell(tmp_path, monkeypatch):
+    """`flyscan serve --config FILE`: the file's ``sim`` and ``sim_*`` entries are the
+    simulated cell's (its own settings, not the service's), the rest the service's; each
+    side's environment (``FLYSCAN_SIM_*``) beats the file; a typo is named on either side."""
+    from flyscan.serve import load_serve_settings
+
+    config = tmp_path / "flyscan.toml"
+    config.write_text('sim = true\nsim_seed = 3\nsim_effects = "lens"\nport = 9002\n')
+    monkeypatch.setenv("FLYSCAN_SIM_SEED", "5")
+    settings, sim = load_serve_settings(config, host="127.0.0.2")
+    assert (settings.port, settings.host) == (9002, "127.0.0.2")
+    assert sim.sim and sim.sim_seed == 5 and sim.sim_effects == "lens"
+    assert not any(name.startswith("sim") for name in type(settings).model_fields)
+    options = sim.options()
+    assert (options.seed, options.effects) == (5, "lens")
+    config.write_text("sim = true\nsim_sead = 3\n")
+    with pytest.raises(ValidationError, match="sim_sead"):
+        load_serve_settings(config)
+    settings, sim = load_serve_settings(None)
+    assert not sim.sim  # a real cell unless told

@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from service.cli.common import (MAX_FPS, MAX_SPEED_MM_S, ScanError, ScanFailed, UsageError,
+from flyscan.common import (MAX_FPS, MAX_SPEED_MM_S, ScanError, ScanFailed, UsageError,
                                 add_act_tolerance, check_frame_spacing, check_out_dir,
                                 check_part_args, load_part_model, non_negative_int,
                                 pose_params, print_pose)
@@ -135,7 +135,7 @@ def _simulated(args) -> int:
     from scanner_core.calibration import load_calibration
     from scanner_core.exposure import ExposureParams
     from scanner_core.pipeline import PipelineParams
-    from service.cli.simcell import scan_effects, sim_cell
+    from flyscan.simcell import scan_effects, sim_cell
     from simulator.cell import PASS_PRESETS
     from simulator.parts import block_with_holes_and_steps, check_fits, part_from_mesh, simulated
     from simulator.session import parse_misplacement, run_simulated_scan

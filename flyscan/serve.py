@@ -1,12 +1,12 @@
 """``flyscan serve``: the real-time scanning service, with real devices or, with ``--sim``,
-the simulated cell's (``service.cli.simdevices``: the only place they are wired in)."""
+the simulated cell's (``flyscan.simdevices``: the only place they are wired in)."""
 from __future__ import annotations
 
 from pathlib import Path
 
-from service.cli.common import UsageError
+from flyscan.common import UsageError
 
-__all__ = ["add_parser", "run", "service_for"]
+__all__ = ["add_parser", "run", "service_for", "load_serve_settings"]
 
 #: Seconds a stopping service waits for open connections (server-sent events) to close.
 SHUTDOWN_GRACE_S = 3.0
@@ -36,15 +36,29 @@ def add_parser(command) -> None:
     serve.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
 
 
-def service_for(settings):
-    """The service of ``settings``: its devices real, or the simulated cell's with ``sim``."""
+def service_for(settings, sim=None):
+    """The service of ``settings``: its devices real, or with ``sim``
+    (``flyscan.simdevices.SimSettings`` saying ``sim``) the simulated cell's."""
     from service.daemon import Service
 
-    if settings.sim:
-        from service.cli.simdevices import simulated_devices
+    if sim is None or not sim.sim:
+        return Service(settings)
+    if settings.camera is not None:
+        raise ValueError(f"--camera {settings.camera}: the simulated cell has its own camera")
+    from flyscan.simdevices import simulated_devices
 
-        return Service(settings, devices=simulated_devices(settings))
-    return Service(settings)
+    return Service(settings, devices=simulated_devices(sim, settings.robot))
+
+
+def load_serve_settings(config, *, sim=None, **overrides):
+    """(the service's ``Settings``, the simulated cell's ``SimSettings``) from the settings
+    file ``config`` (or None), the environment and the command line's ``overrides``."""
+    from flyscan.simdevices import load_sim_settings, split_sim_settings
+    from service.settings import load_settings, read_settings_file
+
+    service_part, sim_part = split_sim_settings(
+        read_settings_file(config) if config is not None else {})
+    return load_settings(service_part, **overrides), load_sim_settings(sim_part, sim=sim)
 
 
 def run(args) -> int:
@@ -56,13 +70,11 @@ def run(args) -> int:
     from service.api import create_app
     from service.connections import (ACCEPT_BACKLOG, connection_bound, guarded_protocol,
                                      open_files, quiet_crowding, raise_file_limit)
-    from service.settings import load_settings
-
     try:
-        settings = load_settings(args.config, sim=args.sim, host=args.host, port=args.port,
-                                 zmq=args.zmq, robot=args.robot, camera=args.camera,
-                                 calibration=args.calibration, data=args.data)
-        service = service_for(settings)
+        settings, sim = load_serve_settings(
+            args.config, sim=args.sim, host=args.host, port=args.port, zmq=args.zmq,
+            robot=args.robot, camera=args.camera, calibration=args.calibration, data=args.data)
+        service = service_for(settings, sim)
     except FileNotFoundError as exc:
         raise UsageError(str(exc)) from None
     except ValidationError as exc:
@@ -74,7 +86,7 @@ def run(args) -> int:
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s: %(message)s")
     url = f"http://{settings.host}:{settings.port}/"
     print(f"flyscan serve: status page {url}, REST {url}docs, ZeroMQ {settings.zmq}, "
-          f"data {settings.data.resolve()}{' (simulated cell)' if settings.sim else ''}",
+          f"data {settings.data.resolve()}{' (simulated cell)' if sim.sim else ''}",
           flush=True)
     soft_files, _ = raise_file_limit()
     quiet_crowding()

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.cli.common import ScanError, UsageError, check_part_args, load_part_model
+from flyscan.common import ScanError, UsageError, check_part_args, load_part_model
 
 __all__ = ["add_parser", "run"]
 

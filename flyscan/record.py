@@ -6,7 +6,7 @@ import sys
 import time
 from pathlib import Path
 
-from service.cli.common import (ScanError, ScanFailed, UsageError, add_act_tolerance,
+from flyscan.common import (ScanError, ScanFailed, UsageError, add_act_tolerance,
                                 check_out_dir, check_part_args, load_part_model, pose_params,
                                 print_pose)
 

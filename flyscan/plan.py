@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from service.cli.common import UsageError, check_out_dir
+from flyscan.common import UsageError, check_out_dir
 
 __all__ = ["add_parser", "run"]
 

@@ -8,7 +8,7 @@ import tempfile
 from pathlib import Path
 
 __all__ = ["UsageError", "ScanError", "ScanFailed", "EXIT_SCAN_FAILED", "MAX_SPEED_MM_S",
-           "MAX_FPS", "MIN_PROFILES", "non_negative_int", "join_number_lists", "HelpFormatter",
+           "MAX_FPS", "non_negative_int", "join_number_lists", "HelpFormatter",
            "version", "check_out_dir", "check_frame_spacing", "check_part_args",
            "load_part_model"]
 
@@ -30,8 +30,6 @@ class ScanFailed(RuntimeError):
 #: would simulate for hours.
 MAX_SPEED_MM_S = 5000.0
 MAX_FPS = 2000.0
-#: A pass must give at least this many profiles along the part, or it cannot be scanned.
-MIN_PROFILES = 5
 #: Options whose value is a list of numbers that may start with a minus sign.
 NUMBER_LIST_OPTIONS = ("--misplace", "--laser", "--camera")
 #: Exit status of a pass that ran and failed (bad input exits with 2).
@@ -110,15 +108,12 @@ def check_out_dir(out: Path) -> None:
 
 
 def check_frame_spacing(part, speed_mm_s: float, fps: float) -> None:
-    """Refuse a pass whose frames are too far apart to give `MIN_PROFILES` on the part."""
-    spacing = speed_mm_s / fps
-    length = float(part.extents_t[1])  # the part moves along y_T through the light sheet
-    if length / spacing < MIN_PROFILES:
-        need = MIN_PROFILES * speed_mm_s / length
-        raise UsageError(
-            f"at {speed_mm_s:g} mm/s and {fps:g} fps the frames are {spacing:.3g} mm apart, "
-            f"too few for the part's {length:.1f} mm along the pass (at least {MIN_PROFILES} "
-            f"profiles): raise --fps to {need:.3g} or more, or lower --speed")
+    """Refuse a pass whose frames are too far apart (``scanner_core.scanplan.too_few_profiles``)."""
+    from scanner_core.scanplan import too_few_profiles
+
+    refusal = too_few_profiles(part, speed_mm_s, fps)
+    if refusal is not None:
+        raise UsageError(refusal)
 
 
 def check_part_args(args) -> None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import time
 
-from service.cli.common import ScanError, UsageError
+from flyscan.common import ScanError, UsageError
 
 __all__ = ["run_url"]
 

@@ -3,7 +3,7 @@
 Every command calls the same library functions the service and the benchmarks use; each
 command's module only parses its arguments, reports errors clearly and exits non-zero on
 failure (2: bad input; 1: a pass that ran and failed). The command line is also where the
-simulated cell is wired in (``flyscan serve --sim``: ``service.cli.simdevices``), the one part
+simulated cell is wired in (``flyscan serve --sim``: ``flyscan.simdevices``), the one part
 of ``service`` that imports the simulator.
 """
 from __future__ import annotations
@@ -15,13 +15,13 @@ import sys
 
 from threadpoolctl import threadpool_limits
 
-from service.cli import bench, calibrate, plan, record, scan, serve, simulate
-from service.cli.common import (EXIT_SCAN_FAILED, MIN_PROFILES, HelpFormatter, ScanError,
+from flyscan import bench, calibrate, plan, record, scan, serve, simulate
+from flyscan.common import (EXIT_SCAN_FAILED, HelpFormatter, ScanError,
                                 ScanFailed, UsageError, check_frame_spacing, join_number_lists,
                                 version)
 
 __all__ = ["main", "build_parser", "parse_args", "UsageError", "ScanError", "ScanFailed",
-           "check_frame_spacing", "MIN_PROFILES"]
+           "check_frame_spacing"]
 
 _COMMANDS = {"scan": scan.run, "simulate": simulate.run, "serve": serve.run,
              "record": record.run_record, "replay": record.run_replay,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from service.cli.common import UsageError
+from flyscan.common import UsageError
 
 __all__ = ["sim_cell", "scan_effects"]
 

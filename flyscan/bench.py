@@ -5,7 +5,7 @@ import json
 import os
 from pathlib import Path
 
-from service.cli.common import UsageError
+from flyscan.common import UsageError
 
 __all__ = ["add_parser", "run"]
 

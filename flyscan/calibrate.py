@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.cli.common import ScanError, UsageError, non_negative_int
-from service.cli.simcell import sim_cell
+from flyscan.common import ScanError, UsageError, non_negative_int
+from flyscan.simcell import sim_cell
 
 __all__ = ["add_parser", "run"]
 
@@ -56,7 +56,7 @@ def run(args) -> int:
     if args.url is None and (args.session_id or args.activate):
         raise UsageError("--session-id and --activate go with --url")
     if args.url is not None:
-        from service.cli.calibrate_url import run_url
+        from flyscan.calibrate_url import run_url
 
         return run_url(args)
     cell = None

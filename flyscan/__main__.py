@@ -1,0 +1,6 @@
+"""``python -m flyscan``."""
+import sys
+
+from flyscan import main
+
+sys.exit(main())
