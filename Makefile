@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 OUT ?= out
 
-.PHONY: run scan-demo test bench image clean
+.PHONY: run scan-demo test check bench image clean
 
 $(BIN)/flyscan: pyproject.toml
 	bash scripts/system-deps.sh
@@ -19,8 +19,14 @@ run: $(BIN)/flyscan
 scan-demo: $(BIN)/flyscan
 	$(BIN)/flyscan scan --demo --out $(OUT)/demo
 
+# Every test, on every core (a test module's tests stay on one worker: they share set-up).
 test: $(BIN)/flyscan
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile
+
+# The loop of work: the core, the simulator, the clients, the API in-process and the layers.
+check: $(BIN)/flyscan
+	$(BIN)/python -m pytest -q -n auto --dist loadfile tests/scanner_core tests/simulator \
+		tests/clients tests/service/test_api_inprocess.py tests/test_layers.py
 
 bench: $(BIN)/flyscan
 	bash scripts/system-deps.sh bench
