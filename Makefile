@@ -28,7 +28,11 @@ check: $(BIN)/flyscan
 	$(BIN)/python -m pytest -q -n auto --dist loadfile tests/scanner_core tests/simulator \
 		tests/clients tests/service/test_api_inprocess.py tests/test_layers.py
 
+# The reference parts' meshes are read where MESHES points (a folder with their manifest.json).
+bench: export FLYSCAN_MESHES = $(MESHES)
 bench: $(BIN)/flyscan
+	@test -n "$(MESHES)" || { echo "make bench MESHES=DIR: the folder of the reference meshes" \
+		"and their manifest.json"; exit 2; }
 	bash scripts/system-deps.sh bench
 	$(BIN)/pip install --quiet -e '.[test,bench]'
 	$(BIN)/flyscan bench stripe --out $(OUT)/bench/stripe

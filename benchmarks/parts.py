@@ -1,7 +1,7 @@
 """The parts the benchmarks scan and the misplacements they scan them at: defined once.
 
-The full runs scan the four reference parts (their meshes from ``../shared/data/meshes`` or
-``$FLYSCAN_MESHES``, ``simulator.parts.load_reference_part``); the quick runs the procedural
+The full runs scan the four reference parts (their meshes where ``--meshes DIR`` or
+``$FLYSCAN_MESHES`` points, ``simulator.parts.load_reference_part``); the quick runs the procedural
 demo block (``simulator.parts.block_with_holes_and_steps``), which needs no mesh file.
 ``bench pose`` draws its scans' misplacements from `MISPLACEMENT_SEED`; ``bench coarse`` and
 ``bench edges`` scan the reference parts again at the same ones.

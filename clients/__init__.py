@@ -9,7 +9,7 @@
 - ``python -m clients.cell_controller``: the loop a robot cell runs, as an example program.
 
 Light on purpose: the standard library, numpy, httpx and pyzmq; nothing of the service. The
-two sides meet only on the wire formats of ARCHITECTURE.md (REST, ZeroMQ, binary PLY).
+two sides meet only on the wire formats of docs/service.md and docs/files.md (REST, ZeroMQ, binary PLY).
 """
 from .http_client import (BadRequest, Conflict, FlyscanClient, FlyscanError, NotFound, ScanFailed,
                           ServiceUnavailable, ServiceUnreachable, Unauthorized, Unprocessable)

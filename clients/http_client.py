@@ -270,7 +270,7 @@ class FlyscanClient:
 
         A mesh file carries no reliable unit, so `units` (mm, cm, m, inch) is required.
         `grasp` is the nominal grasp: a name (``centred``, ``flat`` or ``identity``: see
-        ARCHITECTURE.md), or the taught ^T X_P itself, a (4, 4) rigid transform in mm of the
+        docs/design.md), or the taught ^T X_P itself, a (4, 4) rigid transform in mm of the
         part's CAD frame in the TCP (sent as ``grasp_matrix``); None: the service's default,
         ``centred``. Raises Unprocessable (422) for a bad unit, grasp or mesh, ValueError for a
         grasp that is neither a name nor a 4x4.

@@ -1,7 +1,7 @@
 """The place correction: where the robot must put its TCP so that the part, held as the scan
 measured it, lands where a nominally held part would.
 
-Frames (ARCHITECTURE.md): {B} the robot base, {T} the TCP (gripper), {P} the part (its CAD
+Frames (docs/design.md): {B} the robot base, {T} the TCP (gripper), {P} the part (its CAD
 model). ``^A X_C`` is a 4x4 homogeneous transform, millimetres, mapping coordinates in {C} to
 coordinates in {A} (the pose of {C} in {A}).
 

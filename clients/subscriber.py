@@ -9,7 +9,7 @@
                 xyz = msg.array                   # (N, 3) float32, mm in {T}, read-only
                 print(msg.scan_id, xyz.shape, "lost so far:", sub.lost)
 
-The wire format (ARCHITECTURE.md, ZeroMQ): every message is multipart, ``[topic, header]`` or
+The wire format (docs/service.md, ZeroMQ): every message is multipart, ``[topic, header]`` or
 ``[topic, header, payload]``; the header is UTF-8 JSON with at least ``scan_id``, ``seq``,
 ``frame`` ("T"), ``units`` ("mm"), ``t`` (unix seconds), and with a payload ``dtype`` ("<f4"),
 ``shape`` ([N, 3]) and ``fields`` (["x", "y", "z"]); the payload is the raw C-order array.

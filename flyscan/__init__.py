@@ -1,4 +1,4 @@
-"""The flyscan command line: scan, simulate, serve, record, replay, calibrate, plan, benchmark.
+"""The flyscan command line: scan, simulate, serve, record, replay, calibrate, plan, parts, bench.
 
 Every command calls the same library functions the service and the benchmarks use; each
 command's module only parses its arguments, reports errors clearly and exits non-zero on
@@ -15,7 +15,7 @@ import sys
 
 from threadpoolctl import threadpool_limits
 
-from flyscan import bench, calibrate, plan, record, scan, serve, simulate
+from flyscan import bench, calibrate, parts, plan, record, scan, serve, simulate
 from flyscan.common import (EXIT_SCAN_FAILED, HelpFormatter, ScanError,
                                 ScanFailed, UsageError, check_frame_spacing, join_number_lists,
                                 version)
@@ -25,7 +25,8 @@ __all__ = ["main", "build_parser", "parse_args", "UsageError", "ScanError", "Sca
 
 _COMMANDS = {"scan": scan.run, "simulate": simulate.run, "serve": serve.run,
              "record": record.run_record, "replay": record.run_replay,
-             "calibrate": calibrate.run, "plan": plan.run, "bench": bench.run}
+             "calibrate": calibrate.run, "plan": plan.run, "bench": bench.run,
+             "parts": parts.run}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_parser(command)
     record.add_parsers(command)
     plan.add_parser(command)
+    parts.add_parser(command)
     bench.add_parser(command)
     return parser
 
@@ -76,7 +78,7 @@ def main(argv=None) -> int:
 
 def _run(args) -> int:
     # A real-time process keeps BLAS to one thread: OpenBLAS workers spin for ~100 ms after
-    # each call and steal the other core (NOTES.md).
+    # each call and steal the other core (docs/design.md).
     from scanner_core.cad import PartError
     from scanner_core.calibration import CalibrationError
     from scanner_core.planecal import PlaneCalibrationError

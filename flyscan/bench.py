@@ -50,8 +50,8 @@ def add_parser(command) -> None:
                             "on, bracket_wide, block_tall, fan_disk_6, dome and the public "
                             "meshes bunny and bone")
     bench.add_argument("--meshes", type=Path, default=None,
-                       help="folder of the reference meshes and their manifest.json (default: "
-                            "$FLYSCAN_MESHES, or ../shared/data/meshes beside a source checkout)")
+                       help="folder of the reference meshes and their manifest.json (or "
+                            "$FLYSCAN_MESHES)")
 
 
 def _seeds(text):

@@ -2,9 +2,9 @@
 carried through the sheet at, and the pass presets.
 
 Grasps: the centred and the flat grasp (``scanner_core.cad``), and the part lying on one of
-its stable resting faces, as a suction cup picks it from a flat bin: the faces of its convex
-hull over which its centre of mass stands, largest first. Held from above, the face it lay
-on hangs toward the sensor (along +z_T). A grasp that turns the part the way another
+its stable resting faces, as a suction cup picks it from a flat bin: trimesh's
+``compute_stable_poses`` (the faces of its convex hull over which its centre of mass stands),
+the likeliest first. Held from above, the face it lay on hangs toward the sensor (along +z_T). A grasp that turns the part the way another
 already does (the same face toward the sensor) is kept once, under its first name.
 
 Turns: ``0, step, 2 step, ...`` below 180 degrees (a turn of 180 reverses the pass, which the
@@ -17,7 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
+import trimesh
+from scipy.spatial import QhullError
 
 from scanner_core.cad import PartError, centred_grasp, check_fits, flat_grasp
 from scanner_core.scanplan import turned_grasp
@@ -27,13 +28,8 @@ __all__ = ["Candidate", "PRESET_NAMES", "base_grasps", "resting_grasps", "candid
 
 #: The pass presets a plan chooses from (``simulator.cell.PASS_PRESETS``), fastest first.
 PRESET_NAMES = ("fast", "default", "slow")
-# Two hull facets are one face when their normals agree within this (cosine of 0.5 degrees):
-# a CAD face triangulated in many triangles gives many hull facets on one plane.
-_SAME_PLANE_COS = np.cos(np.radians(0.5))
 # Two grasps show the sensor the same face when their +z_T directions in {P} agree this well.
 _SAME_FACE_COS = np.cos(np.radians(2.0))
-# The centre of mass must stand this far inside a resting face (mm): one on its rim topples.
-_STABLE_MARGIN_MM = 0.5
 
 
 @dataclass(frozen=True)
@@ -77,13 +73,14 @@ def turns(step_deg: float) -> list[float]:
     return [float(t) for t in np.arange(0.0, 180.0 - 1e-9, step_deg)]
 
 
-def resting_grasps(vertices, *, count: int = 3, center_mass=None) -> list[np.ndarray]:
-    """The grasps of a part lying on its `count` largest stable resting faces.
+def resting_grasps(mesh: trimesh.Trimesh, *, count: int = 3,
+                   center_mass=None) -> list[np.ndarray]:
+    """The grasps of a part lying on its `count` likeliest stable resting faces.
 
     Parameters
     ----------
-    vertices : (V, 3) array_like
-        mm, in {P}.
+    mesh : trimesh.Trimesh
+        The part, mm, in {P}.
     count : int
         Faces kept at most.
     center_mass : (3,) array_like, optional
@@ -93,36 +90,33 @@ def resting_grasps(vertices, *, count: int = 3, center_mass=None) -> list[np.nda
     -------
     list of (4, 4) float64
         ^T X_P: the face's outward normal along +z_T (toward the sensor), centred as by
-        ``scanner_core.cad.centred_grasp``. Largest face first.
+        ``scanner_core.cad.centred_grasp``. Likeliest face first (trimesh's
+        ``compute_stable_poses``: the share of the directions the part may fall from that
+        end on the face, which grows with its size).
     """
-    v = np.asarray(vertices, dtype=np.float64)
+    v = np.asarray(mesh.vertices, dtype=np.float64)
     try:
-        hull = ConvexHull(v)
-    except (QhullError, ValueError):
+        if center_mass is None:
+            center_mass = mesh.convex_hull.vertices.mean(axis=0)
+        poses, chances = trimesh.poses.compute_stable_poses(
+            mesh, center_mass=np.asarray(center_mass, dtype=np.float64))
+    except (QhullError, ValueError, IndexError):
         return []  # flat or degenerate: the centred and flat grasps remain
-    com = v[hull.vertices].mean(axis=0) if center_mass is None else np.asarray(center_mass)
-    normals, offsets = hull.equations[:, :3], hull.equations[:, 3]
-    areas = _triangle_areas(v[hull.simplices])
-    faces, used = [], np.zeros(len(normals), bool)
-    for i in np.argsort(-areas):
-        if used[i]:
-            continue
-        same = (~used) & (normals @ normals[i] > _SAME_PLANE_COS) & \
-            (np.abs(offsets - offsets[i]) < 1e-3 * (1 + np.ptp(v)))
-        used |= same
-        area = float(areas[same].sum())
-        if _stable(v, hull.simplices[same], normals[i], com):
-            faces.append((area, normals[i]))
-    faces.sort(key=lambda f: -f[0])
-    return [_face_down_grasp(v, n) for _, n in faces[:max(0, int(count))]]
+    # The resting face's outward normal in {P}: it points down (-z) in the pose's world.
+    normals = [pose[:3, :3].T @ np.array([0.0, 0.0, -1.0])
+               for pose, chance in zip(poses, chances) if chance > 0]
+    return [_face_down_grasp(v, n) for n in normals[:max(0, int(count))]]
 
 
-def base_grasps(vertices, *, resting: int = 3, center_mass=None) -> list[tuple[str, np.ndarray]]:
-    """The named grasps of a part: centred, flat, then ``resting-K`` (`resting_grasps`),
-    each kept once per face shown to the sensor. (name, (4, 4) ^T X_P) pairs, mm."""
+def base_grasps(mesh: trimesh.Trimesh, *, resting: int = 3,
+                center_mass=None) -> list[tuple[str, np.ndarray]]:
+    """The named grasps of a part (its mesh, mm, in {P}): centred, flat, then ``resting-K``
+    (`resting_grasps`), each kept once per face shown to the sensor. (name, (4, 4) ^T X_P)
+    pairs, mm."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
     named = [("centred", centred_grasp(vertices)), ("flat", flat_grasp(vertices))]
     named += [(f"resting-{k + 1}", g) for k, g in
-              enumerate(resting_grasps(vertices, count=resting, center_mass=center_mass))]
+              enumerate(resting_grasps(mesh, count=resting, center_mass=center_mass))]
     kept: list[tuple[str, np.ndarray]] = []
     for name, grasp in named:
         toward = grasp[2, :3]  # the {P} direction that hangs along +z_T
@@ -146,7 +140,7 @@ def candidates(part, *, turn_step_deg: float = 90.0, presets=PRESET_NAMES,
         raise ValueError(f"presets must be among {', '.join(PRESET_NAMES)}, got {list(presets)}")
     center = _center_mass(part)
     kept, left_out = [], []
-    for name, base in base_grasps(part.vertices, resting=resting, center_mass=center):
+    for name, base in base_grasps(part.mesh, resting=resting, center_mass=center):
         for turn in turns(turn_step_deg):
             nominal = turned_grasp(base, turn, part.vertices)
             try:
@@ -172,28 +166,6 @@ def _center_mass(part):
     if mesh.is_watertight and mesh.volume > 0:
         return np.asarray(mesh.center_mass, dtype=np.float64)
     return None
-
-
-def _triangle_areas(tri) -> np.ndarray:
-    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-
-
-def _stable(v, simplices, normal, com) -> bool:
-    """Whether the centre of mass, dropped along `normal` onto the face (its hull triangles
-    `simplices`), lands inside it by `_STABLE_MARGIN_MM`."""
-    p = com - normal * (com @ normal)  # only in-plane coordinates matter below
-    u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
-    u /= np.linalg.norm(u)
-    w = np.cross(normal, u)
-    pts = v[np.unique(simplices)]
-    q = np.stack([pts @ u, pts @ w], axis=1)
-    c = np.array([p @ u, p @ w])
-    try:
-        face = ConvexHull(q)
-    except (QhullError, ValueError):
-        return False
-    # inside when every edge's outward line leaves the point this far inside
-    return bool(np.all(face.equations[:, :2] @ c + face.equations[:, 2] < -_STABLE_MARGIN_MM))
 
 
 def _face_down_grasp(v, normal) -> np.ndarray:

@@ -1,7 +1,7 @@
 """A tiny dense solver for numba kernels: the normal equations of small least-squares fits.
 
 np.linalg.solve would go through BLAS/LAPACK; for 4x4 and 5x5 systems inside per-column
-and per-blob loops plain elimination is faster and never wakes OpenBLAS threads (NOTES.md).
+and per-blob loops plain elimination is faster and never wakes OpenBLAS threads (docs/design.md).
 """
 from numba import njit
 

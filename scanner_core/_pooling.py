@@ -3,7 +3,7 @@
 The marker search (``scanner_core.marker``) looks for bright blobs on a max-pooled copy of each
 view strip. Done with numpy (strided maxima) and OpenCV (connected components of the whole pooled
 strip) it cost about 15 times a copy of the frame; here one kernel reads each pixel once, row
-after row (the order the frame lies in memory, NOTES.md "Frame processing"), writes the block
+after row (the order the frame lies in memory, docs/design.md "Frame processing"), writes the block
 maxima and labels the above-threshold blocks as runs, so that the labelling costs in proportion to
 the bright blocks, not to the strip. Several strips side by side are pooled in the same pass: one
 pass per strip reads each image row in pieces, which costs three times as much on frames not in

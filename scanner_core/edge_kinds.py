@@ -42,7 +42,7 @@ scanner's own.
 
 References
 ----------
-.. [1] "Fast visual part inspection for bin picking", section II (../shared/paper.md): edges
+.. [1] "Fast visual part inspection for bin picking", section II: edges
    as drop-outs and discontinuities along the profile.
 """
 from __future__ import annotations

@@ -235,7 +235,7 @@ def profile_axes(camera: PinholeCamera, light_plane_c: Plane) -> tuple[np.ndarra
         column: no profile along the columns).
     """
     del camera
-    nx, ny, nz = (float(v) for v in light_plane_c.normal)  # scalars: no BLAS (NOTES.md)
+    nx, ny, nz = (float(v) for v in light_plane_c.normal)  # scalars: no BLAS (docs/design.md)
     scale = math.sqrt(nx * nx + ny * ny + nz * nz)
     nx, ny, nz = nx / scale, ny / scale, nz / scale
     ax, ay, az = 1.0 - nx * nx, -nx * ny, -nx * nz  # x_C minus its component along n
@@ -288,7 +288,7 @@ def find_edges(result, valid, camera: PinholeCamera, light_plane_c: Plane, *,
 
     References
     ----------
-    .. [1] "Fast visual part inspection for bin picking", section II (../shared/paper.md):
+    .. [1] "Fast visual part inspection for bin picking", section II:
        drop-outs by size, discontinuities by range, the edge at half the relative step.
 
     Examples
@@ -307,7 +307,7 @@ def find_edges(result, valid, camera: PinholeCamera, light_plane_c: Plane, *,
     valid = _mask(valid, w, "valid")
     masked = np.zeros(w, dtype=bool) if masked is None else _mask(masked, w, "masked")
     e_a, e_d = profile_axes(camera, light_plane_c)
-    along_b = np.einsum("ji,j->i", camera.rotation, e_a)  # {C} -> {B}; no BLAS (NOTES.md)
+    along_b = np.einsum("ji,j->i", camera.rotation, e_a)  # {C} -> {B}; no BLAS (docs/design.md)
     if not valid.any():
         return EdgePoints.empty(along_b)
     dark = (~valid & ~masked

@@ -71,7 +71,7 @@ names.
 
 References
 ----------
-.. [1] "Fast visual part inspection for bin picking", section II (../shared/paper.md).
+.. [1] "Fast visual part inspection for bin picking", section II.
 """
 from __future__ import annotations
 

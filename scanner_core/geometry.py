@@ -8,7 +8,7 @@ plane, the marker from the direct and mirror views, with its compiled kernel) in
 
 References
 ----------
-.. [1] "Fast visual part inspection for bin picking", section II (../shared/paper.md).
+.. [1] "Fast visual part inspection for bin picking", section II.
 """
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ change to it here, clear numba's caches (``*.nbi``, ``*.nbc``).
 
 References
 ----------
-.. [1] "Fast visual part inspection for bin picking", section II (../shared/paper.md).
+.. [1] "Fast visual part inspection for bin picking", section II.
 """
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ def _as_points(points, name: str) -> np.ndarray:
 
 
 def unit(vectors: np.ndarray) -> np.ndarray:
-    """Normalise along the last axis (no BLAS call: see NOTES.md on OpenBLAS spinning)."""
+    """Normalise along the last axis (no BLAS call: see docs/design.md on OpenBLAS spinning)."""
     vectors = np.asarray(vectors, dtype=np.float64)
     return vectors / np.sqrt(np.einsum("...i,...i->...", vectors, vectors))[..., None]
 

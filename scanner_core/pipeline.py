@@ -24,7 +24,7 @@ exposed of each pair, the partly lit points, the edge points stitched into the s
 
 References
 ----------
-.. [1] "Fast visual part inspection for bin picking", section II (../shared/paper.md).
+.. [1] "Fast visual part inspection for bin picking", section II.
 """
 from __future__ import annotations
 

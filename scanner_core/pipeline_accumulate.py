@@ -11,7 +11,7 @@ edge cloud and those it sets aside (`_stitch_edges`).
 
 References
 ----------
-.. [1] "Fast visual part inspection for bin picking", section II (../shared/paper.md).
+.. [1] "Fast visual part inspection for bin picking", section II.
 """
 from __future__ import annotations
 

@@ -10,7 +10,7 @@ pose is known), its edge points, and its triangulation (pixel ray x light plane)
 
 References
 ----------
-.. [1] "Fast visual part inspection for bin picking", section II (../shared/paper.md).
+.. [1] "Fast visual part inspection for bin picking", section II.
 """
 from __future__ import annotations
 

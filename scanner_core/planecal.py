@@ -9,8 +9,7 @@ radius), which is the accuracy figure the paper quotes (about 100 um).
 
 References
 ----------
-.. [1] "Fast visual part inspection for bin picking", section II-A, Eq. (2)
-   (../shared/paper.md).
+.. [1] "Fast visual part inspection for bin picking", section II-A, Eq. (2).
 """
 from __future__ import annotations
 

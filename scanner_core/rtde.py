@@ -4,7 +4,7 @@ Two sides speak it: the real robot's client, whose probe runs the handshake befo
 is let near the network (``service.ur_robot``), and the emulated controller of the simulated
 cell (``simulator.rtde_emulator``). Both take the protocol's facts from here: the port, the
 packet types, the header, the output variables' types. Source: Universal Robots' RTDE guide,
-and what ur-rtde 1.6.5 asks (NOTES.md).
+and what ur-rtde 1.6.5 asks (docs/design.md).
 
 Every packet, either way, is a 3-byte big-endian header, uint16 size (header included) and
 uint8 type, then its payload (:func:`packet` makes one, :data:`HEADER` reads one):

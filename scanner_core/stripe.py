@@ -140,7 +140,7 @@ class StripeResult:
 
 def _check_image(image) -> np.ndarray:
     img = check_image(image)
-    if img.shape[0] > 65535:  # row indices are kept as uint16 for speed (NOTES.md)
+    if img.shape[0] > 65535:  # row indices are kept as uint16 for speed (docs/design.md)
         raise ValueError(f"`image` must have at most 65535 rows, got {img.shape[0]}")
     return img
 

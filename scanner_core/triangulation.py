@@ -15,7 +15,7 @@ The model these measure with (the camera, planes, mirrors) is in
 
 References
 ----------
-.. [1] "Fast visual part inspection for bin picking", section II (../shared/paper.md).
+.. [1] "Fast visual part inspection for bin picking", section II.
 """
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ with distortion when any view needs it, else the same camera with an ideal lens.
 
 References
 ----------
-.. [1] "Fast visual part inspection for bin picking", section II-A (../shared/paper.md).
+.. [1] "Fast visual part inspection for bin picking", section II-A.
 .. [2] R. Hartley and A. Zisserman, "Multiple View Geometry", 2nd ed., algorithm 7.1 (DLT).
 """
 from __future__ import annotations

@@ -6,7 +6,7 @@ simulated robot does. The link is watched and re-made without help: a robot swit
 a cable pulled or a controller restarted shows as ``connected`` False (within ``stale_s``
 plus the client's own checks) and recovers by itself when the robot is back.
 
-What ur-rtde (1.6.5) imposes, and how this module copes (see NOTES.md):
+What ur-rtde (1.6.5) imposes, and how this module copes (see docs/design.md):
 
 * its constructor holds the GIL while it blocks on the network, for ever against a server
   that accepts but does not answer: every (re)connection is preceded by a probe with a plain

@@ -1,7 +1,7 @@
 """The reference cell: the numbers of a plausible real cell, in one settings file.
 
 ``data/reference_cell.json`` is read by the simulator, the service and the tests. It is
-written by :func:`design_reference_cell` from the choices of ARCHITECTURE.md ("the reference
+written by :func:`design_reference_cell` from the choices of docs/simulator.md ("the reference
 cell"); what those leave open (mirror planes, the marker offset, the pass) is chosen here and
 recorded in the file. :func:`perturb` makes the repeatable departures of ``--perturb-seed``.
 
@@ -207,7 +207,7 @@ def design_mirror(camera: PinholeCamera, target_b, pixel, guess_distance_mm: flo
 
 
 def design_reference_cell() -> Cell:
-    """The reference cell of ARCHITECTURE.md, with the choices it leaves open made here."""
+    """The reference cell (docs/simulator.md), with the choices it leaves open made here."""
     width, height = 1920, 1200
     focal_px = 16.0 / 5.86e-3  # 16 mm lens, 5.86 um pixels
     standoff, triangulation_deg = 450.0, 30.0

@@ -6,9 +6,9 @@ how the surface returns the laser (``simulator.surfaces.Surface``) and a ray-cas
 (``intersector``). Loading, units, grasps and the inspection volume's check are the scanner's
 (``scanner_core.cad``); the loaders here give simulator parts.
 
-The four reference parts of ``shared/data/meshes`` are read from there at run time
-(`load_reference_part`); the project's tests build their parts procedurally
-(``simulator.procedural``).
+The benchmarks' reference parts are read at run time from the folder the user points at
+(`load_reference_part`: ``flyscan bench --meshes DIR`` or ``$FLYSCAN_MESHES``); the project's
+tests build their parts procedurally (``simulator.procedural``).
 """
 from __future__ import annotations
 
@@ -56,7 +56,7 @@ class Part(PartModel):
     @cached_property
     def intersector(self) -> Intersector:
         """The part's Embree scene in {P}, built on first use and kept: most of its cost is
-        copying the mesh (NOTES.md), and every simulated pass or frame reuses it."""
+        copying the mesh into Embree, and every simulated pass or frame reuses it."""
         return Intersector(self.vertices, self.faces)
 
     def with_grasp(self, grasp) -> "Part":
@@ -100,19 +100,11 @@ def part_from_mesh(mesh, *, name: str, units: str = "mm", source: str = "procedu
 
 
 def reference_meshes_dir() -> Path | None:
-    """The folder of the reference meshes, or None when nothing says where it is.
-
-    ``$FLYSCAN_MESHES`` (``flyscan bench --meshes DIR`` sets it) first; in a source checkout,
-    ``../shared/data/meshes`` beside the repository. An installed package has no such
-    neighbour: there the folder must be given.
-    """
+    """The folder of the reference meshes: ``$FLYSCAN_MESHES`` (``flyscan bench --meshes DIR``
+    sets it), or None when nothing says where it is: meshes are read only where the user
+    points."""
     env = os.environ.get(MESHES_ENV)
-    if env:
-        return Path(env)
-    checkout = Path(__file__).resolve().parents[1]
-    if (checkout / "pyproject.toml").is_file():
-        return checkout.parent / "shared" / "data" / "meshes"
-    return None
+    return Path(env) if env else None
 
 
 def load_reference_part(name: str, grasp: str | np.ndarray | None = None) -> Part:

@@ -380,3 +380,34 @@ def crowned_block(size=(60.0, 40.0, 10.0), *, crown_radius: float = 25.0,
                                  "crown_height": hc, "axis_deg": float(axis_deg),
                                  "sections": int(sections)}
     return mesh
+
+
+#: The example parts `write_example_parts` writes: file name -> (maker, unit of the file).
+EXAMPLE_PARTS = {
+    "demo_block.stl": (block_with_holes_and_steps, "mm"),
+    "bracket.stl": (bracket_with_two_holes, "inch"),
+    "dome.stl": (faceted_dome, "mm"),
+    "fan_disk.stl": (fan_disk, "mm"),
+    "crowned_block.stl": (crowned_block, "mm"),
+}
+_MM_PER_UNIT = {"mm": 1.0, "inch": 25.4}
+
+
+def write_example_parts(folder) -> dict:
+    """Write the example parts into ``folder`` (made if missing) as binary STL files, each in
+    its unit (the bracket in inches, as many CAD exports are), with ``manifest.json`` naming
+    the units (``{"bracket.stl": {"units": "inch"}}``: ``flyscan plan`` reads it). Returns
+    the manifest."""
+    import json
+    from pathlib import Path
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    manifest = {}
+    for name, (make, units) in EXAMPLE_PARTS.items():
+        mesh = make()
+        mesh.apply_scale(1.0 / _MM_PER_UNIT[units])
+        mesh.export(folder / name, file_type="stl")
+        manifest[name] = {"units": units, "source": f"procedural:{make.__name__}"}
+    (folder / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    return manifest

@@ -24,7 +24,7 @@ from simulator.sweep_setup import MAIN_VIEW, SetupError, VirtualSetup
 
 __all__ = ["predict_cloud", "prepare", "warm_up"]
 
-# Rays per Embree call: large enough to hide the per-call cost (12-26 us, NOTES.md), small
+# Rays per Embree call: large enough to hide the per-call cost (12-26 us, docs/design.md), small
 # enough that two threads share the work evenly and each thread's scratch (about 110 bytes a
 # ray, reused from chunk to chunk) stays a few megabytes.
 _CHUNK_RAYS = 1 << 16

@@ -67,12 +67,13 @@ def test_reference_meshes_are_found_by_option_or_environment(installed, tmp_path
     proc = _flyscan(installed, "bench", "scan", "--meshes", str(tmp_path),
                     "--out", str(tmp_path / "b"))
     assert proc.returncode == 2 and "holds no manifest.json" in proc.stderr
-    # Given a folder, the reference parts load from it.
-    shared = REPO.parent / "shared" / "data" / "meshes"
+    # Given a folder (here the example parts `flyscan parts` writes), they load from it.
+    examples = tmp_path / "parts"
+    assert _flyscan(installed, "parts", str(examples)).returncode == 0
     check = ("from simulator.parts import load_reference_part as f; "
-             "p = f('idler_riser'); print(p.units, len(p.mesh.faces))")
+             "p = f('bracket'); print(p.units, len(p.mesh.faces), round(p.extents_t.max(), 3))")
     root, target = installed
     out = subprocess.run([sys.executable, "-c", check], cwd=root, capture_output=True, text=True,
                          env={**os.environ, "PYTHONPATH": str(target),
-                              "FLYSCAN_MESHES": str(shared)}, check=True)
-    assert out.stdout.split() == ["inch", "1572"]
+                              "FLYSCAN_MESHES": str(examples)}, check=True)
+    assert out.stdout.split() == ["inch", "416", "70.0"]  # 2.756 inch long: 70 mm

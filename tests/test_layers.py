@@ -1,4 +1,4 @@
-"""The layers (ARCHITECTURE.md), checked by import-linter's contracts in pyproject.toml: the
+"""The layers (docs/design.md), checked by import-linter's contracts in pyproject.toml: the
 command line over the benchmarks over the service over the planner over the simulator over
 scanner_core over the clients' wire formats; the core imports no other package, the service
 neither the simulator nor the planner, the clients none; no import cycle; no exception."""

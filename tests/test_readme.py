@@ -86,7 +86,8 @@ def _blocks(page: Path):
                 yield "prose", start, block
             fence, language, block, start = match.group(1), match.group(2).lower(), [], number + 1
         elif fence is not None and line.strip().startswith(fence):
-            yield ("python" if language == "python" else "code"), start, block
+            # ```text holds a diagram or a listing, no command
+            yield {"python": "python", "text": "text"}.get(language, "code"), start, block
             fence, block = None, []
         elif fence is None and not line.strip():
             if block:

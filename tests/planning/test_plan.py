@@ -196,7 +196,7 @@ def test_candidates_of_a_box():
     import trimesh
 
     part = part_from_mesh(trimesh.creation.box((60.0, 40.0, 10.0)), name="box")
-    grasps = base_grasps(part.vertices, resting=3)
+    grasps = base_grasps(part.mesh, resting=3)
     # flat shows the sensor the face centred shows (the box is flat already), and so does one
     # of the two broad resting faces: kept are centred, the other broad face, a 60 x 10 side
     assert [n for n, _ in grasps][0] == "centred" and len(grasps) == 3
@@ -204,7 +204,7 @@ def test_candidates_of_a_box():
     toward = np.array([g[2, :3] for _, g in grasps])  # the {P} direction along +z_T
     np.testing.assert_allclose(toward[:2], [[0, 0, 1], [0, 0, -1]], atol=1e-9)
     np.testing.assert_allclose(np.abs(toward[2]), [0, 1, 0], atol=1e-9)
-    faces = resting_grasps(part.vertices, count=6)
+    faces = resting_grasps(part.mesh, count=6)
     assert len(faces) == 6  # a box rests on each face
     toward = np.array([g[2, :3] for g in faces])
     np.testing.assert_allclose(np.abs(toward).sum(axis=1), 1.0, atol=1e-9)  # face normals

@@ -11,7 +11,7 @@ from scanner_core import marker as marker_mod
 from scanner_core.marker import MarkerParams, find_marker, find_markers, marker_present
 from simulator.imaging import ImageModel, render_image
 
-# Reference image model (ARCHITECTURE.md): background, read noise, marker and stripe.
+# Reference image model (docs/design.md): background, read noise, marker and stripe.
 BACKGROUND_DN = 10.0
 NOISE_DN = 3.0
 MARKER_PEAK_DN = 230.0
