@@ -2,7 +2,7 @@
 and the cloud in the realistic cell, effect by effect.
 
 Three parts, each row a simulated session (``simulator.calsession``) calibrated by the scanner
-(``scanner_core.calsession.calibrate_session``) and scored against the cell's truth
+(``scanner_core.calibration.session.calibrate_session``) and scored against the cell's truth
 (``simulator.calsession.evaluate_calibration``):
 
 - **positions**: LED and sphere positions growing together (sphere = LED / 5);
@@ -28,7 +28,7 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from scanner_core.calsession import calibrate_session
+from scanner_core.calibration.session import calibrate_session
 from benchmarks.parts import REFERENCE_PART, bench_part, demo_part
 from benchmarks.results import pyplot, save_figure, write_json
 from simulator.calsession import evaluate_calibration, simulate_session

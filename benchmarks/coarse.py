@@ -1,5 +1,5 @@
 """Benchmark of the pose's coarse stage: flyscan's search seeded by the nominal grasp
-(`scanner_core.pose`) against OpenCV contrib's point-pair features
+(`scanner_core.pose.registration`) against OpenCV contrib's point-pair features
 (``cv2.ppf_match_3d_PPF3DDetector``; Drost et al., "Model globally, match locally", CVPR 2010),
 the candidate the pose's search names, on the same scans.
 
@@ -36,7 +36,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
-from scanner_core.scanio import scan_normals
+from scanner_core.io.scanfiles import scan_normals
 from benchmarks.parts import (DEMO_PART, MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG,
                               MISPLACEMENT_UP_TO_MM, REFERENCE_PARTS, bench_part,
                               random_misplacement)

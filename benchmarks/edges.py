@@ -7,9 +7,9 @@ over 30 degrees and, for drop-outs, the outline seen along z_T; in the (x_T, y_T
 *false* beyond 0.5 mm). Three edge clouds per pass:
 
 - **before**: the edge cloud with the points set aside as turned away put back (the scanner
-  without ``scanner_core.edge_kinds.turned_away``; the step placement is in it);
+  without ``scanner_core.edges.kinds.turned_away``; the step placement is in it);
 - **model-free**: the scan's own edge cloud (drop-outs and steps), what the pose registers;
-- **with the model**: after registration against the CAD (``scanner_core.pose.scan_pose``),
+- **with the model**: after registration against the CAD (``scanner_core.pose.registration.scan_pose``),
   the points off every model edge set aside too (``edge_kinds.reclassify_with_model``; its
   figures are bounded by the model's tolerance by construction).
 
@@ -40,11 +40,11 @@ from collections import Counter
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from scanner_core.edge_kinds import EDGE_KIND_NAMES, kind_counts, reclassify_with_model
+from scanner_core.edges.kinds import EDGE_KIND_NAMES, kind_counts, reclassify_with_model
 from scanner_core.edges import EdgeKind
-from scanner_core.exposure import ExposureController
+from scanner_core.pipeline.exposure import ExposureController
 from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
-from scanner_core.pose import scan_pose
+from scanner_core.pose.registration import scan_pose
 from benchmarks.parts import (MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG, MISPLACEMENT_UP_TO_MM,
                               REFERENCE_PARTS, random_misplacement)
 from benchmarks.results import pyplot, save_figure, write_json

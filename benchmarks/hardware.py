@@ -48,7 +48,7 @@ def cross_checks(passes: int, data: pathlib.Path) -> dict:
     """Consistent and inconsistent passes through the service with the real client; and a
     recorded pass, replayed."""
     from scanner_core.recording import load_recording
-    from scanner_core.replay import replay_recording
+    from scanner_core.recording.replay import replay_recording
     from service.settings import Settings
     from simulator.driver import SimulatedCellOptions
 

@@ -2,7 +2,7 @@
 
 ``flyscan calibrate`` fits the LED's offset from the TCP, ``m`` (mm in {T}), and one clock
 offset ``d`` (robot minus camera, s) to the calibration pass
-(``scanner_core.crosscheck.estimate_led_and_clock``: ``M_i = p(t_i + d) + R(t_i + d) m``). Along
+(``scanner_core.pipeline.crosscheck.estimate_led_and_clock``: ``M_i = p(t_i + d) + R(t_i + d) m``). Along
 the pass a clock error moves every marker position by the robot's velocity times it, which an
 LED offset along the pass direction also does: only the pass's changes of speed tell them
 apart, and a robot clock that drifts along a pass whose speed only grows reads as a constant
@@ -35,8 +35,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from benchmarks.results import pyplot, save_figure, write_json
-from scanner_core.calsession import calibrate_session
-from scanner_core.crosscheck import _clock_and_offset_rows, _robot_rotations, _track_at
+from scanner_core.calibration.session import calibrate_session
+from scanner_core.pipeline.crosscheck import clock_and_offset_rows, robot_rotations, track_at
 from scanner_core.pipeline import PipelineParams, camera_frames, run_pass
 from simulator.calsession import simulate_session, true_robot_clock
 from simulator.cell import load_cell
@@ -53,8 +53,8 @@ SHAPES = ("ramp", "peak")
 
 def _led_on_clock(robot, marker_b, robot_times) -> np.ndarray:
     """The LED in {T}, mm, by least squares of ``M_i - p(s_i) = R(s_i) m`` at robot times."""
-    p, _, ok = _track_at(robot, robot_times)
-    rotations = _robot_rotations(robot, robot_times[ok])
+    p, _, ok = track_at(robot, robot_times)
+    rotations = robot_rotations(robot, robot_times[ok])
     m, *_ = np.linalg.lstsq(rotations.reshape(-1, 3), (marker_b[ok] - p[ok]).ravel(),
                             rcond=None)
     return m
@@ -67,8 +67,8 @@ def _led_with_drift(robot, marker_b, times, start_s) -> tuple[np.ndarray, float,
     m = np.zeros(3)
     for _ in range(DRIFT_ITERATIONS):
         robot_times = times + d0 + d1 * (times - middle)
-        p, velocity, ok = _track_at(robot, robot_times)
-        rows = _clock_and_offset_rows(velocity[ok], _robot_rotations(robot, robot_times[ok]))
+        p, velocity, ok = track_at(robot, robot_times)
+        rows = clock_and_offset_rows(velocity[ok], robot_rotations(robot, robot_times[ok]))
         drift = (velocity[ok] * (times[ok] - middle)[:, None]).ravel()
         a = np.column_stack([rows[:, :1], drift, rows[:, 1:]])
         step, *_ = np.linalg.lstsq(a, (marker_b[ok] - p[ok]).ravel(), rcond=None)
@@ -99,7 +99,7 @@ def _row(seed: int, shape: str, positions=SESSION_POSITIONS) -> dict:
     true_clock = true_robot_clock(cell, times)
     on_truth = _led_on_clock(robot, marker_b, true_clock)
     drifting, d0, drift_ppm = _led_with_drift(robot, marker_b, times, calibration.clock_offset_s)
-    _, velocity, ok = _track_at(robot, true_clock)
+    _, velocity, ok = track_at(robot, true_clock)
     speed = np.linalg.norm(velocity[ok], axis=1)
     heading_b = np.median(velocity[ok], axis=0)
     heading_t = scan.tcp_rotations_b[0].T @ (heading_b / np.linalg.norm(heading_b))

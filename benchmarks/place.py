@@ -4,7 +4,7 @@ several realistic cells and parts, with the pose's sigmas against its errors.
 In each realistic cell (every effect of ``simulator.effects``, a perturbed cell,
 ``--perturb-seed`` from `CELL_SEEDS`), calibrated as ``flyscan calibrate --sim`` calibrates it
 (``benchmarks.calibrate._calibrate``: a simulated session fitted by
-``scanner_core.calsession.calibrate_session``), every part (the reference four and the
+``scanner_core.calibration.session.calibrate_session``), every part (the reference four and the
 procedural ones of ``benchmarks.parts.PROCEDURAL_PARTS``) is picked several times with a
 random misplacement up to `MISPLACEMENT_UP_TO_MM` and `MISPLACEMENT_UP_TO_DEG` (in random
 directions, magnitudes uniform; seeded). The scanner is told the simulated robot's
@@ -12,7 +12,7 @@ orientation accuracy as a cell's integrator reads it off the robot's datasheet
 (``PoseParams.robot_rotation_std_deg``: the cell's ``tcp_rotation_error_deg``). Each pick:
 
 1. **Scan**: one pass rendered in the true cell, frame by frame through the pipeline, on the
-   *fitted* calibration, and finished by ``scanner_core.finish.finish_pass`` (verdict,
+   *fitted* calibration, and finished by ``scanner_core.pipeline.finish.finish_pass`` (verdict,
    cross-check, pose, edges, report) as the service finishes it
    (``simulator.session.run_simulated_scan``).
 2. **Act or not**: the report's pose entry judged by ``clients.placement.pose_actionable``
@@ -52,8 +52,8 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from clients.placement import corrected_tcp_place, pose_actionable
-from scanner_core.pose import PoseParams
-from scanner_core.pose_symmetry import nearest_equivalent
+from scanner_core.pose.registration import PoseParams
+from scanner_core.pose.symmetry import nearest_equivalent
 from benchmarks.calibrate import _calibrate
 from benchmarks.parts import (AXES, DEMO_PART, PROCEDURAL_PARTS, REFERENCE_PARTS, bench_part,
                               random_misplacement)

@@ -205,7 +205,7 @@ def fastpath(out: Path) -> dict:
     from planning.candidates import candidates
     from planning.catalogue import read_catalogue
     from planning.evaluate import evaluate
-    from scanner_core.pose import register
+    from scanner_core.pose.registration import register
     from simulator.cell import PASS_PRESETS, load_cell
     from simulator.parts import simulated
     from simulator.virtual_setup import predict_cloud, reference_setup

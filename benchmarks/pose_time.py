@@ -31,7 +31,7 @@ from benchmarks.parts import (DEMO_PART, MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_D
 from benchmarks.stats import spread
 from benchmarks.results import machine_info, write_json
 from benchmarks.service import TARGET_POSE_P95_MS, TARGET_POSE_POINTS, pose_stages
-from scanner_core.pose import PoseParams, scan_pose
+from scanner_core.pose.registration import PoseParams, scan_pose
 from simulator.cell import load_cell
 from simulator.session import misplacement_matrix, run_simulated_scan
 

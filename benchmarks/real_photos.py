@@ -4,7 +4,7 @@ Public sets of photographs, each scored against its own target: the target's pos
 photograph (its corners or dots found by OpenCV, ``solvePnP`` with the set's camera) puts the
 target's plane in the camera, so the stripe on it must be a straight line in the undistorted
 image and, over a set's photographs, its points must lie on one light plane. Per photograph
-the laser's signal is its colour excess (``scanner_core.stripe.stripe_signal``, the same for
+the laser's signal is its colour excess (``scanner_core.stripe.extractor.stripe_signal``, the same for
 both methods); flyscan's ``extract`` as the pipeline calls it on a colour frame (its defaults
 and ``shoulders``) is scored beside a naive peak finder (per
 column, the argmax and a 3-point parabola, where the argmax reaches ``BASELINE_DN`` of excess).
@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from benchmarks.results import write_json
-from scanner_core.stripe import EXCESS_OFFSET_DN, extract, stripe_signal
+from scanner_core.stripe.extractor import EXCESS_OFFSET_DN, extract, stripe_signal
 
 __all__ = ["PhotoSet", "SETS", "baseline_rows", "score_set", "run"]
 
@@ -86,7 +86,7 @@ class PhotoSet:
     source : str
         Where each fact above comes from.
     signal : str or None
-        ``scanner_core.stripe.stripe_signal``'s ``signal`` for both methods; None: the laser's
+        ``scanner_core.stripe.extractor.stripe_signal``'s ``signal`` for both methods; None: the laser's
         colour excess.
     """
 

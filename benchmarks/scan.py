@@ -1,6 +1,6 @@
 """Benchmark of whole simulated passes: processing speed against cloud accuracy.
 
-For every reference part and every stripe method of ``scanner_core.stripe``: one simulated pass
+For every reference part and every stripe method of ``scanner_core.stripe.extractor``: one simulated pass
 at the cell's default pass (``simulator.session.run_simulated_scan``), with the frames'
 processing time (marker + profiles + scan; rendering the frames, ``acquire``, excluded) set
 against the camera time of the pass, and the cloud scored against the true surface. Then the
@@ -25,7 +25,7 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from scanner_core import stripe
+from scanner_core.stripe import extractor as stripe
 from scanner_core.pipeline import PipelineParams
 from benchmarks.parts import DEMO_PART, REFERENCE_PART, REFERENCE_PARTS, bench_part
 from benchmarks.results import pyplot, save_figure, write_json
@@ -182,7 +182,7 @@ def _realistic_rows(parts, seed: int) -> list[dict]:
     """Each part in the realistic cell (``simulator.effects``, every effect on), scanned on a
     calibration the scanner made there (``flyscan calibrate --sim``) and on the cell's true
     geometry: the accuracy a real cell gives, beside the ideal cell's."""
-    from scanner_core.calsession import calibrate_session
+    from scanner_core.calibration.session import calibrate_session
     from simulator.calsession import simulate_session
     from simulator.effects import realistic_cell
 

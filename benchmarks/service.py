@@ -14,9 +14,9 @@
    set, seeded), through the same service with each reference part uploaded to it: from the
    pass's last frame to the pose's message on ZeroMQ (``latency_ms.pose_published``), its
    path stage by stage (``latency_ms.pose_path``) and the registration's own stages (fine,
-   the turn check, coarse, probes: timed around ``scanner_core.pose``'s calls to them), by
+   the turn check, coarse, probes: timed around ``scanner_core.pose.registration``'s calls to them), by
    part and point count, against the target: p95 within 150 ms up to 20 000 points. The
-   service computes the pose once the part has left the sheet (``scanner_core.pose_ahead``);
+   service computes the pose once the part has left the sheet (``scanner_core.pose.ahead``);
    the same passes again with ``pose_ahead_frames`` 0 give the latency of a pose computed at
    the pass's end (``pose_at_pass_end``), and the pose's own time is reported beside.
 
@@ -39,7 +39,7 @@ from threadpoolctl import threadpool_limits
 
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, camera_frames,
                                    feed_frame, warm_up)
-from scanner_core.trigger import Trigger
+from scanner_core.pipeline.trigger import Trigger
 from benchmarks.live import finished_scan, free_port, running_service
 from benchmarks.parts import (DEMO_PART, MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG,
                               MISPLACEMENT_UP_TO_MM, REFERENCE_PARTS, bench_part, demo_pass,
@@ -68,7 +68,7 @@ POSE_SPEEDS, QUICK_POSE_SPEEDS = (400.0, 200.0, 100.0), (200.0,)
 POSE_PASSES, QUICK_POSE_PASSES = 4, 2
 #: Point counts the latencies are grouped by (upper bounds).
 POINT_BINS = (5_000, 10_000, 20_000, 40_000, 80_000)
-#: The registration's stages timed in the service's passes: ``scanner_core.pose``'s names.
+#: The registration's stages timed in the service's passes: ``scanner_core.pose.registration``'s names.
 POSE_STAGES = {"_fine": "fine", "_better_turn": "turn_check", "_coarse": "coarse",
                "_probe_turns": "probes"}
 
@@ -228,10 +228,10 @@ def _summarise(rows: list[dict]) -> dict:
 
 @contextlib.contextmanager
 def pose_stages(clock=time.perf_counter):
-    """``scanner_core.pose``'s calls to its stages timed (by `clock`, wall by default; ms,
+    """``scanner_core.pose.registration``'s calls to its stages timed (by `clock`, wall by default; ms,
     summed per stage) into the dict yielded, until the block ends; the passes are serial,
     the finisher thread the one caller."""
-    import scanner_core.pose as pose_module
+    import scanner_core.pose.registration as pose_module
 
     spent: dict[str, float] = {}
     saved = {name: getattr(pose_module, name) for name in POSE_STAGES
@@ -325,7 +325,7 @@ def _pose_row(name: str, speed: float, values, info: dict, stages: dict) -> dict
             "frames_lost": (info.get("frames_dropped") or 0) + (info.get("queue_overflows") or 0),
             "pose_published_ms": latency.get("pose_published"), "pose_ms": latency.get("pose"),
             "pose_path_ms": latency.get("pose_path"), "stages_ms": stages,
-            # kept from before the pass's end (``scanner_core.pose_ahead``): its own time
+            # kept from before the pass's end (``scanner_core.pose.ahead``): its own time
             "ahead": "pose_ahead" in latency, "pose_ahead_ms": latency.get("pose_ahead"),
             "registration_ms": pose.get("time_ms"), "normals_ms": pose.get("normals_ms"),
             "coarse": bool(pose.get("coarse")), "flags": len(flags),

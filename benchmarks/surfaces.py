@@ -2,7 +2,7 @@
 
 Every row is one simulated pass (``simulator.session.run_simulated_scan``) of a part whose
 surface is one of ``simulator.surfaces.SURFACES``, scanned with one exposure mode of
-``scanner_core.exposure`` and scored against the true surface (points, RMS, p99, points
+``scanner_core.pipeline.exposure`` and scored against the true surface (points, RMS, p99, points
 matched to no true stripe). Four parts:
 
 - **presets**: each preset with each exposure mode ("fixed", "dynamic", "multiple"), and with
@@ -39,7 +39,7 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from scanner_core.exposure import EXPOSURE_MODES, ExposureParams
+from scanner_core.pipeline.exposure import EXPOSURE_MODES, ExposureParams
 from scanner_core.pipeline import PipelineParams
 from benchmarks.parts import DEMO_PART, REFERENCE_PART, bench_part
 from benchmarks.results import pyplot, save_figure, write_json

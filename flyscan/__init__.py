@@ -80,10 +80,10 @@ def _run(args) -> int:
     # A real-time process keeps BLAS to one thread: OpenBLAS workers spin for ~100 ms after
     # each call and steal the other core (docs/design.md).
     from scanner_core.cad import PartError
-    from scanner_core.calibration import CalibrationError
-    from scanner_core.planecal import PlaneCalibrationError
-    from scanner_core.viewcal import ViewCalibrationError
-    from scanner_core.calsession import SessionError
+    from scanner_core.geometry.calibration import CalibrationError
+    from scanner_core.calibration.plane import PlaneCalibrationError
+    from scanner_core.calibration.views import ViewCalibrationError
+    from scanner_core.calibration.session import SessionError
     from scanner_core.recording import RecordingError
     from scanner_core.scanplan import PlanError
 

@@ -21,7 +21,7 @@ def add_parser(command) -> None:
     where = cal.add_mutually_exclusive_group(required=True)
     where.add_argument("--sim", action="store_true",
                        help="a simulated session in the simulated cell (see --effects)")
-    where.add_argument("--session", type=Path, help="a session folder (scanner_core.calsession)")
+    where.add_argument("--session", type=Path, help="a session folder (scanner_core.calibration.session)")
     where.add_argument("--url", help="a running service: a session recorded by it with its "
                                      "robot, fitted there (docs/commissioning.md)")
     cal.add_argument("--session-id", default=None,
@@ -47,9 +47,9 @@ def add_parser(command) -> None:
 
 
 def run(args) -> int:
-    from scanner_core.calibration import save_calibration
+    from scanner_core.geometry.calibration import save_calibration
     from scanner_core.fileio import save_json_atomic
-    from scanner_core.calsession import calibrate_session, load_session, write_session
+    from scanner_core.calibration.session import calibrate_session, load_session, write_session
 
     if args.out.exists() and args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; give the calibration file's path")

@@ -23,7 +23,7 @@ class ScanError(RuntimeError):
 
 
 class ScanFailed(RuntimeError):
-    """The pass ran but gave no usable scan (``scanner_core.finish.pass_failure``)."""
+    """The pass ran but gave no usable scan (``scanner_core.pipeline.finish.pass_failure``)."""
 
 
 #: Sanity limits on the pass: beyond them a typo (mm/s for m/s, a frame rate for a period)
@@ -149,7 +149,7 @@ def load_part_model(args):
 
 def add_act_tolerance(parser) -> None:
     """``--act-tolerance-mm`` and ``--act-tolerance-deg``: the placement tolerance the pose's
-    ``act`` verdict holds it to (``scanner_core.pose.PoseParams``; not imported here: every
+    ``act`` verdict holds it to (``scanner_core.pose.registration.PoseParams``; not imported here: every
     command's parser is built at start, and the pose's imports are not light)."""
     parser.add_argument("--act-tolerance-mm", type=float, default=None,
                         help="placement tolerance, mm: the pose is acted on only when every "
@@ -161,7 +161,7 @@ def add_act_tolerance(parser) -> None:
 def pose_params(args):
     """The ``PoseParams`` of ``--act-tolerance-mm``/``--act-tolerance-deg``; a usage error
     for a tolerance that is not finite and positive."""
-    from scanner_core.pose import PoseParams
+    from scanner_core.pose.registration import PoseParams
 
     given = {name: value for name, value in (("act_tolerance_mm", args.act_tolerance_mm),
                                               ("act_tolerance_deg", args.act_tolerance_deg))

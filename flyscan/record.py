@@ -68,9 +68,9 @@ def run_record(args) -> int:
 
 
 def run_replay(args) -> int:
-    from scanner_core.scanio import save_scan
+    from scanner_core.io.scanfiles import save_scan
     from scanner_core.recording import RecordingError, load_recording
-    from scanner_core.replay import replay_pass
+    from scanner_core.recording.replay import replay_pass
 
     check_part_args(args)
     check_out_dir(args.out)

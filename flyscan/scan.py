@@ -3,11 +3,11 @@
 
 - ``--sim`` (the default when no other source is given): the simulated cell
   (``simulator.session.run_simulated_scan``), with the truth's figures in the report;
-- ``--recording DIR``: a recorded pass (``scanner_core.replay.replay_pass``), finished as the live
+- ``--recording DIR``: a recorded pass (``scanner_core.recording.replay.replay_pass``), finished as the live
   pass was, against the part the recording holds or ``--part``;
 - ``--camera SPEC [--robot ur://HOST]``: a real cell: the trigger is armed on the camera's
   stream, one pass through the sheet is scanned (``scanner_core.pipeline.run_pass``) and
-  finished (``scanner_core.finish.finish_pass``) with the calibration given.
+  finished (``scanner_core.pipeline.finish.finish_pass``) with the calibration given.
 
 Every source ends with the same pass finisher, so the same pass gives the same report.
 """
@@ -37,8 +37,8 @@ LIVE_TIMEOUT_S = 60.0
 
 def add_parser(command) -> None:
     from scanner_core.cad import GRASPS
-    from scanner_core.exposure import EXPOSURE_MODES
-    from scanner_core.stripe import METHODS
+    from scanner_core.pipeline.exposure import EXPOSURE_MODES
+    from scanner_core.stripe.extractor import METHODS
 
     scan = command("scan", help="scan a part: in the simulated cell (default), from a recorded "
                                 "pass, or with a camera and a robot")
@@ -132,8 +132,8 @@ def run(args) -> int:
 # --------------------------------------------------------------------------------------------
 
 def _simulated(args) -> int:
-    from scanner_core.calibration import load_calibration
-    from scanner_core.exposure import ExposureParams
+    from scanner_core.geometry.calibration import load_calibration
+    from scanner_core.pipeline.exposure import ExposureParams
     from scanner_core.pipeline import PipelineParams
     from flyscan.simcell import scan_effects, sim_cell
     from simulator.cell import PASS_PRESETS
@@ -193,7 +193,7 @@ def _simulated(args) -> int:
 
 def _from_recording(args) -> int:
     from scanner_core.recording import RecordingError, load_recording
-    from scanner_core.replay import replay_pass
+    from scanner_core.recording.replay import replay_pass
 
     try:
         recording = load_recording(args.recording)
@@ -202,7 +202,7 @@ def _from_recording(args) -> int:
     part = load_part_model(args)
     params = _recorded_params(recording, args)
     if args.calibration is not None:
-        from scanner_core.calibration import load_calibration
+        from scanner_core.geometry.calibration import load_calibration
 
         calibration = load_calibration(args.calibration)
         calibration.check_image_size(recording.width, recording.height)
@@ -219,11 +219,11 @@ def _from_recording(args) -> int:
 
 
 def _from_cell(args) -> int:
-    from scanner_core.calibration import load_calibration
-    from scanner_core.exposure import ExposureController, ExposureParams
-    from scanner_core.finish import CrossCheckState, finish_pass
+    from scanner_core.geometry.calibration import load_calibration
+    from scanner_core.pipeline.exposure import ExposureController, ExposureParams
+    from scanner_core.pipeline.finish import CrossCheckState, finish_pass
     from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
-    from scanner_core.trigger import EndReason, TriggerParams
+    from scanner_core.pipeline.trigger import EndReason, TriggerParams
     from service.cameras import open_camera
     from service.robots import open_robot
 
@@ -274,9 +274,9 @@ def _from_cell(args) -> int:
 def _recorded_params(recording, args):
     """The pipeline's parameters the recording was made with, with ``--method`` and
     ``--exposure`` when given otherwise than by default."""
-    from scanner_core.exposure import ExposureParams
+    from scanner_core.pipeline.exposure import ExposureParams
     from scanner_core.pipeline import PipelineParams
-    from scanner_core.trigger import TriggerParams
+    from scanner_core.pipeline.trigger import TriggerParams
 
     settings = recording.settings
     trigger = TriggerParams(**{**settings.get("trigger", {}), "arm_timeout_s": math.inf})
@@ -297,7 +297,7 @@ def _write(out, scan, report) -> dict:
     """The scan's files; a failed pass keeps its report (what was acquired, why it failed)
     and writes no cloud that could pass for a scan. ScanFailed after writing it."""
     from scanner_core.fileio import save_json_atomic
-    from scanner_core.scanio import save_scan
+    from scanner_core.io.scanfiles import save_scan
 
     if report.get("state") == "failed":
         report.update(status="failed", failure=report["reason"])

@@ -3,7 +3,7 @@
 A candidate (``planning.candidates.Candidate``) is scanned in the simulated reference cell
 as ``flyscan scan --sim`` scans it (``simulator.session.run_simulated_scan``: frames
 rendered, the scanner's own pipeline, edges and pose), at the plan's fixed noise seed and
-with no misplacement, and judged by its pose's information (``scanner_core.pose``: which
+with no misplacement, and judged by its pose's information (``scanner_core.pose.registration``: which
 axes it fixes, their sigmas, its flags). The fraction of the surface the pass sees comes
 from the fast ray-cast path (``simulator.virtual_setup.predict_cloud`` at the pass's profile
 spacing: the faces a visible point lies on).

@@ -1,7 +1,7 @@
 """The part's CAD model: a mesh in millimetres with its unit, its source and its nominal grasp.
 
-What the scanner registers a scan against (``scanner_core.pose``) and sets its edge points
-by (``scanner_core.edge_kinds``), and what the service keeps for each part: loaded from a
+What the scanner registers a scan against (``scanner_core.pose.registration``) and sets its edge points
+by (``scanner_core.edges.kinds``), and what the service keeps for each part: loaded from a
 mesh file with its unit (a mesh file carries no reliable unit, so every loader takes one and
 converts to mm), checked (readable, a plausible size for its unit, inside the inspection
 volume at its grasp). The simulator's part (``simulator.parts.Part``) adds how its surface
@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from scanner_core.geometry import apply_transform, check_rigid
-from scanner_core.meshfile import check_ply_counts, clean_triangles, is_binary_stl, read_mesh
+from scanner_core.io.meshfile import check_ply_counts, clean_triangles, is_binary_stl, read_mesh
 
 if TYPE_CHECKING:  # imported where used: ray casting alone needs neither trimesh nor scipy
     import trimesh
@@ -135,23 +135,23 @@ class PartModel:
 
     @cached_property
     def surface_model(self):
-        """The CAD surface sampled for registration (``scanner_core.pose.SurfaceModel``),
+        """The CAD surface sampled for registration (``scanner_core.pose.registration.SurfaceModel``),
         built on first use and kept: every scan of the part reuses it."""
-        from scanner_core.pose import SurfaceModel
+        from scanner_core.pose.registration import SurfaceModel
         return SurfaceModel.from_mesh(self.mesh)
 
     @cached_property
     def edge_model(self):
-        """The CAD's sharp edges for registration (``scanner_core.pose.EdgeModel``), a
+        """The CAD's sharp edges for registration (``scanner_core.pose.registration.EdgeModel``), a
         narrow chamfer's on the outline seen from the sensor under the nominal grasp."""
-        from scanner_core.pose import EdgeModel
+        from scanner_core.pose.registration import EdgeModel
         return EdgeModel.from_mesh(self.mesh, view=self.grasp[2, :3])
 
     @cached_property
     def model_edges(self):
         """The CAD's sharp edges and what its outline needs
-        (``scanner_core.edge_kinds.ModelEdges``), for edge kinds after registration."""
-        from scanner_core.edge_kinds import ModelEdges
+        (``scanner_core.edges.kinds.ModelEdges``), for edge kinds after registration."""
+        from scanner_core.edges.kinds import ModelEdges
         return ModelEdges.from_mesh(self.mesh)
 
     def prepare(self) -> float:

@@ -39,7 +39,7 @@ class Camera(Protocol):
 
 @runtime_checkable
 class ExposureControl(Protocol):
-    """A camera whose exposure the scanner sets (``scanner_core.exposure``).
+    """A camera whose exposure the scanner sets (``scanner_core.pipeline.exposure``).
 
     ``exposure_range_us`` and ``gain_range`` are the limits the camera accepts;
     ``set_exposure`` applies from the next frame grabbed, and every frame reports the
@@ -97,7 +97,7 @@ class RobotConnection:
     ``disconnect`` clears, read by ``connected``, and checked by the robot's look-ups.
 
     The base of the robots whose link cannot fail: a replayed recording's
-    (``scanner_core.replay.ReplayRobot``) and the simulated ones (``simulator.devices.SimRobot``,
+    (``scanner_core.recording.replay.ReplayRobot``) and the simulated ones (``simulator.devices.SimRobot``,
     ``simulator.live_devices.LiveSimRobot``). A real robot's link is its own
     (``service.ur_robot.URRobot``). A subclass names itself in ``_not_connected``, the text of
     the RuntimeError that :meth:`_require_connected` raises before it connects or after it

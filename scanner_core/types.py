@@ -87,7 +87,7 @@ class Profile:
     exposure_us, gain : float
         The frame's exposure (``Frame``).
     background_dn : float
-        The frame's background level, DN (``scanner_core.stripe.estimate_noise``).
+        The frame's background level, DN (``scanner_core.stripe.extractor.estimate_noise``).
     rows : (N,) float32 or None
         The stripe's image row at each of ``columns``, px.
     stripe_peaks : (M,) float32 or None
@@ -145,7 +145,7 @@ class Scan:
     interrupted : str or None
         Why the pass ended early (the camera stopped), or None for a complete pass.
     end_reason : str or None
-        Why the pass ended (``scanner_core.trigger.EndReason`` value): "marker gone",
+        Why the pass ended (``scanner_core.pipeline.trigger.EndReason`` value): "marker gone",
         "timeout", "camera stopped", "too long" or "reset".
     frames_held_rotation : int
         Frames placed with the robot's last rotation because it had none for their time.
@@ -171,23 +171,23 @@ class Scan:
         Stripe peak on the edge's side, DN.
     points_partly_lit : int
         Points not kept because their surface reached or left the sheet during the exposure
-        (``scanner_core.exposure.partly_lit``).
+        (``scanner_core.pipeline.exposure.partly_lit``).
     edges_occluded : int
         Drop-outs dropped because the camera's view past them ran into the part (an
         occlusion's boundary, not an edge).
     edges_grazing : int
         Edge points dropped because the light sheet grazes the surface they lie on
         (``scanner_core.edges.grazing_edges``).
-    edges_aside : scanner_core.edge_kinds.AsideEdges or None
+    edges_aside : scanner_core.edges.kinds.AsideEdges or None
         The edge points kept out of ``edges``, each with its reason (``EdgeKind.OCCLUDED``,
         ``GRAZING``, ``TURNED_AWAY``, ``OFF_MODEL``); None for a scan built by hand.
     normals : (N, 3) float32 or None
         Unit normals of the cloud toward the camera; computed once, on first use, by
-        ``scanner_core.scanio.scan_normals``.
+        ``scanner_core.io.scanfiles.scan_normals``.
     placement_std_mm : (3,) float64 or None
         Standard deviation, mm along the {T} axes, of the error every profile's placement
         shares: the calibration's ``marker_offset_std_mm`` (None: not measured).
-    light_plane_uncertainty : scanner_core.planecal.PlaneUncertainty or None
+    light_plane_uncertainty : scanner_core.calibration.plane.PlaneUncertainty or None
         The calibration's ``light_plane_uncertainty``: every profile was triangulated on that
         plane (None: not measured).
     """

@@ -24,7 +24,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import compile_path
 from fastapi.exception_handlers import http_exception_handler
 
-from scanner_core.calibration import Calibration, CalibrationError
+from scanner_core.geometry.calibration import Calibration, CalibrationError
 from service.daemon import Service
 from service.engine import EngineBusy, EngineFault
 from service.models import (CalibrationModel, Health, PartInfo, PartList, Problem, ScanAccepted, ScanInfo, ScanList,

@@ -15,7 +15,7 @@ import json
 import threading
 from pathlib import Path
 
-from scanner_core.calibration import Calibration, load_calibration, save_calibration
+from scanner_core.geometry.calibration import Calibration, load_calibration, save_calibration
 from scanner_core.fileio import save_json_atomic
 
 __all__ = ["CalibrationHistory", "NoSuchVersion", "NoPreviousVersion", "open_history",

@@ -1,12 +1,12 @@
 """Calibration sessions recorded by the service, with the robot.
 
-A session follows a plan (``scanner_core.calplan``): the cell controller takes the robot to
+A session follows a plan (``scanner_core.calibration.plan``): the cell controller takes the robot to
 each of the plan's TCP poses in turn and asks the service to capture it
 (``POST /calibration/sessions/{id}/steps/{index}``); the service takes the first frame after
 the robot has settled and the mean of the robot's reports around it, and writes both into the
-session folder (``scanner_core.calsession_folder``: the folder ``flyscan calibrate --session``
+session folder (``scanner_core.calibration.folder``: the folder ``flyscan calibrate --session``
 reads). Then a pass of the sphere through the sheet is recorded (the service's own recording,
-moved into the folder's ``pass/``), and the fit (``scanner_core.calsession.calibrate_session``,
+moved into the folder's ``pass/``), and the fit (``scanner_core.calibration.session.calibrate_session``,
 in a thread) keeps its calibration as a new version of the history (``service.calhistory``),
 not active until asked. In the simulated cell the driver takes the simulated robot to each pose
 (``simulator.driver.SimPassDriver.hold``); the service does not know which.
@@ -32,13 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
-from scanner_core.calplan import (TILT_DEG, TILTED_FRACTION, CalibrationPlan, PlanGeometry,
+from scanner_core.calibration.plan import (TILT_DEG, TILTED_FRACTION, CalibrationPlan, PlanGeometry,
                                   make_plan, plan_from_dict, plan_to_dict)
-from scanner_core.calsession import SessionWriter, calibrate_session, load_session
-from scanner_core.calibration import save_calibration
+from scanner_core.calibration.session import SessionWriter, calibrate_session, load_session
+from scanner_core.geometry.calibration import save_calibration
 from scanner_core.fileio import save_json_atomic
 from scanner_core.recording import robot_samples
-from scanner_core.rtde import matrix_to_ur_pose, ur_pose_to_matrix
+from scanner_core.io.rtde import matrix_to_ur_pose, ur_pose_to_matrix
 from service.engine import EngineBusy
 
 log = logging.getLogger("flyscan.calibration")

@@ -452,7 +452,7 @@ def open_camera(spec: str, *, fps: float | None = None) -> Camera:
                 return GenICamCamera(path, serial=serial or None, fps=fps)
         elif kind == "replay":
             from scanner_core.recording import load_recording
-            from scanner_core.replay import ReplayCamera
+            from scanner_core.recording.replay import ReplayCamera
             return ReplayCamera(load_recording(rest))
     forms = "\n  ".join(CAMERA_SPEC_FORMS)
     raise ValueError(f"unknown camera spec {spec!r}; accepted forms:\n  {forms}")

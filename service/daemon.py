@@ -21,13 +21,13 @@ from collections import OrderedDict
 from pathlib import Path
 
 from clients.placement import correction_entry
-from scanner_core.calibration import (Calibration, check_cell_geometry, check_marker_track,
+from scanner_core.geometry.calibration import (Calibration, check_cell_geometry, check_marker_track,
                                       load_calibration, save_calibration)
-from scanner_core.exposure import ExposureParams
+from scanner_core.pipeline.exposure import ExposureParams
 from scanner_core.pipeline import PipelineParams
-from scanner_core.finish import CrossCheckState
-from scanner_core.pose import PoseParams
-from scanner_core.trigger import TriggerParams
+from scanner_core.pipeline.finish import CrossCheckState
+from scanner_core.pose.registration import PoseParams
+from scanner_core.pipeline.trigger import TriggerParams
 from scanner_core.types import Scan
 from service.calhistory import CalibrationHistory, open_history
 from service.calsessions import CalibrationSessions

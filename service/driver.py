@@ -68,7 +68,7 @@ class PassDriver(Protocol):
 
     def plan_geometry(self, nominal):
         """The cell's pass and tools for a calibration plan
-        (``scanner_core.calplan.PlanGeometry``), or None where the installer gives them."""
+        (``scanner_core.calibration.plan.PlanGeometry``), or None where the installer gives them."""
 
 
 class ControllerDriven:

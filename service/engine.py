@@ -6,10 +6,10 @@ the trigger. The frames of a pass go through a bounded queue to worker threads, 
 and triangulate the stripe and place the profile (``scanner_core.pipeline``: the numba kernels
 release the GIL) while the pass is still running; a full queue drops the frame and counts it,
 so acquisition never waits. Once the part has left the sheet the finisher thread assembles the
-scan so far and computes its pose (``scanner_core.pose_ahead``); when the trigger ends the
+scan so far and computes its pose (``scanner_core.pose.ahead``); when the trigger ends the
 pass, it waits for the last profiles, assembles the scan (taking what the pass did not change)
 and hands it on (``on_scan``: the service publishes the cloud, then ends the pass as every pass
-ends, ``scanner_core.finish``, and stores it). ``flyscan scan`` and ``flyscan replay`` run the
+ends, ``scanner_core.pipeline.finish``, and stores it). ``flyscan scan`` and ``flyscan replay`` run the
 same ``scanner_core`` functions offline.
 """
 from __future__ import annotations
@@ -24,15 +24,15 @@ from pathlib import Path
 
 import numpy as np
 
-from scanner_core.calibration import Calibration
+from scanner_core.geometry.calibration import Calibration
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
-from scanner_core.exposure import ExposureController
-from scanner_core.finish import CrossCheckState, PassOutcome, finish_pass, pass_failure
+from scanner_core.pipeline.exposure import ExposureController
+from scanner_core.pipeline.finish import CrossCheckState, PassOutcome, finish_pass, pass_failure
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_in_view,
                                    measure_frame, warm_up)
-from scanner_core.pose_ahead import pose_ahead
-from scanner_core.pose_warm import warm_up_pose
-from scanner_core.trigger import EndReason, Trigger, TriggerError, TriggerState
+from scanner_core.pose.ahead import pose_ahead
+from scanner_core.pose.warm import warm_up_pose
+from scanner_core.pipeline.trigger import EndReason, Trigger, TriggerError, TriggerState
 from scanner_core.types import Frame, MarkerObservation
 from service.engine_status import engine_status
 from service.jobs import ScanJob, new_scan_id
@@ -66,7 +66,7 @@ class Engine:
     on_scan : callable(job, scan, finish)
         Called on the finisher thread when a scan is over, with the scan (empty when no frame
         was placed) and ``finish(part_model, on_pose=None)``, which ends the pass
-        (``scanner_core.finish.finish_pass``: verdict, cross-check, pose, report; ``on_pose``
+        (``scanner_core.pipeline.finish.finish_pass``: verdict, cross-check, pose, report; ``on_pose``
         as there: called as soon as the pose is known), updates the
         job's state and the engine's cross-check state, and returns the ``PassOutcome``; the
         caller publishes and stores.
@@ -77,11 +77,11 @@ class Engine:
         failed: ``info["error"]``), after ``on_scan``.
     workers, pose_ahead_frames, queue_frames, camera_timeout_s
         See ``service.settings.Settings`` (``pose_ahead_frames``: ``_ask_pose_ahead``).
-    cross_check_state : scanner_core.finish.CrossCheckState, optional
+    cross_check_state : scanner_core.pipeline.finish.CrossCheckState, optional
         Where the cross-check starts (clock offset, tolerance, a known correction of the LED
         offset); each finished pass hands the next the state it leaves
         (``Engine.cross_check_state``).
-    pose_params : scanner_core.pose.PoseParams, optional
+    pose_params : scanner_core.pose.registration.PoseParams, optional
     """
 
     def __init__(self, camera: Camera, robot: Robot, calibration: Calibration,
@@ -182,7 +182,7 @@ class Engine:
     def _coarse_clock_offset(self) -> None:
         """Robot minus camera clock from the newest pose and the newest frame, to a few ms
         (the age of each): enough to look the robot's poses up during the first pass, whose
-        track then estimates the offset properly (``scanner_core.crosscheck``). A real robot's
+        track then estimates the offset properly (``scanner_core.pipeline.crosscheck``). A real robot's
         clock counts from its controller's start, a camera's from its own: without this the
         first pass would find no pose at all."""
         newest_frame = self._newest_frame_clock
@@ -420,7 +420,7 @@ class Engine:
 
     def _pose_ahead(self, job: ScanJob) -> None:
         """Finisher thread, during the pass: the scan so far (``PassAccumulator.scan`` keeps
-        its points for the pass's end) and its pose (``scanner_core.pose_ahead``)."""
+        its points for the pass's end) and its pose (``scanner_core.pose.ahead``)."""
         accumulator = job.accumulator
         if job.end_monotonic is not None or accumulator is None:
             return  # the pass has ended: its finish is next

@@ -47,7 +47,7 @@ class ScanJob:
     part_model: object = None
     #: `part_model`'s content hash (``PartModel.version``), reported with the scan.
     part_version: str | None = None
-    #: The pose computed before the pass ended (``scanner_core.pose_ahead.PoseAhead``), and
+    #: The pose computed before the pass ended (``scanner_core.pose.ahead.PoseAhead``), and
     #: the newest frame with points it was asked for.
     ahead: object = None
     ahead_asked: int = -1

@@ -15,7 +15,7 @@ import queue
 import threading
 from pathlib import Path
 
-from scanner_core.calibration import Calibration
+from scanner_core.geometry.calibration import Calibration
 from scanner_core.devices import Camera, Robot
 from scanner_core.types import Frame
 from scanner_core.recording import ROBOT_MARGIN_S, PassRecorder, robot_samples

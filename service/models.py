@@ -8,7 +8,7 @@ import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 from clients.placement import rigid_transform
-from scanner_core.rtde import ur_pose_to_matrix
+from scanner_core.io.rtde import ur_pose_to_matrix
 
 RunState = Literal["idle", "armed", "scanning", "processing", "fault"]
 ScanState = Literal["armed", "scanning", "processing", "done", "failed"]
@@ -232,7 +232,7 @@ class PartList(BaseModel):
 # Bounds: what a camera and a cell can be, so that an absurd calibration is refused at the
 # edge, naming its field, rather than producing non-finite clouds and reports. The lens's
 # optical checks (a rotation that is one, a unit normal, columns that tile the image) are the
-# calibration's own (scanner_core.calibration), after these.
+# calibration's own (scanner_core.geometry.calibration), after these.
 
 #: The largest image side, pixels (a 150-megapixel sensor is 14 204 wide).
 MAX_IMAGE_PX = 20_000
@@ -306,7 +306,7 @@ class MirrorModel(PlaneModel):
 
 
 class PlaneUncertaintyModel(BaseModel):
-    """``scanner_core.planecal.PlaneUncertainty``: the light plane's covariance."""
+    """``scanner_core.calibration.plane.PlaneUncertainty``: the light plane's covariance."""
 
     model_config = _strict
 
@@ -323,7 +323,7 @@ class PlaneUncertaintyModel(BaseModel):
 
 
 class CalibrationModel(BaseModel):
-    """What the scanner knows of its cell (``scanner_core.calibration.Calibration``): every
+    """What the scanner knows of its cell (``scanner_core.geometry.calibration.Calibration``): every
     field required but those with a default, none other allowed, each value within what a
     camera and a cell can be (its description says the bounds)."""
 
@@ -365,7 +365,7 @@ Point3 = Annotated[list[CellPoint], Field(min_length=3, max_length=3)]
 
 
 class PlanRequest(BaseModel):
-    """A calibration session's plan, generated for the cell (``scanner_core.calplan``). In the
+    """A calibration session's plan, generated for the cell (``scanner_core.calibration.plan``). In the
     simulated cell every geometry field defaults to the cell's; with a real cell the pass and
     the sphere's holder must be given."""
 

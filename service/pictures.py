@@ -20,10 +20,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from scanner_core.calibration import Calibration
+from scanner_core.geometry.calibration import Calibration
 from scanner_core.pipeline import PipelineParams
-from scanner_core.pipeline_frame import frame_stripe, marker_image
-from scanner_core.ply import read_ply
+from scanner_core.pipeline.frame import frame_stripe, marker_image
+from scanner_core.io.ply import read_ply
 from scanner_core.types import Frame, MarkerObservation
 
 #: The frame is shown at this fraction of its size (1920 px wide -> 640).

@@ -5,13 +5,13 @@
 up through its GenICam nodes: ``PixelFormat`` Mono8 (or an 8-bit Bayer mosaic), ``Width``, ``Height``, ``OffsetX``,
 ``OffsetY``, ``ExposureTime``, ``Gain``, ``AcquisitionFrameRate`` in free run, or a hardware
 trigger (``TriggerMode`` On on a line). It implements ``scanner_core.devices.Camera`` and
-``ExposureControl``: the exposure modes of ``scanner_core.exposure`` drive ``ExposureTime``
+``ExposureControl``: the exposure modes of ``scanner_core.pipeline.exposure`` drive ``ExposureTime``
 and ``Gain`` through the nodes.
 
 Frames: ``frame_id`` is the camera's block id (unwrapped: GigE Vision's 16-bit id wraps from
 65535 to 1), so a frame lost anywhere between sensor and host, or one the camera delivers
 incomplete (skipped here), is a gap the service counts as dropped. ``t`` is the camera's
-timestamp mapped to the host's monotonic clock by ``scanner_core.camclock.CameraClock``, whose
+timestamp mapped to the host's monotonic clock by ``scanner_core.pipeline.camclock.CameraClock``, whose
 drift is measured (:attr:`PylonCamera.clock_status`); a camera that stamps nothing (Basler's
 emulator stamps 0) gives the host time at which the frame was retrieved.
 
@@ -32,7 +32,7 @@ from urllib.parse import parse_qsl
 
 import numpy as np
 
-from scanner_core.camclock import CameraClock
+from scanner_core.pipeline.camclock import CameraClock
 from scanner_core.devices import CameraClosed, CameraTimeout
 from scanner_core.types import Frame
 from service.camera_errors import CameraError

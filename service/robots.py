@@ -1,7 +1,7 @@
 """The robot a spec names: a UR robot through ur-rtde, a recording's samples, or none.
 
 ``ur://HOST`` is a UR controller (``service.ur_robot.URRobot``); ``replay:FOLDER`` answers
-from a recorded pass's robot samples (``scanner_core.replay.ReplayRobot``), as ``replay:FOLDER``
+from a recorded pass's robot samples (``scanner_core.recording.replay.ReplayRobot``), as ``replay:FOLDER``
 cameras give its frames; no spec is a cell without a robot (:class:`NoRobot`).
 """
 from __future__ import annotations
@@ -43,7 +43,7 @@ def open_robot(spec: str | None):
         return URRobot(parse_robot_url(spec))
     if spec.startswith("replay:"):
         from scanner_core.recording import load_recording
-        from scanner_core.replay import ReplayRobot
+        from scanner_core.recording.replay import ReplayRobot
 
         return ReplayRobot(load_recording(spec[len("replay:"):]).robot_samples)
     forms = "\n  ".join(ROBOT_SPEC_FORMS)

@@ -103,7 +103,7 @@ class Settings(BaseSettings):
     pose_ahead_frames: int = Field(
         4, ge=0, le=1000, description="frames without a point after which the part has left "
         "the sheet: the scan is assembled and its pose computed while the pass goes on, and "
-        "kept when the pass adds nothing they read (scanner_core.pose_ahead); 0: at the "
+        "kept when the pass adds nothing they read (scanner_core.pose.ahead); 0: at the "
         "pass's end only")
     camera_timeout_s: float = Field(1.0, gt=0, description="no frame this long: the camera stopped")
     retention: int = Field(200, ge=1, description="scans kept on disk; the oldest go first")

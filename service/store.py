@@ -21,7 +21,7 @@ import threading
 from pathlib import Path
 
 from scanner_core.fileio import save_json_atomic
-from scanner_core.scanio import save_scan
+from scanner_core.io.scanfiles import save_scan
 from scanner_core.types import Scan
 
 #: Scan ids the store accepts: they become folder names.

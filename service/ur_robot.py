@@ -40,9 +40,9 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanner_core import rtde
+from scanner_core.io import rtde as rtde
 from scanner_core.devices import TcpPose
-from scanner_core.rtde import MAX_FREQUENCY_HZ, RTDE_PORT
+from scanner_core.io.rtde import MAX_FREQUENCY_HZ, RTDE_PORT
 
 __all__ = ["URRobot", "parse_robot_url", "probe_rtde", "RtdeProbeError", "RTDE_PORT",
            "RTDE_VARIABLES"]

@@ -4,7 +4,7 @@ The stage moves the LED to known positions (reported to +-``stage_accuracy_mm``,
 a little off), then the sphere of known radius across the sheet; a pass of the sphere held by
 the robot gives the clocks and the LED's offset. The frames are rendered from the cell's truth
 (``simulator.render``, ``simulator.imaging``); the session gives the scanner only the frames,
-the stage's reported positions and the robot's reports (``scanner_core.calsession.Session``).
+the stage's reported positions and the robot's reports (``scanner_core.calibration.session.Session``).
 """
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 import trimesh
 
 from scanner_core.geometry import angle_between, apply_transform
-from scanner_core.calplan import PlanGeometry, led_targets, sphere_targets
-from scanner_core.calsession import Session
+from scanner_core.calibration.plan import PlanGeometry, led_targets, sphere_targets
+from scanner_core.calibration.session import Session
 from simulator.cell import CALIBRATION_SPEED_SHAPE, Cell
 from simulator.parts import Part, part_from_mesh
 from simulator.render import PartScene, frame_image, FrameTruth
@@ -41,7 +41,7 @@ def sphere_part(radius_mm: float) -> Part:
 
 def plan_geometry(cell: Cell, *, led_offset_t_mm=None, sphere_offset_t_mm=None):
     """The cell's pass and tools as a calibration plan is generated from them
-    (``scanner_core.calplan``): the LED's offset ``led_offset_t_mm`` (default the cell's),
+    (``scanner_core.calibration.plan``): the LED's offset ``led_offset_t_mm`` (default the cell's),
     the sphere held as :func:`sphere_part` holds it."""
     p = cell.pass_profile
     led = cell.calibration.marker_offset_t if led_offset_t_mm is None else led_offset_t_mm
@@ -79,14 +79,14 @@ class StepScenes:
 
 def led_positions(cell: Cell, n: int, rng: np.random.Generator) -> np.ndarray:
     """(n, 3) stage positions of the LED in {B}, mm: a volume about the sheet's centre and a
-    volume along the LED's track in a pass (``scanner_core.calplan.led_targets``)."""
+    volume along the LED's track in a pass (``scanner_core.calibration.plan.led_targets``)."""
     return led_targets(plan_geometry(cell), n, rng)
 
 
 def sphere_centres(cell: Cell, n: int, rng: np.random.Generator) -> np.ndarray:
     """(n, 3) sphere centres in {B}, mm: across the inspection volume, the sheet cutting the
     sphere between 8 and 20 mm from its centre, on either side
-    (``scanner_core.calplan.sphere_targets``)."""
+    (``scanner_core.calibration.plan.sphere_targets``)."""
     return sphere_targets(cell.sphere_radius_mm, n, rng)
 
 

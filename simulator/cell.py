@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scanner_core.calibration import Calibration
+from scanner_core.geometry.calibration import Calibration
 from scanner_core.fileio import save_json_atomic
 from scanner_core.geometry import (Mirror, PinholeCamera, Plane, apply_transform,
                                    reflection_matrix, reproject_marker, unit)

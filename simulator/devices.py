@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from scanner_core.devices import CameraClosed, RobotConnection, TcpPose
-from scanner_core.rtde import MAX_FREQUENCY_HZ
+from scanner_core.io.rtde import MAX_FREQUENCY_HZ
 from scanner_core.types import Frame
 from simulator.effects import BLUR_SAMPLES, CellEffects
 from simulator.imaging import (EXPOSURE_RANGE_US, GAIN_RANGE, NOMINAL_EXPOSURE_US,

@@ -16,9 +16,9 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from scanner_core.edge_kinds import segment_distances
+from scanner_core.edges.kinds import segment_distances
 from scanner_core.geometry import apply_transform, base_to_tcp
-from scanner_core.pose import outline_adjacency
+from scanner_core.pose.registration import outline_adjacency
 
 #: Closest-point queries cost about 0.1 ms each; larger clouds are subsampled (seeded).
 MAX_EVAL_POINTS = 30000
@@ -363,9 +363,9 @@ def edge_kind_accuracy(scan, mesh: trimesh.Trimesh, true_grasp: np.ndarray, *,
         dict per reason (``occluded``, ``grazing``, ``turned_away``, ``off_model``) with the
         figures of the points set aside for it (``count`` 0 when none); ``without_turned_away``:
         the edge cloud with the turned-away points put back (what the scan gave before
-        ``scanner_core.edge_kinds.turned_away``).
+        ``scanner_core.edges.kinds.turned_away``).
     """
-    from scanner_core.edge_kinds import EDGE_KIND_NAMES, AsideEdges
+    from scanner_core.edges.kinds import EDGE_KIND_NAMES, AsideEdges
     from scanner_core.edges import EdgeKind
 
     def figures(points, kinds) -> dict:

@@ -20,7 +20,7 @@ Run ``python -m simulator.rtde_emulator --help`` for a stand-alone server.
 Packets (all big-endian): a 3-byte header, uint16 size (header included) and uint8 type, then
 the payload. A client that sends a malformed packet is disconnected; the server goes on.
 
-The parts: the protocol's constants and packets in ``scanner_core.rtde`` (shared with the real
+The parts: the protocol's constants and packets in ``scanner_core.io.rtde`` (shared with the real
 client, ``service.ur_robot``), the robot the server reports in ``simulator.rtde_robot``, the
 server in ``simulator.rtde_server``. This module holds the handle that runs the server in its
 own process (:class:`RtdeEmulator`) and the stand-alone command (:func:`main`).
@@ -37,7 +37,7 @@ import time
 
 import numpy as np
 
-from scanner_core.rtde import PROTOCOL_VERSION, RTDE_PORT, output_type
+from scanner_core.io.rtde import PROTOCOL_VERSION, RTDE_PORT, output_type
 from simulator.rtde_robot import ROBOT_RATE_HZ
 from simulator.rtde_server import (CONTROLLER_VERSION, MAX_CATCH_UP_SAMPLES, MAX_OUTBUF_BYTES,
                                    MAX_RECIPES, _serve)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scanner_core.rtde import MAX_FREQUENCY_HZ, TYPE_FORMATS, output_type
+from scanner_core.io.rtde import MAX_FREQUENCY_HZ, TYPE_FORMATS, output_type
 from simulator.track import tcp_on_track
 
 #: The controller's cycle (e-Series): samples are sent on this grid of the robot clock.

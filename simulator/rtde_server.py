@@ -2,7 +2,7 @@
 
 A selector over the listener, the clients and the control pipe from the parent
 (``simulator.rtde_emulator.RtdeEmulator``), woken for each sample due. It answers the
-handshake of the protocol (``scanner_core.rtde``: ``V`` protocol version, ``v`` controller
+handshake of the protocol (``scanner_core.io.rtde``: ``V`` protocol version, ``v`` controller
 version, ``O`` output setup, ``I`` input setup, ``S`` start, ``P`` pause) and then sends data
 packages ``U`` on the 500 Hz grid of the robot's clock (``simulator.rtde_robot``). A client
 that sends a malformed packet is disconnected; the server goes on. Control messages come over
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scanner_core import rtde
+from scanner_core.io import rtde as rtde
 from simulator.rtde_robot import ROBOT_RATE_HZ, _Sample, _Track
 
 #: Reported by ``v``; major > 3 makes ur-rtde default to 500 Hz (an e-Series controller).

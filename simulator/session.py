@@ -2,7 +2,7 @@
 
 ``flyscan scan``, the benchmarks and the tests call :func:`run_simulated_scan`; it builds the
 devices, feeds the camera's frames and the robot to ``scanner_core.pipeline.run_pass``, ends
-the pass as every pass ends (``scanner_core.finish.finish_pass``: verdict, cross-check, pose,
+the pass as every pass ends (``scanner_core.pipeline.finish.finish_pass``: verdict, cross-check, pose,
 edges, report), and scores the cloud against the truth.
 """
 from __future__ import annotations
@@ -13,13 +13,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanner_core.calibration import Calibration
-from scanner_core.exposure import ExposureController
-from scanner_core.finish import CrossCheckState, finish_pass
+from scanner_core.geometry.calibration import Calibration
+from scanner_core.pipeline.exposure import ExposureController
+from scanner_core.pipeline.finish import CrossCheckState, finish_pass
 from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
-from scanner_core.pose import PoseParams, PoseResult
-from scanner_core.pose_symmetry import nearest_equivalent
-from scanner_core.trigger import EndReason
+from scanner_core.pose.registration import PoseParams, PoseResult
+from scanner_core.pose.symmetry import nearest_equivalent
+from scanner_core.pipeline.trigger import EndReason
 from scanner_core.types import Scan
 from simulator.cell import Cell
 from simulator.devices import SimCamera, SimClock, SimRobot
@@ -95,7 +95,7 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
     calibration : Calibration, optional
         What the scanner believes; default the cell's truth.
     pose : bool
-        Register the scan against the part's CAD model (``scanner_core.pose``).
+        Register the scan against the part's CAD model (``scanner_core.pose.registration``).
 
     Returns
     -------

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scanner_core.ply import write_ply_rows
+from scanner_core.io.ply import write_ply_rows
 from simulator import _sweep
 from simulator.sweep_plan import SweepPlan
 from simulator.sweep_setup import VirtualSetup
@@ -199,7 +199,7 @@ def save_predicted_cloud(path, cloud: PredictedCloud, *, frame: str = "T") -> Pa
     ``laser + step * step_mm * motion``, the header's comments; a step may be negative),
     ``nx, ny, nz`` (float32 normals towards the light) and, for each extra view,
     ``seen_<name>`` (uint8). The rows are made from the cloud's rays and faces block by
-    block as the file is written (`scanner_core.ply.write_ply_rows`), without the cloud's
+    block as the file is written (`scanner_core.io.ply.write_ply_rows`), without the cloud's
     float64 arrays.
 
     Returns

@@ -30,7 +30,7 @@ def test_the_contracts_hold():
 @pytest.mark.parametrize("module, imported, arrow", [
     ("service/store.py", "simulator.cell", "service.store -> simulator.cell"),
     ("benchmarks/place.py", "flyscan.common", "benchmarks.place -> flyscan.common"),
-    ("scanner_core/calplan.py", "clients.placement", "scanner_core.calplan -> clients.placement"),
+    ("scanner_core/calibration/plan.py", "clients.placement", "scanner_core.calibration.plan -> clients.placement"),
     ("simulator/cell.py", "service.settings", "simulator.cell -> service.settings"),
 ], ids=["the service imports the simulator", "a benchmark imports the command line",
         "the core imports the clients", "the simulator imports the service"])

@@ -1,4 +1,4 @@
-"""Benchmark of the part's pose in the gripper (`scanner_core.pose`): accuracy against time,
+"""Benchmark of the part's pose in the gripper (`scanner_core.pose.registration`): accuracy against time,
 basin of convergence, calibration of the reported sigma, and Open3D and small_gicp side by side.
 
 On the reference cell and the four reference parts (the quick set: the procedural demo block
@@ -31,7 +31,7 @@ c. **Calibration of the uncertainty.** For every trial of (a), the signed error 
 d. **Side by side** on one ~50k-point scan (a denser pass: 50 mm/s) of one part, from the same
    start (the nominal grasp) against the same target (the CAD sampled as points with normals,
    `SurfaceModel.from_mesh`): flyscan's `register` (with the scan's normals,
-   ``scanner_core.scanio.scan_normals``; the models' building reported apart, since it is
+   ``scanner_core.io.scanfiles.scan_normals``; the models' building reported apart, since it is
    once per part), Open3D's point-to-plane ICP (building its clouds; its KD-tree is built in
    the call) and small_gicp (its preprocessing: downsampling, normals or covariances, KD-trees;
    then its plane ICP and its GICP). Each timed with its preprocessing, several runs in turn,
@@ -57,7 +57,7 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from scanner_core.pose import PoseParams
+from scanner_core.pose.registration import PoseParams
 from benchmarks.parts import (DEMO_PART, MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG,
                               MISPLACEMENT_UP_TO_MM, REFERENCE_PARTS, bench_part,
                               random_misplacement)

@@ -7,8 +7,8 @@ import time
 
 import numpy as np
 
-from scanner_core.pose import SurfaceModel
-from scanner_core.scanio import scan_normals
+from scanner_core.pose.registration import SurfaceModel
+from scanner_core.io.scanfiles import scan_normals
 from benchmarks.stats import fraction, judged
 from benchmarks.targets import EDGE_OUTLIER_MM, TARGET_EDGE_OUTLIERS, TARGET_EDGE_RMS_UM
 from simulator.cell import Cell

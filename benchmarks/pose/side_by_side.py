@@ -11,8 +11,8 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanner_core.pose import PoseParams, SurfaceModel, register, scan_pose
-from scanner_core.scanio import scan_normals
+from scanner_core.pose.registration import PoseParams, SurfaceModel, register, scan_pose
+from scanner_core.io.scanfiles import scan_normals
 from benchmarks.parts import REFERENCE_PART
 from benchmarks.pose.scans import simulate_scan
 from benchmarks.stats import judged

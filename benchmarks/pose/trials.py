@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanner_core.pose import PoseParams, PoseResult, SurfaceModel, scan_pose
+from scanner_core.pose.registration import PoseParams, PoseResult, SurfaceModel, scan_pose
 from benchmarks.pose.calibration import calibration
 from benchmarks.stats import fraction, judged, spread
 from benchmarks.targets import TARGET_ROTATION_MDEG, TARGET_TRANSLATION_UM

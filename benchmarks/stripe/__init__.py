@@ -1,6 +1,6 @@
 """Benchmark of the stripe estimators: time per full frame against error from ground truth.
 
-For every method of ``scanner_core.stripe``: the median time to process one full 1920 x 1200
+For every method of ``scanner_core.stripe.extractor``: the median time to process one full 1920 x 1200
 frame on one thread (first call excluded: JIT), with ``image.copy()`` timed on the same frames in
 the same run as the memory floor; and the RMS error and bias against the exact stripe rows at
 several read-noise levels, next to the Cramer-Rao bound.  Frames come from the reference image
@@ -35,7 +35,7 @@ import sys
 import numpy as np
 
 from benchmarks.results import write_json
-from scanner_core import stripe
+from scanner_core.stripe import extractor as stripe
 from benchmarks.stripe import scenes as stripe_scenes
 from benchmarks.stripe.full_frames import (FRAME_HEIGHT, FRAME_WIDTH, NOISE_LEVELS_DN,
                                            PIPELINE_VARIANT, REFERENCE_NOISE_DN, TIMING_PASSES,

@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from scanner_core import stripe
+from scanner_core.stripe import extractor as stripe
 from simulator.imaging import ImageModel, cramer_rao_bound_px, render_image
 
 __all__ = ["FRAME_HEIGHT", "FRAME_WIDTH", "NOISE_LEVELS_DN", "REFERENCE_NOISE_DN",
@@ -29,7 +29,7 @@ TIMING_PASSES = 3
 #: The stripe call of the pipeline's defaults, timed beside the plain ``cog``.
 PIPELINE_VARIANT = "pipeline: auto floors, continuity, fit, window"
 #: Its geometric window spans this many rows per column about the stripe: the median span of
-#: ``scanner_core.window.volume_rows`` over the demo block's pass in the reference cell (the
+#: ``scanner_core.stripe.window.volume_rows`` over the demo block's pass in the reference cell (the
 #: inspection volume's section of the sheet seen from the camera: 343 rows).
 REFERENCE_WINDOW_ROWS = 344.0
 
@@ -96,7 +96,7 @@ def noise_sweep(reference: ImageModel, n: int, rng: np.random.Generator):
 
 
 def method_figures(ref_frames, ref_truth, sweep, crb, copy_ms) -> dict:
-    """Per method of ``scanner_core.stripe``: its time per frame (and over a copy's), its
+    """Per method of ``scanner_core.stripe.extractor``: its time per frame (and over a copy's), its
     error on the reference frames (speckle on) and at every noise level of `sweep`."""
     methods = {}
     for method in stripe.METHODS:

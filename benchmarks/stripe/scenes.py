@@ -20,9 +20,9 @@ import time
 
 import numpy as np
 
-from scanner_core import stripe
+from scanner_core.stripe import extractor as stripe
 from scanner_core.pipeline import PipelineParams, camera_frames
-from scanner_core.window import volume_rows
+from scanner_core.stripe.window import volume_rows
 from benchmarks.parts import demo_pass
 from simulator.line_photos import LinePhoto, render_line_photo
 
@@ -57,7 +57,7 @@ SCENES = {
 
 
 def score_photo(photo: LinePhoto, threshold, seeds) -> dict:
-    """How ``scanner_core.stripe.extract`` at `threshold` reads `photo` rendered with each of
+    """How ``scanner_core.stripe.extractor.extract`` at `threshold` reads `photo` rendered with each of
     `seeds`: the share of the columns holding a stripe measured on the line (within
     ``FALSE_PX`` plus two of the line's sigmas), the false columns, the RMS error of those
     measured in the line's sigmas, and the median width gate (px)."""

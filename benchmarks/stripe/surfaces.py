@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from scanner_core import stripe
+from scanner_core.stripe import extractor as stripe
 from benchmarks.stripe.full_frames import FRAME_WIDTH, REFERENCE_NOISE_DN
 from simulator.imaging import ImageModel, render_image
 

@@ -45,7 +45,7 @@ def test_the_chart_draws(tmp_path):
 
 
 def test_the_stage_timer_restores_the_pose_module():
-    import scanner_core.pose as pose_module
+    import scanner_core.pose.registration as pose_module
 
     before = {name: getattr(pose_module, name) for name in bench.POSE_STAGES
               if hasattr(pose_module, name)}

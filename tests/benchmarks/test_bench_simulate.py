@@ -146,7 +146,7 @@ def test_side_by_side_is_skipped_with_a_note_without_open3d(monkeypatch, tmp_pat
 def test_the_open3d_script_sweeps_as_flyscan_does(tmp_path, cell):
     """The yardstick itself: the Open3D script's cloud is flyscan's, ray for ray."""
     pytest.importorskip("open3d")
-    from scanner_core.ply import read_ply
+    from scanner_core.io.ply import read_ply
     from benchmarks import open3d_sweep
     from simulator.virtual_setup import VirtualSetup, predict_cloud
 

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from benchmarks.place import TAUGHT_PLACE, as_pose_result, placed_error, run
 from benchmarks.pose.trials import score
-from scanner_core.pose import PoseParams
+from scanner_core.pose.registration import PoseParams
 
 
 def _rigid(rotvec_deg=(0.0, 0.0, 0.0), t=(0.0, 0.0, 0.0)):

@@ -195,10 +195,10 @@ def test_a_ur_pose_must_be_six_finite_numbers(vector):
 
 def test_the_clients_ur_poses_are_the_scanner_s(rng):
     """The clients convert UR poses with numpy alone (they import nothing of the project);
-    the scanner's own conversion (``scanner_core.rtde``) gives the same, 180 degrees
+    the scanner's own conversion (``scanner_core.io.rtde``) gives the same, 180 degrees
     included (where r and -r are the same turn, the matrices agree)."""
-    from scanner_core.rtde import matrix_to_ur_pose as scanner_to_ur
-    from scanner_core.rtde import ur_pose_to_matrix as scanner_from_ur
+    from scanner_core.io.rtde import matrix_to_ur_pose as scanner_to_ur
+    from scanner_core.io.rtde import ur_pose_to_matrix as scanner_from_ur
 
     angles = np.concatenate([rng.uniform(0.0, np.pi, 200), [0.0, 1e-9, np.pi]])
     for angle in angles:

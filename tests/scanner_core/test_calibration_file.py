@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from scanner_core.calibration import (CALIBRATION_VERSION, Calibration, CalibrationError,
+from scanner_core.geometry.calibration import (CALIBRATION_VERSION, Calibration, CalibrationError,
                                       load_calibration, save_calibration)
 from simulator.cell import load_cell
 from simulator.effects import realistic_cell
@@ -68,7 +68,7 @@ def test_another_image_size_is_refused():
 def test_every_cell_s_own_calibration_is_one_a_cell_can_have(seed):
     from dataclasses import replace
 
-    from scanner_core.calibration import check_cell_geometry, check_marker_track
+    from scanner_core.geometry.calibration import check_cell_geometry, check_marker_track
     from simulator.calsession import plan_geometry
     from simulator.cell import load_cell
     from simulator.effects import realistic_cell

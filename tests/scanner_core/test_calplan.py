@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from clients.placement import ur_pose_to_matrix
-from scanner_core.calibration import Calibration
-from scanner_core.calplan import (PlanGeometry, make_plan, plan_from_dict, plan_to_dict)
-from scanner_core.calsession_folder import SessionError, SessionWriter, load_session
-from scanner_core.ledpivot import fit_led_offset
+from scanner_core.geometry.calibration import Calibration
+from scanner_core.calibration.plan import (PlanGeometry, make_plan, plan_from_dict, plan_to_dict)
+from scanner_core.calibration.folder import SessionError, SessionWriter, load_session
+from scanner_core.calibration.ledpivot import fit_led_offset
 
 #: Poses round-trip through UR's metres and rotation vectors, 9 decimals: 1 nm, 1e-9 rad.
 UR_ROUND_MM = 1e-5

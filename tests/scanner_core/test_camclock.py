@@ -3,7 +3,7 @@ drift measured, on a synthetic camera whose clock runs 30 ppm slow, with transfe
 import numpy as np
 import pytest
 
-from scanner_core.camclock import CameraClock
+from scanner_core.pipeline.camclock import CameraClock
 
 FPS = 162.0
 DRIFT_PPM = 30.0

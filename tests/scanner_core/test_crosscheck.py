@@ -1,10 +1,10 @@
-"""Tests of scanner_core.crosscheck: clock offset, the learned LED correction, what is flagged."""
+"""Tests of scanner_core.pipeline.crosscheck: clock offset, the learned LED correction, what is flagged."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from scanner_core.crosscheck import MAX_DRIFT_STEP_S, cross_check
+from scanner_core.pipeline.crosscheck import MAX_DRIFT_STEP_S, cross_check
 from scanner_core.devices import TcpPose
 
 SPEED = np.array([0.0, -200.0, 0.0])  # mm/s along -y_B, as the reference pass

@@ -15,7 +15,7 @@ from scipy.special import ndtr
 from scanner_core.edges import (CHAMFER_MIN_POINTS, EdgeKind, EdgeParams, EdgePoints,
                                 chamfered_dropouts, find_edges, grazing_edges, occluded_dropouts,
                                 profile_axes)
-from scanner_core.stripe import Reason
+from scanner_core.stripe.extractor import Reason
 
 WIDTH = 1920
 #: The direct view of the reference cell (columns processed by the stripe extraction).
@@ -896,8 +896,8 @@ def test_the_scan_s_filters_judge_many_points_at_once_as_one_at_a_time(rng):
 def test_the_chamfer_fit_over_all_levels_is_the_fit_level_by_level(rng, monkeypatch):
     """The chamfer's levels go through in blocks; the fit is the one a level at a time finds
     (the first width at its least, the highest level on a tie), whatever the block."""
-    from scanner_core import edge_filters
-    from scanner_core.edge_filters import _CHAMFER_LEVELS, _CHAMFER_WIDTHS_PX, _fit_chamfer
+    from scanner_core.edges import filters as edge_filters
+    from scanner_core.edges.filters import _CHAMFER_LEVELS, _CHAMFER_WIDTHS_PX, _fit_chamfer
 
     def one_level_at_a_time(last, before):
         w = _CHAMFER_WIDTHS_PX[:, None]

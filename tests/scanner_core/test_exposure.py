@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from scanner_core.devices import ExposureControl
-from scanner_core.exposure import (ExposureController, ExposureParams, merge_exposure_pairs,
+from scanner_core.pipeline.exposure import (ExposureController, ExposureParams, merge_exposure_pairs,
                                    next_brightness, split_brightness, stripe_brightness)
-from scanner_core.stripe import Reason, extract
+from scanner_core.stripe.extractor import Reason, extract
 from simulator.imaging import ImageModel, render_image
 
 NOMINAL_US = 1000.0
@@ -186,7 +186,7 @@ def test_a_surface_lit_for_part_of_the_exposure_is_not_kept():
     the exposure (the face reached the sheet late in it), is dropped; a dim column in the middle
     (its neighbours on both sides see it) and a profile taken at half the light with half the
     peak are kept; so is a step's first profile when it is as bright as the next."""
-    from scanner_core.exposure import partly_lit
+    from scanner_core.pipeline.exposure import partly_lit
 
     x = np.linspace(-10.0, 10.0, 101)
     frames, cloud, quality, light = [], [], [], []
@@ -222,7 +222,7 @@ def test_partly_lit_points_are_the_ones_a_profile_by_profile_search_finds(rng):
     surfaces that step, and dim points at either side."""
     from scipy.spatial import cKDTree
 
-    from scanner_core.exposure import PARTLY_LIT_MATCH_MM, partly_lit
+    from scanner_core.pipeline.exposure import PARTLY_LIT_MATCH_MM, partly_lit
 
     def profile_by_profile(frame_ids, cloud, level, ratio):
         out = np.zeros(len(cloud), bool)

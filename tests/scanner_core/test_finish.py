@@ -5,8 +5,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from scanner_core.finish import CrossCheckState, finish_pass, pass_failure
-from scanner_core.trigger import EndReason
+from scanner_core.pipeline.finish import CrossCheckState, finish_pass, pass_failure
+from scanner_core.pipeline.trigger import EndReason
 from scanner_core.types import Scan
 
 

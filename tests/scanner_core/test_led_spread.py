@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from scanner_core.calibration import Calibration, CalibrationError
-from scanner_core.crosscheck import estimate_led_and_clock, led_offset_spread
+from scanner_core.geometry.calibration import Calibration, CalibrationError
+from scanner_core.pipeline.crosscheck import estimate_led_and_clock, led_offset_spread
 from scanner_core.devices import TcpPose
-from scanner_core.pose import PoseParams, PoseResult
-from scanner_core.pose_inputs import add_placement_error
-from scanner_core.pose_confidence import judge
+from scanner_core.pose.registration import PoseParams, PoseResult
+from scanner_core.pose.inputs import add_placement_error
+from scanner_core.pose.confidence import judge
 
 # {T} in {B}: z_T down, turned 30 degrees about it.
 _C, _S = np.cos(np.radians(30)), np.sin(np.radians(30))
@@ -99,7 +99,7 @@ def test_the_calibration_file_keeps_the_offset_s_uncertainty():
 def test_the_calibration_file_keeps_the_light_plane_s_uncertainty():
     from dataclasses import replace
 
-    from scanner_core.planecal import PlaneUncertainty
+    from scanner_core.calibration.plane import PlaneUncertainty
     from simulator.cell import load_cell
 
     reference_calibration = load_cell().calibration

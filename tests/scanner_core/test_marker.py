@@ -1,4 +1,4 @@
-"""Tests for scanner_core.marker on synthetic frames (seeded), built here with numpy."""
+"""Tests for scanner_core.marker.finder on synthetic frames (seeded), built here with numpy."""
 from __future__ import annotations
 
 import cv2
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from scanner_core import _pooling
-from scanner_core import marker as marker_mod
-from scanner_core.marker import MarkerParams, find_marker, find_markers, marker_present
+from scanner_core.numeric import pooling as _pooling
+from scanner_core.marker import finder as marker_mod
+from scanner_core.marker.finder import MarkerParams, find_marker, find_markers, marker_present
 from simulator.imaging import ImageModel, render_image
 
 # Reference image model (docs/design.md): background, read noise, marker and stripe.

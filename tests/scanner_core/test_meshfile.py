@@ -1,4 +1,4 @@
-"""Tests of scanner_core.meshfile: the numpy STL reader and the cleaning, against trimesh's."""
+"""Tests of scanner_core.io.meshfile: the numpy STL reader and the cleaning, against trimesh's."""
 from __future__ import annotations
 
 import subprocess
@@ -9,7 +9,7 @@ import pytest
 import trimesh
 from numpy.testing import assert_array_equal
 
-from scanner_core.meshfile import clean_triangles, is_binary_stl, read_binary_stl, read_mesh
+from scanner_core.io.meshfile import clean_triangles, is_binary_stl, read_binary_stl, read_mesh
 
 
 def _trimesh_clean(vertices, faces) -> trimesh.Trimesh:

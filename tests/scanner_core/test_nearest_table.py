@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-import scanner_core.pose_fine as pose_fine
-from scanner_core.nearest_table import NearestMemo, NearestTable
-from scanner_core.pose import EdgeModel, PoseParams, SurfaceModel, register
+import scanner_core.pose.fine as pose_fine
+from scanner_core.pose.nearest_table import NearestMemo, NearestTable
+from scanner_core.pose.registration import EdgeModel, PoseParams, SurfaceModel, register
 from simulator.parts import block_with_holes_and_steps, centred_grasp
 from test_pose import lobed_disc, misplacement, pose_error, synthetic_scan
 

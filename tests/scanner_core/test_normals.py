@@ -1,5 +1,5 @@
 """Tests of scanner_core.normals (PCA normals over a profile stack, oriented toward the sensor)
-and of the normals and sensor positions that scanner_core.scanio.save_scan writes."""
+and of the normals and sensor positions that scanner_core.io.scanfiles.save_scan writes."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,8 +8,8 @@ from numpy.testing import assert_allclose, assert_array_equal
 
 from clients.ply import parse_ply
 from scanner_core.normals import estimate_normals
-from scanner_core.ply import read_ply
-from scanner_core.scanio import point_sensors, save_scan
+from scanner_core.io.ply import read_ply
+from scanner_core.io.scanfiles import point_sensors, save_scan
 from scanner_core.types import Scan
 from simulator.cell import load_cell
 from simulator.motion import PassMotion

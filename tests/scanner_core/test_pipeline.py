@@ -7,7 +7,7 @@ from numpy.testing import assert_allclose
 from scanner_core.devices import CameraTimeout, TcpPose
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, camera_frames,
                                    observe_marker, process_frame, run_pass)
-from scanner_core.trigger import TriggerParams
+from scanner_core.pipeline.trigger import TriggerParams
 from scanner_core.types import Frame, MarkerObservation, Profile
 from simulator.session import simulated_cell
 
@@ -183,7 +183,7 @@ def test_a_robot_that_drops_out_holds_its_last_rotation(cell):
 
 def test_warm_up_frame_finds_the_marker_everywhere(cell, monkeypatch):
     """The warm-up frame must reach every kernel: a marker in all three views and a stripe."""
-    from scanner_core import pipeline_frame
+    from scanner_core.pipeline import frame as pipeline_frame
     seen = {}
     real = pipeline_frame.process_frame
 
@@ -217,7 +217,7 @@ def test_a_read_only_frame_after_the_warm_up_compiles_nothing(recorded, cell):
     """A camera's or a recording's read-only buffer reaches the kernels as a writable copy:
     after the warm-up (which compiles writable frames only) a pass of read-only frames
     compiles no kernel anew, which would hold the GIL for seconds mid-pass."""
-    from scanner_core import pipeline_frame
+    from scanner_core.pipeline import frame as pipeline_frame
 
     pipeline_frame.warm_up(cell.calibration)
     before = _compiled_signatures()

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from scanner_core.geometry import Plane, angle_between, unit
-from scanner_core.planecal import PlaneCalibrationError, calibrate_plane
+from scanner_core.calibration.plane import PlaneCalibrationError, calibrate_plane
 from simulator.cell import load_cell
 
 RADIUS = 28.625
@@ -94,7 +94,7 @@ def test_the_plane_s_uncertainty_matches_its_spread_over_repeated_sessions():
 
 
 def test_a_plane_uncertainty_round_trips_and_refuses_nonsense():
-    from scanner_core.planecal import PlaneUncertainty
+    from scanner_core.calibration.plane import PlaneUncertainty
 
     u = PlaneUncertainty(np.array([1.0, 2.0, 3.0]), np.array([[1.0, 0, 0], [0, 0, 1.0]]),
                          np.diag([1e-9, 4e-10, 1e-6]))
@@ -115,7 +115,7 @@ def test_a_plane_uncertainty_round_trips_and_refuses_nonsense():
 def test_three_frames_fix_a_plane_but_not_its_uncertainty():
     """The fewest frames a plane takes (``MIN_FRAMES``) leave too few leave-one-out fits to
     say how well they fix it: the plane, and no uncertainty (taken as not measured)."""
-    from scanner_core.planecal import MIN_FRAMES, MIN_UNCERTAINTY_FRAMES
+    from scanner_core.calibration.plane import MIN_FRAMES, MIN_UNCERTAINTY_FRAMES
 
     cell = load_cell(perturb_seed=4)
     frames = _frames(cell, np.random.default_rng(3), count=MIN_FRAMES)

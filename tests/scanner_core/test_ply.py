@@ -1,11 +1,11 @@
-"""Tests of scanner_core.ply: round trips, empty clouds, malformed files, trimesh interop."""
+"""Tests of scanner_core.io.ply: round trips, empty clouds, malformed files, trimesh interop."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from numpy.testing import assert_array_equal
 
-from scanner_core.ply import read_ply, write_ply
+from scanner_core.io.ply import read_ply, write_ply
 
 FIELD_DTYPES = [np.float32, np.float64, np.int32, np.uint8, np.int16, np.uint16, np.uint32,
                 np.int8]

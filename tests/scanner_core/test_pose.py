@@ -10,7 +10,7 @@ from numpy.testing import assert_allclose
 from scipy.spatial.transform import Rotation
 
 from scanner_core.geometry import angle_between
-from scanner_core.pose import EdgeModel, PoseParams, SurfaceModel, register
+from scanner_core.pose.registration import EdgeModel, PoseParams, SurfaceModel, register
 from simulator.parts import block_with_holes_and_steps, centred_grasp
 
 PROFILE_MM = 1.2      # distance between profiles along y_T (200 mm/s at 162 fps)
@@ -115,7 +115,7 @@ def test_free_motions_read_as_turns_and_slides(rng):
     eigenvectors come), read as a turn about z_T and a slide along y_T, not "about z_T"
     twice; slides along x_T and y_T mixed at random, with round-off in their turn parts,
     read as those slides; one free motion is described as it is."""
-    from scanner_core.pose_confidence import _free_motions
+    from scanner_core.pose.confidence import _free_motions
 
     scale = np.array([1.0, 1.0, 1.0, 20.0, 20.0, 20.0])
     centre = np.zeros(3)
@@ -177,7 +177,7 @@ def test_a_fit_that_slid_onto_another_face_is_not_taken(block, monkeypatch):
     runs and its fit near the start is taken, without an implausible flag."""
     import dataclasses
 
-    import scanner_core.pose as pose_mod
+    import scanner_core.pose.registration as pose_mod
 
     mesh, nominal, model, edge_model = block
     truth = misplacement(1.0, -1.0, 0.5, 2.0, -1.0, 3.0) @ nominal
@@ -409,7 +409,7 @@ def test_a_part_its_turns_map_onto_itself_is_placed_at_the_turn_nearest_the_gras
     every such pose places it the same. Turned far, the pose is the one nearest the nominal
     grasp (within half a lobe of it), as sure as the lobes make it, with no rival; the
     truth's own turn nearest it is where it sits."""
-    from scanner_core.pose_symmetry import nearest_equivalent
+    from scanner_core.pose.symmetry import nearest_equivalent
 
     mesh = lobed_disc(lobes=38, amplitude=0.4, key_deg=-1.0, n=1520)
     model = SurfaceModel.from_mesh(mesh)
@@ -453,8 +453,8 @@ def test_a_pose_the_scan_cannot_tell_from_a_turned_one_is_flagged_not_confident(
 def test_a_rival_minimum_widens_the_sigma_to_cover_it(block):
     """The uncertainty adds each rival's difference: a rival 1 degree about z_T and 50 um
     along x_T away puts at least that into the reported sigmas."""
-    from scanner_core.pose_confidence import _uncertainty
-    from scanner_core.pose_fine import _fine, _Terms
+    from scanner_core.pose.confidence import _uncertainty
+    from scanner_core.pose.fine import _fine, _Terms
     mesh, nominal, model, edge_model = block
     truth = misplacement(0.5, -0.5, 0.2, 1.0, -1.0, 2.0) @ nominal
     pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=4)
@@ -530,7 +530,7 @@ def test_a_part_s_edge_model_is_seen_from_its_nominal_grasp():
 
 
 def test_an_outline_flag_per_sample_is_checked():
-    from scanner_core.pose import merge_bevels
+    from scanner_core.pose.registration import merge_bevels
     with pytest.raises(ValueError, match="on_outline"):
         merge_bevels(np.zeros((3, 3)), np.tile([1.0, 0, 0], (3, 1)), on_outline=[True])
 
@@ -582,7 +582,7 @@ def test_a_step_point_is_matched_to_the_edge_it_was_found_at(block, tilt_deg):
     off by the step times the lean (0.5-0.7 mm here): the point counts as an outlier, and
     featuretype's poses were flagged poor fits and sent to the coarse search. Matched from
     half its step above and below, it finds its own edge, every time."""
-    from scanner_core.pose_fine import _nearest, _Terms
+    from scanner_core.pose.fine import _nearest, _Terms
     mesh, nominal, model, edge_model = block
     truth = misplacement(0.5, -0.5, 0.3, 1.0, tilt_deg, 2.0) @ nominal
     pts, nrm, frames, edges, edge_frames, steps, is_step = _stepped_scan(mesh, truth, seed=5)
@@ -622,7 +622,7 @@ def _rival_plane(low=(), high=()):
     """A plane model, 2000 scan points on it in 100 profiles of 20, the points `low` 45 um
     below it and `high` 55 um above; and a pose raised 10 um, at which the low points lie
     55 um off (beyond 5 x 10 um) and the high ones 45 um."""
-    from scanner_core.pose_fine import _Terms
+    from scanner_core.pose.fine import _Terms
     grid = np.stack(np.meshgrid(np.linspace(-20, 20, 40), np.linspace(-20, 20, 40)), -1)
     plane = np.column_stack([grid.reshape(-1, 2), np.zeros(1600)])
     model = SurfaceModel.from_points(plane, np.tile([0.0, 0.0, 1.0], (1600, 1)))
@@ -642,7 +642,7 @@ def test_a_rival_that_misses_a_few_points_more_still_fits_as_well(one_profile):
     the margin is two standard errors of the paired difference (the points only one pose
     matches), with a profile's points as one cluster. 9 points missed in 9 profiles: 2
     sqrt(9) / 2000; the same 9 in one profile: 2 x 9 / 2000."""
-    from scanner_core.pose_search import _RIVAL_SCORE, _rival_margin
+    from scanner_core.pose.search import _RIVAL_SCORE, _rival_margin
     terms, raised = _rival_plane(low=np.arange(9) * (1 if one_profile else 20))
     params = PoseParams()
     assert _rival_margin(terms, None, np.eye(4), np.eye(4), params) == _RIVAL_SCORE
@@ -655,7 +655,7 @@ def test_a_rival_margin_counts_each_way_and_is_capped():
     does cancel in the net count but not in McNemar's floor: 2 sqrt(10) / 2000. Three whole
     profiles missed are a worse fit whatever the clusters say: the margin stops at
     ``_PROBE_MARGIN``."""
-    from scanner_core.pose_search import _PROBE_MARGIN, _rival_margin
+    from scanner_core.pose.search import _PROBE_MARGIN, _rival_margin
     terms, raised = _rival_plane(low=range(5), high=range(5, 10))
     assert _rival_margin(terms, None, np.eye(4), raised, PoseParams()) == pytest.approx(
         2 * np.sqrt(10) / 2000)
@@ -667,8 +667,8 @@ def test_a_rival_margin_takes_a_profile_s_surface_and_edge_points_together():
     """2 surface points of 2000 and 1 edge point of 400, all in one profile, that only the
     fit matches: one cluster whose share is 2 / 2000 + 1 / 400 (0.007 at two standard
     errors; 0.0054 were the two kinds independent)."""
-    from scanner_core.pose_fine import _Terms
-    from scanner_core.pose_search import _rival_margin
+    from scanner_core.pose.fine import _Terms
+    from scanner_core.pose.search import _rival_margin
     terms, _ = _rival_plane(low=[0, 1])
     line = np.column_stack([np.full(401, 10.0), np.linspace(-20, 20, 401), np.zeros(401)])
     model = EdgeModel(line, np.tile([0.0, 1.0, 0.0], (401, 1)))
@@ -703,7 +703,7 @@ def test_the_search_on_a_subsample_settles_on_every_point(block):
 def _rows_with_numpy(s_t, scan_n, model_p, model_v, nearest, valid, poses, centre, gate, noise,
                     agreement, edges):
     """The rows as numpy computes them, array by array: the compiled kernel's oracle."""
-    from scanner_core.pose_fine import _MAD_TO_SIGMA, _MIN_EDGE_LEVEL, _MIN_SIGMA_MM, _TUKEY_C
+    from scanner_core.pose.fine import _MAD_TO_SIGMA, _MIN_EDGE_LEVEL, _MIN_SIGMA_MM, _TUKEY_C
 
     rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
     turn = rotation.transpose(0, 2, 1)
@@ -738,8 +738,8 @@ def _rows_with_numpy(s_t, scan_n, model_p, model_v, nearest, valid, poses, centr
 def test_the_compiled_rows_are_numpy_s(edges):
     """Matches with and without a normal (NaN), normals that disagree, edges near z_T, a
     pose with fewer than 3 residuals within the gate, an even and an odd count."""
-    from scanner_core._pose_rows import plane_rows
-    from scanner_core.pose_fine import _MAD_TO_SIGMA, _MIN_EDGE_LEVEL, _MIN_SIGMA_MM, _TUKEY_C
+    from scanner_core.pose.rows import plane_rows
+    from scanner_core.pose.fine import _MAD_TO_SIGMA, _MIN_EDGE_LEVEL, _MIN_SIGMA_MM, _TUKEY_C
 
     rng = np.random.default_rng(4)
     for n in (2, 7, 800):
@@ -775,8 +775,8 @@ def test_the_compiled_rows_are_numpy_s(edges):
 def test_the_compiled_agreement_test_is_numpy_s(planes):
     """Which points lie within a tolerance of their match (``pose_search._matched``), against
     the numpy computation it replaced: normals that disagree or are unknown, edges near z_T."""
-    from scanner_core._pose_rows import matched_within
-    from scanner_core.pose_fine import _MIN_EDGE_LEVEL
+    from scanner_core.pose.rows import matched_within
+    from scanner_core.pose.fine import _MIN_EDGE_LEVEL
 
     rng = np.random.default_rng(5)
     count, n = 5, 900
@@ -811,7 +811,7 @@ def test_the_compiled_agreement_test_is_numpy_s(planes):
 def test_the_coarse_seeds_remembered_per_part_are_the_seeds(monkeypatch):
     """The model's side of a coarse seed depends on the pose alone: remembered per part, the
     seeds are the same, and the memory stays bounded."""
-    import scanner_core.pose_search as search
+    import scanner_core.pose.search as search
     from simulator.parts import block_with_holes_and_steps
 
     model = SurfaceModel.from_mesh(block_with_holes_and_steps())
@@ -836,7 +836,7 @@ def test_the_coarse_seeds_remembered_per_part_are_the_seeds(monkeypatch):
 def test_a_fit_that_comes_back_to_an_earlier_pose_has_settled():
     """Correspondences that flip between a few sets send a fit round a cycle of steps that
     neither shrink nor creep; coming back to a pose it has been at ends it."""
-    from scanner_core.pose_fine import _revisited
+    from scanner_core.pose.fine import _revisited
 
     tol = np.array([1e-5] * 3 + [np.radians(1e-5)] * 3)
     cycle = [misplacement(x * 1e-3, 0, 0, 0, 0, x * 1e-3) for x in (0.0, 9.0, 4.0, 1.0)]
@@ -858,9 +858,9 @@ def test_the_warm_up_compiles_what_a_pose_runs(block):
     """After ``warm_up_pose`` a pose that searches coarsely (about 10 mm and 20 degrees off,
     its scan's points more than the fine stage's warm start needs) compiles nothing more:
     the first pass's pose waits for no compiler."""
-    import scanner_core._pose_rows as rows
-    import scanner_core.nearest_table as table
-    from scanner_core.pose_warm import warm_up_pose
+    import scanner_core.pose.rows as rows
+    import scanner_core.pose.nearest_table as table
+    from scanner_core.pose.warm import warm_up_pose
 
     kernels = [rows.plane_rows, rows.matched_within, table._look_up, table._to_ask,
                table._within]
@@ -916,7 +916,7 @@ def test_the_light_plane_s_term_is_what_a_moved_plane_does_to_the_pose(block, th
     response: for a covariance ``theta theta^T``, its sigma per axis is how far the pose
     moves when the scan is triangulated on the plane moved by `theta` (its points and edge
     points moved along their rays), within a few percent of the move."""
-    from scanner_core.pose import _register
+    from scanner_core.pose.registration import _register
     mesh, nominal, model, edge_model = block
     truth = misplacement(0.5, -0.5, 0.2, 1.0, -1.0, 2.0) @ nominal
     pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=4)
@@ -938,7 +938,7 @@ def test_the_light_plane_s_term_is_what_a_moved_plane_does_to_the_pose(block, th
 def test_the_terms_add_up_to_the_reported_sigma(block):
     """``std_terms``: the signed squares of the terms add up to the variance of each axis,
     and the report lists them per axis in mm and degrees."""
-    from scanner_core.pose_inputs import add_placement_error
+    from scanner_core.pose.inputs import add_placement_error
     mesh, nominal, model, edge_model = block
     truth = misplacement(0.5, -0.5, 0.2, 1.0, -1.0, 2.0) @ nominal
     pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=4,
@@ -966,9 +966,9 @@ def test_a_fit_a_turn_off_a_better_minimum_is_moved_there_however_firmly_held(
     the scan holds that rotation (here, more firmly than ``probe_weakness`` and than
     ``_EDGES_ALONE`` ask for a sweep all the way round), the fit is refitted from turns near
     it and moves to the minimum that fits clearly better."""
-    from scanner_core import pose_search
-    from scanner_core.pose_fine import _fine, _Terms
-    from scanner_core.pose_search import _probe_turns, _weakest_rotation
+    from scanner_core.pose import search as pose_search
+    from scanner_core.pose.fine import _fine, _Terms
+    from scanner_core.pose.search import _probe_turns, _weakest_rotation
 
     mesh, nominal, model, edge_model = block
     truth = misplacement(0.5, -0.5, 0.2, 1.0, -1.0, 2.0) @ nominal

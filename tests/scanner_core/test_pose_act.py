@@ -11,9 +11,9 @@ import trimesh
 from test_pose import misplacement, pose_error, synthetic_scan
 
 from scanner_core.cad import centred_grasp
-from scanner_core.pose import EdgeModel, PoseParams, PoseResult, SurfaceModel, register
-from scanner_core.pose_confidence import _leverage_corrected, judge
-from scanner_core.pose_symmetry import _candidate_folds, nearest_equivalent, self_match
+from scanner_core.pose.registration import EdgeModel, PoseParams, PoseResult, SurfaceModel, register
+from scanner_core.pose.confidence import _leverage_corrected, judge
+from scanner_core.pose.symmetry import _candidate_folds, nearest_equivalent, self_match
 from simulator.parts import block_with_holes_and_steps
 
 
@@ -322,7 +322,7 @@ def test_an_edge_curve_s_offset_taken_up_by_the_fit_is_scaled_back():
 def test_a_few_unmatched_edge_points_refute_nothing_and_many_do():
     """One edge point a smooth part's scan kept, unmatched, tells nothing (a right pose
     leaves one unmatched in five); ten with three matched, or a thousand with 70 %, do."""
-    from scanner_core.pose_confidence import edges_refute
+    from scanner_core.pose.confidence import edges_refute
 
     assert not edges_refute(0.0, 1, 0.8, 0.01)
     assert not edges_refute(0.0, 2, 0.8, 0.01)
@@ -340,7 +340,7 @@ def _scan_frames(point_frames, placed):
 
 
 def test_a_pass_that_began_or_ended_on_the_part_is_cut():
-    from scanner_core.pose_inputs import cut_ends
+    from scanner_core.pose.inputs import cut_ends
 
     placed = np.arange(10, 60)
     assert cut_ends(_scan_frames([20, 30, 40], placed)) == (False, False)
@@ -355,8 +355,8 @@ def test_a_scan_short_of_the_part_is_partial_only_when_the_pass_was_cut(in_sheet
     """A whole pass whose camera cannot see the part's ends (faces no frame looks at) covers
     less of its length, and says nothing against the pose; a pass that began or ended on the
     part saw only some of it."""
-    from scanner_core.pose_confidence import _coverage_flags
-    from scanner_core.pose_inputs import ScanPoseInputs
+    from scanner_core.pose.confidence import _coverage_flags
+    from scanner_core.pose.inputs import ScanPoseInputs
 
     mesh = trimesh.creation.box(extents=(20.0, 60.0, 10.0))
     model = SurfaceModel.from_mesh(mesh)
@@ -374,7 +374,7 @@ def test_a_box_surface_s_moments_and_its_four_turns():
     """A 10 x 20 x 30 mm box: its surface's second moment along x is (2 * 600 * 25 + 2 * 300 *
     100 / 12 + 2 * 200 * 100 / 12) / 2200 mm^2, and it maps onto itself under the identity
     and a half turn about each axis; a box notched on one face, under the identity alone."""
-    from scanner_core.pose_symmetry import surface_moments
+    from scanner_core.pose.symmetry import surface_moments
 
     box = trimesh.creation.box(extents=(10.0, 20.0, 30.0))
     centroid, axes, moments = surface_moments(box)

@@ -1,4 +1,4 @@
-"""The pose computed before the pass ends (``scanner_core.pose_ahead``): kept only when the
+"""The pose computed before the pass ends (``scanner_core.pose.ahead``): kept only when the
 whole pass's scan gives the pose the same inputs, and then the very pose the pass's end would
 have computed; any other pose ahead is recomputed."""
 import dataclasses
@@ -7,11 +7,11 @@ import itertools
 import numpy as np
 import pytest
 
-from scanner_core.finish import CrossCheckState, finish_pass
-from scanner_core.pose import PoseParams
-from scanner_core.pose_ahead import pose_ahead
-from scanner_core.pose_inputs import ScanPoseInputs
-from scanner_core.trigger import EndReason
+from scanner_core.pipeline.finish import CrossCheckState, finish_pass
+from scanner_core.pose.registration import PoseParams
+from scanner_core.pose.ahead import pose_ahead
+from scanner_core.pose.inputs import ScanPoseInputs
+from scanner_core.pipeline.trigger import EndReason
 
 
 def _pass(part, cell, last_frame=None):
@@ -84,7 +84,7 @@ def test_a_pose_ahead_carrying_the_light_plane_is_kept_too(passes):
     sheet change nothing, and the pose ahead is kept, its light plane term in."""
     import copy
 
-    from scanner_core.planecal import PlaneUncertainty
+    from scanner_core.calibration.plane import PlaneUncertainty
 
     part, whole, out, _ = passes
     plane = PlaneUncertainty(np.array([0.0, 0.0, -20.0]),
@@ -164,10 +164,10 @@ def test_the_pass_s_end_takes_the_points_and_edges_of_a_scan_of_the_same_profile
     points and edge points to the pass's end, which takes them unless a profile with points
     came since: the same scan as the pass's end computes anew, every field, with no edge
     filter run again, in arrays of its own."""
-    import scanner_core.pipeline_accumulate as accumulate
+    import scanner_core.pipeline.accumulate as accumulate
     from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams,
                                        camera_frames, feed_frame)
-    from scanner_core.trigger import Trigger
+    from scanner_core.pipeline.trigger import Trigger
     from simulator.cell import load_cell
     from simulator.session import simulated_cell
 

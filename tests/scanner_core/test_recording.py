@@ -10,7 +10,7 @@ from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot, Tcp
 from scanner_core.pipeline import camera_frames, run_pass, warm_up
 from scanner_core.types import Frame
 from scanner_core.recording import FORMAT_VERSION, PassRecorder, RecordingError, load_recording
-from scanner_core.replay import ReplayCamera, ReplayRobot
+from scanner_core.recording.replay import ReplayCamera, ReplayRobot
 from simulator.devices import ROBOT_RATE_HZ
 from simulator.session import simulated_cell
 

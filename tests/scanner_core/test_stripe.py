@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from scanner_core.stripe import METHODS, Reason, StripeResult, extract
+from scanner_core.stripe.extractor import METHODS, Reason, StripeResult, extract
 from simulator.imaging import ImageModel, cramer_rao_bound_px, render_image
 
 HEIGHT = 64
@@ -173,7 +173,7 @@ def test_non_contiguous_image(reference_frame):
 def _walks(img, am, threshold, t_cog, window, max_walk):
     """Per column (width, count, centre) by the separate estimators and by the single walks
     the kernel calls (``within_window``, else ``width_count_cog``)."""
-    from scanner_core import stripe_estimators as est
+    from scanner_core.stripe import estimators as est
 
     h = img.shape[0]
     apart, single = [], []

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from benchmarks.real_photos import BASELINE_DN, baseline_rows
-from scanner_core.stripe import BAYER_PATTERNS, EXCESS_OFFSET_DN, extract, stripe_signal
+from scanner_core.stripe.extractor import BAYER_PATTERNS, EXCESS_OFFSET_DN, extract, stripe_signal
 from simulator.line_photos import LinePhoto, render_line_photo
 
 SEEDS = (0, 1, 2)

@@ -9,7 +9,7 @@ columns, the hardest case for the continuity policy) unless a test needs a conti
 import numpy as np
 import pytest
 
-from scanner_core.stripe import METHODS, POLICIES, Reason, estimate_noise, extract
+from scanner_core.stripe.extractor import METHODS, POLICIES, Reason, estimate_noise, extract
 from simulator.imaging import ImageModel, cramer_rao_bound_px, render_image
 
 HEIGHT = 256
@@ -302,7 +302,7 @@ def test_isolated_runs_drop_a_reflection_beside_the_stripe():
     """A three-column reflection 200 rows off beside a long stripe (what a shiny part shows
     where its own stripe is too dim) goes; a short run between drop-outs (a thin rib) and a
     steep slope (15 px per column) stay."""
-    from scanner_core.stripe import isolated_runs
+    from scanner_core.stripe.extractor import isolated_runs
 
     row = np.full(100, 100.0)
     valid = np.ones(100, bool)

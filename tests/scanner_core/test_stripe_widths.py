@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from benchmarks.stripe.scenes import score_photo
-from scanner_core.stripe import Reason, extract
+from scanner_core.stripe.extractor import Reason, extract
 from simulator.imaging import ImageModel, render_image
 from simulator.line_photos import LinePhoto, render_line_photo
 

@@ -1,7 +1,7 @@
 """The trigger state machine, one observation at a time."""
 import pytest
 
-from scanner_core.trigger import EndReason, Trigger, TriggerError, TriggerParams, TriggerState
+from scanner_core.pipeline.trigger import EndReason, Trigger, TriggerError, TriggerParams, TriggerState
 
 FPS = 100.0
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from scanner_core.geometry import angle_between, reproject_marker
-from scanner_core.viewcal import (ViewCalibrationError, calibrate_views, fit_affine, fit_dlt,
+from scanner_core.calibration.views import (ViewCalibrationError, calibrate_views, fit_affine, fit_dlt,
                                   project_affine, project_dlt)
 from simulator.cell import load_cell
 from simulator.effects import REAL_LENS_DISTORTION
@@ -124,7 +124,7 @@ def test_the_lens_model_is_opencvs():
     cv_px, _ = cv2.projectPoints(points, rvec, tvec, cam.matrix, np.array(cam.distortion))
     np.testing.assert_allclose(cv_px.reshape(-1, 2), cam.project(points), atol=1e-6)
     seen = np.isfinite(px[:, 0, 0])
-    from scanner_core.viewcal import decompose_dlt
+    from scanner_core.calibration.views import decompose_dlt
     k, _, _ = decompose_dlt(fit_dlt(points[seen], px[seen, 0]))
     k[0, 1] = 0.0
     rms, k_cv, dist_cv, _, _ = cv2.calibrateCamera(

@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 
 from scanner_core.pipeline import PipelineParams, frame_stripe, observe_marker, process_frame
-from scanner_core.stripe import Reason
+from scanner_core.stripe.extractor import Reason
 from scanner_core.types import Frame
-from scanner_core.window import volume_rows, volume_section_b
+from scanner_core.stripe.window import volume_rows, volume_section_b
 from simulator.session import simulated_cell
 
 VOLUME = (150.0, 150.0, 100.0)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from scanner_core.geometry import angle_between
-from scanner_core.calsession import SessionError, load_session, write_session
+from scanner_core.calibration.session import SessionError, load_session, write_session
 from flyscan import main
 from simulator.calsession import simulate_session
 from simulator.cell import load_cell
@@ -69,7 +69,7 @@ def test_the_ideal_calibration_is_far_off_in_the_real_cell(tmp_path):
     calibration above is doing the work."""
     out = tmp_path / "ideal"
     ideal = tmp_path / "ideal.json"
-    from scanner_core.calibration import save_calibration
+    from scanner_core.geometry.calibration import save_calibration
     save_calibration(ideal, load_cell(perturb_seed=5).calibration)
     code = main(["scan", "--demo", "--perturb-seed", "5", "--effects", "lens", "--out", str(out),
                  "--calibration", str(ideal)])
@@ -93,14 +93,14 @@ def test_the_scanner_never_reads_the_truth(tmp_path):
     script = textwrap.dedent(f"""
         import sys, json
         sys.modules["simulator"] = None  # any import of the simulator now fails
-        from scanner_core.calsession import calibrate_session, load_session
+        from scanner_core.calibration.session import calibrate_session, load_session
         cal, report = calibrate_session(load_session({str(tmp_path / 'session')!r}))
         print(json.dumps(cal.to_dict()))
     """)
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0, done.stderr
-    from scanner_core.calibration import Calibration
+    from scanner_core.geometry.calibration import Calibration
     cal = Calibration.from_dict(json.loads(done.stdout.strip().splitlines()[-1]))
     true = cell.calibration
     angle = np.degrees(angle_between(cal.light_plane_b.normal, true.light_plane_b.normal, undirected=True))
@@ -164,7 +164,7 @@ def test_the_service_runs_on_what_calibrate_learned(tmp_path):
     import trimesh
     from clients import FlyscanClient
     from running import FAST_PASS, RunningService
-    from scanner_core.calibration import save_calibration
+    from scanner_core.geometry.calibration import save_calibration
 
     learned, ideal = tmp_path / "learned.json", tmp_path / "ideal.json"
     assert main(["calibrate", "--sim", "--perturb-seed", "7", "--effects", "lens,led",
@@ -191,7 +191,7 @@ def test_the_service_runs_on_what_calibrate_learned(tmp_path):
 
 
 def test_a_figure_that_could_not_be_measured_is_null_not_nan():
-    from scanner_core.calsession import _json_safe
+    from scanner_core.calibration.session import _json_safe
 
     assert _json_safe({"a": [np.float64("nan"), np.int64(3), 1.5], "b": float("inf")}) == \
         {"a": [None, 3, 1.5], "b": None}

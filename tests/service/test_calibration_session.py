@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from running import serve_in_thread, wait_for
-from scanner_core.calibration import Calibration, load_calibration
-from scanner_core.calplan import plan_from_dict
+from scanner_core.geometry.calibration import Calibration, load_calibration
+from scanner_core.calibration.plan import plan_from_dict
 from simulator.calsession import evaluate_calibration
 from simulator.cell import cell_with_effects
 from simulator.session import run_simulated_scan
@@ -42,7 +42,7 @@ def recorded(tmp_path_factory):
     from service.daemon import Service
     from service.settings import Settings
 
-    from scanner_core.calibration import save_calibration
+    from scanner_core.geometry.calibration import save_calibration
     from simulator.cell import load_cell
 
     # The service starts as a new cell does: with the design's calibration (the reference
@@ -183,7 +183,7 @@ def test_a_session_survives_a_killed_service(tmp_path):
     """SIGKILL mid-session: the restarted service has the session, its captured steps and its
     folder, and goes on with the steps left."""
     from running import FAST_PASS, RunningService
-    from scanner_core.calsession import load_session
+    from scanner_core.calibration.session import load_session
 
     data = tmp_path / "data"
     running = RunningService(data, env=FAST_PASS)

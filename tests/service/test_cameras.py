@@ -12,7 +12,7 @@ from scanner_core.types import Frame
 from service import cameras
 from service.cameras import CameraError, GenICamCamera, OpenCVCamera, open_camera
 from scanner_core.recording import PassRecorder
-from scanner_core.replay import ReplayCamera
+from scanner_core.recording.replay import ReplayCamera
 from simulator.session import simulated_cell
 
 

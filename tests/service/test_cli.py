@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from scanner_core.ply import read_ply
+from scanner_core.io.ply import read_ply
 from flyscan import main
 from simulator.parts import block_with_holes_and_steps
 
@@ -102,7 +102,7 @@ def test_console_script_exit_code(tmp_path):
 
 def test_wrong_calibration_is_refused(tmp_path, capsys):
     """A calibration that does not fit the (perturbed) cell: a clear error, no files."""
-    from scanner_core.calibration import save_calibration
+    from scanner_core.geometry.calibration import save_calibration
     from simulator.cell import load_cell
     cal_path = tmp_path / "nominal.json"
     save_calibration(cal_path, load_cell().calibration)

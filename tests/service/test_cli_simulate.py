@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from scanner_core.ply import read_ply
+from scanner_core.io.ply import read_ply
 from flyscan import main
 from simulator.parts import block_with_holes_and_steps
 

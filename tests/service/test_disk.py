@@ -8,7 +8,7 @@ import types
 import pytest
 import trimesh
 
-import scanner_core.recording_writer as recording_writer
+import scanner_core.recording.writer as recording_writer
 import service.daemon as daemon_module
 import service.engine as engine_module
 import service.parts as parts_module

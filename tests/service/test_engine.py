@@ -14,7 +14,7 @@ import pytest
 
 from scanner_core.devices import CameraTimeout, TcpPose
 from scanner_core.pipeline import PipelineParams
-from scanner_core.trigger import TriggerParams
+from scanner_core.pipeline.trigger import TriggerParams
 from scanner_core.types import Frame
 from service.driver import ControllerDriven
 from service.api import create_app

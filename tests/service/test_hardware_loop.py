@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from clients.ply import parse_ply, xyz_array
-from scanner_core.crosscheck import DEFAULT_TOLERANCE_MM
+from scanner_core.pipeline.crosscheck import DEFAULT_TOLERANCE_MM
 from service.api import create_app
 from flyscan.serve import service_for
 from flyscan.simdevices import SimSettings
 from scanner_core.recording import load_recording
-from scanner_core.replay import replay_recording
+from scanner_core.recording.replay import replay_recording
 from simulator.rtde_emulator import free_loopback_host
 from service.settings import Settings
 from running import free_port, serve_in_thread, wait_for

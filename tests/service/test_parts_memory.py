@@ -120,7 +120,7 @@ def test_the_simplified_model_keeps_the_pose(tmp_path):
     assert report["kept"] and len(simple.faces) < len(fine.faces)
     misplace = misplacement_matrix([1.0, -0.5, 0.3, 0.5, -0.3, 3.0])
     scan, _ = run_simulated_scan(fine, load_cell(), misplacement=misplace, seed=1, pose=False)
-    from scanner_core.pose import scan_pose
+    from scanner_core.pose.registration import scan_pose
 
     whole = scan_pose(scan, fine.surface_model, fine.grasp, edge_model=fine.edge_model)
     light = scan_pose(scan, simple.surface_model, simple.grasp, edge_model=simple.edge_model)
@@ -134,7 +134,7 @@ def test_the_simplified_model_keeps_the_pose(tmp_path):
     # the same verdicts; the note on how many edge points match the model's edges is left out:
     # the two meshes' feature edges differ (a smooth scanned surface has few, and decimation
     # moves them), and with 15 edge points one point moves the share across the note's line
-    from scanner_core.pose_confidence import EDGES_NOTE
+    from scanner_core.pose.confidence import EDGES_NOTE
 
     def verdicts(flags):
         return [f.split(":")[0] for f in flags if not f.startswith(EDGES_NOTE)]

@@ -19,7 +19,7 @@ AHEAD_STAGES = STAGES - {"normals", "registration"}
 
 def test_the_pose_latency_and_its_path(tmp_path):
     """Two passes at 1 000 mm/s: the part leaves the sheet 18 frames before the marker leaves
-    the view, the finisher computes the pose then (``scanner_core.pose_ahead``), and the
+    the view, the finisher computes the pose then (``scanner_core.pose.ahead``), and the
     pass's end keeps it; either way the path adds up."""
     service = RunningService(tmp_path / "data", env=FAST_PASS)
     infos = []

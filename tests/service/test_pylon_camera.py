@@ -16,7 +16,7 @@ os.environ.setdefault("PYLON_CAMEMU", "1")
 
 from running import serve_in_thread, wait_for  # noqa: E402
 from scanner_core.devices import Camera, CameraClosed, ExposureControl  # noqa: E402
-from scanner_core.pipeline_accumulate import PREVIOUS_PROFILE_FRAMES  # noqa: E402
+from scanner_core.pipeline.accumulate import PREVIOUS_PROFILE_FRAMES  # noqa: E402
 from scanner_core.pipeline import (PipelineParams, camera_frames, frame_stripe,  # noqa: E402
                                    observe_marker, run_pass, warm_up)
 from clients.ply import parse_ply, xyz_array  # noqa: E402

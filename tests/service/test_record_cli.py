@@ -64,7 +64,7 @@ def test_scan_of_a_recording_and_of_its_devices_give_the_live_report(service, re
     calibration given) on the same frames and samples, and gives it too; ``--part`` replaces
     the recording's own part."""
     from scanner_core.recording import load_recording
-    from scanner_core.calibration import save_calibration
+    from scanner_core.geometry.calibration import save_calibration
 
     folder, scan_id = recorded
     with FlyscanClient(service.url) as client:

@@ -6,7 +6,7 @@ import pytest
 
 from scanner_core.edges import EdgeKind
 from scanner_core.pipeline import PipelineParams, camera_frames, run_pass
-from scanner_core.report import scan_report
+from scanner_core.pipeline.report import scan_report
 from simulator.evaluate import DROPOUT_CAUSES, dropout_causes, edge_distances, edge_kind_accuracy
 from simulator.parts import bracket_with_two_holes, faceted_dome, part_from_mesh
 from simulator.session import misplacement_matrix, run_simulated_scan, simulated_cell

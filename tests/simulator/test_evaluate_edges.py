@@ -5,7 +5,7 @@ import pytest
 import trimesh
 from numpy.testing import assert_allclose
 
-import scanner_core.pipeline_accumulate as pipeline_accumulate
+import scanner_core.pipeline.accumulate as pipeline_accumulate
 from scanner_core.edges import EdgeKind
 from scanner_core.geometry import apply_transform, base_to_tcp
 from scanner_core.pipeline import PipelineParams, process_frame

@@ -7,8 +7,8 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
-from scanner_core.marker import find_markers
-from scanner_core.stripe import extract
+from scanner_core.marker.finder import find_markers
+from scanner_core.stripe.extractor import extract
 from simulator.live import LiveSimCell, PassInProgress, frame_image
 from simulator.motion import PassMotion
 from simulator.parts import block_with_holes_and_steps, part_from_mesh

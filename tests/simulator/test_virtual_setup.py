@@ -6,7 +6,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from scanner_core.ply import read_ply
+from scanner_core.io.ply import read_ply
 from simulator.parts import Part, part_from_mesh
 from simulator.virtual_setup import (MAIN_VIEW, SetupError, VirtualSetup, predict_cloud,
                                      reference_setup, save_predicted_cloud)
@@ -410,7 +410,7 @@ def test_the_ply_file_is_the_one_write_ply_gives_for_the_same_values(
         tmp_path, block_part, cell, monkeypatch, block_rows):
     """The cloud's PLY rows are written straight from its rays and faces, block by block:
     the very file the general writer gives from its float64 arrays."""
-    from scanner_core.ply import write_ply
+    from scanner_core.io.ply import write_ply
     from simulator import sweep_cloud
 
     if block_rows is not None:

@@ -1,0 +1,455 @@
+"""Per-column sub-pixel estimators of the stripe's centre, and its width.
+
+Each takes the frame ``img`` (H, W) uint8, a column ``c``, the row ``a`` of the chosen peak
+(its integer argmax) and the frame height ``h``, reads a few pixels about ``a`` and returns the
+stripe's centre in rows (pixel centres at integers), or NaN when the estimate degenerates:
+``scanner_core.stripe.extractor.extract`` flags the column then, never guesses. The references are those
+of ``extract``'s docstring.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from scanner_core.numeric.linsolve import solve_in_place
+
+__all__ = ["SATURATION_DN", "FWHM_PER_SIGMA", "fwhm_width", "count_above", "cog",
+           "within_window", "width_count_cog", "parabola", "gaussian3", "blais_rioux",
+           "lsq_gauss", "saturated_centre", "narrow_clip_centre"]
+
+# Pixel value taken as saturated (uint8 full scale).
+SATURATION_DN = 255
+# FWHM of a Gaussian in sigmas: 2 sqrt(2 ln 2).
+FWHM_PER_SIGMA = 2.3548200450309493
+# Gauss-Newton iterations of the least-squares Gaussian fit (converges in 3-4 from the centroid).
+LSQ_ITERATIONS = 6
+# The least-squares fit is rejected if its centre leaves the argmax by more than this (px),
+# or by LSQ_MAX_SHIFT_SIGMAS of the stripe's width where that is more: the top of a wide
+# stripe is flat within the noise over a few rows, and its argmax wanders there.
+LSQ_MAX_SHIFT_PX = 1.5
+LSQ_MAX_SHIFT_SIGMAS = 0.5
+#: A clipped peak at most this many rows long, with an unclipped sample on either side, is
+#: a narrow stripe (sigma ~0.5 px) that reached full scale: too few samples for the flank fit.
+NARROW_CLIP_ROWS = 2
+#: The least-squares fit spans at least this many of the stripe's sigmas either side of the
+#: argmax (``window`` rows at the least): 2.5 sigma hold 98.8 % of a Gaussian's area and reach
+#: the background on either flank, which the fit's offset needs; for the reference stripe
+#: (sigma 1.5 px) that is the default 4 rows.
+LSQ_HALF_WIDTH_SIGMAS = 2.5
+
+
+@njit(nogil=True, cache=True)
+def fwhm_width(col_img, c, a, h, level, max_walk):
+    """Sigma-like width: interpolated full width at ``level`` around row ``a``, / 2.3548."""
+    lo = a
+    steps = 0
+    while lo > 0 and col_img[lo - 1, c] >= level and steps < max_walk:
+        lo -= 1
+        steps += 1
+    if steps >= max_walk:
+        return math.inf
+    if lo > 0:
+        v0 = float(col_img[lo - 1, c])
+        v1 = float(col_img[lo, c])
+        left = lo - (v1 - level) / (v1 - v0)
+    else:
+        left = -0.5
+    hi = a
+    steps = 0
+    while hi < h - 1 and col_img[hi + 1, c] >= level and steps < max_walk:
+        hi += 1
+        steps += 1
+    if steps >= max_walk:
+        return math.inf
+    if hi < h - 1:
+        v0 = float(col_img[hi + 1, c])
+        v1 = float(col_img[hi, c])
+        right = hi + (v1 - level) / (v1 - v0)
+    else:
+        right = h - 0.5
+    return (right - left) / FWHM_PER_SIGMA
+
+
+@njit(nogil=True, cache=True)
+def count_above(img, c, a, h, threshold, window):
+    k = 0
+    for r in range(max(a - window, 0), min(a + window, h - 1) + 1):
+        if img[r, c] > threshold:
+            k += 1
+    return k
+
+
+@njit(nogil=True, cache=True)
+def cog(img, c, a, h, threshold, window, bg, reach):
+    """Windowed centre of gravity, Fisher & Naidu Eq. (CoG): sum(r w) / sum(w).
+
+    Over the pixels above ``threshold`` within ``window`` rows of ``a``, and beyond them as
+    long as the run above the threshold goes on unbroken (at most ``reach`` rows from ``a``):
+    a stripe wider than the window (sigma 6 px: 29 rows above a 20 DN threshold at 200 DN) is
+    weighed whole, where a fixed window would cut its flanks unevenly and pull the centre
+    toward the argmax (sigma 6 px: 0.058 px RMS, 0.54 px with the window alone).  A
+    background above the threshold beside the stripe (ambient light on a white surface) is
+    followed too: the threshold belongs above the background (``threshold="auto"`` puts it
+    there).  Bounding the run by three of the stripe's measured widths instead made a
+    speckled line's error 18 % larger (its width measured short where the speckle darkens a
+    flank).  Weights ``v - threshold``, or ``v - bg`` with a background.
+    """
+    off = threshold if math.isnan(bg) else bg
+    lo = max(a - window, 0)
+    while img[lo, c] > threshold and lo > 0 and a - lo < reach and img[lo - 1, c] > threshold:
+        lo -= 1
+    hi = min(a + window, h - 1)
+    while img[hi, c] > threshold and hi < h - 1 and hi - a < reach and img[hi + 1, c] > threshold:
+        hi += 1
+    s0 = 0.0
+    s1 = 0.0
+    for r in range(lo, hi + 1):
+        v = float(img[r, c])
+        if v > threshold:
+            wgt = v - off
+            s0 += wgt
+            s1 += wgt * (r - a)
+    if s0 <= 0.0:
+        return math.nan
+    return a + s1 / s0
+
+
+@njit(nogil=True, cache=True)
+def within_window(img, c, a, h, level, max_walk, threshold, window, t_cog, bg, out):
+    """``width_count_cog`` when the peak lies wholly within ``+-window`` rows of ``a`` (the
+    half-level run ends inside it, the centroid's run does not go on past it, no ``bg``), as
+    fixed-length loops without data-dependent branches: a noisy flank's pixels cross the
+    levels at random, and a branch on each costs more than the reads (``out[3]``, the run
+    past the window, is 0).  False (``out`` unset) otherwise: call ``width_count_cog`` then (a separate call, since the general walk's frame
+    made this one cost twice as much when they were one function)."""
+    if not (math.isnan(bg) and a > window and a + window < h - 1 and window < max_walk):
+        return False
+    v = float(img[a, c])
+    count = 1.0 if v > threshold else 0.0
+    s0 = max(v - t_cog, 0.0)
+    s1 = 0.0
+    down = 0
+    up = 0
+    alive_down = 1
+    alive_up = 1
+    for d in range(1, window + 1):
+        u = float(img[a - d, c])
+        alive_down = alive_down if u >= level else 0
+        down += alive_down
+        count += 1.0 if u > threshold else 0.0
+        wgt = max(u - t_cog, 0.0)
+        s0 += wgt
+        s1 -= wgt * d
+        u = float(img[a + d, c])
+        alive_up = alive_up if u >= level else 0
+        up += alive_up
+        count += 1.0 if u > threshold else 0.0
+        wgt = max(u - t_cog, 0.0)
+        s0 += wgt
+        s1 += wgt * d
+    if down == window or up == window:
+        return False
+    if float(img[a - window, c]) > t_cog and float(img[a - window - 1, c]) > t_cog:
+        return False  # the centroid's run goes on beyond the window
+    if float(img[a + window, c]) > t_cog and float(img[a + window + 1, c]) > t_cog:
+        return False
+    lo = a - down
+    v1 = float(img[lo, c])
+    left = lo - (v1 - level) / (v1 - float(img[lo - 1, c]))
+    hi = a + up
+    v1 = float(img[hi, c])
+    right = hi + (v1 - level) / (v1 - float(img[hi + 1, c]))
+    out[0] = (right - left) / FWHM_PER_SIGMA
+    out[1] = count
+    out[2] = a + s1 / s0 if s0 > 0.0 else math.nan
+    out[3] = 0.0
+    return True
+
+
+@njit(nogil=True, cache=True)
+def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg, reach, out):
+    """``fwhm_width``, ``count_above`` and ``cog`` of one peak, reading each pixel once.
+
+    The three walk the same pixels about ``a``; a column's pixels lie a frame's row apart in
+    memory, and reading them once is what the frame's time allows.  ``out`` (4,) float64
+    receives the width (px, inf past ``max_walk``), the count of pixels above ``threshold``
+    within ``+-window`` and the centre of gravity above ``t_cog`` (NaN if none), each equal to
+    what the separate function returns (the centroid's sums added in another order), and the
+    rows the centroid's run goes on past the window."""
+    off = t_cog if math.isnan(bg) else bg
+    v = float(img[a, c])
+    count = 1.0 if v > threshold else 0.0
+    s0 = v - off if v > t_cog else 0.0
+    s1 = 0.0
+    beyond = 0
+    width_inf = False
+    left = right = 0.0
+    for side in range(2):
+        step = -1 if side == 0 else 1
+        end = 0 if side == 0 else h - 1  # the last row on this side
+        prev = v
+        steps = 0
+        half = True  # still walking the half-level run
+        edge = -0.5 if side == 0 else h - 0.5
+        w_end = a - window if side == 0 else a + window
+        if side == 0 and w_end < 0:
+            w_end = 0
+        if side == 1 and w_end > h - 1:
+            w_end = h - 1
+        run = img[w_end, c] > t_cog  # the run beyond the window starts at its edge pixel
+        r = a
+        while r != end:
+            r += step
+            d = r - a if side == 1 else a - r
+            u = float(img[r, c])
+            if half:
+                if u >= level and steps < max_walk:
+                    steps += 1
+                    if steps >= max_walk:
+                        width_inf = True
+                        half = False
+                else:
+                    if steps >= max_walk:
+                        width_inf = True
+                    else:
+                        # the level crossed between the previous row and this one
+                        edge = (r - step) + step * (prev - level) / (prev - u)
+                    half = False
+            inside = d <= window
+            if inside:
+                if u > threshold:
+                    count += 1.0
+                if u > t_cog:
+                    s0 += u - off
+                    s1 += (u - off) * (r - a)
+            elif run and d <= reach and u > t_cog:
+                s0 += u - off
+                s1 += (u - off) * (r - a)
+                beyond += 1
+            else:
+                run = False
+            prev = u
+            if not half and not inside and not run:
+                break
+        if side == 0:
+            left = edge
+        else:
+            right = edge
+    out[0] = math.inf if width_inf else (right - left) / FWHM_PER_SIGMA
+    out[1] = count
+    out[2] = a + s1 / s0 if s0 > 0.0 else math.nan
+    out[3] = beyond
+
+
+@njit(nogil=True, cache=True)
+def _three_points(img, c, a, h):
+    if a == 0 or a == h - 1:
+        return math.nan, math.nan, math.nan
+    return float(img[a - 1, c]), float(img[a, c]), float(img[a + 1, c])
+
+
+@njit(nogil=True, cache=True)
+def parabola(img, c, a, h):
+    ym, y0, yp = _three_points(img, c, a, h)
+    den = ym - 2.0 * y0 + yp
+    if not den < 0.0:  # flat top or NaN: no curvature, no centre
+        return math.nan
+    return a + 0.5 * (ym - yp) / den
+
+
+@njit(nogil=True, cache=True)
+def gaussian3(img, c, a, h, bg):
+    ym, y0, yp = _three_points(img, c, a, h)
+    off = 0.0 if math.isnan(bg) else bg
+    # clamp to 1 DN above the offset so that the logarithms stay finite
+    lm = math.log(max(ym - off, 1.0))
+    l0 = math.log(max(y0 - off, 1.0))
+    lp = math.log(max(yp - off, 1.0))
+    den = lm - 2.0 * l0 + lp
+    if not den < 0.0:
+        return math.nan
+    return a + 0.5 * (lm - lp) / den
+
+
+@njit(nogil=True, cache=True)
+def blais_rioux(img, c, a, h):
+    """Blais & Rioux (1986) 4th-order filter g(i) = f(i-2)+f(i-1)-f(i+1)-f(i+2), zero crossing."""
+    if a < 3 or a > h - 4:
+        return math.nan
+    g = np.empty(3)
+    for k in range(3):
+        i = a - 1 + k
+        g[k] = (float(img[i - 2, c]) + float(img[i - 1, c])
+                - float(img[i + 1, c]) - float(img[i + 2, c]))
+    # g < 0 left of the peak, > 0 right of it: crossing in [a-1, a] or [a, a+1]
+    for k in range(2):
+        if g[k] <= 0.0 and g[k + 1] > 0.0:
+            return a - 1 + k + g[k] / (g[k] - g[k + 1])
+    if g[1] == 0.0:
+        return float(a)
+    return math.nan
+
+
+@njit(nogil=True, cache=True)
+def lsq_gauss(img, c, a, h, threshold, window, mu0, s0):
+    """Gauss-Newton fit of b + A exp(-(x - mu)^2 / (2 s^2)) on rows a +- half, where half is
+    ``window`` or ``LSQ_HALF_WIDTH_SIGMAS`` times the stripe's width ``s0``, the larger.
+
+    Coordinates are centred on the argmax (x = r - a) and intensities scaled by the peak, so the
+    normal equations are well conditioned.  Returns NaN when the fit degenerates.
+    """
+    half = window
+    if math.isfinite(s0):
+        half = max(window, int(math.ceil(LSQ_HALF_WIDTH_SIGMAS * s0)))
+    r0 = max(a - half, 0)
+    r1 = min(a + half, h - 1)
+    n = r1 - r0 + 1
+    if n < 5:
+        return math.nan
+    x = np.empty(n)
+    y = np.empty(n)
+    ymin = 255.0
+    for i in range(n):
+        x[i] = r0 + i - a
+        y[i] = float(img[r0 + i, c])
+        ymin = min(ymin, y[i])
+    scale = 1.0 / max(float(img[a, c]), 1.0)
+    for i in range(n):
+        y[i] *= scale
+    b = ymin * scale
+    amp = 1.0 - b
+    mu = mu0 - a
+    s = min(max(s0, 0.7), 0.5 * half) if math.isfinite(s0) else 0.7
+    max_shift = max(LSQ_MAX_SHIFT_PX, LSQ_MAX_SHIFT_SIGMAS * s)
+    jt = np.empty((4, n))
+    res = np.empty(n)
+    m = np.empty((4, 4))
+    v = np.empty(4)
+    for _ in range(LSQ_ITERATIONS):
+        inv2 = 1.0 / (s * s)
+        for i in range(n):
+            d = x[i] - mu
+            e = math.exp(-0.5 * d * d * inv2)
+            res[i] = y[i] - (b + amp * e)
+            jt[0, i] = 1.0  # d/db
+            jt[1, i] = e  # d/dA
+            jt[2, i] = amp * e * d * inv2  # d/dmu
+            jt[3, i] = amp * e * d * d * inv2 / s  # d/ds
+        for p in range(4):
+            acc = 0.0
+            for i in range(n):
+                acc += jt[p, i] * res[i]
+            v[p] = acc
+            for q in range(p, 4):
+                acc = 0.0
+                for i in range(n):
+                    acc += jt[p, i] * jt[q, i]
+                m[p, q] = acc
+                m[q, p] = acc
+        if not solve_in_place(m, v):
+            return math.nan
+        b += v[0]
+        amp += v[1]
+        mu += max(min(v[2], 1.0), -1.0)  # bounded step: the fit starts within a pixel
+        s += max(min(v[3], 0.5 * s), -0.5 * s)
+        if not (amp > 0.0 and s > 0.0 and abs(mu) <= max_shift):
+            return math.nan
+    return a + mu
+
+
+@njit(nogil=True, cache=True)
+def saturated_centre(img, c, a, h, level, window, bgl, max_walk):
+    """Centre of a clipped peak from its unclipped flanks (censored Gaussian fit).
+
+    The plateau is the run of full-scale rows through ``a``; the samples within ``window`` rows
+    of it that are above ``level`` and below full scale are fitted with
+    ``ln(v - bgl) = p0 + p1 x + p2 x^2`` (``x`` from the plateau's middle) by least squares with
+    weights ``(v - bgl)^2`` (Guo 2011: the logarithm's noise is ``sigma_n / (v - bgl)``); the
+    clipped samples only say "at least full scale" and are left out.  Needs samples on both
+    flanks (else the centre is not constrained) and a concave parabola; NaN otherwise.
+    """
+    lo = a
+    steps = 0
+    while lo > 0 and img[lo - 1, c] >= SATURATION_DN and steps < max_walk:
+        lo -= 1
+        steps += 1
+    hi = a
+    steps = 0
+    while hi < h - 1 and img[hi + 1, c] >= SATURATION_DN and steps < max_walk:
+        hi += 1
+        steps += 1
+    mid = 0.5 * (lo + hi)
+    m = np.zeros((3, 3))
+    v = np.zeros(3)
+    n_left = 0
+    n_right = 0
+    for r in range(max(lo - window, 0), min(hi + window, h - 1) + 1):
+        val = float(img[r, c])
+        if val >= SATURATION_DN or not val > level or not val > bgl + 1.0:
+            continue
+        if r < lo:
+            n_left += 1
+        elif r > hi:
+            n_right += 1
+        y = val - bgl
+        wgt = y * y
+        ly = math.log(y)
+        x = r - mid
+        xp = 1.0
+        for p in range(3):
+            v[p] += wgt * ly * xp
+            xq = 1.0
+            for q in range(3):
+                m[p, q] += wgt * xp * xq
+                xq *= x
+            xp *= x
+    if n_left < 1 or n_right < 1 or n_left + n_right < 3:
+        return math.nan
+    # scale the weights (up to 6e4 each) so that the pivots compare with SINGULAR_PIVOT sanely
+    s = 1.0 / m[0, 0]
+    for p in range(3):
+        v[p] *= s
+        for q in range(3):
+            m[p, q] *= s
+    if not solve_in_place(m, v):
+        return math.nan
+    if not v[2] < 0.0:
+        return math.nan
+    mu = mid - 0.5 * v[1] / v[2]
+    if abs(mu - mid) > 0.5 * (hi - lo) + 1.0:
+        return math.nan
+    return mu
+
+
+@njit(nogil=True, cache=True)
+def narrow_clip_centre(img, c, a, h, level, bgl):
+    """Centre of a narrow clipped peak: the centroid, weights ``v - bgl``, of its clipped run
+    (at most ``NARROW_CLIP_ROWS`` rows) and one sample either side, both above ``level``.
+
+    The flank fit (:func:`saturated_centre`) needs three unclipped samples; a stripe of sigma
+    0.5 px clipped at full scale leaves one on each side. The clipped samples weigh what they
+    show (the truth is brighter), so the centre is pulled toward the run's middle by a share
+    of a pixel; the column stays flagged ``saturated``. NaN for a longer run, or one without a
+    sample above ``level`` on both sides (a plateau at the frame's edge: never guessed).
+    """
+    lo = a
+    while lo > 0 and img[lo - 1, c] >= SATURATION_DN and a - lo < NARROW_CLIP_ROWS:
+        lo -= 1
+    hi = a
+    while hi < h - 1 and img[hi + 1, c] >= SATURATION_DN and hi - a < NARROW_CLIP_ROWS:
+        hi += 1
+    if hi - lo + 1 > NARROW_CLIP_ROWS or lo == 0 or hi == h - 1:
+        return math.nan
+    if not (float(img[lo - 1, c]) > level and float(img[hi + 1, c]) > level):
+        return math.nan
+    if img[lo - 1, c] >= SATURATION_DN or img[hi + 1, c] >= SATURATION_DN:
+        return math.nan
+    s0 = 0.0
+    s1 = 0.0
+    for r in range(lo - 1, hi + 2):
+        wgt = float(img[r, c]) - bgl
+        s0 += wgt
+        s1 += wgt * r
+    return s1 / s0 if s0 > 0.0 else math.nan

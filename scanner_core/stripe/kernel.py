@@ -1,0 +1,608 @@
+"""The per-frame kernel of stripe extraction: candidates, the choice between them, the width
+gates and the sub-pixel refinement (``scanner_core.stripe.extractor.extract`` documents the behaviour;
+this module holds its constants and its numba code).
+
+Per frame: the row-major passes (``scanner_core.stripe.passes``) give, per column, the maximum,
+its row and a far second maximum; here each column gets its candidates (the maximum, and the
+second one if it is strong, a local maximum and apart from the first), their widths, the
+frame's typical width, the choice between two candidates (a policy), the gates (too narrow,
+too wide, linked to the neighbouring columns) and the refinement of the chosen peak
+(``scanner_core.stripe.estimators``). Reason codes are ``scanner_core.stripe.extractor.Reason``'s.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from scanner_core.stripe import estimators as est
+from scanner_core.stripe import passes as passes
+from scanner_core.stripe.estimators import FWHM_PER_SIGMA, SATURATION_DN
+
+__all__ = ["extract_kernel", "window_bounds"]
+
+# A second peak must lie farther than this many of the main peak's sigmas from it (and than
+# 2 * window rows): at 2 sigma a Gaussian stripe's own flank is down to 13.5 % of its peak, and
+# lifting it to ``DOUBLE_PEAK_RATIO`` (0.3) takes a noise excursion of a sixth of the peak (11
+# sigmas at 200 DN over 3 DN); on a wide stripe, sigma 6 px, the flank 2 * window = 8 rows out
+# is still at 41 % of the peak and its noise bumps are local maxima.
+SEPARATE_SIGMAS = 2.0
+
+# --- width gates (``max_width="auto"``)
+# Narrow peaks: a peak narrower than MIN_WIDTH_PX (sigma-like), or with fewer than
+# MIN_PIXELS_ABOVE pixels above the threshold within +-window, looks like a lone noise pixel
+# (width ~0.42 px, 1 pixel above) - and so does a stripe of sigma 0.5 px (0.44-0.6 px, 1 to 3
+# pixels above). A stripe goes on into the next column, a noise or hot pixel does not: a narrow
+# peak is kept when a neighbouring column holds a peak within LINK_ROWS_PX (+ the widths) of
+# its row, and its own peak reaches NARROW_MIN_SIGMAS noise sigmas above the background (the
+# largest of 1e6 normal noise samples is ~4.9 sigma: two such neighbours by chance, never).
+MIN_WIDTH_PX = 0.5
+MIN_PIXELS_ABOVE = 3
+NARROW_MIN_SIGMAS = 8.0
+# Wide peaks: the widest stripe of a frame depends on the optics and the surface (sigma 0.7 to
+# 4.7 px along one line on a photograph of a laser line crossing a printed checkerboard; 1.5 px
+# in the reference cell), so the gate follows the frame: its typical width is the median of its
+# unclipped candidate peaks' widths (at least WIDTH_MIN_SAMPLES of them, else ``max_width``
+# alone), and a peak up to CORE_WIDTH_FACTOR times it (never under ``max_width``) is a stripe.
+# A peak up to LINKED_WIDTH_FACTOR times that is one too when it continues, column by column
+# (rows within LINK_ROWS_PX + the widths), a stripe that passed: a stripe widening along its
+# length (defocus, a surface turning) stays whole, while a broad blob apart from the stripe
+# (ambient light, a diffuse reflection) is rejected as before. Beyond WIDTH_CAP_PX nothing is
+# measured (the width walk stops there).
+CORE_WIDTH_FACTOR = 2.0
+LINKED_WIDTH_FACTOR = 2.0
+WIDTH_MIN_SAMPLES = 16
+WIDTH_CAP_PX = 16.0
+LINK_ROWS_PX = 2.0
+# Histogram of the widths for the median: bins of WIDTH_BIN_PX up to WIDTH_CAP_PX.
+WIDTH_BIN_PX = 0.05
+_WIDTH_BINS = int(WIDTH_CAP_PX / WIDTH_BIN_PX) + 1
+# Column classes in the gate pass.
+_CORE, _NARROW, _WIDE, _REJECTED = 0, 1, 2, 3
+
+# --- noise-derived floors (threshold="auto"): the noise estimate is
+# ``scanner_core.stripe.passes.noise_estimate``.
+# The saturated-peak fit uses the unclipped samples above background + this many noise sigmas:
+# low samples weigh little ((v - b)^2 weights) but keep the fit determined when the flanks are
+# steep (at 10x full scale only one sample per flank clears a 20 DN threshold).
+SAT_FIT_MIN_SIGMAS = 2.0
+# threshold = background + AUTO_THRESHOLD_SIGMAS * noise: 3.33 reproduces the fixed 20 DN on the
+# reference model (background 10, noise 3), where it measured best for ``cog``.
+AUTO_THRESHOLD_SIGMAS = 10.0 / 3.0
+# A candidate peak must reach background + AUTO_MIN_PEAK_SIGMAS * noise in "auto" mode: the
+# largest of 1200 normal noise samples is ~3.2 sigma, so 5 sigma leaves ~3e-7 false peaks per
+# pixel, which the MIN_PIXELS_ABOVE and width tests then reject.
+AUTO_MIN_PEAK_SIGMAS = 5.0
+
+# ``cog`` weighs ``v - t`` above a level ``t`` of its own per column, whatever the threshold:
+# background + max(COG_SIGMAS * noise, COG_PEAK_FRACTION * (peak - background)).
+# On bright stripes the second term rules (10 DN on a 200 DN stripe: the 20 DN that measured best
+# on the reference model); on dim ones the first (measured on 30 DN over 3 DN, RMS: 0.1495 px
+# at 20 DN, 0.1468 at 18.5, 0.1472 at 17, against a Cramer-Rao bound of 0.130).
+COG_SIGMAS = 2.8
+COG_PEAK_FRACTION = 0.05
+
+# A peak's background is read beside it (``local_background``), first BACKGROUND_NEAR_WINDOWS
+# and BACKGROUND_FAR_WINDOWS windows out; where the peak turns out wider, BACKGROUND_CLEAR_SIGMAS
+# of its sigma-like width and BACKGROUND_FAR_RATIO times that out (a Gaussian is down to 4 %
+# and 0.04 % of its peak there), at most BACKGROUND_ROUNDS times: a blob of sigma 10 px reads
+# its own flank first, and its background by the third round. Read nearer (1.5 and 2.5
+# windows), a speckled stripe's flank passed for its background and raised the centroid's
+# level: 0.19 against 0.15 sigma RMS on a speckled line of sigma 0.5-6 px.
+BACKGROUND_NEAR_WINDOWS = 3
+BACKGROUND_FAR_WINDOWS = 5
+BACKGROUND_CLEAR_SIGMAS = 2.5
+BACKGROUND_FAR_RATIO = 1.6
+BACKGROUND_ROUNDS = 4
+
+# With ``shoulders``: a centroid's run reaching past the window farther than
+# SHOULDER_RUN_WIDTHS of the stripe's sigma-like width from the peak (a Gaussian's run above
+# 5 % of it reaches 2.45) weighs the stripe's top only, above SHOULDER_FRACTION of its height.
+# Off by default: a speckled line's run is long too (0.15 -> 0.19 sigma RMS on a speckled line
+# of sigma 0.5-6 px with it on), where on a colour excess through JPEG's 4:2:0 chroma the run
+# takes in the chroma spread to one side (0.63 -> 0.23 px RMS on a real green line).
+SHOULDER_RUN_WIDTHS = 4.0
+SHOULDER_FRACTION = 0.3
+
+# A peak at least FLAT_MIN_WIDTH_PX wide whose top (within FLAT_LEVEL of its height) runs
+# longer than FLAT_TOP_WIDTHS of its width plus FLAT_TOP_SLACK_ROWS is a plateau (``_flat_top``).
+FLAT_MIN_WIDTH_PX = 2.0
+FLAT_LEVEL = 0.8
+FLAT_TOP_SLACK_ROWS = 1.5
+FLAT_TOP_WIDTHS = 1.8
+
+# The peak's width, count and centroid are read with the window a compile-time constant when
+# ``window`` is this (the default): the loops over it unrolled, the candidates' pass took half
+# the time.
+UNROLLED_WINDOW = 4
+
+# --- continuity policy (a Viterbi path over the columns, two states per column)
+# Cost, in px of row jump, of choosing a candidate of zero brightness over the brightest one
+# (linear in the brightness ratio).  40 px makes a candidate at half the brightness cost 20 px per
+# column, more than the two capped links it could save: a reflection at <= half the stripe's
+# brightness is never chosen over it however the rows jump (measured: 100 % of the columns on the
+# stripe with smooth and with random per-column rows; 4 px kept glints over 10 columns but fell
+# to 89 % on random rows), while a glint 1.5x the stripe over 1 (2) columns is still bridged in
+# 100 % (95 %) of the columns.  Longer glints need ``expected_row`` (the previous profile).
+CONTINUITY_BRIGHTNESS_PX = 40.0
+# Row jumps between linked columns are charged up to this (px): a real step of the surface costs
+# every path the same.
+CONTINUITY_JUMP_CAP_PX = 10.0
+# Columns farther apart than this (without a candidate between them) are not linked.
+CONTINUITY_MAX_GAP = 8
+# Weight (per px of distance, capped like the jumps) of the expected row when one is given.
+EXPECTED_WEIGHT = 1.0
+
+
+
+@njit(nogil=True, cache=True)
+def _continuity(ncand, mx, am, sec, a2, expected, c0, choice):
+    """Viterbi path over the columns (states: candidate 0 or 1), written into ``choice``.
+
+    Cost of a path: per column ``CONTINUITY_BRIGHTNESS_PX * (1 - p_k / p_max)`` (+ the capped
+    distance to the expected row, if any), per link ``min(|row jump|, CONTINUITY_JUMP_CAP_PX)``
+    between columns at most ``CONTINUITY_MAX_GAP`` apart.  Unlinked stretches are separate paths.
+    """
+    n = ncand.shape[0]
+    cost = np.zeros((n, 2))
+    back = np.zeros((n, 2), np.int8)
+    link = np.full(n, -1, np.int64)
+    last = -1
+    for j in range(n):
+        kn = ncand[j]
+        if kn == 0:
+            continue
+        linked = last >= 0 and j - last <= CONTINUITY_MAX_GAP
+        e = expected[c0 + j]
+        pm = float(mx[j])
+        for k in range(kn):
+            rk = float(am[j]) if k == 0 else float(a2[j])
+            pk = float(mx[j]) if k == 0 else float(sec[j])
+            u = CONTINUITY_BRIGHTNESS_PX * (1.0 - pk / pm)
+            if math.isfinite(e):
+                u += EXPECTED_WEIGHT * min(abs(rk - e), CONTINUITY_JUMP_CAP_PX)
+            best = 0.0
+            bk = 0
+            if linked:
+                best = math.inf
+                for kp in range(ncand[last]):
+                    rp = float(am[last]) if kp == 0 else float(a2[last])
+                    t = cost[last, kp] + min(abs(rk - rp), CONTINUITY_JUMP_CAP_PX)
+                    if t < best:
+                        best = t
+                        bk = kp
+            cost[j, k] = u + best
+            back[j, k] = bk
+        if linked:
+            link[j] = last
+        last = j
+    for j in range(n - 1, -1, -1):
+        if ncand[j] == 0:
+            continue
+        if choice[j] < 0:  # end of a path: its cheaper state
+            choice[j] = 1 if ncand[j] == 2 and cost[j, 1] < cost[j, 0] else 0
+        if link[j] >= 0:
+            choice[link[j]] = back[j, choice[j]]
+
+
+@njit(nogil=True, cache=True, inline="always")
+def local_background(img, c, a, h, near, far, frame_bg):
+    """The background a peak at row ``a`` of column ``c`` stands on, DN.
+
+    On each side the lower of the pixels ``near`` and ``far`` rows out, and the higher of the
+    two sides: the stripe must stand clear of what lies on both sides of it (a JPEG's chroma
+    spread about a coloured line, a bright surface beside it, a texture's edge), not only of
+    the frame's typical level ``frame_bg``, which it never goes under: two pixels are a noisy
+    estimate, and under the frame's level a column of noise alone would pass for a stripe now
+    and then (a dark part in a bright frame still shows its stripe above the frame's level)."""
+    left = right = -1.0
+    if a - far >= 0:
+        left = float(min(img[a - near, c], img[a - far, c]))
+    if a + far <= h - 1:
+        right = float(min(img[a + near, c], img[a + far, c]))
+    return max(frame_bg, left, right)
+
+
+@njit(nogil=True, cache=True)
+def _flat_top(img, c, a, h, b, p, width):
+    """A plateau rather than a peak: the rows joined to ``a`` within ``FLAT_LEVEL`` of the
+    height ``p`` over the background ``b`` run longer than ``FLAT_TOP_WIDTHS`` of the
+    sigma-like ``width`` (a Gaussian's top above 80 % spans 1.34 of its sigma; a lit square of
+    a printed texture or a bright surface is as wide on top as at half height). Peaks narrower
+    than ``FLAT_MIN_WIDTH_PX`` are not judged (too few rows to tell)."""
+    if not (math.isfinite(width) and width >= FLAT_MIN_WIDTH_PX):
+        return False
+    level = b + FLAT_LEVEL * (p - b)
+    limit = int(math.ceil(FLAT_TOP_WIDTHS * width + FLAT_TOP_SLACK_ROWS))
+    top = 1
+    r = a - 1
+    while r >= 0 and img[r, c] >= level and top <= limit:
+        top += 1
+        r -= 1
+    r = a + 1
+    while r < h and img[r, c] >= level and top <= limit:
+        top += 1
+        r += 1
+    return top > limit
+
+
+@njit(nogil=True, cache=True)
+def _levels(auto, thr, b, sig):
+    """A column's threshold and peak floor over its background ``b``: ``b + AUTO_*_SIGMAS *
+    sig`` with ``auto``, else the fixed ``thr`` for both."""
+    if auto:
+        return b + AUTO_THRESHOLD_SIGMAS * sig, b + AUTO_MIN_PEAK_SIGMAS * sig
+    return thr, thr
+
+
+@njit(nogil=True, cache=True)
+def _cog_level(med, sig, p):
+    """The level ``cog`` weighs above for a peak ``p`` (DN) over a background ``med`` and a
+    noise ``sig``: it follows the peak and the noise whatever the threshold, since a fixed
+    threshold near a dim stripe's top leaves one or two pixels above it, and their centroid is
+    the brightest pixel's row (pixel locking)."""
+    return med + max(COG_SIGMAS * sig, COG_PEAK_FRACTION * (p - med))
+
+
+@njit(nogil=True, cache=True)
+def _whole_span(k0, k1, n):
+    """Columns ``k0 <= j < k1`` of a read span ``n`` wide, widened to all of it when they
+    cover half of it (a sequential stream: ``scanner_core.stripe.passes``)."""
+    if k1 - k0 >= passes.READ_WHOLE_ROWS_SHARE * n:
+        return 0, n
+    return k0, k1
+
+
+@njit(nogil=True, cache=True)
+def _linked(a0, w0, a1, w1):
+    """Neighbouring columns' peaks continue one another: rows within LINK_ROWS_PX plus the
+    wider one's sigma-like width."""
+    return abs(a0 - a1) <= LINK_ROWS_PX + max(w0, w1)
+
+
+@njit(nogil=True, cache=True)
+def window_bounds(row_min, row_max, h):
+    """The geometric window's rows as uint16 per column: ``ceil(row_min)`` and
+    ``floor(row_max)`` clipped to ``[0, 65535]``, and False if any is NaN."""
+    n = row_min.shape[0]
+    lo = np.empty(n, np.uint16)
+    hi = np.empty(n, np.uint16)
+    for c in range(n):
+        a, b = row_min[c], row_max[c]
+        if math.isnan(a) or math.isnan(b):
+            return lo, hi, False
+        lo[c] = np.uint16(min(max(math.ceil(a), 0.0), 65535.0))
+        hi[c] = np.uint16(min(max(math.floor(b), 0.0), 65535.0))
+    return lo, hi, True
+
+
+@njit(nogil=True, cache=True)
+def extract_kernel(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_width,
+                   double_ratio, bg, policy, expected, use_window, rmin, rmax, fit_saturated,
+                   shoulders):
+    """``scanner_core.stripe.extractor.extract``'s work on a checked frame.
+
+    Returns the per-column arrays (W,) indexed by the frame's column, ``row, peak, width,
+    reason, saturated, snr, n_peaks``, then the frame's background, noise and width gate."""
+    h, w = img.shape
+    row = np.full(w, np.nan, np.float32)
+    peak = np.full(w, np.nan, np.float32)
+    width = np.full(w, np.nan, np.float32)
+    snr = np.full(w, np.nan, np.float32)
+    reason = np.full(w, 7, np.uint8)  # NOT_PROCESSED
+    saturated = np.zeros(w, np.bool_)
+    n_peaks = np.zeros(w, np.uint8)
+    med, sig = passes.noise_estimate(img)
+    core = _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_width,
+                    double_ratio, bg, policy, expected, use_window, rmin, rmax, fit_saturated,
+                    shoulders, med, sig, row, peak, width, reason, saturated, snr, n_peaks)
+    return row, peak, width, reason, saturated, snr, n_peaks, med, sig, core
+
+
+@njit(nogil=True, cache=True)
+def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, max_walk, window,
+                shoulders, med, sig, bg, double_ratio, use_window, rmin, rmax, min_width, ncand,
+                wmain, nmain, ymain, bloc, tloc, hist):
+    """Each column's local background (``bloc``) and threshold (``tloc``), its candidates
+    (``ncand``), the main one's width, count above the threshold and centre of gravity, and the
+    histogram of the widths; returns the widths counted.  A function of its own, calling the
+    two walks itself (through a function holding both, or inside ``_columns``, the loop ran at
+    half the speed or less)."""
+    h = img.shape[0]
+    stats = np.zeros(4)
+    n_widths = 0
+    for j in range(js, je):
+        p = float(mx[j])
+        c = ca + j
+        a = int(am[j])
+        # on the frame's background first: a peak that stands clear of it and ends within its
+        # window (its half-height and its centroid's runs) stands on it, and costs no more
+        # reads; another is read against its own (a bright surface beside it, a shoulder, a
+        # wide or a clipped stripe)
+        t_c, f_c = threshold, floor  # the frame's: _levels(auto, thr, med, sig)
+        bloc[j] = med
+        tloc[j] = t_c
+        if not (p > t_c and p >= f_c):
+            continue  # its own background lies no lower than the frame's
+        t_cog = _cog_level(med, sig, p)
+        if window == UNROLLED_WINDOW:  # a constant: LLVM unrolls the loops over the window
+            fast = est.within_window(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c,
+                                     UNROLLED_WINDOW, t_cog, bg, stats)
+        else:
+            fast = est.within_window(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c, window,
+                                     t_cog, bg, stats)
+        near, far = BACKGROUND_NEAR_WINDOWS * window, BACKGROUND_FAR_WINDOWS * window
+        b = med if fast else local_background(img, c, a, h, near, far, med)
+        for _ in range(BACKGROUND_ROUNDS if not fast else 0):
+            t_c, f_c = _levels(auto, thr, b, sig)
+            bloc[j] = b
+            tloc[j] = t_c
+            if not (p > t_c and p >= f_c):
+                break
+            level = 0.5 * (p + t_c)
+            t_cog = _cog_level(b, sig, p)
+            if window == UNROLLED_WINDOW:  # a constant: LLVM unrolls the loops over the window
+                fast = est.within_window(img, c, a, h, level, max_walk, t_c, UNROLLED_WINDOW,
+                                         t_cog, bg, stats)
+            else:
+                fast = est.within_window(img, c, a, h, level, max_walk, t_c, window, t_cog,
+                                         bg, stats)
+            if not fast:
+                est.width_count_cog(img, c, a, h, level, max_walk, t_c, window, t_cog, bg,
+                                    max_walk, stats)
+            # a peak wider than the background's pixels are far: they lay on its flanks, read
+            # the background past them
+            reach = BACKGROUND_CLEAR_SIGMAS * stats[0]
+            if not reach > near or not math.isfinite(reach):
+                break
+            near = int(math.ceil(reach))
+            far = int(math.ceil(BACKGROUND_FAR_RATIO * reach))
+            b_out = local_background(img, c, a, h, near, far, med)
+            if b_out == b:
+                break
+            b = b_out
+        if not (p > t_c and p >= f_c):
+            continue
+        ncand[j] = 1
+        if not fast and p < SATURATION_DN and _flat_top(img, c, a, h, b, p, stats[0]):
+            stats[0] = math.inf  # a lit surface's plateau, not a peak: too wide
+        wd = stats[0]
+        wmain[j] = wd
+        nmain[j] = stats[1]
+        ymain[j] = stats[2]
+        if (shoulders and math.isfinite(wd)
+                and window + stats[3] > SHOULDER_RUN_WIDTHS * max(wd, 1.0)):
+            # the centroid's run goes on far past where a stripe this wide ends: something
+            # lies under it (a JPEG's chroma spread to one side of a coloured line); its top
+            ymain[j] = est.cog(img, c, a, h, b + SHOULDER_FRACTION * (p - b), window, bg,
+                               max_walk)
+        s = float(sec[j])
+        if s > threshold and s >= floor and s >= double_ratio * p:
+            r2 = int(a2[j])  # the second candidate's row
+            inside = not use_window or (r2 >= rmin[c] and r2 <= rmax[c])
+            apart = not math.isfinite(wd) or abs(r2 - a) > SEPARATE_SIGMAS * wd
+            if (inside and apart and r2 > 0 and r2 < h - 1 and img[r2 - 1, c] <= img[r2, c]
+                    and img[r2 + 1, c] <= img[r2, c]):
+                ncand[j] = 2
+        if p < SATURATION_DN and wd >= min_width and wd < WIDTH_CAP_PX:
+            hist[int(wd / WIDTH_BIN_PX)] += 1
+            n_widths += 1
+    return n_widths
+
+
+@njit(nogil=True, cache=True)
+def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_width,
+             double_ratio, bg, policy, expected, use_window, rmin, rmax, fit_saturated, shoulders,
+             med, sig, row, peak, width, reason, saturated, snr, n_peaks):
+    """The columns ``c0 <= c < c1``: outputs written in place; returns the width gate."""
+    h, w = img.shape
+    if auto:
+        threshold = med + AUTO_THRESHOLD_SIGMAS * sig
+        floor = med + AUTO_MIN_PEAK_SIGMAS * sig
+    else:
+        threshold = thr
+        floor = thr
+    if c1 == c0:
+        return max_width
+    sep = 2 * window
+    r0, r1 = 0, h
+    if use_window:
+        r0, r1 = passes.window_band(rmin, rmax, c0, c1, h)
+    ca, cb = passes.read_span(c0, c1, w)
+    n = cb - ca
+    js, je = c0 - ca, c1 - ca  # the requested columns in the read span
+    mx = np.zeros(n, np.uint8)
+    am = np.zeros(n, np.uint16)
+    sec = np.zeros(n, np.uint8)
+    a2 = np.zeros(n, np.uint16)
+    out = np.zeros(n, np.uint8)
+    passes.column_max(img, r0, r1, ca, cb, sep, mx, am, sec)
+    # the rows of the second maxima, only over the columns that hold one (none on a clean
+    # frame): a second pass there is cheaper than tracking them in every frame
+    maybe_double = False
+    k0, k1 = n, -1
+    for j in range(js, je):
+        s = float(sec[j])
+        if s > threshold and s >= floor and s >= double_ratio * float(mx[j]):
+            k0 = min(k0, j)
+            k1 = max(k1, j)
+    if k1 >= k0:
+        maybe_double = True
+        k0, k1 = _whole_span(k0, k1 + 1, n)
+        mx[k0:k1] = 0  # the second pass starts afresh (it finds the same maxima)
+        am[k0:k1] = 0
+        sec[k0:k1] = 0
+        passes.column_max2(img, r0, r1, ca + k0, ca + k1, sep, mx[k0:k1], am[k0:k1],
+                           sec[k0:k1], a2[k0:k1])
+    if use_window:
+        # Only the columns whose maximum lies outside their window (a reflection brighter than
+        # the stripe, rare) are searched again, inside it: a frame without one costs what the
+        # plain pass costs.
+        k0, k1 = n, -1
+        for j in range(js, je):
+            p = float(mx[j])
+            a = am[j]
+            if p > threshold and p >= floor and (a < rmin[ca + j] or a > rmax[ca + j]):
+                k0 = min(k0, j)
+                k1 = max(k1, j)
+        if k1 >= k0:
+            maybe_double = True
+            k0, k1 = _whole_span(k0, k1 + 1, n)
+            mx[k0:k1] = 0
+            am[k0:k1] = 0
+            sec[k0:k1] = 0
+            a2[k0:k1] = 0
+            passes.column_max_window(img, r0, r1, ca + k0, ca + k1, sep, rmin, rmax,
+                                     mx[k0:k1], am[k0:k1], sec[k0:k1], a2[k0:k1], out[k0:k1])
+    # candidates (the maximum, and the far second maximum if it is strong, a local maximum and
+    # apart from the first: on a wide stripe the far "second" is only its own flank), the main
+    # one's width, and the frame's widths
+    if auto_width:
+        max_walk = int(math.ceil(WIDTH_CAP_PX * FWHM_PER_SIGMA)) + 2
+    else:
+        max_walk = int(math.ceil(max_width * FWHM_PER_SIGMA)) + 2
+    ncand = np.zeros(n, np.int8)
+    wmain = np.full(n, np.inf)
+    # the main peak's count above the threshold and its centre of gravity, read with its width
+    nmain = np.zeros(n)
+    ymain = np.full(n, np.nan)
+    stats = np.empty(4)
+    hist = np.zeros(_WIDTH_BINS, np.int64)
+    bloc = np.full(n, med)
+    tloc = np.full(n, threshold)
+    n_widths = _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor,
+                           max_walk, window, shoulders, med, sig, bg, double_ratio, use_window,
+                           rmin, rmax, min_width, ncand, wmain, nmain, ymain, bloc, tloc, hist)
+    core = max_width
+    linked = max_width
+    if auto_width:
+        if n_widths >= WIDTH_MIN_SAMPLES:
+            # bin k holds widths in [k, k + 1) * WIDTH_BIN_PX; the quantile puts it at k +- 0.5
+            typical = (passes.quantile_from_hist(hist, float(n_widths), 0.5) + 0.5) * WIDTH_BIN_PX
+            core = max(max_width, CORE_WIDTH_FACTOR * typical)
+        linked = min(LINKED_WIDTH_FACTOR * core, WIDTH_CAP_PX)
+    choice = np.zeros(n, np.int8)
+    if policy == 1:  # nearest
+        for j in range(js, je):
+            e = expected[ca + j]
+            if ncand[j] == 2 and math.isfinite(e):
+                if abs(float(a2[j]) - e) < abs(float(am[j]) - e):
+                    choice[j] = 1
+    elif policy == 2 and maybe_double:  # continuity, when some column may hold two candidates
+        choice[js:je] = -1
+        _continuity(ncand[js:je], mx[js:je], am[js:je], sec[js:je], a2[js:je], expected, c0,
+                    choice[js:je])
+    # the chosen peak of each column and its class for the gates
+    klass = np.full(n, _REJECTED, np.int8)
+    arow = np.zeros(n, np.int64)
+    wsel = np.full(n, np.inf)
+    yrow = np.full(n, np.nan)
+    for j in range(js, je):
+        c = ca + j
+        n_peaks[c] = ncand[j]
+        if ncand[j] == 0:
+            peak[c] = float(mx[j])
+            snr[c] = (float(mx[j]) - bloc[j]) / sig
+            o = float(out[j])
+            reason[c] = 8 if (o > threshold and o >= floor) else 1  # OUTSIDE_WINDOW / NO_PEAK
+            continue
+        if choice[j] == 1:
+            p = float(sec[j])
+            a = int(a2[j])
+            b = local_background(img, c, a, h, BACKGROUND_NEAR_WINDOWS * window,
+                                 BACKGROUND_FAR_WINDOWS * window, med)
+            t_c, f_c = _levels(auto, thr, b, sig)
+            if not (p > t_c and p >= f_c):  # the reflection does not stand clear of its own
+                peak[c] = p                 # background
+                snr[c] = (p - b) / sig
+                reason[c] = 1  # NO_PEAK
+                continue
+            est.width_count_cog(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c, window,
+                                _cog_level(b, sig, p), bg, max_walk, stats)
+            wd, above, y_cog = stats[0], stats[1], stats[2]
+        else:
+            p = float(mx[j])
+            a = int(am[j])
+            b = bloc[j]
+            t_c = tloc[j]
+            wd, above, y_cog = wmain[j], nmain[j], ymain[j]
+        peak[c] = p
+        snr[c] = (p - b) / sig
+        bg_sat = b if math.isnan(bg) else bg
+        if p >= SATURATION_DN:
+            if not fit_saturated:
+                reason[c] = 2  # SATURATED
+                continue
+            saturated[c] = True
+        width[c] = wd
+        if wd > linked:
+            reason[c] = 4  # TOO_WIDE
+            continue
+        if policy == 3 and ncand[j] == 2:
+            reason[c] = 3  # DOUBLE
+            continue
+        arow[j] = a
+        wsel[j] = wd
+        if wd < min_width or above < MIN_PIXELS_ABOVE:
+            if snr[c] < NARROW_MIN_SIGMAS:
+                reason[c] = 5  # TOO_NARROW
+                continue
+            klass[j] = _NARROW
+        elif wd > core:
+            klass[j] = _WIDE
+        else:
+            klass[j] = _CORE
+        # the refinement, here while the column's pixels are in the cache (a peak the gates
+        # then reject is refined for nothing: rare)
+        y = math.nan
+        if saturated[c]:
+            y = est.saturated_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig, window,
+                                     bg_sat, max_walk)
+            if not math.isfinite(y):  # too few samples for the fit: a narrow stripe?
+                y = est.narrow_clip_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig,
+                                           bg_sat)
+        elif method == 0:
+            y = y_cog
+        elif method == 1:
+            y = est.gaussian3(img, c, a, h, bg)
+        elif method == 2:
+            y = est.parabola(img, c, a, h)
+        elif method == 3:
+            y = est.blais_rioux(img, c, a, h)
+        else:
+            y0 = est.cog(img, c, a, h, t_c, window, math.nan, max_walk)
+            y = est.lsq_gauss(img, c, a, h, t_c, window, y0, wd) if math.isfinite(y0) else y0
+        yrow[j] = y
+    # the gates: a narrow peak continued by a neighbour's, a wide one by a chain of them from a
+    # stripe within the gate
+    ok = np.zeros(n, np.bool_)
+    for j in range(js, je):
+        if klass[j] == _CORE:
+            ok[j] = True
+        elif klass[j] == _NARROW:
+            for i in (j - 1, j + 1):
+                if (i >= js and i < je and klass[i] != _REJECTED
+                        and _linked(arow[i], wsel[i], arow[j], wsel[j])):
+                    ok[j] = True
+    for j in range(js + 1, je):
+        if (klass[j] == _WIDE and not ok[j] and ok[j - 1]
+                and _linked(arow[j - 1], wsel[j - 1], arow[j], wsel[j])):
+            ok[j] = True
+    for j in range(je - 2, js - 1, -1):
+        if (klass[j] == _WIDE and not ok[j] and ok[j + 1]
+                and _linked(arow[j + 1], wsel[j + 1], arow[j], wsel[j])):
+            ok[j] = True
+    # the peaks that passed
+    for j in range(js, je):
+        if klass[j] == _REJECTED:
+            continue
+        c = ca + j
+        if not ok[j]:
+            reason[c] = 5 if klass[j] == _NARROW else 4  # TOO_NARROW / TOO_WIDE
+        elif not math.isfinite(yrow[j]):
+            reason[c] = 6  # FIT_FAILED
+        else:
+            row[c] = yrow[j]
+            reason[c] = 0
+    return core
