@@ -42,8 +42,7 @@ from threadpoolctl import threadpool_limits
 
 from scanner_core.edges.kinds import EDGE_KIND_NAMES, kind_counts, reclassify_with_model
 from scanner_core.edges import EdgeKind
-from scanner_core.pipeline.exposure import ExposureController
-from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
+from scanner_core.pipeline.session import run_session
 from scanner_core.pose.registration import scan_pose
 from benchmarks.parts import (MISPLACEMENT_SEED, MISPLACEMENT_UP_TO_DEG, MISPLACEMENT_UP_TO_MM,
                               REFERENCE_PARTS, random_misplacement)
@@ -122,20 +121,10 @@ def _misplacements(name: str, count: int) -> list:
 
 
 def _pass(part: Part, cell, values, seed: int):
-    """One simulated pass as ``run_simulated_scan`` makes it; the scan and the devices."""
+    """One simulated pass as ``run_simulated_scan`` makes it (the pass session, no pose); the
+    scan and the devices (their truth)."""
     sim = simulated_cell(part, cell, misplacement=misplacement_matrix(values), seed=seed)
-    params = PipelineParams()
-    warm_up(cell.calibration, params)
-    sim.camera.open()
-    sim.robot.connect()
-    try:
-        exposure = ExposureController(sim.camera, params.exposure, cell.pass_profile.fps)
-        scan = run_pass(camera_frames(sim.camera), cell.calibration, sim.robot, params,
-                        exposure=exposure, clock_offset_s=cell.calibration.clock_offset_s)
-    finally:
-        sim.camera.close()
-        sim.robot.disconnect()
-    return scan, sim
+    return run_session(sim.camera, sim.robot, cell.calibration, register=False).scan, sim
 
 
 def _figures(acc: dict) -> dict:

@@ -17,8 +17,8 @@ from threadpoolctl import threadpool_limits
 
 from flyscan import bench, calibrate, parts, plan, record, scan, serve, simulate
 from flyscan.common import (EXIT_SCAN_FAILED, HelpFormatter, ScanError,
-                                ScanFailed, UsageError, check_frame_spacing, join_number_lists,
-                                version)
+                            ScanFailed, UsageError, check_frame_spacing, join_number_lists,
+                            version)
 
 __all__ = ["main", "build_parser", "parse_args", "UsageError", "ScanError", "ScanFailed",
            "check_frame_spacing"]

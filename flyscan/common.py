@@ -10,7 +10,7 @@ from pathlib import Path
 __all__ = ["UsageError", "ScanError", "ScanFailed", "EXIT_SCAN_FAILED", "MAX_SPEED_MM_S",
            "MAX_FPS", "non_negative_int", "join_number_lists", "HelpFormatter",
            "version", "check_out_dir", "check_frame_spacing", "check_part_args",
-           "load_part_model"]
+           "load_part_model", "print_pose", "write_scan_files"]
 
 
 class UsageError(ValueError):
@@ -187,3 +187,19 @@ def print_pose(report: dict) -> None:
         print(f"pose: act: {words}")
     else:
         print(f"pose: do not act: {'; '.join(pose.get('act_reasons') or [])}")
+
+
+def write_scan_files(out, scan, report) -> dict:
+    """The scan's files (``flyscan scan`` and ``flyscan replay``): a failed pass keeps its
+    report (what was acquired, why it failed) and writes no cloud that could pass for a scan:
+    ScanFailed after writing it."""
+    from scanner_core.fileio import save_json_atomic
+    from scanner_core.io.scanfiles import save_scan
+
+    if report.get("state") == "failed":
+        out.mkdir(parents=True, exist_ok=True)
+        save_json_atomic(out / "report.json", report)
+        raise ScanFailed(f"{report['reason']}; the pass's report: {out / 'report.json'}")
+    paths = save_scan(out, scan, report)
+    print_pose(report)
+    return paths

@@ -6,9 +6,9 @@ import sys
 import time
 from pathlib import Path
 
-from flyscan.common import (ScanError, ScanFailed, UsageError, add_act_tolerance,
-                                check_out_dir, check_part_args, load_part_model, pose_params,
-                                print_pose)
+from flyscan.common import (ScanError, UsageError, add_act_tolerance,
+                            check_out_dir, check_part_args, load_part_model, pose_params,
+                            write_scan_files)
 
 __all__ = ["add_parsers", "run_record", "run_replay"]
 
@@ -68,7 +68,6 @@ def run_record(args) -> int:
 
 
 def run_replay(args) -> int:
-    from scanner_core.io.scanfiles import save_scan
     from scanner_core.recording import RecordingError, load_recording
     from scanner_core.recording.replay import replay_pass
 
@@ -87,15 +86,10 @@ def run_replay(args) -> int:
     report["replay"] = {"recording": str(args.recording), "frames": recording.frame_count,
                         "wall_s": round(wall_s, 3),
                         "times_real_time": round(recorded_s / wall_s, 2) if wall_s > 0 else None}
-    if outcome.state == "failed":
-        report.update(status="failed", failure=outcome.reason)
-    paths = save_scan(args.out, scan, report)
     print(f"replayed {recording.frame_count} frames ({recorded_s:.2f} s of camera time) in "
           f"{wall_s:.2f} s, {recorded_s / wall_s:.1f} x real time: {scan.frames} profiles, "
           f"{len(scan.cloud)} points")
-    print_pose(report)
+    paths = write_scan_files(args.out, scan, report)  # ScanFailed for a failed pass
     for key, path in paths.items():
         print(f"{key}: {path}")
-    if outcome.state == "failed":
-        raise ScanFailed(outcome.reason)
     return 0

@@ -3,26 +3,25 @@
 
 - ``--sim`` (the default when no other source is given): the simulated cell
   (``simulator.session.run_simulated_scan``), with the truth's figures in the report;
-- ``--recording DIR``: a recorded pass (``scanner_core.recording.replay.replay_pass``), finished as the live
-  pass was, against the part the recording holds or ``--part``;
+- ``--recording DIR``: a recorded pass (``scanner_core.recording.replay.replay_pass``), run
+  and finished as the live pass was, against the part the recording holds or ``--part``;
 - ``--camera SPEC [--robot ur://HOST]``: a real cell: the trigger is armed on the camera's
-  stream, one pass through the sheet is scanned (``scanner_core.pipeline.run_pass``) and
-  finished (``scanner_core.pipeline.finish.finish_pass``) with the calibration given.
+  stream and one pass through the sheet is scanned with the calibration given.
 
-Every source ends with the same pass finisher, so the same pass gives the same report.
+Every source runs the same pass session (``scanner_core.pipeline.session.run_session``) and
+its finisher, so the same pass gives the same report; a failed pass writes its report alone.
 """
 from __future__ import annotations
 
 import dataclasses
-import math
 import sys
 import time
 from pathlib import Path
 
-from flyscan.common import (MAX_FPS, MAX_SPEED_MM_S, ScanError, ScanFailed, UsageError,
-                                add_act_tolerance, check_frame_spacing, check_out_dir,
-                                check_part_args, load_part_model, non_negative_int,
-                                pose_params, print_pose)
+from flyscan.common import (MAX_FPS, MAX_SPEED_MM_S, ScanError, UsageError,
+                            add_act_tolerance, check_frame_spacing, check_out_dir,
+                            check_part_args, load_part_model, non_negative_int, pose_params,
+                            write_scan_files)
 
 __all__ = ["add_parser", "run"]
 
@@ -180,7 +179,7 @@ def _simulated(args) -> int:
                                       evaluate=not args.no_eval, pose_params=pose_params(args))
     _check_marker(scan, params)
     report["wall_s"] = round(time.perf_counter() - t0, 3)
-    paths = _write(args.out, scan, report)
+    paths = write_scan_files(args.out, scan, report)
     acc = report["ground_truth"].get("accuracy", {})
     print(f"scanned {part.name}: {report['frames']} frames, {report['points']} points, "
           f"processing {report['timings_ms']['processing']:.0f} ms for "
@@ -192,6 +191,7 @@ def _simulated(args) -> int:
 
 
 def _from_recording(args) -> int:
+    from scanner_core.pipeline.session import recorded_params
     from scanner_core.recording import RecordingError, load_recording
     from scanner_core.recording.replay import replay_pass
 
@@ -200,7 +200,9 @@ def _from_recording(args) -> int:
     except RecordingError as exc:
         raise UsageError(str(exc)) from None
     part = load_part_model(args)
-    params = _recorded_params(recording, args)
+    params = recorded_params(recording,
+                             stripe_method=None if args.method == "cog" else args.method,
+                             exposure_mode=None if args.exposure == "fixed" else args.exposure)
     if args.calibration is not None:
         from scanner_core.geometry.calibration import load_calibration
 
@@ -212,7 +214,7 @@ def _from_recording(args) -> int:
                           source={"recording": str(args.recording)})
     wall_s = time.perf_counter() - t0
     outcome.report["wall_s"] = round(wall_s, 3)
-    paths = _write(args.out, outcome.scan, outcome.report)
+    paths = write_scan_files(args.out, outcome.scan, outcome.report)
     print(f"scanned the recorded pass {args.recording}: {outcome.scan.frames} profiles, "
           f"{len(outcome.scan.cloud)} points, {wall_s:.2f} s")
     return _done(paths)
@@ -220,10 +222,10 @@ def _from_recording(args) -> int:
 
 def _from_cell(args) -> int:
     from scanner_core.geometry.calibration import load_calibration
-    from scanner_core.pipeline.exposure import ExposureController, ExposureParams
-    from scanner_core.pipeline.finish import CrossCheckState, finish_pass
-    from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
-    from scanner_core.pipeline.trigger import EndReason, TriggerParams
+    from scanner_core.pipeline import PipelineParams
+    from scanner_core.pipeline.exposure import ExposureParams
+    from scanner_core.pipeline.session import run_session
+    from scanner_core.pipeline.trigger import TriggerParams
     from service.cameras import open_camera
     from service.robots import open_robot
 
@@ -240,28 +242,16 @@ def _from_cell(args) -> int:
         raise UsageError(str(exc)) from None
     params = PipelineParams(stripe_method=args.method, exposure=ExposureParams(mode=args.exposure),
                             trigger=TriggerParams(arm_timeout_s=args.timeout))
-    warm_up(calibration, params)
-    camera.open()
-    try:
-        calibration.check_image_size(camera.width, camera.height)
-        robot.connect()
-        print(f"armed: waiting for a pass through the sheet ({args.timeout:g} s)",
-              file=sys.stderr, flush=True)
-        t0 = time.perf_counter()
-        exposure = ExposureController(camera, params.exposure, getattr(camera, "fps", 0.0) or 0.0)
-        scan = run_pass(camera_frames(camera, timeout=max(1.0, args.timeout)), calibration,
-                        robot, params, clock_offset_s=calibration.clock_offset_s,
-                        exposure=exposure)
-        _check_marker(scan, params)
-        outcome = finish_pass(scan, EndReason(scan.end_reason) if scan.end_reason else None,
-                              robot, CrossCheckState(clock_offset_s=calibration.clock_offset_s),
-                              part, pose_params=pose_params(args), detail=scan.interrupted,
-                              source={"camera": args.camera, "robot": args.robot})
-    finally:
-        camera.close()
-        robot.disconnect()
+    print(f"armed: waiting for a pass through the sheet ({args.timeout:g} s)",
+          file=sys.stderr, flush=True)
+    t0 = time.perf_counter()
+    outcome = run_session(camera, robot, calibration, params=params, part_model=part,
+                          pose_params=pose_params(args),
+                          frames_timeout_s=max(1.0, args.timeout),
+                          source={"camera": args.camera, "robot": args.robot})
+    _check_marker(outcome.scan, params)
     outcome.report["wall_s"] = round(time.perf_counter() - t0, 3)
-    paths = _write(args.out, outcome.scan, outcome.report)
+    paths = write_scan_files(args.out, outcome.scan, outcome.report)
     print(f"scanned a pass from {args.camera}: {outcome.scan.frames} profiles, "
           f"{len(outcome.scan.cloud)} points")
     return _done(paths)
@@ -271,42 +261,11 @@ def _from_cell(args) -> int:
 # Shared
 # --------------------------------------------------------------------------------------------
 
-def _recorded_params(recording, args):
-    """The pipeline's parameters the recording was made with, with ``--method`` and
-    ``--exposure`` when given otherwise than by default."""
-    from scanner_core.pipeline.exposure import ExposureParams
-    from scanner_core.pipeline import PipelineParams
-    from scanner_core.pipeline.trigger import TriggerParams
-
-    settings = recording.settings
-    trigger = TriggerParams(**{**settings.get("trigger", {}), "arm_timeout_s": math.inf})
-    method = args.method if args.method != "cog" else settings.get("stripe_method", "cog")
-    mode = args.exposure if args.exposure != "fixed" else settings.get("exposure_mode", "fixed")
-    return dataclasses.replace(PipelineParams(), trigger=trigger, stripe_method=method,
-                               exposure=ExposureParams(mode=mode))
-
-
 def _check_marker(scan, params) -> None:
     if scan.marker_residual_px > params.max_marker_residual_px:
         raise ScanError(
             f"the marker's three views disagree (median residual {scan.marker_residual_px:.2f} px "
             f"over {scan.frames + scan.frames_unplaced} frames): does the calibration fit the cell?")
-
-
-def _write(out, scan, report) -> dict:
-    """The scan's files; a failed pass keeps its report (what was acquired, why it failed)
-    and writes no cloud that could pass for a scan. ScanFailed after writing it."""
-    from scanner_core.fileio import save_json_atomic
-    from scanner_core.io.scanfiles import save_scan
-
-    if report.get("state") == "failed":
-        report.update(status="failed", failure=report["reason"])
-        out.mkdir(parents=True, exist_ok=True)
-        save_json_atomic(out / "report.json", report)
-        raise ScanFailed(f"{report['reason']}; the pass's report: {out / 'report.json'}")
-    paths = save_scan(out, scan, report)
-    print_pose(report)
-    return paths
 
 
 def _done(paths: dict) -> int:

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from scanner_core.calibration.plan import (TILT_DEG, TILTED_FRACTION, CalibrationPlan, PlanGeometry,
-                                  make_plan, plan_from_dict, plan_to_dict)
+                                           make_plan, plan_from_dict, plan_to_dict)
 from scanner_core.calibration.session import SessionWriter, calibrate_session, load_session
 from scanner_core.geometry.calibration import save_calibration
 from scanner_core.fileio import save_json_atomic

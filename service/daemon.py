@@ -22,7 +22,7 @@ from pathlib import Path
 
 from clients.placement import correction_entry
 from scanner_core.geometry.calibration import (Calibration, check_cell_geometry, check_marker_track,
-                                      load_calibration, save_calibration)
+                                               load_calibration, save_calibration)
 from scanner_core.pipeline.exposure import ExposureParams
 from scanner_core.pipeline import PipelineParams
 from scanner_core.pipeline.finish import CrossCheckState
@@ -297,12 +297,12 @@ class Service:
 
         threading.Thread(target=go, name="flyscan-driver-pass", daemon=True).start()
 
-    def _on_scan(self, job: ScanJob, scan: Scan, finish) -> None:
-        """Finisher thread: `_finish_scan`; whatever it raises fails the scan with the reason,
+    def _on_scan(self, job: ScanJob, scan: Scan, finish_with) -> None:
+        """Finisher thread: `_publish_and_store`; whatever it raises fails the scan with the reason,
         and the scan is then served (from memory if the store cannot take it) and deletable:
         never ``processing`` for ever."""
         try:
-            self._finish_scan(job, scan, finish)
+            self._publish_and_store(job, scan, finish_with)
         except Exception as exc:
             log.exception("scan %s could not be finished", job.scan_id)
             job.state = "failed"
@@ -320,9 +320,9 @@ class Service:
                                               **self.status(), "scan_state": job.state,
                                               "reason": job.reason, "points": 0})
 
-    def _finish_scan(self, job: ScanJob, scan: Scan, finish) -> None:
-        """Finisher thread: publish the cloud, end the pass (``finish``: verdict, cross-check,
-        pose, edges), publish the pose as soon as it is known (before the edge points'
+    def _publish_and_store(self, job: ScanJob, scan: Scan, finish_with) -> None:
+        """Finisher thread: publish the cloud, finish the pass (``finish_with``: the pose, the
+        cross-check, the edges, the report), publish the pose as soon as it is known (before the edge points'
         reclassification, the report and the store: the robot waits for it alone), then the
         edges, store. A failure to store fails the scan (on ``status`` and REST; the pose has
         gone out by then), and its info stays served from memory (``RECENT_JOBS``)."""
@@ -388,11 +388,9 @@ class Service:
                                           on_sent=on_pose_sent):
                 pose_sent.set()  # the queue was full: counted as dropped, nothing to wait for
 
-        result = finish(model, on_pose=on_pose)
+        result = finish_with(model, on_pose=on_pose)
         report = result.report
         report["part_version"] = job.part_version
-        if result.state == "done" and model is None:
-            report["pose"] = {"refused": f"no CAD model for part {job.part!r}"}
         if result.state == "done" and job.taught_place is not None:
             report["correction"] = self._correction(job, report.get("pose"), model)
         if "pose" in result.timings_ms:

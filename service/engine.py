@@ -63,9 +63,9 @@ class Engine:
         The devices (simulated or real: the engine cannot tell).
     calibration : Calibration
     params : PipelineParams
-    on_scan : callable(job, scan, finish)
+    on_scan : callable(job, scan, finish_with)
         Called on the finisher thread when a scan is over, with the scan (empty when no frame
-        was placed) and ``finish(part_model, on_pose=None)``, which ends the pass
+        was placed) and ``finish_with(part_model, on_pose=None)``, which finishes the pass
         (``scanner_core.pipeline.finish.finish_pass``: verdict, cross-check, pose, report; ``on_pose``
         as there: called as soon as the pose is known), updates the
         job's state and the engine's cross-check state, and returns the ``PassOutcome``; the
@@ -134,7 +134,7 @@ class Engine:
             self.robot.connect()
         except (OSError, RuntimeError) as exc:  # the cross-check degrades, scans go on
             log.warning("robot not connected: %s", exc)
-        targets = [("acquisition", self._acquire), ("finisher", self._finish_loop)]
+        targets = [("acquisition", self._acquire), ("finisher", self._finisher_loop)]
         targets += [(f"worker-{k}", self._work) for k in range(self.n_workers)]
         for name, target in targets:
             thread = threading.Thread(target=target, name=f"flyscan-{name}", daemon=True)
@@ -433,7 +433,7 @@ class Engine:
         except Exception:  # the pass's end assembles and computes as ever
             log.exception("scan ahead of %s failed", job.scan_id)
 
-    def _finish_loop(self) -> None:
+    def _finisher_loop(self) -> None:
         while True:
             item = self._ended.get()
             if item is None:
@@ -443,13 +443,13 @@ class Engine:
                 self._pose_ahead(job)
                 continue
             try:
-                self._finish(job, reason)
+                self._assemble_and_finish(job, reason)
             except Exception as exc:  # the scan fails with the reason; the finisher goes on
                 log.exception("scan %s could not be finished", job.scan_id)
                 job.state, job.reason = "failed", f"could not be finished: {exc!r}"
             finally:
                 if job.recording is not None:  # after the scan is out: it never waits for it
-                    self._finish_recording(job)
+                    self._close_recording(job)
                 with self._lock:
                     if self._processing_job is job:
                         self.trigger.finish()
@@ -460,7 +460,7 @@ class Engine:
                 job.finished = time.time()
                 job.accumulator = job.ahead = None  # the scan is out: not kept in memory
 
-    def _finish_recording(self, job: ScanJob) -> None:
+    def _close_recording(self, job: ScanJob) -> None:
         try:
             info = job.recording.finish(self.robot, job.accumulator.clock_offset_s)
         except Exception as exc:  # a recording that fails never fails the scan
@@ -470,7 +470,11 @@ class Engine:
         if self.on_recorded is not None:
             self.on_recorded(job, info)
 
-    def _finish(self, job: ScanJob, reason: EndReason) -> None:
+    def _assemble_and_finish(self, job: ScanJob, reason: EndReason) -> None:
+        """Finisher thread: the pass's scan assembled from its profiles and judged (the verdict
+        goes out with the cloud); the daemon's ``on_scan`` then finishes it with the part's
+        model (``finish_with``: ``scanner_core.pipeline.finish.finish_pass``), publishes and
+        stores it."""
         t0 = time.perf_counter()
         job.latency_ms["finisher_monotonic"] = time.monotonic()  # the daemon's breakdown
         if not job.wait_processed(timeout=FINISH_WAIT_S):
@@ -485,22 +489,23 @@ class Engine:
                            "assemble": round((time.perf_counter() - t1) * 1e3, 3)}
         if scan.frames > scan.frames_held_rotation:  # the robot gave this pass's rotation
             self.last_rotation_b = scan.tcp_rotations_b[-1].copy()
-        # the verdict now (the cloud goes out with it); finish() comes to the same
+        # the verdict now (the cloud goes out with it), handed to the finisher
         failure = pass_failure(scan, reason, detail=job.end_detail, note=job.note,
                                frames_lost=job.frames_dropped, queue_overflows=job.queue_overflows,
                                worker_errors=job.worker_errors)
         job.state = "failed" if failure else "done"
         job.reason = failure or job.reason
 
-        def finish(part_model, on_pose=None) -> PassOutcome:
+        def finish_with(part_model, on_pose=None) -> PassOutcome:
             outcome = finish_pass(
                 scan, reason, self.robot, self.cross_check_state, part_model,
                 pose_params=self.pose_params, scan_id=job.scan_id, detail=job.end_detail,
                 note=job.note, frames_lost=job.frames_dropped,
                 queue_overflows=job.queue_overflows, worker_errors=job.worker_errors,
-                on_pose=on_pose, pose_ahead=job.ahead, part=job.part, created=job.created)
+                verdict=(failure,), on_pose=on_pose, pose_ahead=job.ahead, part=job.part,
+                created=job.created)
             self.cross_check_state = outcome.cross_check_state
             job.state, job.reason = outcome.state, outcome.reason
             return outcome
 
-        self.on_scan(job, scan, finish)
+        self.on_scan(job, scan, finish_with)

@@ -1,9 +1,9 @@
 """A simulated pass, end to end: the simulated cell drives the same pipeline as the real one.
 
 ``flyscan scan``, the benchmarks and the tests call :func:`run_simulated_scan`; it builds the
-devices, feeds the camera's frames and the robot to ``scanner_core.pipeline.run_pass``, ends
-the pass as every pass ends (``scanner_core.pipeline.finish.finish_pass``: verdict, cross-check, pose,
-edges, report), and scores the cloud against the truth.
+devices and hands them to the pass session every source drives
+(``scanner_core.pipeline.session.run_session``: the pass run and finished as every pass is),
+then scores the cloud against the truth.
 """
 from __future__ import annotations
 
@@ -14,12 +14,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from scanner_core.geometry.calibration import Calibration
-from scanner_core.pipeline.exposure import ExposureController
-from scanner_core.pipeline.finish import CrossCheckState, finish_pass
-from scanner_core.pipeline import PipelineParams, camera_frames, run_pass, warm_up
+from scanner_core.pipeline import PipelineParams
+from scanner_core.pipeline.session import run_session
 from scanner_core.pose.registration import PoseParams, PoseResult
 from scanner_core.pose.symmetry import nearest_equivalent
-from scanner_core.pipeline.trigger import EndReason
 from scanner_core.types import Scan
 from simulator.cell import Cell
 from simulator.devices import SimCamera, SimClock, SimRobot
@@ -107,24 +105,12 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
     """
     sim = simulated_cell(part, cell, misplacement=misplacement, seed=seed, drop_rate=drop_rate)
     calibration = cell.calibration if calibration is None else calibration
-    warmup_ms = warm_up(calibration, params)
-    sim.camera.open()
-    sim.robot.connect()
-    try:
-        exposure = ExposureController(sim.camera, params.exposure, cell.pass_profile.fps)
-        scan = run_pass(camera_frames(sim.camera), calibration, sim.robot, params,
-                        exposure=exposure, clock_offset_s=calibration.clock_offset_s)
-        outcome = finish_pass(scan, EndReason(scan.end_reason) if scan.end_reason else None,
-                              sim.robot, CrossCheckState(clock_offset_s=calibration.clock_offset_s),
-                              part if pose else None, pose_params=pose_params,
-                              detail=scan.interrupted)
-    finally:
-        sim.camera.close()
-        sim.robot.disconnect()
-    report, result = outcome.report, outcome.pose
+    outcome = run_session(sim.camera, sim.robot, calibration, params=params,
+                          part_model=part if pose else None, register=pose,
+                          pose_params=pose_params)
+    scan, report, result = outcome.scan, outcome.report, outcome.pose
     processing_ms = report["timings_ms"]["processing"]
-    report["timings_ms"]["warmup"] = round(warmup_ms, 3)
-    report["timings_ms"].update(outcome.timings_ms)  # finish_pass's cross-check and pose
+    report["timings_ms"].update(outcome.timings_ms)  # the warm-up, the cross-check, the pose
     # The pass's span on the camera clock, frames lost or unplaced included.
     camera_time_s = (scan.frames + scan.frames_unplaced + scan.frames_dropped) / cell.pass_profile.fps
     report["camera_time_s"] = camera_time_s

@@ -24,15 +24,15 @@ import numpy as np
 
 from scanner_core.geometry.calibration import Calibration
 from scanner_core.calibration.folder import (SESSION_FORMAT, SESSION_VERSION, Session,
-                                            SessionError, SessionWriter, load_session,
-                                            write_session)
+                                             SessionError, SessionWriter, load_session,
+                                             write_session)
 from scanner_core.pipeline.crosscheck import estimate_led_and_clock, led_offset_spread
 from scanner_core.geometry import Plane
 from scanner_core.calibration.ledpivot import led_from_robot_poses
 from scanner_core.marker.finder import find_markers
 from scanner_core.pipeline import PipelineParams, camera_frames, frame_stripe, run_pass
 from scanner_core.calibration.plane import (PlaneUncertainty, calibrate_plane, jackknife_covariance,
-                                   plane_parameters, sphere_plane)
+                                            plane_parameters, sphere_plane)
 from scanner_core.types import MarkerObservation
 from scanner_core.calibration.views import calibrate_views, fit_physical, project_views, views_as_mirrors
 

@@ -76,17 +76,17 @@ References
 from __future__ import annotations
 
 from scanner_core.edges.filters import (CHAIN_DEG, CHAIN_FRAMES, CHAIN_MIN_MM, CHAIN_SPACINGS,
-                                       CHAMFER_MAX_LEVEL, CHAMFER_MIN_GAIN, CHAMFER_MIN_POINTS,
-                                       GRAZING_DEG, LONE_PROFILE_REACH, chamfered_dropouts,
-                                       grazing_edges, occluded_dropouts)
+                                        CHAMFER_MAX_LEVEL, CHAMFER_MIN_GAIN, CHAMFER_MIN_POINTS,
+                                        GRAZING_DEG, LONE_PROFILE_REACH, chamfered_dropouts,
+                                        grazing_edges, occluded_dropouts)
 from scanner_core.edges.kernel import (BEND_NOISE_FACTOR, CURL_MAX_TURNS, CURL_MIN_TURNS,
-                                      CURL_NOISE_FACTOR, CURL_PX, CURL_SHARE, DOUBLE_SHARE,
-                                      END_FACE_FROM, END_FACE_PX, FAR_SIDE_SIGMAS, FLANK_RISE,
-                                      LEVEL_PX, MAD_TO_SIGMA, MIN_NOISE_SAMPLES,
-                                      RESOLVED_STEP_FRACTION, ROW_BEND_PX,
-                                      SHORT_SIDE_STEP_FACTOR)
+                                       CURL_NOISE_FACTOR, CURL_PX, CURL_SHARE, DOUBLE_SHARE,
+                                       END_FACE_FROM, END_FACE_PX, FAR_SIDE_SIGMAS, FLANK_RISE,
+                                       LEVEL_PX, MAD_TO_SIGMA, MIN_NOISE_SAMPLES,
+                                       RESOLVED_STEP_FRACTION, ROW_BEND_PX,
+                                       SHORT_SIDE_STEP_FACTOR)
 from scanner_core.edges.profile import (MIN_COLUMN_COMPONENT, EdgeKind, EdgeParams, EdgePoints,
-                                       find_edges, profile_axes)
+                                        find_edges, profile_axes)
 
 __all__ = ["EdgeKind", "EdgeParams", "EdgePoints", "find_edges", "occluded_dropouts",
            "grazing_edges", "chamfered_dropouts", "profile_axes",

@@ -18,8 +18,8 @@ from scanner_core.geometry.model import (NO_DISTORTION, PARALLEL_COS, UNDISTORT_
                                          check_rigid, distort_normalized, reflection_matrix,
                                          undistort_normalized, unit)
 from scanner_core.geometry.triangulation import (MAX_RAY_CONDITION, MarkerViews, marker_views,
-                                        reproject_marker, triangulate_marker, triangulate_rays,
-                                        triangulate_stripe)
+                                                 reproject_marker, triangulate_marker, triangulate_rays,
+                                                 triangulate_stripe)
 
 __all__ = ["PARALLEL_COS", "UNDISTORT_ITERATIONS", "UNDISTORT_TOL", "MAX_RAY_CONDITION",
            "NO_DISTORTION", "unit", "angle_between", "reflection_matrix", "check_rigid",

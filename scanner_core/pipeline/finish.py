@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from scanner_core.pipeline.crosscheck import (DEFAULT_TOLERANCE_MM, MAX_DRIFT_STEP_S, MAX_OFFSET_STEP_S,
-                                     cross_check)
+                                              cross_check)
 from scanner_core.devices import Robot
 from scanner_core.edges.kinds import reclassify_with_model
 from scanner_core.pose.ahead import PoseAhead, inputs_pose_report
@@ -248,11 +248,11 @@ def _await_reports(robot: Robot, tcp_times, clock_offset_s: float,
 
 
 def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
-                state: CrossCheckState, part_model=None, *, pose_params=None,
-                scan_id: str | None = None, detail: str | None = None, note: str | None = None,
-                frames_lost: int = 0, queue_overflows: int = 0, worker_errors=(),
-                on_pose=None, pose_ahead: PoseAhead | None = None,
-                **report_extra) -> PassOutcome:
+                state: CrossCheckState, part_model=None, *, register: bool = True,
+                pose_params=None, scan_id: str | None = None, detail: str | None = None,
+                note: str | None = None, frames_lost: int = 0, queue_overflows: int = 0,
+                worker_errors=(), verdict=None, on_pose=None,
+                pose_ahead: PoseAhead | None = None, **report_extra) -> PassOutcome:
     """A finished pass's verdict, cross-check, pose, edges and report.
 
     Parameters
@@ -265,19 +265,25 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
         or a recording's samples); None: no cross-check.
     state : CrossCheckState
     part_model : scanner_core.cad.PartModel, optional
-        The part's CAD model; None: no pose.
+        The part's CAD model; None: no pose, and the report's pose says why (the part
+        ``report_extra["part"]`` names has no model).
+    register : bool
+        Ask for the pose; False: the report's pose is None (a pass scanned for its cloud).
     pose_params : scanner_core.pose.registration.PoseParams, optional
     scan_id : str, optional
         Named in the report, and as where a learned LED correction came from.
     detail, note, frames_lost, queue_overflows, worker_errors
         As for :func:`pass_failure`.
+    verdict : tuple, optional
+        ``(pass_failure(...),)`` when the caller has judged the pass already (the service,
+        to send the cloud out with its state): not judged again.
     on_pose : callable(pose_report, timings_ms), optional
         Called as soon as the pose is known (or refused), before anything the robot does not
         need (the edge points' reclassification, the report): the service publishes the pose
         from it, so the robot never waits for those. ``pose_report`` is what the outcome's
         ``pose_report`` will be; ``timings_ms`` the timings so far (``pose``, ``normals``,
         ``registration``: the cross-check comes after the pose, which does not use it). Not
-        called when no pose is asked for (no model, a failed pass).
+        called when no pose is asked for (``register`` False, a failed pass).
     pose_ahead : scanner_core.pose.ahead.PoseAhead, optional
         A pose computed before the pass ended (``scanner_core.pose.ahead.pose_ahead``): kept
         when this scan's pose inputs, model and params are its own (then ``timings_ms`` has
@@ -293,10 +299,17 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
     from scanner_core.pose.registration import PoseParams
 
     timings = {}
-    failure = pass_failure(scan, end_reason, detail=detail, note=note, frames_lost=frames_lost,
-                           queue_overflows=queue_overflows, worker_errors=worker_errors)
+    failure = verdict[0] if verdict is not None else pass_failure(
+        scan, end_reason, detail=detail, note=note, frames_lost=frames_lost,
+        queue_overflows=queue_overflows, worker_errors=worker_errors)
     pose = pose_report = None
-    if failure is None and part_model is not None:
+    if failure is None and register and part_model is None:
+        named = report_extra.get("part")
+        pose_report = {"refused": "no CAD model" + (f" for part {named!r}" if named else "")}
+        timings["pose"] = 0.0
+        if on_pose is not None:
+            on_pose(pose_report, dict(timings))
+    if failure is None and register and part_model is not None:
         t0 = time.perf_counter()
         params = pose_params or PoseParams()
         inputs = ScanPoseInputs.of(scan)
@@ -330,6 +343,8 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
     report = scan_report(scan, check, state=state_name, reason=failure or ended,
                          **report_extra)
     report["pose"] = pose_report
+    if failure:
+        report.update(status="failed", failure=failure)
     timings["report"] = round((time.perf_counter() - t0) * 1e3, 3)
     return PassOutcome(state=state_name, reason=failure or ended, scan=scan, cross_check=check,
                        pose=pose, pose_report=pose_report, report=report,

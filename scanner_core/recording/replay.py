@@ -143,81 +143,59 @@ class ReplayRobot(RobotConnection):
 
 
 def replay_recording(recording: Recording, params=None):
-    """Run a recorded pass through the offline pipeline as it ran live.
+    """The scan of a recorded pass, run through the pipeline as it ran live, unfinished by a
+    pose (:func:`replay_pass` finishes it).
 
     Parameters
     ----------
     recording : Recording
     params : scanner_core.pipeline.PipelineParams, optional
-        Default: the stripe method and trigger settings the recording was made with
-        (``settings["stripe_method"]``, ``settings["trigger"]``), with no arming timeout (the
-        recording ends by itself).
+        Default: those the recording was made with
+        (``scanner_core.pipeline.session.recorded_params``).
 
     Returns
     -------
     scanner_core.types.Scan
-        The scan of the recording's pass (``run_pass`` on the replayed camera and robot, with
-        the clock offset the pass ran with, ``settings["clock_offset_s"]``).
     """
-    from dataclasses import replace
-
-    from scanner_core.pipeline.exposure import ExposureParams
-    from scanner_core.pipeline import PipelineParams, camera_frames, run_pass
-    from scanner_core.pipeline.trigger import TriggerParams
-
-    settings = recording.settings
-    if params is None:
-        trigger = TriggerParams(**{**settings.get("trigger", {}), "arm_timeout_s": math.inf})
-        params = replace(PipelineParams(), trigger=trigger,
-                         stripe_method=settings.get("stripe_method", "cog"),
-                         exposure=ExposureParams(mode=settings.get("exposure_mode", "fixed")))
-    camera, robot = ReplayCamera(recording), ReplayRobot(recording.robot_samples)
-    camera.open()
-    robot.connect()
-    try:
-        return run_pass(camera_frames(camera), recording.calibration, robot, params,
-                        clock_offset_s=float(settings.get("clock_offset_s", 0.0)))
-    finally:
-        camera.close()
-        robot.disconnect()
+    return replay_pass(recording, params=params, register=False).scan
 
 
 def replay_pass(recording: Recording, part=None, *, params=None, pose_params=None,
-                **report_extra):
-    """A recorded pass, finished as the live one was (``scanner_core.pipeline.finish.finish_pass``).
+                register: bool = True, **report_extra):
+    """A recorded pass, run and finished as the live one was: the pass session
+    (``scanner_core.pipeline.session.run_session``) on the recording's camera and robot.
 
     Parameters
     ----------
     recording : Recording
     part : scanner_core.cad.PartModel, optional
-        Default: the part the recording holds (``Recording.part``); None there too: no pose.
+        Default: the part the recording holds (``Recording.part``); None there too: no pose,
+        and the report says so.
     params : scanner_core.pipeline.PipelineParams, optional
-        As for :func:`replay_recording`.
+        Default: those the recording was made with (``recorded_params``).
     pose_params : scanner_core.pose.registration.PoseParams, optional
+    register : bool
+        Ask for the pose (``finish_pass``).
     **report_extra
         Further ``report.json`` entries.
 
     Returns
     -------
     scanner_core.pipeline.finish.PassOutcome
-        The cross-check runs against the recorded robot samples from the state the live pass
-        started from (``settings["cross_check_state"]``; a recording made before it was kept:
-        its clock offset, nothing learned).
+        The frames placed with the clock offset the pass ran with, the cross-check run
+        against the recorded robot samples from the state the live pass started from
+        (``recorded_state``).
     """
-    from scanner_core.pipeline.finish import CrossCheckState, finish_pass
-    from scanner_core.pipeline.trigger import EndReason
+    from scanner_core.pipeline.session import recorded_params, recorded_state, run_session
 
     settings = recording.settings
-    scan = replay_recording(recording, params)
-    state = CrossCheckState.from_dict(settings.get("cross_check_state") or {
-        "clock_offset_s": float(settings.get("clock_offset_s", 0.0))})
-    part = recording.part() if part is None else part
-    robot = ReplayRobot(recording.robot_samples)
-    robot.connect()
-    try:
-        return finish_pass(scan, EndReason(scan.end_reason) if scan.end_reason else None, robot,
-                           state, part, pose_params=pose_params,
-                           scan_id=settings.get("scan_id"), detail=scan.interrupted,
-                           **report_extra)
-    finally:
-        robot.disconnect()
+    if register and part is None:
+        part = recording.part()
+    return run_session(ReplayCamera(recording), ReplayRobot(recording.robot_samples),
+                       recording.calibration,
+                       params=recorded_params(recording) if params is None else params,
+                       part_model=part, register=register, pose_params=pose_params,
+                       state=recorded_state(recording),
+                       clock_offset_s=float(settings.get("clock_offset_s", 0.0)),
+                       control_exposure=False, scan_id=settings.get("scan_id"),
+                       **{"part": settings.get("part"), **report_extra})

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from scanner_core.geometry.calibration import (CALIBRATION_VERSION, Calibration, CalibrationError,
-                                      load_calibration, save_calibration)
+                                               load_calibration, save_calibration)
 from simulator.cell import load_cell
 from simulator.effects import realistic_cell
 

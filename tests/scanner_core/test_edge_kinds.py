@@ -7,8 +7,8 @@ from numpy.testing import assert_allclose
 from scipy.spatial.transform import Rotation
 
 from scanner_core.edges.kinds import (MODEL_EDGE_TOL_MM, SOFT_CREASE_DEG, STRIPE_LOSS_DEG,
-                                     AsideEdges, ModelEdges, kind_counts, model_distances,
-                                     reclassify_with_model, sheet_range_b, turned_away)
+                                      AsideEdges, ModelEdges, kind_counts, model_distances,
+                                      reclassify_with_model, sheet_range_b, turned_away)
 from scanner_core.edges import EdgeKind
 from scanner_core.types import Scan
 

@@ -7,7 +7,7 @@ import pytest
 
 from scanner_core.devices import ExposureControl
 from scanner_core.pipeline.exposure import (ExposureController, ExposureParams, merge_exposure_pairs,
-                                   next_brightness, split_brightness, stripe_brightness)
+                                            next_brightness, split_brightness, stripe_brightness)
 from scanner_core.stripe.extractor import Reason, extract
 from simulator.imaging import ImageModel, render_image
 

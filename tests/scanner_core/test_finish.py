@@ -97,8 +97,13 @@ def test_the_finisher_learns_the_clock_and_hands_it_on(simulated_pass):
     assert pose["observable"] and np.allclose(pose["matrix"], part.grasp, atol=0.05)
     assert outcome.report["edge_kinds"]["dropout"] + outcome.report["edge_kinds"]["step"] == len(
         outcome.scan.edges)
-    # no model: no pose; a failed pass: no pose either, and its reason
-    assert finish_pass(scan, EndReason.MARKER_GONE, sim.robot, start).report["pose"] is None
+    # no model: the pose says why there is none (the part named); not asked: none at all
+    no_model = finish_pass(scan, EndReason.MARKER_GONE, sim.robot, start, part="bracket")
+    assert no_model.report["pose"] == {"refused": "no CAD model for part 'bracket'"}
+    assert no_model.pose_report == no_model.report["pose"] and no_model.pose is None
+    assert finish_pass(scan, EndReason.MARKER_GONE, sim.robot, start,
+                       register=False).report["pose"] is None
+    # a failed pass: no pose either, and its reason
     failed = finish_pass(scan, EndReason.TIMEOUT, None, start, part)
     assert failed.state == "failed" and failed.report["pose"] is None
     assert failed.cross_check is None and failed.report["reason"].startswith("timeout")

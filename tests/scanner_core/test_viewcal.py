@@ -6,7 +6,7 @@ import pytest
 
 from scanner_core.geometry import angle_between, reproject_marker
 from scanner_core.calibration.views import (ViewCalibrationError, calibrate_views, fit_affine, fit_dlt,
-                                  project_affine, project_dlt)
+                                            project_affine, project_dlt)
 from simulator.cell import load_cell
 from simulator.effects import REAL_LENS_DISTORTION
 

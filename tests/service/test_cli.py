@@ -285,9 +285,9 @@ def _emptied(run, frames_too: bool):
     (True, "no profile could be placed"),
 ])
 def test_a_scan_without_points_fails(tmp_path, capsys, monkeypatch, frames_too, message):
-    import simulator.session
-    monkeypatch.setattr(simulator.session, "run_pass",
-                        _emptied(simulator.session.run_pass, frames_too=frames_too))
+    import scanner_core.pipeline.session as pass_session
+    monkeypatch.setattr(pass_session, "run_pass",
+                        _emptied(pass_session.run_pass, frames_too=frames_too))
     out = tmp_path / "o"
     code = main(["scan", "--demo", "--fps", "60", "--no-eval", "--out", str(out)])
     assert code == 1

@@ -11,8 +11,8 @@ from scanner_core.geometry import apply_transform, base_to_tcp
 from scanner_core.pipeline import PipelineParams, process_frame
 from simulator.evaluate import edge_accuracy, sharp_edges
 from simulator.parts import part_from_mesh
-from simulator.session import (camera_frames, parse_misplacement, run_simulated_scan,
-                               simulated_cell)
+from scanner_core.pipeline import camera_frames
+from simulator.session import parse_misplacement, run_simulated_scan, simulated_cell
 
 #: Float round-off of the distances, um.
 EXACT_UM = 1e-6

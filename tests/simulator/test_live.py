@@ -13,7 +13,8 @@ from simulator.live import LiveSimCell, PassInProgress, frame_image
 from simulator.motion import PassMotion
 from simulator.parts import block_with_holes_and_steps, part_from_mesh
 from simulator.render import PartScene
-from simulator.session import camera_frames, parse_misplacement, simulated_cell
+from scanner_core.pipeline import camera_frames
+from simulator.session import parse_misplacement, simulated_cell
 
 #: Robot clock minus camera clock in the replay, s: any value, to check it is applied.
 CLOCK_OFFSET_S = 12.5

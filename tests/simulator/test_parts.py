@@ -8,9 +8,9 @@ from numpy.testing import assert_allclose
 
 from simulator import parts
 from simulator.parts import (
-    PartError, block_with_holes_and_steps, centred_grasp, check_fits,
-    load_part, load_reference_part, part_from_mesh,
-)
+                             PartError, block_with_holes_and_steps, centred_grasp, check_fits,
+                             load_part, load_reference_part, part_from_mesh,
+                             )
 
 # Tolerance on lengths after unit conversion and float32 STL storage, mm.
 LENGTH_TOL_MM = 1e-4
