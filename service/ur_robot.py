@@ -40,9 +40,9 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanner_core.io import rtde as rtde
+from scanner_core.io import rtde
 from scanner_core.devices import TcpPose
-from scanner_core.io.rtde import MAX_FREQUENCY_HZ, RTDE_PORT
+from scanner_core.io.rtde import MAX_FREQUENCY_HZ, RTDE_PORT, ur_pose_parts
 
 __all__ = ["URRobot", "parse_robot_url", "probe_rtde", "RtdeProbeError", "RTDE_PORT",
            "RTDE_VARIABLES"]
@@ -51,7 +51,6 @@ log = logging.getLogger(__name__)
 
 #: What the reader asks the controller for (ur-rtde's default list has about 58 variables).
 RTDE_VARIABLES = ("timestamp", "actual_TCP_pose")
-_M_TO_MM = 1000.0
 #: Two samples further apart than this are not interpolated between (the link was down).
 MAX_GAP_S = 0.1
 
@@ -161,10 +160,10 @@ def probe_rtde(host: str, *, port: int = RTDE_PORT, timeout_s: float = 1.0,
 
 def _sample_from_rtde(pose) -> tuple[np.ndarray, np.ndarray]:
     """RTDE ``actual_TCP_pose`` -> ((3,) position in {B}, mm; (3,) rotation vector, rad)."""
-    p = np.asarray(pose, dtype=np.float64)
-    if p.shape != (6,) or not np.all(np.isfinite(p)):
-        raise ValueError(f"bad actual_TCP_pose {pose!r}")
-    return p[:3] * _M_TO_MM, p[3:].copy()
+    try:
+        return ur_pose_parts(pose)
+    except ValueError:
+        raise ValueError(f"bad actual_TCP_pose {pose!r}") from None
 
 
 def _default_client_factory(host: str, frequency: float, variables):

@@ -199,7 +199,7 @@ class RtdeEmulator:
         idle_tcp_b : (3,) array_like
             TCP in {B} before the first segment, mm.
         """
-        from scipy.spatial.transform import Rotation
+        from scanner_core.io.rtde import matrix_to_ur_pose
 
         rotation = np.asarray(rotation_b, dtype=np.float64)
         if rotation.shape != (3, 3):
@@ -209,7 +209,9 @@ class RtdeEmulator:
             raise ValueError(f"`idle_tcp_b` must be a finite 3-vector, got {idle_tcp_b!r}")
         if not (math.isfinite(epoch_monotonic) and math.isfinite(clock_offset_s)):
             raise ValueError("`epoch_monotonic` and `clock_offset_s` must be finite")
-        rotvec = Rotation.from_matrix(rotation).as_rotvec()
+        turn = np.eye(4)
+        turn[:3, :3] = rotation
+        rotvec = matrix_to_ur_pose(turn)[3:]  # ValueError unless a rotation
         self._call("set_track", float(epoch_monotonic), float(clock_offset_s),
                    tuple(float(x) for x in rotvec), tuple(float(x) for x in idle))
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scanner_core.io.rtde import MAX_FREQUENCY_HZ, TYPE_FORMATS, output_type
+from scanner_core.io.rtde import MAX_FREQUENCY_HZ, TYPE_FORMATS, output_type, ur_pose
 from simulator.track import tcp_on_track
 
 #: The controller's cycle (e-Series): samples are sent on this grid of the robot clock.
@@ -63,8 +63,7 @@ class _Sample:
         self._cache: dict = {}
 
     def _pose(self, t: float) -> tuple:
-        tcp_m = self.track.tcp_b_mm(t) / 1000.0  # RTDE speaks metres
-        return (*(float(x) for x in tcp_m), *self.track.rotvec)
+        return tuple(float(x) for x in ur_pose(self.track.tcp_b_mm(t), self.track.rotvec))
 
     def value(self, name: str) -> tuple:
         if name in self._cache:

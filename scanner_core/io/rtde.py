@@ -35,7 +35,7 @@ __all__ = ["RTDE_PORT", "PROTOCOL_VERSION", "MAX_FREQUENCY_HZ", "HEADER", "packe
            "REQUEST_PROTOCOL_VERSION", "GET_URCONTROL_VERSION", "SETUP_OUTPUTS", "SETUP_INPUTS",
            "START", "PAUSE", "DATA_PACKAGE", "TEXT_MESSAGE", "OUTPUT_TYPES", "TYPE_FORMATS",
            "output_type", "output_setup", "parse_output_setup", "data_package",
-           "ur_pose_to_matrix", "matrix_to_ur_pose"]
+           "ur_pose", "ur_pose_parts", "ur_pose_to_matrix", "matrix_to_ur_pose"]
 
 #: The RTDE port of a UR controller; ur-rtde's receive interface cannot use another.
 RTDE_PORT = 30004
@@ -141,20 +141,37 @@ def data_package(types) -> struct.Struct:
 
 # -- the controller's pose: [x, y, z] m and a rotation vector, rad -----------------------------
 
-def ur_pose_to_matrix(ur_pose) -> np.ndarray:
+#: The controller's unit of length in mm.
+MM_PER_M = 1000.0
+
+
+def ur_pose_parts(ur_pose) -> tuple[np.ndarray, np.ndarray]:
     """A UR pose ``[x, y, z, rx, ry, rz]`` (m; rotation vector: axis times angle, rad), as the
-    controller reports and takes it -> (4, 4) float64 rigid transform, mm.
+    controller reports and takes it -> ((3,) position, mm; (3,) rotation vector, rad).
 
     ValueError unless six finite numbers."""
     v = np.asarray(ur_pose, dtype=np.float64)
     if v.shape != (6,) or not np.all(np.isfinite(v)):
         raise ValueError(f"a UR pose must be six finite numbers [x, y, z (m), rx, ry, rz (rad)], "
                          f"got {np.asarray(ur_pose).tolist()!r}")
+    return v[:3] * MM_PER_M, v[3:].copy()
+
+
+def ur_pose(position_mm, rotvec) -> np.ndarray:
+    """(3,) position, mm, and (3,) rotation vector, rad -> the UR pose (6,) float64, m."""
+    return np.concatenate([np.asarray(position_mm, dtype=np.float64) / MM_PER_M,
+                           np.asarray(rotvec, dtype=np.float64)])
+
+
+def ur_pose_to_matrix(ur_pose) -> np.ndarray:
+    """A UR pose (`ur_pose_parts`) -> (4, 4) float64 rigid transform, mm. ValueError unless six
+    finite numbers."""
     from scipy.spatial.transform import Rotation  # not at import: the io face stays light
 
+    position, rotvec = ur_pose_parts(ur_pose)
     m = np.eye(4)
-    m[:3, :3] = Rotation.from_rotvec(v[3:]).as_matrix()
-    m[:3, 3] = v[:3] * 1000.0
+    m[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    m[:3, 3] = position
     return m
 
 
@@ -164,4 +181,4 @@ def matrix_to_ur_pose(matrix) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     m = check_rigid(matrix)
-    return np.concatenate([m[:3, 3] / 1000.0, Rotation.from_matrix(m[:3, :3]).as_rotvec()])
+    return ur_pose(m[:3, 3], Rotation.from_matrix(m[:3, :3]).as_rotvec())
