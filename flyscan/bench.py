@@ -11,7 +11,7 @@ __all__ = ["add_parser", "run"]
 
 #: The benchmarks, with what the longer ones measure.
 BENCHMARKS = ("stripe", "scan", "simulate", "service", "pose", "coarse", "hardware", "surfaces",
-              "calibrate", "edges", "place", "abuse", "pose_time", "planning", "real")
+              "calibrate", "edges", "place", "abuse", "pose_time", "planning", "real", "inspect")
 
 
 def add_parser(command) -> None:
@@ -31,7 +31,9 @@ def add_parser(command) -> None:
                             "throughput on 1 and 2 workers, task cost, the reference parts' "
                             "plans against flyscan scan with them, a 100-part catalogue; real: "
                             "the stripe on public photographs of laser lines on planar targets "
-                            "against a naive peak finder (give the folder of their clones)")
+                            "against a naive peak finder (give the folder of their clones); "
+                            "inspect: the inspection's probability of detection per fault kind "
+                            "and size, its false rejects on good picks, the time it adds")
     bench.add_argument("folder", nargs="?", type=Path, default=None,
                        help="real: the folder holding clones of the photographs' repositories "
                             "(benchmarks.real_photos.SETS says which; the bench names any missing)")
@@ -107,6 +109,8 @@ def run(args) -> int:
         from benchmarks import edges as bench
     elif args.what == "place":
         from benchmarks import place as bench
+    elif args.what == "inspect":
+        from benchmarks import inspection as bench
     elif args.what == "abuse":
         from benchmarks import abuse as bench
     elif args.what == "pose_time":

@@ -86,6 +86,15 @@ def add_parser(command) -> None:
     sim.add_argument("--misplace", default=None,
                      help="'tx,ty,tz,rx,ry,rz': the part's misplacement in the gripper, mm and "
                           "a rotation vector in degrees, in {T}; may start with a minus")
+    sim.add_argument("--fault", default=None, metavar="KIND[:SIZE]",
+                     help="the gripper holds the part with a fault, SIZE in mm: double (a "
+                          "second part hooked on it), debris:D, chip:R, variant:L (longer), "
+                          "bend:F (its ends F toward the sensor); the scanner registers the "
+                          "good part (simulator.faults)")
+    sim.add_argument("--held", type=Path, default=None, metavar="MESH",
+                     help="the gripper holds this mesh instead (in the part's CAD frame and "
+                          "--units, placed by its grasp and --misplace) while the scanner "
+                          "registers the part")
     sim.add_argument("--seed", type=non_negative_int, default=0, help="image noise seed")
     sim.add_argument("--perturb-seed", type=non_negative_int, default=None,
                      help="perturb the simulated cell's true geometry (repeatably)")
@@ -159,6 +168,7 @@ def _simulated(args) -> int:
         part = simulated(load_part_model(args))
     part = with_surface(part, args.surface)
     check_fits(part, pose=misplacement @ part.grasp)
+    held = _held(args, part)
     calibration = load_calibration(args.calibration) if args.calibration else None
     cell = sim_cell(args.perturb_seed, scan_effects(args, calibration))
     preset = PASS_PRESETS[args.preset]
@@ -176,7 +186,8 @@ def _simulated(args) -> int:
     scan, report = run_simulated_scan(part, cell, calibration=calibration,
                                       misplacement=misplacement, seed=args.seed,
                                       drop_rate=args.drop_rate, params=params,
-                                      evaluate=not args.no_eval, pose_params=pose_params(args))
+                                      evaluate=not args.no_eval, pose_params=pose_params(args),
+                                      held=held)
     _check_marker(scan, params)
     report["wall_s"] = round(time.perf_counter() - t0, 3)
     paths = write_scan_files(args.out, scan, report)
@@ -188,6 +199,36 @@ def _simulated(args) -> int:
         print(f"accuracy: RMS {acc['rms_um']:.1f} um, p99 {acc['p99_um']:.1f} um, "
               f"points without a visible source {acc.get('unmatched_points')}")
     return _done(paths)
+
+
+def _held(args, part):
+    """What the simulated gripper holds instead of ``part`` (``--fault``, ``--held``), or None."""
+    if args.fault is None and args.held is None:
+        return None
+    if args.fault is not None and args.held is not None:
+        raise UsageError("--fault and --held each say what the gripper holds: give one")
+    import numpy as np
+
+    from scanner_core.cad import load_part
+    from simulator.faults import faulty_mesh, parse_fault
+    from simulator.parts import part_from_mesh
+
+    if args.held is not None:
+        units = args.units or "mm"
+        mesh = load_part(args.held, units, name=args.held.stem, grasp=part.grasp).mesh
+        name, source = args.held.stem, str(args.held)
+    else:
+        try:
+            kind, size = parse_fault(args.fault)
+        except ValueError as exc:
+            raise UsageError(f"--fault: {exc}") from None
+        mesh = faulty_mesh(part.mesh, kind, size, part.grasp[2, :3],
+                           np.random.default_rng(args.seed))
+        name, source = f"{part.name} ({args.fault})", f"fault:{args.fault}"
+    from simulator.surfaces import with_surface
+
+    return with_surface(part_from_mesh(mesh, name=name, source=source, grasp=part.grasp),
+                        part.surface)
 
 
 def _from_recording(args) -> int:

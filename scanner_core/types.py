@@ -184,6 +184,9 @@ class Scan:
     normals : (N, 3) float32 or None
         Unit normals of the cloud toward the camera; computed once, on first use, by
         ``scanner_core.io.scanfiles.scan_normals``.
+    deviations_mm : (N,) float32 or None
+        Each point's signed deviation from the part's model at its pose, mm, outward
+        positive (``scanner_core.inspection``); None without a pose.
     placement_std_mm : (3,) float64 or None
         Standard deviation, mm along the {T} axes, of the error every profile's placement
         shares: the calibration's ``marker_offset_std_mm`` (None: not measured).
@@ -222,6 +225,7 @@ class Scan:
     placement_std_mm: np.ndarray | None = None
     light_plane_uncertainty: object = None
     normals: np.ndarray | None = None
+    deviations_mm: np.ndarray | None = None
 
     @property
     def profile_spacing_mm(self) -> float:

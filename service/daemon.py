@@ -23,6 +23,7 @@ from pathlib import Path
 from clients.placement import correction_entry
 from scanner_core.geometry.calibration import (Calibration, check_cell_geometry, check_marker_track,
                                                load_calibration, save_calibration)
+from scanner_core.inspection import InspectionParams
 from scanner_core.pipeline.exposure import ExposureParams
 from scanner_core.pipeline import PipelineParams
 from scanner_core.pipeline.finish import CrossCheckState
@@ -115,7 +116,11 @@ class Service:
                                                       else tuple(settings.led_correction_t_mm)),
                                  led_correction_from=(None if settings.led_correction_t_mm is None
                                                       else "settings")),
-                             pose_params=self.pose_params)
+                             pose_params=self.pose_params,
+                             inspection_params=InspectionParams(
+                                 extra_mm=settings.inspect_extra_mm,
+                                 deform_mm=settings.inspect_deform_mm,
+                                 min_area_mm2=settings.inspect_min_area_mm2))
         self.calibration_history = CalibrationHistory(settings.data / "calibration" / "history")
         self.calibration_sessions = CalibrationSessions(self)
         self._jobs: OrderedDict[str, ScanJob] = OrderedDict()  # the recent ones, by arming
@@ -453,7 +458,8 @@ class Service:
 
     def _info(self, job: ScanJob, report: dict) -> dict:
         keys = ("frames", "frames_dropped", "frames_unplaced", "queue_overflows", "points",
-                "edge_points", "edge_kinds", "end_reason", "timings_ms", "cross_check", "pose", "correction", "latency_ms",
+                "edge_points", "edge_kinds", "end_reason", "timings_ms", "cross_check", "pose",
+                "inspection", "correction", "latency_ms",
                 "frames_held_rotation", "marker_residual_px")
         return _finite({"scan_id": job.scan_id, "state": job.state, "reason": job.reason,
                         "part": job.part, "part_version": job.part_version,

@@ -27,6 +27,7 @@ import numpy as np
 from scanner_core.geometry.calibration import Calibration
 from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot
 from scanner_core.pipeline.exposure import ExposureController
+from scanner_core.inspection import InspectionParams
 from scanner_core.pipeline.finish import CrossCheckState, PassOutcome, finish_pass, pass_failure
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_in_view,
                                    measure_frame, warm_up)
@@ -88,7 +89,8 @@ class Engine:
                  params: PipelineParams, *, on_scan, on_pass_armed=None, on_recorded=None,
                  workers: int = 2, pose_ahead_frames: int = 4,
                  queue_frames: int = 64, camera_timeout_s: float = 1.0,
-                 cross_check_state: CrossCheckState | None = None, pose_params=None):
+                 cross_check_state: CrossCheckState | None = None, pose_params=None,
+                 inspection_params: InspectionParams = InspectionParams()):
         self.camera, self.robot = camera, robot
         self.calibration, self.params = calibration, params
         self.on_scan, self.on_pass_armed = on_scan, on_pass_armed
@@ -99,6 +101,7 @@ class Engine:
         # read when a pass is armed, written by the finisher thread (one pass at a time)
         self.cross_check_state = cross_check_state or CrossCheckState()
         self.pose_params = pose_params
+        self.inspection_params = inspection_params
         self.last_rotation_b: np.ndarray | None = None  # held when the robot is lost
         self._newest_frame_clock: tuple[float, float] | None = None  # (camera t, monotonic)
         self.trigger = Trigger(params.trigger)
@@ -499,7 +502,8 @@ class Engine:
         def finish_with(part_model, on_pose=None) -> PassOutcome:
             outcome = finish_pass(
                 scan, reason, self.robot, self.cross_check_state, part_model,
-                pose_params=self.pose_params, scan_id=job.scan_id, detail=job.end_detail,
+                pose_params=self.pose_params, inspection_params=self.inspection_params,
+                scan_id=job.scan_id, detail=job.end_detail,
                 note=job.note, frames_lost=job.frames_dropped,
                 queue_overflows=job.queue_overflows, worker_errors=job.worker_errors,
                 verdict=(failure,), on_pose=on_pose, pose_ahead=job.ahead, part=job.part,

@@ -198,6 +198,10 @@ class ScanInfo(BaseModel):
     latency_ms: dict = Field(default_factory=dict)
     cross_check: dict | None = None
     pose: dict | None = None
+    inspection: dict | None = Field(
+        None, description="the cloud against the model at the pose: conforms, or the failing "
+                          "kinds (extra_material, missing_material, deformation, wrong_part) "
+                          "with their regions; a failing one makes the pose's act false")
     correction: PlaceCorrection | None = Field(
         None, description="with a taught place pose (the request's or the settings') and a "
                           "finished scan: the corrected TCP place pose, or why not to place")

@@ -142,6 +142,16 @@ class Settings(BaseSettings):
     robot_rotation_std_deg: float = Field(
         0.005, ge=0, le=1, description="how far off the robot reports its orientation (its "
         "accuracy), degrees: it turns every profile alike, so every pose's rotations carry it")
+    inspect_extra_mm: float | None = Field(
+        None, gt=0, le=100, description="the inspection: points farther off the model than this "
+        "are extra or missing material, mm; unset: from each scan's noise "
+        "(scanner_core.inspection)")
+    inspect_deform_mm: float | None = Field(
+        None, gt=0, le=100, description="the inspection: a region off the model by more than "
+        "this is deformed, mm; unset: from each scan's noise")
+    inspect_min_area_mm2: float | None = Field(
+        None, gt=0, le=1e5, description="the inspection: a failing region's area at least, "
+        "mm^2; unset: from each scan's sampling")
     led_correction_t_mm: tuple[float, float, float] | None = Field(
         None, description="marker minus robot track in {T}, mm, what the calibration's LED "
                           "offset misses; unset: learned from the first cross-checked pass")

@@ -68,12 +68,14 @@ class SimulatedCell:
 
 
 def simulated_cell(part: Part, cell: Cell, *, misplacement=None, seed: int = 0,
-                   drop_rate: float = 0.0) -> SimulatedCell:
+                   drop_rate: float = 0.0, held: Part | None = None) -> SimulatedCell:
     """Devices for one pass of ``part`` held with its nominal grasp composed with
-    ``misplacement`` (4x4 in {T}: X_T = R X_P + t on top of the nominal grasp)."""
+    ``misplacement`` (4x4 in {T}: X_T = R X_P + t on top of the nominal grasp); with ``held``
+    the gripper holds that instead (a mesh in ``part``'s CAD frame: a fault,
+    ``simulator.faults``), placed by ``part``'s grasp and the misplacement."""
     misplacement = np.eye(4) if misplacement is None else np.asarray(misplacement, dtype=np.float64)
     true_grasp = misplacement @ part.grasp
-    scene = PartScene(part, cell)
+    scene = PartScene(part if held is None else held, cell)
     motion = PassMotion(cell.pass_profile)
     clock = SimClock()
     camera = SimCamera(scene, motion, true_grasp, seed=seed, drop_rate=drop_rate, clock=clock)
@@ -85,7 +87,7 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
                        misplacement=None, seed: int = 0, drop_rate: float = 0.0,
                        params: PipelineParams = PipelineParams(), evaluate: bool = True,
                        pose: bool = True, pose_params: PoseParams = PoseParams(),
-                       ) -> tuple[Scan, dict]:
+                       held: Part | None = None) -> tuple[Scan, dict]:
     """Scan ``part`` in the simulated ``cell``.
 
     Parameters
@@ -94,6 +96,9 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
         What the scanner believes; default the cell's truth.
     pose : bool
         Register the scan against the part's CAD model (``scanner_core.pose.registration``).
+    held : Part, optional
+        What the gripper holds instead of ``part`` (``simulated_cell``), while the scanner
+        registers ``part``: a fault (``simulator.faults``) or any mesh.
 
     Returns
     -------
@@ -103,7 +108,8 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
         pose (None when not asked for, or ``{"refused": reason}``), cross_check and
         ground_truth (with the pose's error against the true grasp).
     """
-    sim = simulated_cell(part, cell, misplacement=misplacement, seed=seed, drop_rate=drop_rate)
+    sim = simulated_cell(part, cell, misplacement=misplacement, seed=seed, drop_rate=drop_rate,
+                         held=held)
     calibration = cell.calibration if calibration is None else calibration
     outcome = run_session(sim.camera, sim.robot, calibration, params=params,
                           part_model=part if pose else None, register=pose,
@@ -121,6 +127,8 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
         "misplacement": (np.eye(4) if misplacement is None else np.asarray(misplacement)).tolist(),
         "part": {"name": part.name, "source": part.source, "units": part.units,
                  "faces": int(len(part.faces))},
+        **({} if held is None else {"held": {"name": held.name, "source": held.source,
+                                             "faces": int(len(held.faces))}}),
         "cell": cell.to_dict(),
     }
     if result is not None:
@@ -129,7 +137,8 @@ def run_simulated_scan(part: Part, cell: Cell, *, calibration: Calibration | Non
     if evaluate:
         t0 = time.perf_counter()
         report["ground_truth"]["accuracy"] = cloud_accuracy(
-            scan.cloud, scan.frame_ids, part.mesh, sim.true_grasp, sim.camera.truths,
+            scan.cloud, scan.frame_ids, (part if held is None else held).mesh, sim.true_grasp,
+            sim.camera.truths,
             cell.gripper_rotation_b, seed=seed)
         report["ground_truth"]["accuracy"]["eval_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
     return scan, report

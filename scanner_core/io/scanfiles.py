@@ -39,6 +39,10 @@ def save_scan(out_dir, scan: Scan, report: dict) -> dict[str, Path]:
     fields.update({f"sensor_{c}": sensors[:, i].astype(np.float32) for i, c in enumerate("xyz")})
     fields.update({"frame_id": scan.frame_ids.astype(np.int32),
                    "quality": scan.quality.astype(np.float32)})
+    if scan.deviations_mm is not None and len(scan.deviations_mm) == len(scan.cloud):
+        # a scalar field that CloudCompare and Open3D read: the point's deviation from the
+        # model at the pose, mm, outward positive (scanner_core.inspection)
+        fields["deviation"] = np.asarray(scan.deviations_mm, dtype=np.float32)
     write_ply(paths["cloud"], scan.cloud, fields=fields, comments=comments)
     write_ply(paths["edges"], scan.edges, fields=edge_fields(scan), comments=comments)
     save_json_atomic(paths["report"], report)

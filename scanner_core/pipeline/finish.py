@@ -34,6 +34,7 @@ from scanner_core.pipeline.crosscheck import (DEFAULT_TOLERANCE_MM, MAX_DRIFT_ST
                                               cross_check)
 from scanner_core.devices import Robot
 from scanner_core.edges.kinds import reclassify_with_model
+from scanner_core.inspection import Inspection, InspectionParams, inspect_scan, point_spacing
 from scanner_core.pose.ahead import PoseAhead, inputs_pose_report
 from scanner_core.pose.inputs import ScanPoseInputs
 from scanner_core.pipeline.report import scan_report
@@ -247,12 +248,33 @@ def _await_reports(robot: Robot, tcp_times, clock_offset_s: float,
         time.sleep(REPORT_POLL_S)
 
 
+def _inspect(scan: Scan, part_model, pose, pose_report: dict,
+             params: InspectionParams) -> Inspection:
+    """The check at the pose (``scanner_core.inspection.inspect_scan``): its verdict into the
+    pose's report (``inspection``; ``act`` false with the reasons when it fails), every
+    point's deviation into the scan."""
+    inspection = inspect_scan(scan.cloud, scan.frame_ids, pose.matrix, part_model.surface_model,
+                              profile_spacing_mm=scan.profile_spacing_mm,
+                              point_spacing_mm=point_spacing(scan.cloud, scan.frame_ids),
+                              params=params)
+    scan.deviations_mm = inspection.deviations_mm
+    pose_report["inspection"] = inspection.to_dict()
+    if not inspection.conforms and pose_report.get("act"):
+        pose_report["act"] = False
+    if not inspection.conforms:
+        pose_report["act_reasons"] = [*pose_report.get("act_reasons", []),
+                                      *(f"inspection: {r}" for r in inspection.reasons)]
+    return inspection
+
+
 def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
                 state: CrossCheckState, part_model=None, *, register: bool = True,
                 pose_params=None, scan_id: str | None = None, detail: str | None = None,
                 note: str | None = None, frames_lost: int = 0, queue_overflows: int = 0,
                 worker_errors=(), verdict=None, on_pose=None,
-                pose_ahead: PoseAhead | None = None, **report_extra) -> PassOutcome:
+                pose_ahead: PoseAhead | None = None,
+                inspection_params: InspectionParams = InspectionParams(),
+                **report_extra) -> PassOutcome:
     """A finished pass's verdict, cross-check, pose, edges and report.
 
     Parameters
@@ -284,6 +306,11 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
         ``pose_report`` will be; ``timings_ms`` the timings so far (``pose``, ``normals``,
         ``registration``: the cross-check comes after the pose, which does not use it). Not
         called when no pose is asked for (``register`` False, a failed pass).
+    inspection_params : scanner_core.inspection.InspectionParams
+        The check of the cloud against the model at the pose (``scanner_core.inspection``):
+        it runs on every pose with a matrix, before ``on_pose``; a failing check makes
+        ``act`` false with its reasons, and every cloud point's deviation is kept
+        (``Scan.deviations_mm``).
     pose_ahead : scanner_core.pose.ahead.PoseAhead, optional
         A pose computed before the pass ended (``scanner_core.pose.ahead.pose_ahead``): kept
         when this scan's pose inputs, model and params are its own (then ``timings_ms`` has
@@ -320,6 +347,9 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
             pose, pose_report, computed = inputs_pose_report(inputs, part_model, params)
             timings.update(computed)
         timings["pose"] = round((time.perf_counter() - t0) * 1e3, 3)
+        if pose is not None:
+            inspection = _inspect(scan, part_model, pose, pose_report, inspection_params)
+            timings["inspection"] = round(inspection.time_ms, 3)
         if on_pose is not None:
             on_pose(pose_report, dict(timings))
         if pose is not None and pose.observable:
@@ -343,6 +373,7 @@ def finish_pass(scan: Scan, end_reason: EndReason | None, robot: Robot | None,
     report = scan_report(scan, check, state=state_name, reason=failure or ended,
                          **report_extra)
     report["pose"] = pose_report
+    report["inspection"] = (pose_report or {}).get("inspection")
     if failure:
         report.update(status="failed", failure=failure)
     timings["report"] = round((time.perf_counter() - t0) * 1e3, 3)

@@ -41,14 +41,16 @@ def test_scan_writes_the_contract_files(block_stl, tmp_path):
     points, fields = read_ply(out / "cloud.ply")
     assert points.dtype == np.float32 and points.shape == (report["points"], 3)
     assert set(fields) == {"nx", "ny", "nz", "sensor_x", "sensor_y", "sensor_z", "frame_id",
-                           "quality"}
+                           "quality", "deviation"}
+    # every point's deviation from the model at the pose: a good scan's lie on it
+    assert np.median(np.abs(fields["deviation"])) < 0.02 and report["inspection"]["conforms"]
     # Another tool opens the same file and finds the same points, in mm.
     other = trimesh.load(out / "cloud.ply")
     np.testing.assert_allclose(np.asarray(other.vertices), points, atol=1e-6)
     assert np.ptp(points[:, 0]) > 55.0  # the 60 mm block, not 60 inches or 2.4 mm
     edges, edge_fields = read_ply(out / "edges.ply")
     assert edges.shape == (report["edge_points"], 3)
-    assert set(edge_fields) == set(fields) | {"kind", "size_mm"}
+    assert set(edge_fields) == set(fields) - {"deviation"} | {"kind", "size_mm"}
     assert set(np.unique(edge_fields["kind"])) <= {0, 1}
 
 

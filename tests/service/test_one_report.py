@@ -64,6 +64,7 @@ def _same_but_the_source(live: dict, other: dict) -> None:
 def test_a_recorded_pass_reports_the_same_through_every_source(tmp_path):
     live, recording = _recorded_pass(tmp_path)
     assert live["state"] == "done" and "matrix" in live["pose"], live["pose"]
+    assert live["inspection"]["conforms"] and live["pose"]["inspection"] == live["inspection"]
     for name, (code, report, files) in _from_the_command_line(tmp_path, recording).items():
         assert code == 0 and files == ["cloud.ply", "edges.ply", "report.json"], (name, files)
         _same_but_the_source(live, report)

@@ -1,0 +1,279 @@
+"""``flyscan bench inspect``: does the inspection catch what the gripper should not hold, and
+leave the good picks alone?
+
+In one calibrated realistic cell (``--perturb-seed`` `CELL_SEED`, every effect of
+``simulator.effects``, calibrated as ``flyscan calibrate --sim`` calibrates it), each part of
+`PARTS` (half procedural, half the reference meshes) is scanned:
+
+- `GOOD_PICKS` good picks in all, at random misplacements (up to `MISPLACEMENT_UP_TO_MM` and
+  `MISPLACEMENT_UP_TO_DEG`): the false-reject rate, the picks whose inspection fails;
+- every fault of ``simulator.faults`` at each size of `SIZES_MM`, `TRIALS` times a part, each at
+  its own random misplacement and fault draw: a fault is *detected* when the inspection fails.
+
+Per kind, the probability of detection (POD) against the fault's size is the hit/miss
+logistic fit of non-destructive testing (MIL-HDBK-1823A): ``POD(a) = 1 / (1 + exp(-(b0 + b1
+ln a)))`` by maximum likelihood, its lower 95 % confidence band from the fit's covariance
+(the delta method), ``a90`` where the fit reaches 90 % and ``a90/95`` where its band does. A
+double pick has no size: its detection rate. Also: picks acted on with a fault the check
+detected (must be none), picks acted on with an undetected fault, and the time the check took
+against the cloud's points (one core).
+"""
+from __future__ import annotations
+
+import math
+import pathlib
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+
+import numpy as np
+from scipy.optimize import minimize
+from threadpoolctl import threadpool_limits
+
+from benchmarks.calibrate import _calibrate
+from benchmarks.parts import DEMO_PART, bench_part, random_misplacement
+from benchmarks.place import QUICK_SESSION_POSITIONS, SESSION_POSITIONS
+from benchmarks.results import pyplot, save_figure, write_json
+from scanner_core.pose.registration import PoseParams
+from simulator.cell import load_cell
+from simulator.effects import realistic_cell
+from simulator.faults import faulty_mesh
+from simulator.parts import part_from_mesh
+from simulator.session import misplacement_matrix, run_simulated_scan
+
+__all__ = ["run", "pod_fit", "PARTS", "SIZES_MM", "GOOD_PICKS", "TRIALS", "CELL_SEED"]
+
+#: The parts: half procedural, half the reference meshes.
+PARTS = (DEMO_PART, "bracket", "crowned_block", "idler_riser", "ADIS16480", "cycloidal")
+QUICK_PARTS = (DEMO_PART,)
+#: The faults' sizes, mm: a debris blob's diameter, a chip's radius, a variant's extra length,
+#: a bend's deflection at the ends (``simulator.faults``); a double pick has none.
+SIZES_MM = {"debris": (1.0, 2.0, 3.0, 4.0, 6.0), "chip": (0.5, 1.0, 2.0, 3.0, 5.0),
+            "variant": (0.25, 0.5, 1.0, 2.0, 4.0), "bend": (0.02, 0.05, 0.1, 0.2, 0.4),
+            "double": (0.0,)}
+#: The quick run's sizes: each kind's smallest and largest.
+QUICK_SIZES_MM = {kind: tuple(sorted({sizes[0], sizes[-1]})) for kind, sizes in SIZES_MM.items()}
+#: Trials of each fault size on each part; good picks in all (spread over the parts).
+TRIALS, QUICK_TRIALS = 3, 1
+GOOD_PICKS, QUICK_GOOD_PICKS = 300, 4
+CELL_SEED = 34
+MISPLACEMENT_UP_TO_MM, MISPLACEMENT_UP_TO_DEG = 5.0, 10.0
+INSPECT_SEED = 44
+
+
+def run(out_dir, quick: bool = False, *, jobs: int = 2, progress=None) -> dict:
+    """Run the bench; write ``inspect.json`` and ``inspect.png`` into `out_dir`."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    say = progress or (lambda line: print(line, file=sys.stderr, flush=True))
+    t_start = time.perf_counter()
+    names = QUICK_PARTS if quick else PARTS
+    trials = QUICK_TRIALS if quick else TRIALS
+    good = QUICK_GOOD_PICKS if quick else GOOD_PICKS
+    positions = QUICK_SESSION_POSITIONS if quick else SESSION_POSITIONS
+    with threadpool_limits(limits=1, user_api="blas"):
+        cell = realistic_cell(load_cell(perturb_seed=CELL_SEED), seed=CELL_SEED)
+        calibration, cal_row = _calibrate(cell, CELL_SEED, *positions)
+    say(f"bench inspect: cell {CELL_SEED} calibrated in {cal_row['time_s']:.0f} s")
+    tasks = []
+    for index, name in enumerate(names):
+        per_part = good // len(names) + (index < good % len(names))
+        tasks.append((name, index, per_part, trials, QUICK_SIZES_MM if quick else SIZES_MM,
+                      cell, calibration))
+    rows = []
+    if jobs > 1 and len(tasks) > 1:
+        with ProcessPoolExecutor(max_workers=min(jobs, len(tasks))) as pool:
+            for part_rows in pool.map(_part_rows, tasks):
+                rows += part_rows
+                say(_progress_line(part_rows, time.perf_counter() - t_start))
+    else:
+        for task in tasks:
+            part_rows = _part_rows(task)
+            rows += part_rows
+            say(_progress_line(part_rows, time.perf_counter() - t_start))
+    result = {"quick": quick,
+              "settings": {"parts": list(names), "cell": CELL_SEED, "trials": trials,
+                           "good_picks": good,
+                           "sizes_mm": {k: list(v) for k, v in
+                                        (QUICK_SIZES_MM if quick else SIZES_MM).items()},
+                           "misplacement_up_to": {"mm": MISPLACEMENT_UP_TO_MM,
+                                                  "deg": MISPLACEMENT_UP_TO_DEG},
+                           "calibration": cal_row, "blas_threads": 1, "jobs": jobs},
+              "rows": rows, "summary": _summary(rows),
+              "elapsed_s": round(time.perf_counter() - t_start, 1)}
+    result = write_json(out / "inspect.json", result, digits=6)
+    _chart(result, out / "inspect.png")
+    say(f"bench inspect done in {result['elapsed_s']:.0f} s: {out / 'inspect.json'}")
+    return result
+
+
+def _part_rows(task) -> list[dict]:
+    """One part's good picks and faulty ones (a process of its own with ``jobs``)."""
+    name, index, good, trials, sizes_mm, cell, calibration = task
+    rows = []
+    with threadpool_limits(limits=1, user_api="blas"):
+        part = bench_part(name)
+        params = replace(PoseParams(), robot_rotation_std_deg=cell.effects.tcp_rotation_error_deg)
+        rng = np.random.default_rng([INSPECT_SEED, index])
+        toward = part.grasp[2, :3]
+        cases = [("good", 0.0)] * good + [(kind, size) for kind, sizes in sizes_mm.items()
+                                          for size in sizes for _ in range(trials)]
+        for i, (kind, size) in enumerate(cases):
+            values = random_misplacement(rng, MISPLACEMENT_UP_TO_MM, MISPLACEMENT_UP_TO_DEG,
+                                         up_to=True)
+            held = None
+            if kind != "good":
+                mesh = faulty_mesh(part.mesh, kind, size, toward, rng)
+                held = part_from_mesh(mesh, name=f"{name} {kind}", grasp=part.grasp)
+            try:
+                _, report = run_simulated_scan(part, cell, calibration=calibration,
+                                               misplacement=misplacement_matrix(values),
+                                               seed=i, evaluate=False, pose_params=params,
+                                               held=held)
+            except Exception as exc:  # a fault that leaves nothing to scan, say
+                rows.append({"part": name, "kind": kind, "size_mm": size, "error": repr(exc)})
+                continue
+            rows.append(_row(name, kind, size, report))
+    return rows
+
+
+def _row(name, kind, size, report) -> dict:
+    pose = report.get("pose") or {}
+    inspection = report.get("inspection") or {}
+    return {"part": name, "kind": kind, "size_mm": size, "state": report.get("state"),
+            "posed": "matrix" in pose, "act": bool(pose.get("act")),
+            "conforms": inspection.get("conforms"), "failing": inspection.get("failing"),
+            "sigma_um": inspection.get("sigma_um"), "points": report.get("points"),
+            "check_ms": inspection.get("time_ms"),
+            "reasons": [r for r in pose.get("act_reasons", []) if not r.startswith("inspection")]}
+
+
+def pod_fit(sizes, hits) -> dict:
+    """The hit/miss POD curve ``1 / (1 + exp(-(b0 + b1 ln a)))`` of sizes (mm, > 0) and hits
+    (bool), by maximum likelihood; ``a90`` and ``a90_95`` (where the lower 95 % band reaches
+    90 %) in mm, None where the data cannot say (all hits or all misses: no slope)."""
+    a = np.asarray(sizes, dtype=np.float64)
+    y = np.asarray(hits, dtype=np.float64)
+    out = {"trials": int(len(a)), "hits": int(y.sum()), "b0": None, "b1": None, "a90": None,
+           "a90_95": None}
+    if len(a) < 4 or y.all() or not y.any():
+        return out
+    x = np.log(a)
+
+    def nll(b):
+        z = b[0] + b[1] * x
+        return float(np.sum(np.logaddexp(0.0, z) - y * z))
+
+    fit = minimize(nll, np.array([0.0, 1.0]), method="BFGS")
+    b0, b1 = fit.x
+    if not (np.isfinite(b1) and b1 > 0):
+        return out
+    p = 1.0 / (1.0 + np.exp(-(b0 + b1 * x)))
+    info = np.array([[np.sum(p * (1 - p)), np.sum(p * (1 - p) * x)],
+                     [np.sum(p * (1 - p) * x), np.sum(p * (1 - p) * x * x)]])
+    cov = np.linalg.pinv(info)
+    logit90 = math.log(9.0)
+    out.update(b0=float(b0), b1=float(b1), a90=float(math.exp((logit90 - b0) / b1)))
+    grid = np.linspace(x.min() - 1.0, x.max() + 3.0, 2001)
+    se = np.sqrt(np.maximum(cov[0, 0] + 2 * grid * cov[0, 1] + grid**2 * cov[1, 1], 0.0))
+    lower = b0 + b1 * grid - 1.645 * se
+    reached = np.nonzero(lower >= logit90)[0]
+    out["a90_95"] = float(math.exp(grid[reached[0]])) if len(reached) else None
+    return out
+
+
+def _summary(rows) -> dict:
+    ok = [r for r in rows if "error" not in r]
+    good = [r for r in ok if r["kind"] == "good" and r["posed"]]
+    faults = [r for r in ok if r["kind"] != "good"]
+    per_kind = {}
+    for kind in SIZES_MM:
+        mine = [r for r in faults if r["kind"] == kind]
+        sizes = sorted({r["size_mm"] for r in mine})
+        hit = [r["conforms"] is False for r in mine]
+        by_size = {str(s): {"trials": sum(r["size_mm"] == s for r in mine),
+                            "detected": sum(h for r, h in zip(mine, hit) if r["size_mm"] == s),
+                            "acted_on": sum(r["act"] for r in mine if r["size_mm"] == s)}
+                   for s in sizes}
+        entry = {"trials": len(mine), "detected": int(sum(hit)),
+                 # a scan that failed (the second part hid the marker, say), or a pose refused:
+                 # never acted on, though the check never ran
+                 "scan_failed_or_refused": sum(not r["posed"] for r in mine),
+                 "acted_on": sum(r["act"] for r in mine), "by_size": by_size}
+        if kind != "double":
+            entry["pod"] = pod_fit([r["size_mm"] for r in mine], hit)
+        per_kind[kind] = entry
+    # the check's time on the good picks (a fault's extra regions cost more to group), and
+    # scaled to 20 000 points: the nearest-sample queries grow with the points
+    timed = [r for r in good if r.get("check_ms") is not None and r.get("points")]
+    checks = np.array([r["check_ms"] for r in timed])
+    per_20k = np.array([r["check_ms"] * 20_000.0 / r["points"] for r in timed])
+    return {
+        "good_picks": len(good),
+        "false_rejects": sum(r["conforms"] is False for r in good),
+        "false_reject_share": (sum(r["conforms"] is False for r in good) / len(good)
+                               if good else None),
+        "false_rejects_by_part": {p: sum(r["conforms"] is False for r in good if r["part"] == p)
+                                  for p in sorted({r["part"] for r in good})},
+        "faults": per_kind,
+        "acted_on_detected": sum(r["act"] and r["conforms"] is False for r in faults),
+        "acted_on_undetected": sum(r["act"] and r["conforms"] is not False for r in faults),
+        "check_ms": {"median": float(np.median(checks)) if len(checks) else None,
+                     "p95": float(np.percentile(checks, 95)) if len(checks) else None,
+                     "per_20000_points_median": (float(np.median(per_20k)) if len(per_20k)
+                                                 else None),
+                     "per_20000_points_p95": (float(np.percentile(per_20k, 95)) if len(per_20k)
+                                              else None)},
+        "errors": [r for r in rows if "error" in r],
+    }
+
+
+def _progress_line(rows, elapsed_s) -> str:
+    name = rows[0]["part"] if rows else "?"
+    good = [r for r in rows if r.get("kind") == "good" and r.get("posed")]
+    faults = [r for r in rows if r.get("kind") not in ("good", None) and "error" not in r]
+    return (f"bench inspect: {name}: {sum(r['conforms'] is False for r in good)} of {len(good)} "
+            f"good picks rejected, {sum(r['conforms'] is False for r in faults)} of "
+            f"{len(faults)} faults detected ({elapsed_s:.0f} s)")
+
+
+def _chart(result, path) -> None:
+    plt = pyplot()
+    kinds = [k for k in SIZES_MM if k != "double"]
+    fig, axes = plt.subplots(1, len(kinds) + 1, figsize=(4.0 * (len(kinds) + 1), 3.6))
+    rows = [r for r in result["rows"] if "error" not in r]
+    summary = result["summary"]
+    for ax, kind in zip(axes, kinds):
+        mine = [r for r in rows if r["kind"] == kind]
+        sizes = np.array([r["size_mm"] for r in mine])
+        hits = np.array([r["conforms"] is False for r in mine], dtype=float)
+        jitter = np.random.default_rng(0).uniform(-0.03, 0.03, len(hits))
+        ax.semilogx(sizes, hits + jitter, "o", alpha=0.35, color="tab:blue", label="hit / miss")
+        pod = summary["faults"][kind].get("pod") or {}
+        if pod.get("b1"):
+            grid = np.geomspace(min(SIZES_MM[kind]) * 0.5, max(SIZES_MM[kind]) * 2.0, 200)
+            curve = 1.0 / (1.0 + np.exp(-(pod["b0"] + pod["b1"] * np.log(grid))))
+            ax.semilogx(grid, curve, color="tab:red", label="POD fit")
+            if pod.get("a90"):
+                ax.axvline(pod["a90"], color="tab:red", ls=":",
+                           label=f"a90 {pod['a90']:.2f} mm"
+                                 + (f", a90/95 {pod['a90_95']:.2f}" if pod.get("a90_95") else ""))
+        ax.axhline(0.9, color="gray", lw=0.5)
+        ax.set_title(kind, fontsize=9)
+        ax.set_xlabel("size, mm")
+        ax.set_ylim(-0.1, 1.1)
+        ax.legend(fontsize=7, loc="lower right")
+    axes[0].set_ylabel("detected (POD)")
+    ax = axes[-1]
+    points = [r["points"] for r in rows if r.get("check_ms") is not None]
+    checks = [r["check_ms"] for r in rows if r.get("check_ms") is not None]
+    ax.plot(points, checks, ".", alpha=0.4)
+    ax.set_xlabel("cloud points")
+    ax.set_ylabel("check, ms (one core)")
+    ax.axhline(20.0, color="gray", ls=":", lw=0.8)
+    ax.set_title(f"false rejects {summary['false_rejects']} of {summary['good_picks']} good; "
+                 f"double picks {summary['faults']['double']['detected']} of "
+                 f"{summary['faults']['double']['trials']}", fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path)

@@ -1,0 +1,322 @@
+"""Is what the gripper holds the expected part, alone and whole? The cloud against the model at
+the registered pose.
+
+Every cloud point's signed deviation from the model's surface (outward positive, mm): the
+point-to-plane distance to the nearest surface sample (``SurfaceModel``) where the point lies
+over it, the distance itself where it lies beyond the sample's reach. The scan's own noise
+``sigma`` comes from the deviations' changes between neighbouring points of a profile (their
+robust spread, 1.4826 MAD, over sqrt 2): a bend or a second part moves whole regions, which
+those changes do not see.
+Points off the model are grouped into regions (neighbours within ``LINK_SPACINGS`` of the
+scan's larger sampling step) and each region judged by its kind:
+
+- **extra material**: points outside the model by more than ``extra_mm`` (a second part, debris,
+  a burr);
+- **missing material**: points inside the model by more than ``extra_mm`` (a chip or a cut:
+  the scan sees a surface where the model has material);
+- **deformation**: points off the model by more than ``deform_mm`` but not ``extra_mm``, over
+  a region (bent, warped);
+- **wrong part**: more than ``wrong_part_share`` of the points off the model by ``deform_mm``.
+
+A region fails when it spans ``MIN_REGION_PROFILES`` profiles (``MIN_PROFILE_POINTS`` points
+of each) and its area (its points times the area a point samples: the profiles'
+spacing times the points' spacing along a profile, mm^2) reaches ``min_area_mm2``. The
+thresholds not given are derived from the scan's noise and sampling, never from a part:
+``extra_mm = max(EXTRA_SIGMAS sigma, EXTRA_SPACINGS point spacing)``,
+``deform_mm = DEFORM_SIGMAS sigma``, ``min_area_mm2 = MIN_REGION_SAMPLES`` points' area
+(``MIN_DEFORMED_SAMPLES`` for a deformation).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+__all__ = ["InspectionParams", "Inspection", "Region", "KINDS", "point_deviations",
+           "inspect_scan", "point_spacing", "EXTRA_SIGMAS", "DEFORM_SIGMAS", "EXTRA_SPACINGS",
+           "MIN_REGION_SAMPLES", "MIN_REGION_PROFILES", "LINK_SPACINGS"]
+
+#: The kinds of a failing inspection, in the order they are reported.
+KINDS = ("extra_material", "missing_material", "deformation", "wrong_part")
+#: Off the model by more than this many of the scan's sigmas is material that is not the
+#: model's (the reference cell's clouds hold 10-15 um RMS; 12 sigma lies far in the tail of
+#: any scan whose registration and calibration hold).
+EXTRA_SIGMAS = 12.0
+#: ... and by more than this many steps between a profile's points: near the model's edges a
+#: point of the edge's other side lies a step away (mixed pixels, the edge's rounding).
+EXTRA_SPACINGS = 2.0
+#: Off the model by more than this many sigmas, over a region, the surface is not the model's.
+DEFORM_SIGMAS = 8.0
+#: A region off the model by more than ``extra_mm`` counts from this many of the scan's
+#: points' area, one by less (a deformation) from ``MIN_DEFORMED_SAMPLES``: material that is
+#: not the model's stands far off it, a bend only a little, where a surface's own texture
+#: and the registration's leftovers also lie.
+MIN_REGION_SAMPLES = 8
+MIN_DEFORMED_SAMPLES = 20
+#: ... over at least this many profiles, each with ``MIN_PROFILE_POINTS`` of its points: one
+#: profile grazing the model's rim, or glinting, is no region of the part.
+MIN_REGION_PROFILES = 2
+MIN_PROFILE_POINTS = 3
+#: Points within this many sampling steps of each other are one region.
+LINK_SPACINGS = 3.0
+#: A wrong part: more than this share of the cloud off the model by ``deform_mm``.
+WRONG_PART_SHARE = 0.5
+#: The noise is never taken below this, mm (a cloud that fits to the micrometre is no reason
+#: to call its next micrometre a fault).
+MIN_SIGMA_MM = 0.005
+
+
+@dataclass(frozen=True)
+class InspectionParams:
+    """Thresholds of the check; None: derived from the scan (the module's docstring).
+
+    Attributes
+    ----------
+    extra_mm, deform_mm : float or None
+        Off the model by more than these, mm.
+    min_area_mm2 : float or None
+        A failing region's area at least, mm^2.
+    wrong_part_share : float
+        Share of the cloud off the model that makes it another part.
+    """
+
+    extra_mm: float | None = None
+    deform_mm: float | None = None
+    min_area_mm2: float | None = None
+    wrong_part_share: float = WRONG_PART_SHARE
+
+    def __post_init__(self):
+        for name in ("extra_mm", "deform_mm", "min_area_mm2"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"`{name}` must be positive, got {value}")
+        if not 0.0 < self.wrong_part_share <= 1.0:
+            raise ValueError(f"`wrong_part_share` must be in (0, 1], got {self.wrong_part_share}")
+
+
+@dataclass(frozen=True)
+class Region:
+    """One region off the model.
+
+    Attributes
+    ----------
+    kind : str
+        One of ``KINDS`` but ``wrong_part``.
+    points : int
+    area_mm2 : float
+    max_deviation_mm : float
+        The largest deviation's magnitude in it, mm.
+    centre_p : (3,) float64
+        Its centroid, mm in {P}.
+    """
+
+    kind: str
+    points: int
+    area_mm2: float
+    max_deviation_mm: float
+    centre_p: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "points": self.points, "area_mm2": round(self.area_mm2, 3),
+                "max_deviation_mm": round(self.max_deviation_mm, 4),
+                "centre_p_mm": [round(float(v), 3) for v in self.centre_p]}
+
+
+@dataclass
+class Inspection:
+    """The check's verdict.
+
+    Attributes
+    ----------
+    conforms : bool
+    failing : list of str
+        The kinds that failed (``KINDS``' order).
+    regions : list of Region
+        The failing regions.
+    deviations_mm : (N,) float32
+        Every cloud point's signed deviation, mm (outward positive).
+    sigma_mm : float
+        The scan's noise about the model, mm.
+    thresholds : dict
+        ``extra_mm``, ``deform_mm``, ``min_area_mm2`` as used.
+    off_share : float
+        Share of the cloud off the model by ``deform_mm``.
+    time_ms : float
+    """
+
+    conforms: bool
+    failing: list
+    regions: list
+    deviations_mm: np.ndarray
+    sigma_mm: float
+    thresholds: dict
+    off_share: float
+    time_ms: float = 0.0
+    reasons: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {"conforms": self.conforms, "failing": list(self.failing),
+                "reasons": list(self.reasons),
+                "regions": [r.to_dict() for r in self.regions],
+                "sigma_um": round(self.sigma_mm * 1e3, 2),
+                "thresholds": {k: round(v, 4) for k, v in self.thresholds.items()},
+                "off_share": round(self.off_share, 4), "time_ms": round(self.time_ms, 3)}
+
+
+def point_deviations(points_p: np.ndarray, surface) -> np.ndarray:
+    """Signed deviation of each point from the model's surface, mm (outward positive).
+
+    Parameters
+    ----------
+    points_p : (N, 3) float64
+        mm in {P}.
+    surface : scanner_core.pose.models.SurfaceModel
+        Samples of the model's surface with outward normals, and their KD-tree.
+
+    Returns
+    -------
+    (N,) float64
+        ``(p - q) . n`` for the nearest sample ``q`` (normal ``n``) where the point lies over
+        it (its offset along the surface within the samples' spacing), else ``|p - q|`` with
+        that sign: a point beyond the surface's reach is as far as it is.
+    """
+    points_p = np.asarray(points_p, dtype=np.float64).reshape(-1, 3)
+    if len(points_p) == 0:
+        return np.zeros(0)
+    _, index = surface.tree.query(points_p, workers=1)
+    offset = points_p - surface.points[index]
+    normal = surface.normals[index]
+    along = np.einsum("ij,ij->i", offset, normal)
+    across = np.sqrt(np.maximum(np.einsum("ij,ij->i", offset, offset) - along**2, 0.0))
+    beyond = across > 2.0 * surface.spacing_mm
+    out = along.copy()
+    out[beyond] = np.copysign(np.linalg.norm(offset[beyond], axis=1), along[beyond])
+    return out
+
+
+def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.ndarray, surface,
+                 *, profile_spacing_mm: float, point_spacing_mm: float,
+                 params: InspectionParams = InspectionParams()) -> Inspection:
+    """The check of a cloud against the model at its registered pose.
+
+    Parameters
+    ----------
+    cloud_t : (N, 3) float
+        The scan's cloud, mm in {T}.
+    frame_ids : (N,) int
+        Each point's profile.
+    pose_matrix : (4, 4) float64
+        The registered ^T X_P.
+    surface : scanner_core.pose.models.SurfaceModel
+        The model's surface.
+    profile_spacing_mm, point_spacing_mm : float
+        The scan's sampling, mm: between its profiles, and between a profile's points.
+    params : InspectionParams
+
+    Returns
+    -------
+    Inspection
+    """
+    t0 = time.perf_counter()
+    cloud_t = np.asarray(cloud_t, dtype=np.float64).reshape(-1, 3)
+    frame_ids = np.asarray(frame_ids)
+    inverse = np.linalg.inv(np.asarray(pose_matrix, dtype=np.float64))
+    points_p = cloud_t @ inverse[:3, :3].T + inverse[:3, 3]
+    dev = point_deviations(points_p, surface)
+    along = _step(point_spacing_mm)
+    across = max(_step(profile_spacing_mm), along)
+    sigma = _noise(dev, frame_ids)
+    extra = params.extra_mm or max(EXTRA_SIGMAS * sigma, EXTRA_SPACINGS * along)
+    deform = min(params.deform_mm or DEFORM_SIGMAS * sigma, extra)
+    sample_area = across * along
+    min_area = params.min_area_mm2 or MIN_REGION_SAMPLES * sample_area
+    min_areas = (min_area, min_area,
+                 params.min_area_mm2 or MIN_DEFORMED_SAMPLES * sample_area)
+    kinds = np.full(len(dev), -1, np.int8)
+    kinds[(np.abs(dev) > deform) & (np.abs(dev) <= extra)] = 2  # deformation
+    kinds[dev > extra] = 0  # extra material
+    kinds[dev < -extra] = 1  # missing material
+    off = kinds >= 0
+    off_share = float(off.mean()) if len(dev) else 0.0
+    regions = []
+    for kind in (0, 1, 2):
+        members = np.nonzero(kinds == kind)[0]
+        if len(members) * sample_area < min_areas[kind]:
+            continue
+        for group in _groups(cloud_t[members], LINK_SPACINGS * across):
+            idx = members[group]
+            area = len(idx) * sample_area
+            _, per_profile = np.unique(frame_ids[idx], return_counts=True)
+            if (area < min_areas[kind]
+                    or (per_profile >= MIN_PROFILE_POINTS).sum() < MIN_REGION_PROFILES):
+                continue
+            regions.append(Region(KINDS[kind], int(len(idx)), float(area),
+                                  float(np.max(np.abs(dev[idx]))), points_p[idx].mean(axis=0)))
+    failing = [k for k in KINDS[:3] if any(r.kind == k for r in regions)]
+    reasons = [f"{r.kind.replace('_', ' ')}: {r.area_mm2:.1f} mm^2 up to "
+               f"{r.max_deviation_mm:.2f} mm off the model at {np.round(r.centre_p, 1).tolist()} "
+               f"mm in the part's frame" for r in regions]
+    if off_share > params.wrong_part_share:
+        failing.append("wrong_part")
+        reasons.append(f"wrong part: {off_share:.0%} of the cloud lies off the model by more "
+                       f"than {deform:.3f} mm")
+    return Inspection(conforms=not failing, failing=failing, regions=regions,
+                      deviations_mm=dev.astype(np.float32), sigma_mm=sigma,
+                      thresholds={"extra_mm": extra, "deform_mm": deform,
+                                  "min_area_mm2": min_area,
+                                  "min_deformed_area_mm2": min_areas[2]},
+                      off_share=off_share, time_ms=(time.perf_counter() - t0) * 1e3,
+                      reasons=reasons)
+
+
+def _noise(dev: np.ndarray, frame_ids: np.ndarray) -> float:
+    """The scan's noise about the model, mm: the robust spread of the deviation's changes
+    between neighbouring points of one profile (those within 5 of a first spread) over
+    sqrt 2; of the deviations themselves when the profiles hold too few neighbours."""
+    same = frame_ids[1:] == frame_ids[:-1]
+    values, per_value = np.diff(dev)[same], math.sqrt(2.0)
+    if len(values) < 20:
+        values, per_value = dev, 1.0
+    if not len(values):
+        return MIN_SIGMA_MM
+    spread = 1.4826 * float(np.median(np.abs(values)))
+    near = np.abs(values) <= 5.0 * spread
+    if near.sum() >= 20:
+        spread = 1.4826 * float(np.median(np.abs(values[near])))
+    return max(spread / per_value, MIN_SIGMA_MM)
+
+
+def _step(value: float) -> float:
+    """A sampling step, mm; 0.5 where the scan cannot say (too few profiles or points)."""
+    return float(value) if math.isfinite(value) and value > 0 else 0.5
+
+
+def point_spacing(cloud_t: np.ndarray, frame_ids: np.ndarray) -> float:
+    """Median distance between neighbouring points of one profile, mm (NaN: no two).
+
+    ``cloud_t`` (N, 3) is sorted by ``frame_ids`` (N,) and each profile's points by column,
+    as ``Scan.cloud`` is."""
+    cloud_t = np.asarray(cloud_t, dtype=np.float64).reshape(-1, 3)
+    same = np.asarray(frame_ids)[1:] == np.asarray(frame_ids)[:-1]
+    if not same.any():
+        return float("nan")
+    steps = np.linalg.norm(np.diff(cloud_t, axis=0), axis=1)[same]
+    return float(np.median(steps))
+
+
+def _groups(points: np.ndarray, radius: float) -> list[np.ndarray]:
+    """Indices of `points` (M, 3) split into groups linked within `radius`, largest first."""
+    if len(points) == 1:
+        return [np.zeros(1, np.int64)]
+    pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                       shape=(len(points), len(points))) if len(pairs) else \
+        coo_matrix((len(points), len(points)))
+    count, labels = connected_components(graph, directed=False)
+    groups = [np.nonzero(labels == k)[0] for k in range(count)]
+    return sorted(groups, key=len, reverse=True)

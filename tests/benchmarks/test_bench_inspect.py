@@ -1,0 +1,38 @@
+"""``flyscan bench inspect`` in its quick form: its files, and its figures as the rows say."""
+import json
+
+import numpy as np
+import pytest
+
+from benchmarks.inspection import pod_fit
+from flyscan import main
+
+
+def test_the_pod_fit_finds_a_known_curve():
+    """Hits drawn from a known logistic curve in ln(size): its a90 within the fit's error."""
+    rng = np.random.default_rng(0)
+    sizes = np.repeat([0.5, 1.0, 2.0, 4.0, 8.0], 400)
+    b0, b1 = -1.0, 3.0
+    hits = rng.uniform(size=len(sizes)) < 1.0 / (1.0 + np.exp(-(b0 + b1 * np.log(sizes))))
+    fit = pod_fit(sizes, hits)
+    assert fit["a90"] == pytest.approx(np.exp((np.log(9.0) - b0) / b1), rel=0.1)
+    assert fit["a90_95"] > fit["a90"]
+    assert pod_fit([1.0, 2.0, 3.0, 4.0], [True] * 4)["a90"] is None  # no slope to fit
+
+
+def test_quick_bench_inspect(tmp_path):
+    assert main(["bench", "inspect", "--quick", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "inspect.json").read_text())
+    assert (tmp_path / "inspect.png").stat().st_size > 10_000
+    summary, rows = result["summary"], result["rows"]
+    good = [r for r in rows if r["kind"] == "good" and r["posed"]]
+    assert summary["good_picks"] == len(good) >= 3
+    assert summary["false_rejects"] == sum(r["conforms"] is False for r in good) == 0
+    assert summary["acted_on_detected"] == 0  # a detected fault is never acted on
+    double = summary["faults"]["double"]  # caught: detected, or its scan failed
+    assert double["trials"] == 1 and double["acted_on"] == 0
+    assert double["detected"] + double["scan_failed_or_refused"] >= 1
+    for kind in ("debris", "chip", "variant", "bend"):
+        mine = [r for r in rows if r["kind"] == kind]
+        assert summary["faults"][kind]["detected"] == sum(r["conforms"] is False for r in mine)
+    assert summary["check_ms"]["median"] > 0
