@@ -44,8 +44,9 @@ from simulator.session import misplacement_matrix, run_simulated_scan
 
 __all__ = ["run", "pod_fit", "PARTS", "SIZES_MM", "GOOD_PICKS", "TRIALS", "CELL_SEED"]
 
-#: The parts: half procedural, half the reference meshes.
-PARTS = (DEMO_PART, "bracket", "crowned_block", "idler_riser", "ADIS16480", "cycloidal")
+#: The parts: half procedural, half the reference meshes (those that are closed: a chip is
+#: cut from a volume, and cycloidal's mesh is open).
+PARTS = (DEMO_PART, "bracket", "crowned_block", "idler_riser", "ADIS16480", "featuretype")
 QUICK_PARTS = (DEMO_PART,)
 #: The faults' sizes, mm: a debris blob's diameter, a chip's radius, a variant's extra length,
 #: a bend's deflection at the ends (``simulator.faults``); a double pick has none.
@@ -123,15 +124,15 @@ def _part_rows(task) -> list[dict]:
             values = random_misplacement(rng, MISPLACEMENT_UP_TO_MM, MISPLACEMENT_UP_TO_DEG,
                                          up_to=True)
             held = None
-            if kind != "good":
-                mesh = faulty_mesh(part.mesh, kind, size, toward, rng)
-                held = part_from_mesh(mesh, name=f"{name} {kind}", grasp=part.grasp)
             try:
+                if kind != "good":
+                    mesh = faulty_mesh(part.mesh, kind, size, toward, rng)
+                    held = part_from_mesh(mesh, name=f"{name} {kind}", grasp=part.grasp)
                 _, report = run_simulated_scan(part, cell, calibration=calibration,
                                                misplacement=misplacement_matrix(values),
                                                seed=i, evaluate=False, pose_params=params,
                                                held=held)
-            except Exception as exc:  # a fault that leaves nothing to scan, say
+            except Exception as exc:  # a chip of an open mesh, a fault that leaves nothing, say
                 rows.append({"part": name, "kind": kind, "size_mm": size, "error": repr(exc)})
                 continue
             rows.append(_row(name, kind, size, report))

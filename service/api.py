@@ -35,7 +35,7 @@ from service.api_common import (Auth, BODY_NOT_PARSED, EDGE, NO_ROOM, NOT_FOUND,
                                 UNAUTHORIZED, disk_error as _disk_error)
 from service.edge import EdgeGuard
 from service.parts import PartInUse, PartQuotaExceeded, grasp_from_query, part_info
-from service.pictures import Busy
+from service.pictures import Busy, NoDeviations
 from service.settings import Settings
 from scanner_core.cad import GRASPS, PartError
 
@@ -187,6 +187,31 @@ async def get_preview(scan_id: str, service: ServiceDep) -> Response:
     except Busy as exc:
         raise HTTPException(503, f"{exc}: try again",
                             headers={"Retry-After": str(PICTURE_RETRY_S)}) from None
+    except FileNotFoundError:  # deleted meanwhile
+        raise HTTPException(404, f"no scan {scan_id!r}") from None
+    return Response(png, media_type="image/png")
+
+
+@scans.get("/{scan_id}/deviation.png", response_class=Response,
+           responses={200: {"content": {"image/png": {}},
+                            "description": "the cloud seen from below, each point coloured by its "
+                                           "deviation from the model at the pose, the "
+                                           "inspection's failing regions circled"},
+                      **NOT_FOUND, 409: {"model": Problem,
+                                         "description": "the scan has no cloud, or no pose"},
+                      503: {"model": Problem, "description": "too many pictures being drawn: "
+                                                             "try again after Retry-After s"}})
+async def get_deviation_map(scan_id: str, service: ServiceDep) -> Response:
+    path = _scan_file(service, scan_id, "cloud.ply")
+    try:
+        png = service.deviation_maps.cached(scan_id, path)
+        if png is None:
+            png = await asyncio.to_thread(service.deviation_maps.get, scan_id, path)
+    except Busy as exc:
+        raise HTTPException(503, f"{exc}: try again",
+                            headers={"Retry-After": str(PICTURE_RETRY_S)}) from None
+    except NoDeviations as exc:
+        raise HTTPException(409, str(exc)) from None
     except FileNotFoundError:  # deleted meanwhile
         raise HTTPException(404, f"no scan {scan_id!r}") from None
     return Response(png, media_type="image/png")

@@ -38,7 +38,7 @@ from service.jobs import ScanJob
 from service.metrics import Metrics
 from service.models import check_reach, taught_place_matrix
 from service.parts import DEMO_PART, PartLibrary, return_memory, settle_objects
-from service.pictures import FramePicture, PreviewPictures
+from service.pictures import FramePicture, PreviewPictures, deviation_map_png
 from service.problems import disk_reason, relative_path, relative_text
 from service.publisher import Publisher
 from service.settings import Settings
@@ -92,6 +92,8 @@ class Service:
         # The status page's pictures, bounded and cached (service.pictures)
         self.frame_picture = FramePicture()
         self.previews = PreviewPictures(max_pending=settings.max_pending_pictures)
+        self.deviation_maps = PreviewPictures(max_pending=settings.max_pending_pictures,
+                                              render=deviation_map_png)
         self.pose_params = PoseParams(act_tolerance_mm=settings.act_tolerance_mm,
                                       act_tolerance_deg=settings.act_tolerance_deg,
                                       robot_rotation_std_deg=settings.robot_rotation_std_deg)

@@ -111,7 +111,8 @@ class PreviewPictures:
     kept for the last ``size`` scans. One render at a time; more than ``max_pending`` requests
     waiting for renders: ``Busy``. ``renders`` counts the renders, ``refused`` the Busy."""
 
-    def __init__(self, max_pending: int, size: int = PREVIEW_CACHE):
+    def __init__(self, max_pending: int, size: int = PREVIEW_CACHE, render=None):
+        self.render = render or cloud_preview_png  # path -> PNG bytes
         self.max_pending = max_pending
         self.size = size
         self._state = threading.Lock()
@@ -146,7 +147,7 @@ class PreviewPictures:
                 with self._state:
                     png = self._hit(key)
                 if png is None:
-                    png = cloud_preview_png(path)
+                    png = self.render(path)
                     with self._state:
                         self.renders += 1
                         for old in [k for k in self._cache if k[0] == scan_id]:
@@ -184,4 +185,63 @@ def cloud_preview_png(path) -> bytes:
         image[v[inside], u[inside]] = colours[inside]
         cv2.putText(image, f"{len(points)} points", (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
                     (255, 255, 255), 1, cv2.LINE_AA)
+    return _png(image)
+
+
+class NoDeviations(ValueError):
+    """The scan's cloud carries no deviation from a model (it was not posed)."""
+
+
+def deviation_map_png(path) -> bytes:
+    """The cloud (x, y in {T}) seen along +z_T, each point coloured by its deviation from the
+    model at the pose (``cloud.ply``'s ``deviation``, mm: blue inside, red outside, white on
+    it, saturating at the inspection's ``extra_mm``), the failing regions circled (their area,
+    at their centre) and named; the verdict at the top. NoDeviations for a cloud without them.
+    """
+    import json
+
+    points, fields = read_ply(path)
+    if "deviation" not in fields:
+        raise NoDeviations("the scan has no deviation map: it was not registered to a model")
+    report_path = Path(path).with_name("report.json")
+    inspection, pose = {}, {}
+    try:
+        report = json.loads(report_path.read_text())
+        inspection, pose = report.get("inspection") or {}, report.get("pose") or {}
+    except (OSError, ValueError):
+        pass
+    limit = float((inspection.get("thresholds") or {}).get("extra_mm") or 0.5)
+    w, h = PREVIEW_SIZE
+    image = np.full((h, w, 3), 24, np.uint8)
+    pts = np.asarray(points, dtype=np.float64)
+    dev = np.asarray(fields["deviation"], dtype=np.float64)
+    if len(pts):
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        span = max(hi[0] - lo[0], hi[1] - lo[1], 1e-6)
+        scale = 0.85 * min(w, h) / span
+        to_px = lambda xy: np.c_[(xy[:, 0] - (lo[0] + hi[0]) / 2) * scale + w / 2,
+                                 (xy[:, 1] - (lo[1] + hi[1]) / 2) * scale + h / 2]
+        uv = to_px(pts).astype(int)
+        t = np.clip(np.nan_to_num(dev / limit), -1.0, 1.0)
+        # BGR: white on the model, to red outside (t > 0), to blue inside (t < 0)
+        colours = np.empty((len(t), 3))
+        colours[:, 0] = 255 * (1 - np.clip(t, 0, 1))
+        colours[:, 1] = 255 * (1 - np.abs(t))
+        colours[:, 2] = 255 * (1 - np.clip(-t, 0, 1))
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        order = np.argsort(np.abs(t[inside]))  # the farthest off drawn last, on top
+        image[uv[inside][order, 1], uv[inside][order, 0]] = colours[inside][order].astype(np.uint8)
+        matrix = np.asarray(pose.get("matrix") or np.eye(4), dtype=np.float64)
+        for region in inspection.get("regions") or ():
+            centre_t = matrix[:3, :3] @ np.asarray(region["centre_p_mm"]) + matrix[:3, 3]
+            (u, v), = to_px(centre_t[None, :2]).astype(int)
+            radius = max(int(np.sqrt(region["area_mm2"] / np.pi) * scale) + 4, 8)
+            cv2.circle(image, (int(u), int(v)), radius, (0, 255, 255), 1, cv2.LINE_AA)
+            cv2.putText(image, region["kind"].replace("_", " "), (int(u) + radius + 2, int(v)),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 255, 255), 1, cv2.LINE_AA)
+    verdict = ("conforms" if inspection.get("conforms")
+               else "fails: " + ", ".join(inspection.get("failing") or ["?"])
+               if inspection else "deviation")
+    cv2.putText(image, f"{verdict}; +-{limit:.2f} mm", (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                (255, 255, 255), 1, cv2.LINE_AA)
     return _png(image)

@@ -117,6 +117,8 @@ def _chip(mesh, size, toward, rng):
     corner = near[rng.integers(len(near))]
     ball = trimesh.creation.icosphere(subdivisions=3, radius=max(size, 1e-3))
     ball.apply_translation(corner)
+    if not mesh.is_volume:
+        raise ValueError("a chip is cut from a closed mesh (a volume): this one is open")
     return trimesh.boolean.difference([mesh, ball], engine="manifold")
 
 

@@ -228,6 +228,22 @@ function showCloud(scan) {
     setText($("cloud-note"), scan.scan_id + ": no cloud");
   };
   img.src = "/scans/" + encodeURIComponent(scan.scan_id) + "/preview.png";
+  showDeviation(scan);
+}
+
+function showDeviation(scan) {
+  // the inspection's picture: only for a scan registered to a model
+  const panel = $("deviation-panel");
+  const img = $("deviation");
+  img.onload = () => {
+    panel.hidden = false;
+    const inspection = scan.inspection;
+    setText($("deviation-note"), !inspection ? scan.scan_id
+      : inspection.conforms ? "conforms"
+      : "fails: " + (inspection.failing || []).join(", ").replaceAll("_", " "));
+  };
+  img.onerror = () => { panel.hidden = true; };
+  img.src = "/scans/" + encodeURIComponent(scan.scan_id) + "/deviation.png";
 }
 
 // ---- latest frame --------------------------------------------------------------------------

@@ -15,14 +15,15 @@ from running import free_port, serve_in_thread, wait_for
 #: and times, a command's wall time, what it read and how fast it replayed. Within the
 #: others, wall times (``*_ms``) differ from run to run and are left out.
 SOURCE_ONLY = {"timings_ms", "latency_ms", "part_version", "created", "wall_s", "source",
-               "replay",
+               "replay", "_deviation_png",
                # frames a loaded machine placed before the robot's report for their time had
                # arrived, on the rotation before it: the recording has every report
                "frames_held_rotation"}
 
 
 def _recorded_pass(tmp_path, **settings) -> tuple[dict, str]:
-    """(the service's report.json of a recorded pass of the demo block, the recording)."""
+    """(the service's report.json of a recorded pass of the demo block, the recording); its
+    deviation map's answer is kept in ``report["_deviation_png"]`` (status, body)."""
     data = tmp_path / "data"
     service = service_for(Settings(data=data, zmq=f"tcp://127.0.0.1:{free_port()}", **settings),
                           SimSettings(sim=True, sim_speed_mm_s=1000.0))
@@ -32,8 +33,11 @@ def _recorded_pass(tmp_path, **settings) -> tuple[dict, str]:
                  timeout=60)
         recording = wait_for(lambda: client.get(f"/scans/{scan_id}").json()
                              .get("recording", {}).get("path"), timeout=30)
+        picture = client.get(f"/scans/{scan_id}/deviation.png")
+        info = client.get(f"/scans/{scan_id}").json()
     report = json.loads((data / "scans" / scan_id / "report.json").read_text())
-    return report, str(data / recording)
+    assert info.get("inspection") == report.get("inspection")  # REST says what the file says
+    return {**report, "_deviation_png": (picture.status_code, picture.content)}, str(data / recording)
 
 
 def _from_the_command_line(tmp_path, recording) -> dict:
@@ -65,6 +69,8 @@ def test_a_recorded_pass_reports_the_same_through_every_source(tmp_path):
     live, recording = _recorded_pass(tmp_path)
     assert live["state"] == "done" and "matrix" in live["pose"], live["pose"]
     assert live["inspection"]["conforms"] and live["pose"]["inspection"] == live["inspection"]
+    status, png = live["_deviation_png"]  # the deviation map, as the status page shows it
+    assert status == 200 and png.startswith(b"\x89PNG") and len(png) > 2000
     for name, (code, report, files) in _from_the_command_line(tmp_path, recording).items():
         assert code == 0 and files == ["cloud.ply", "edges.ply", "report.json"], (name, files)
         _same_but_the_source(live, report)
@@ -77,6 +83,7 @@ def test_a_failed_pass_fails_the_same_through_every_source(tmp_path):
     live, recording = _recorded_pass(tmp_path, max_pass_s=0.05)
     assert live["state"] == "failed" and live["reason"].startswith("too long"), live["reason"]
     assert live["status"] == "failed" and live["failure"] == live["reason"]
+    assert live["_deviation_png"][0] in (404, 409)  # no pose, no deviation map
     for name, (code, report, files) in _from_the_command_line(tmp_path, recording).items():
         assert code == 1 and files == ["report.json"], (name, code, files)
         _same_but_the_source(live, report)
