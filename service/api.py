@@ -178,15 +178,22 @@ def get_edges(scan_id: str, service: ServiceDep) -> FileResponse:
                       503: {"model": Problem, "description": "too many previews being drawn: "
                                                              "try again after Retry-After s"}})
 async def get_preview(scan_id: str, service: ServiceDep) -> Response:
-    # on the event loop when the preview is kept (no thread hop), in a thread to draw it
+    return await _scan_picture(service, scan_id, service.previews)
+
+
+async def _scan_picture(service: Service, scan_id: str, pictures) -> Response:
+    """A picture of the scan's cloud (``service.pictures.PreviewPictures``): on the event loop
+    when it is kept (no thread hop), in a thread to draw it."""
     path = _scan_file(service, scan_id, "cloud.ply")
     try:
-        png = service.previews.cached(scan_id, path)
+        png = pictures.cached(scan_id, path)
         if png is None:
-            png = await asyncio.to_thread(service.previews.get, scan_id, path)
+            png = await asyncio.to_thread(pictures.get, scan_id, path)
     except Busy as exc:
         raise HTTPException(503, f"{exc}: try again",
                             headers={"Retry-After": str(PICTURE_RETRY_S)}) from None
+    except NoDeviations as exc:
+        raise HTTPException(409, str(exc)) from None
     except FileNotFoundError:  # deleted meanwhile
         raise HTTPException(404, f"no scan {scan_id!r}") from None
     return Response(png, media_type="image/png")
@@ -202,19 +209,7 @@ async def get_preview(scan_id: str, service: ServiceDep) -> Response:
                       503: {"model": Problem, "description": "too many pictures being drawn: "
                                                              "try again after Retry-After s"}})
 async def get_deviation_map(scan_id: str, service: ServiceDep) -> Response:
-    path = _scan_file(service, scan_id, "cloud.ply")
-    try:
-        png = service.deviation_maps.cached(scan_id, path)
-        if png is None:
-            png = await asyncio.to_thread(service.deviation_maps.get, scan_id, path)
-    except Busy as exc:
-        raise HTTPException(503, f"{exc}: try again",
-                            headers={"Retry-After": str(PICTURE_RETRY_S)}) from None
-    except NoDeviations as exc:
-        raise HTTPException(409, str(exc)) from None
-    except FileNotFoundError:  # deleted meanwhile
-        raise HTTPException(404, f"no scan {scan_id!r}") from None
-    return Response(png, media_type="image/png")
+    return await _scan_picture(service, scan_id, service.deviation_maps)
 
 
 @scans.delete("/{scan_id}", status_code=204, response_class=Response, dependencies=Auth,
