@@ -141,6 +141,24 @@ class PartModel:
         return SurfaceModel.from_mesh(self.mesh)
 
     @cached_property
+    def coverage_model(self):
+        """The CAD surface sampled more coarsely, what the inspection judges the scan's
+        coverage on (``scanner_core.inspection.coverage``), with its KD-tree."""
+        from scanner_core.inspection.coverage import COVERAGE_SPACING_MM
+        from scanner_core.pose.registration import SurfaceModel
+        return SurfaceModel.from_mesh(self.mesh, spacing_mm=COVERAGE_SPACING_MM,
+                                      max_points=100_000, seed=1)
+
+    def occluded(self, origins, directions) -> np.ndarray:
+        """Whether rays (origins (R, 3), directions (R, 3), {P} mm) meet the part: (R,) bool.
+        Embree's through trimesh where embreex is installed, trimesh's own tests otherwise."""
+        origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+        if not len(origins):
+            return np.zeros(0, bool)
+        return np.asarray(self.mesh.ray.intersects_any(
+            origins, np.asarray(directions, dtype=np.float64).reshape(-1, 3)), bool)
+
+    @cached_property
     def edge_model(self):
         """The CAD's sharp edges for registration (``scanner_core.pose.registration.EdgeModel``), a
         narrow chamfer's on the outline seen from the sensor under the nominal grasp."""
@@ -167,6 +185,8 @@ class PartModel:
         self.surface_model.symmetries  # noqa: B018
         self.edge_model.curves  # noqa: B018
         self.model_edges  # noqa: B018
+        self.coverage_model.tree  # noqa: B018
+        self.occluded(np.zeros((1, 3)), np.ones((1, 3)))  # the ray scene
         self.__dict__["_prepared"] = True
         return (time.perf_counter() - t0) * 1e3
 
@@ -179,7 +199,8 @@ class PartModel:
     def release(self) -> None:
         """Drop what `prepare` built (and the trimesh object): its memory goes back, and the
         next scan of the part builds it again. A scan holding one of them keeps it."""
-        for name in ("surface_model", "edge_model", "model_edges", "mesh", "_prepared"):
+        for name in ("surface_model", "edge_model", "model_edges", "coverage_model", "mesh",
+                     "_prepared"):
             self.__dict__.pop(name, None)
 
     def vertices_t(self) -> np.ndarray:

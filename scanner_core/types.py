@@ -160,6 +160,11 @@ class Scan:
         The camera's optical centre in {T} per placed frame, mm: ``R^T (C_B - p)`` for the
         camera centre ``C_B`` in {B} and the frame's TCP position ``p`` and rotation ``R``;
         the viewpoint of that frame's points (the stripe is seen in the direct view).
+    sheet_planes_t : (F, 4) float64
+        The light plane in {T} per placed frame, ``n . x = offset`` as ``(n_x, n_y, n_z,
+        offset)`` (unit n, mm): ``n = R^T n_B``, ``offset = offset_B - n_B . p``. Where the
+        sheet swept the part, and so what each frame could have seen
+        (``scanner_core.inspection.coverage``).
     edge_frame_ids : (M,) int32
         Frame of each edge point.
     edge_kind : (M,) uint8
@@ -214,6 +219,7 @@ class Scan:
     queue_overflows: int = 0
     tcp_rotations_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     sensor_positions_t: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    sheet_planes_t: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     edge_frame_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     edge_kind: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint8))
     edge_size_mm: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))

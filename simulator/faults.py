@@ -9,6 +9,8 @@ part's grasp while the scanner registers the good part.
   (manifold3d's boolean difference);
 - ``variant``: the part ``size`` longer along its longest axis (its features kept, its ends
   moved apart);
+- ``hole``: a variant with a hole of diameter ``size`` drilled through the part, square to a
+  face the sensor sees (manifold3d's boolean difference);
 - ``bend``: the part bent along its longest axis, its ends ``size`` toward the sensor.
 
 The faults are drawn from ``rng``; ``toward_p`` is the {P} direction that hangs toward the
@@ -22,9 +24,10 @@ from scipy.spatial.transform import Rotation
 
 __all__ = ["FAULT_KINDS", "DEFAULT_SIZES_MM", "faulty_mesh", "parse_fault"]
 
-FAULT_KINDS = ("double", "debris", "chip", "variant", "bend")
+FAULT_KINDS = ("double", "debris", "chip", "variant", "hole", "bend")
 #: The size of each fault when none is given, mm (``double``: unused).
-DEFAULT_SIZES_MM = {"double": 0.0, "debris": 3.0, "chip": 2.0, "variant": 2.0, "bend": 0.3}
+DEFAULT_SIZES_MM = {"double": 0.0, "debris": 3.0, "chip": 2.0, "variant": 2.0, "hole": 3.0,
+                    "bend": 0.3}
 # The second part of a double pick overlaps the first by this share of its depth: touching.
 _CONTACT_OVERLAP = 0.05
 
@@ -59,6 +62,8 @@ def faulty_mesh(mesh: trimesh.Trimesh, kind: str, size_mm: float, toward_p,
         return _chip(mesh, size_mm, toward, rng)
     if kind == "variant":
         return _stretched(mesh, size_mm)
+    if kind == "hole":
+        return _drilled(mesh, size_mm, toward, rng)
     if kind == "bend":
         return _bent(mesh, size_mm, toward)
     raise ValueError(f"unknown fault {kind!r}: one of {', '.join(FAULT_KINDS)}")
@@ -120,6 +125,19 @@ def _chip(mesh, size, toward, rng):
     if not mesh.is_volume:
         raise ValueError("a chip is cut from a closed mesh (a volume): this one is open")
     return trimesh.boolean.difference([mesh, ball], engine="manifold")
+
+
+def _drilled(mesh, size, toward, rng):
+    if not mesh.is_volume:
+        raise ValueError("a hole is drilled through a closed mesh (a volume): this one is open")
+    point, normal = _visible_point(mesh, toward, rng)
+    through = 2.0 * float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    drill = trimesh.creation.cylinder(radius=0.5 * max(size, 1e-3), height=through,
+                                      sections=48)
+    turn = trimesh.geometry.align_vectors([0.0, 0.0, 1.0], normal)
+    turn[:3, 3] = point
+    drill.apply_transform(turn)
+    return trimesh.boolean.difference([mesh, drill], engine="manifold")
 
 
 def _longest_axis(mesh):

@@ -13,7 +13,10 @@ the scan's larger sampling step) and each region judged by its kind:
 - **extra material**: points outside the model by more than ``extra_mm`` (a second part, debris,
   a burr);
 - **missing material**: points inside the model by more than ``extra_mm`` (a chip or a cut:
-  the scan sees a surface where the model has material);
+  the scan sees a surface where the model has material), or model surface the scan should
+  have seen at this pose and has no point on (a hole added, a corner cut through: the
+  scanner's own prediction from the sheets and the camera it was placed by,
+  ``scanner_core.inspection.coverage``);
 - **deformation**: points off the model by more than ``deform_mm`` but not ``extra_mm``, over
   a region (bent, warped);
 - **wrong part**: more than ``wrong_part_share`` of the points off the model by ``deform_mm``.
@@ -34,6 +37,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
+
+from scanner_core.inspection.coverage import MissingSamples, missing_samples
 
 __all__ = ["InspectionParams", "Inspection", "Region", "KINDS", "point_deviations",
            "inspect_scan", "point_spacing", "EXTRA_SIGMAS", "DEFORM_SIGMAS", "EXTRA_SPACINGS",
@@ -106,11 +111,17 @@ class Region:
     kind : str
         One of ``KINDS`` but ``wrong_part``.
     points : int
+        Its cloud points (0 where the scan has none: ``evidence`` "no points").
     area_mm2 : float
     max_deviation_mm : float
-        The largest deviation's magnitude in it, mm.
+        The largest deviation's magnitude in it, mm (NaN: no points to measure).
     centre_p : (3,) float64
         Its centroid, mm in {P}.
+    evidence : str
+        "off the model": points off it; "no points": model surface the scan should have
+        seen and has no point on (``scanner_core.inspection.coverage``).
+    profiles : int
+        The profiles that cross it.
     """
 
     kind: str
@@ -118,11 +129,25 @@ class Region:
     area_mm2: float
     max_deviation_mm: float
     centre_p: np.ndarray
+    evidence: str = "off the model"
+    profiles: int = 0
 
     def to_dict(self) -> dict:
-        return {"kind": self.kind, "points": self.points, "area_mm2": round(self.area_mm2, 3),
-                "max_deviation_mm": round(self.max_deviation_mm, 4),
+        deviation = (round(self.max_deviation_mm, 4) if math.isfinite(self.max_deviation_mm)
+                     else None)
+        return {"kind": self.kind, "evidence": self.evidence, "points": self.points,
+                "profiles": self.profiles, "area_mm2": round(self.area_mm2, 3),
+                "max_deviation_mm": deviation,
                 "centre_p_mm": [round(float(v), 3) for v in self.centre_p]}
+
+    def reason(self) -> str:
+        where = f"at {np.round(self.centre_p, 1).tolist()} mm in the part's frame"
+        if self.evidence == "no points":
+            return (f"{self.kind.replace('_', ' ')}: {self.area_mm2:.1f} mm^2 of the model the "
+                    f"scan should have seen has no point on it ({self.profiles} profiles) "
+                    f"{where}")
+        return (f"{self.kind.replace('_', ' ')}: {self.area_mm2:.1f} mm^2 up to "
+                f"{self.max_deviation_mm:.2f} mm off the model {where}")
 
 
 @dataclass
@@ -166,7 +191,8 @@ class Inspection:
                 "off_share": round(self.off_share, 4), "time_ms": round(self.time_ms, 3)}
 
 
-def point_deviations(points_p: np.ndarray, surface) -> np.ndarray:
+def point_deviations(points_p: np.ndarray, surface, *, exact_above: float | None = None
+                     ) -> np.ndarray:
     """Signed deviation of each point from the model's surface, mm (outward positive).
 
     Parameters
@@ -175,6 +201,14 @@ def point_deviations(points_p: np.ndarray, surface) -> np.ndarray:
         mm in {P}.
     surface : scanner_core.pose.models.SurfaceModel
         Samples of the model's surface with outward normals, and their KD-tree.
+    exact_above : float, optional
+        None: every point's nearest sample from the KD-tree. A distance, mm: each point's
+        sample comes from the surface's lookup table (``SurfaceModel.lookup``: a sample near
+        the nearest, O(1) a point, exact on a planar face), and only the points it puts off
+        by more than this, or beyond the sample's reach, ask the KD-tree. A point's
+        deviation from the nearest sample's plane is at most its distance to the sample the
+        table gives, so no point the tree would put farther off than ``exact_above`` is left
+        to the table near a face; the table's answer differs only near an edge, by less.
 
     Returns
     -------
@@ -186,11 +220,34 @@ def point_deviations(points_p: np.ndarray, surface) -> np.ndarray:
     points_p = np.asarray(points_p, dtype=np.float64).reshape(-1, 3)
     if len(points_p) == 0:
         return np.zeros(0)
-    _, index = surface.tree.query(points_p, workers=1)
+    if exact_above is None:
+        _, index = surface.tree.query(points_p, workers=1)
+        return _to_samples(points_p, surface, index)
+    distance, index = surface.lookup.query(points_p, np.inf)
+    out = _to_samples(points_p, surface, np.minimum(index, len(surface.points) - 1))
+    again = np.nonzero((np.abs(out) > exact_above) | ~np.isfinite(distance)
+                       | _beyond(points_p, surface, index))[0]
+    if len(again):
+        _, exact = surface.tree.query(points_p[again], workers=1)
+        out[again] = _to_samples(points_p[again], surface, exact)
+    return out
+
+
+def _offsets(points_p, surface, index):
     offset = points_p - surface.points[index]
-    normal = surface.normals[index]
-    along = np.einsum("ij,ij->i", offset, normal)
+    along = np.einsum("ij,ij->i", offset, surface.normals[index])
     across = np.sqrt(np.maximum(np.einsum("ij,ij->i", offset, offset) - along**2, 0.0))
+    return offset, along, across
+
+
+def _beyond(points_p, surface, index) -> np.ndarray:
+    """Whether each point lies beyond its sample's reach along the surface."""
+    index = np.minimum(index, len(surface.points) - 1)
+    return _offsets(points_p, surface, index)[2] > 2.0 * surface.spacing_mm
+
+
+def _to_samples(points_p, surface, index) -> np.ndarray:
+    offset, along, across = _offsets(points_p, surface, index)
     beyond = across > 2.0 * surface.spacing_mm
     out = along.copy()
     out[beyond] = np.copysign(np.linalg.norm(offset[beyond], axis=1), along[beyond])
@@ -199,7 +256,8 @@ def point_deviations(points_p: np.ndarray, surface) -> np.ndarray:
 
 def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.ndarray, surface,
                  *, profile_spacing_mm: float, point_spacing_mm: float,
-                 params: InspectionParams = InspectionParams()) -> Inspection:
+                 params: InspectionParams = InspectionParams(), coverage_model=None,
+                 occluded=None, sheet_planes_t=None, sensor_positions_t=None) -> Inspection:
     """The check of a cloud against the model at its registered pose.
 
     Parameters
@@ -215,6 +273,14 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
     profile_spacing_mm, point_spacing_mm : float
         The scan's sampling, mm: between its profiles, and between a profile's points.
     params : InspectionParams
+    coverage_model : scanner_core.pose.models.SurfaceModel, optional
+        The model's samples the scan's coverage is judged on (``PartModel.coverage_model``);
+        with ``occluded``, ``sheet_planes_t`` and ``sensor_positions_t`` (``Scan``'s), the
+        model surface the scan should have seen and has no point on is missing material
+        (``scanner_core.inspection.coverage``). None: only the points are judged.
+    occluded : callable(origins (R, 3), directions (R, 3)) -> (R,) bool, optional
+        Whether rays in {P} meet the model (``PartModel.occluded``).
+    sheet_planes_t, sensor_positions_t : (F, 4), (F, 3) float64, optional
 
     Returns
     -------
@@ -225,12 +291,17 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
     frame_ids = np.asarray(frame_ids)
     inverse = np.linalg.inv(np.asarray(pose_matrix, dtype=np.float64))
     points_p = cloud_t @ inverse[:3, :3].T + inverse[:3, 3]
-    dev = point_deviations(points_p, surface)
     along = _step(point_spacing_mm)
     across = max(_step(profile_spacing_mm), along)
+    # the noise from the lookup table's deviations (exact on planar faces, a point's own
+    # changes between neighbours); then every point they put off by half the smallest
+    # threshold asks the KD-tree
+    dev = point_deviations(points_p, surface, exact_above=np.inf)
     sigma = _noise(dev, frame_ids)
     extra = params.extra_mm or max(EXTRA_SIGMAS * sigma, EXTRA_SPACINGS * along)
     deform = min(params.deform_mm or DEFORM_SIGMAS * sigma, extra)
+    again = np.nonzero(np.abs(dev) > 0.5 * deform)[0]
+    dev[again] = point_deviations(points_p[again], surface)
     sample_area = across * along
     min_area = params.min_area_mm2 or MIN_REGION_SAMPLES * sample_area
     min_areas = (min_area, min_area,
@@ -254,11 +325,14 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
                     or (per_profile >= MIN_PROFILE_POINTS).sum() < MIN_REGION_PROFILES):
                 continue
             regions.append(Region(KINDS[kind], int(len(idx)), float(area),
-                                  float(np.max(np.abs(dev[idx]))), points_p[idx].mean(axis=0)))
+                                  float(np.max(np.abs(dev[idx]))), points_p[idx].mean(axis=0),
+                                  profiles=int((per_profile >= MIN_PROFILE_POINTS).sum())))
+    if coverage_model is not None and occluded is not None and sheet_planes_t is not None:
+        missing = missing_samples(points_p, coverage_model, occluded, pose_matrix,
+                                  sheet_planes_t, sensor_positions_t, point_spacing_mm=along)
+        regions += _unseen_regions(missing, coverage_model, min_area, along)
     failing = [k for k in KINDS[:3] if any(r.kind == k for r in regions)]
-    reasons = [f"{r.kind.replace('_', ' ')}: {r.area_mm2:.1f} mm^2 up to "
-               f"{r.max_deviation_mm:.2f} mm off the model at {np.round(r.centre_p, 1).tolist()} "
-               f"mm in the part's frame" for r in regions]
+    reasons = [r.reason() for r in regions]
     if off_share > params.wrong_part_share:
         failing.append("wrong_part")
         reasons.append(f"wrong part: {off_share:.0%} of the cloud lies off the model by more "
@@ -270,6 +344,25 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
                                   "min_deformed_area_mm2": min_areas[2]},
                       off_share=off_share, time_ms=(time.perf_counter() - t0) * 1e3,
                       reasons=reasons)
+
+
+def _unseen_regions(missing: MissingSamples, samples, min_area: float,
+                    point_step: float) -> list[Region]:
+    """Missing material where the scan has no point: the missing samples' groups that hold a
+    core sample, span ``MIN_REGION_PROFILES`` frames' sheets and reach ``min_area``."""
+    if not missing.core.any():
+        return []
+    points = samples.points[missing.index]
+    sample_area = samples.spacing_mm**2
+    out = []
+    for group in _groups(points, LINK_SPACINGS * max(samples.spacing_mm, point_step)):
+        area = len(group) * sample_area
+        profiles = len(np.unique(missing.frame[group]))
+        if not missing.core[group].any() or area < min_area or profiles < MIN_REGION_PROFILES:
+            continue
+        out.append(Region("missing_material", 0, float(area), float("nan"),
+                          points[group].mean(axis=0), evidence="no points", profiles=profiles))
+    return out
 
 
 def _noise(dev: np.ndarray, frame_ids: np.ndarray) -> float:

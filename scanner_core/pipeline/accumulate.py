@@ -255,6 +255,10 @@ class PassAccumulator:
         scan.sensor_positions_t = np.einsum(
             "fji,fj->fi", scan.tcp_rotations_b,
             self.calibration.camera.origin - scan.tcp_positions_b)
+        sheet = self.calibration.light_plane_b
+        scan.sheet_planes_t = np.column_stack([
+            scan.tcp_rotations_b.transpose(0, 2, 1) @ sheet.normal,
+            sheet.offset - scan.tcp_positions_b @ sheet.normal])
         if cached is None:
             _stitch_edges(scan, placed, self.calibration)
             # What the points and edges came from (the profiles up to the last with points,

@@ -20,10 +20,10 @@ def plate():
     return SurfaceModel.from_mesh(mesh, spacing_mm=0.25)
 
 
-def _scan(rng, shape=None):
-    """The top face seen by profiles along x, one per y; ``shape(x, y)`` moves it along z.
-    Returns (cloud (N, 3) in {P} = {T}, frame ids (N,))."""
-    x = np.arange(-28.0, 28.0 + 1e-9, POINT_MM)
+def _scan(rng, shape=None, half_width=28.0):
+    """The top face seen by profiles along x (up to `half_width` off its middle), one per y;
+    ``shape(x, y)`` moves it along z. Returns (cloud (N, 3) in {P} = {T}, frame ids (N,))."""
+    x = np.arange(-half_width, half_width + 1e-9, POINT_MM)
     ys = np.arange(-18.0, 18.0 + 1e-9, PROFILE_MM)
     cloud, frames = [], []
     for k, y in enumerate(ys):
@@ -107,3 +107,86 @@ def test_the_thresholds_can_be_given_and_are_checked(plate):
     for bad in ({"extra_mm": 0.0}, {"min_area_mm2": -1.0}, {"wrong_part_share": 1.5}):
         with pytest.raises(ValueError):
             InspectionParams(**bad)
+
+
+# What the scan should have seen and has no point on (``scanner_core.inspection.coverage``):
+# the plate's top face seen through sheets y = y_k, each frame's camera 30 degrees off the
+# sheet above the plate, the laser's source on the sheet above it.
+
+
+@pytest.fixture(scope="module")
+def plate_views():
+    """The plate's mesh, its coverage samples and an occlusion test against it."""
+    mesh = trimesh.creation.box((60.0, 40.0, 10.0))
+    mesh.apply_translation([0.0, 0.0, 5.0])
+
+    def occluded(origins, directions):
+        return mesh.ray.intersects_any(origins, directions)
+
+    return SurfaceModel.from_mesh(mesh, spacing_mm=0.6, seed=1), occluded
+
+
+def _sheets(frames_y):
+    """Each frame's sheet ``y = y_k`` in {T} = {P}, and its camera centre."""
+    planes = np.array([[0.0, 1.0, 0.0, y] for y in frames_y])
+    sensors = np.array([[0.0, y - 225.0, 400.0] for y in frames_y])
+    return planes, sensors
+
+
+def _inspect_seen(plate, plate_views, cloud, frames, frames_y):
+    samples, occluded = plate_views
+    planes, sensors = _sheets(frames_y)
+    return inspect_scan(cloud, frames, np.eye(4), plate, profile_spacing_mm=PROFILE_MM,
+                        point_spacing_mm=point_spacing(cloud, frames),
+                        coverage_model=samples, occluded=occluded, sheet_planes_t=planes,
+                        sensor_positions_t=sensors)
+
+
+def _ys():
+    return np.arange(-18.0, 18.0 + 1e-9, PROFILE_MM)
+
+
+def test_a_hole_the_scan_should_have_seen_is_missing_material_with_no_points(plate,
+                                                                             plate_views):
+    """A 6 mm hole through the plate at (12, -4): no point there, a region of its size."""
+    rng = np.random.default_rng(7)
+    cloud, frames = _scan(rng, half_width=29.9)
+    assert _inspect_seen(plate, plate_views, cloud, frames, _ys()).conforms
+    hole = np.hypot(cloud[:, 0] - 12.0, cloud[:, 1] + 4.0) < 3.0
+    result = _inspect_seen(plate, plate_views, cloud[~hole], frames[~hole], _ys())
+    assert result.failing == ["missing_material"], result.reasons
+    (region,) = result.regions
+    assert region.evidence == "no points" and region.points == 0 and region.profiles >= 3
+    np.testing.assert_allclose(region.centre_p, [12.0, -4.0, 10.0], atol=0.7)
+    # its rim, within the cover radius of the points around it, is not counted
+    assert 0.3 * np.pi * 3.0**2 < region.area_mm2 < 1.1 * np.pi * 3.0**2
+    assert "should have seen" in result.reasons[0]
+    assert region.to_dict()["max_deviation_mm"] is None
+
+
+def test_no_region_where_the_scan_could_not_say(plate, plate_views):
+    """A frame lost (no sheet, no points), a strip the prediction's edge cannot place (the
+    plate's outer 0.5 mm), the plate's far end beyond the pass: none is missing material."""
+    rng = np.random.default_rng(8)
+    cloud, frames = _scan(rng, half_width=29.9)
+    ys = _ys()
+    lost = np.isin(frames, [10, 11])  # two frames in a row: a 3 mm gap between sheets
+    keep = ~lost & (np.abs(cloud[:, 0]) < 29.5)
+    kept_ys = np.delete(ys, [10, 11])
+    result = _inspect_seen(plate, plate_views, cloud[keep], frames[keep], kept_ys)
+    assert result.conforms, result.reasons
+
+
+def test_what_is_lit_and_seen(plate_views):
+    """A face turned away, a face whose light a wall blocks, a face the camera sees."""
+    from scanner_core.inspection.coverage import lit_and_seen
+
+    samples, occluded = plate_views
+    top = np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 10.0]])
+    up, down = [0.0, 0.0, 1.0], [0.0, 0.0, -1.0]
+    planes, sensors = _sheets([0.0, 0.0])
+    seen = lit_and_seen(top, np.array([up, down]), sensors, planes, occluded)
+    assert seen.tolist() == [True, False]
+    under = np.array([[0.0, 0.0, -1.0]])  # below the plate, looking up through it
+    assert not lit_and_seen(under, np.array([up]), sensors[:1], planes[:1], occluded)[0]
+    assert lit_and_seen(under, np.array([up]), sensors[:1], planes[:1])[0]  # no rays: turned

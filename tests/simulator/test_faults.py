@@ -32,6 +32,11 @@ def test_each_fault_is_what_it_says(block):
     assert chip.is_watertight and 0.0 < block.volume - chip.volume < 4 / 3 * np.pi * 2.0**3
     variant = faulty_mesh(block, "variant", 2.0, TOWARD, rng)
     assert np.ptp(variant.vertices[:, 0]) == pytest.approx(np.ptp(block.vertices[:, 0]) + 2.0)
+    hole = faulty_mesh(block, "hole", 4.0, TOWARD, rng)
+    assert hole.is_watertight
+    # through the part, square to a face the sensor sees: the cylinder's volume taken away
+    assert block.volume - hole.volume == pytest.approx(
+        np.pi * 2.0**2 * np.ptp(block.vertices @ TOWARD), rel=0.6)
     bend = faulty_mesh(block, "bend", 0.3, TOWARD, rng)
     moved = (bend.vertices - block.vertices) @ TOWARD
     assert moved.max() == pytest.approx(0.3) and moved.min() == pytest.approx(0.0, abs=1e-9)
@@ -39,10 +44,11 @@ def test_each_fault_is_what_it_says(block):
     for bad in ("dent:2", "chip:big", "bend:-1"):
         with pytest.raises(ValueError):
             parse_fault(bad)
-    assert set(FAULT_KINDS) == {"double", "debris", "chip", "variant", "bend"}
+    assert set(FAULT_KINDS) == {"double", "debris", "chip", "variant", "hole", "bend"}
 
 
-@pytest.mark.parametrize("kind, size", [("double", 0.0), ("variant", 2.0), ("bend", 0.3)])
+@pytest.mark.parametrize("kind, size", [("double", 0.0), ("variant", 2.0), ("hole", 5.0),
+                                        ("bend", 0.3)])
 def test_a_faulty_pick_is_caught_and_not_acted_on(block, kind, size):
     part = part_from_mesh(block, name="block")
     cell = load_cell()
@@ -56,6 +62,8 @@ def test_a_faulty_pick_is_caught_and_not_acted_on(block, kind, size):
     assert not bad["inspection"]["conforms"], bad["inspection"]
     assert bad["pose"]["act"] is False
     assert any(r.startswith("inspection: ") for r in bad["pose"]["act_reasons"])
+    if kind == "hole":  # a hole through the part: no point where the scan should see one
+        assert any(r["evidence"] == "no points" for r in bad["inspection"]["regions"])
 
 
 def test_the_command_line_puts_a_fault_or_a_mesh_into_the_gripper(tmp_path, block, capsys):

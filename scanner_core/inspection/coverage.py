@@ -1,0 +1,284 @@
+"""What the scan should have seen of the model at the pose and found no point on: missing
+material where the scanner sees nothing (a hole added, a face or a corner cut away through
+the part, a shorter part).
+
+The prediction is the scanner's own, from what it knows: the model at the registered pose,
+and each placed frame's light plane and camera centre in {T} (``Scan.sheet_planes_t``,
+``Scan.sensor_positions_t``: the calibration's sheet and camera, placed by the frame's
+gripper pose). For a sample ``q`` of the model's surface (normal ``n``):
+
+- **crossed**: the sheet swept over ``q`` between two placed frames no farther apart than
+  ``GAP_STEPS`` of the pass's median step (a dropped frame leaves its stretch unpredicted);
+  ``q`` belongs to the nearer of the two frames;
+- **lit and seen**: at that frame, ``n`` turns to the camera centre ``C`` and to the laser's
+  source ``L`` within ``MAX_INCIDENCE_DEG``, and no part of the model lies between ``q`` and
+  either (rays cast against the mesh);
+- **covered**: a cloud point lies within ``COVER_STEPS`` point steps of ``q``, a step along
+  the pass between two frames' sheets counting as ``FRAME_STEPS`` point steps: profiles
+  sample the part densely along each and sparsely across, a sample between two lies half a
+  frame from both, and a profile two frames off does not cover it. On a face inclined to the
+  sheet (``n . m = sin b`` for the pass direction ``m``) a profile lies ``s tan b`` across
+  from a sample ``s`` beyond it, and that is allowed for.
+
+Missing: crossed, lit and seen, not covered. The calibration does not hold the laser's
+source: it is taken at the foot of the camera centre on the sheet, ``L = C - (n_s . C -
+o_s) n_s`` (a sheet shining up from below the part and a camera beside it at the
+triangulation angle put it there within some tens of mm), and a sample counts as lit only
+when it is lit from there and from ``LASER_SOURCE_SPREAD_MM`` to either side of it along the
+sheet: a shadow's edge is uncertain, so the prediction keeps to what every plausible source
+lights. A region counts only from its *core*: missing samples with at most
+``1 - CORE_SHARE`` of their neighbours within the margin (the pass's profile step, at least
+``MIN_MARGIN_STEPS`` sample spacings) unexpected (not crossed, turned away, hidden), away
+from the prediction's edges (a silhouette's, a grazing face's, a partly lit end's); a hole in
+a face, ringed by covered samples, has one.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["MissingSamples", "missing_samples", "sheet_crossings", "lit_and_seen",
+           "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS", "FRAME_STEPS", "CORE_SHARE",
+           "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM"]
+
+#: A face turned farther than this from the camera or the laser returns too little light to
+#: be counted on (a grazing face drops out of real scans first).
+MAX_INCIDENCE_DEG = 60.0
+#: The laser's source is taken this far to either side of the camera's foot on the sheet too.
+LASER_SOURCE_SPREAD_MM = 100.0
+#: Two placed frames farther apart than this many median steps: a frame lost between them,
+#: and nothing predicted there.
+GAP_STEPS = 1.5
+#: A sample is covered by a cloud point within this many point steps (scaled distance).
+COVER_STEPS = 3.0
+#: ... a step between two frames' sheets counting as this many point steps.
+FRAME_STEPS = 3.0
+#: A core sample: at least this share of its neighbours within the margin expected.
+CORE_SHARE = 0.9
+#: The margin is at least this many sample spacings.
+MIN_MARGIN_STEPS = 2.0
+#: Spacing of the model's samples the coverage is judged on, mm (``PartModel.coverage_model``).
+COVERAGE_SPACING_MM = 0.6
+#: Rays leave a sample this far off its face, mm, so as not to meet the face itself.
+RAY_OFFSET_MM = 0.02
+
+
+@dataclass(frozen=True)
+class MissingSamples:
+    """The model's samples the scan should have seen and has no point on.
+
+    Attributes
+    ----------
+    index : (K,) int64
+        Into the samples.
+    core : (K,) bool
+        Deep in missing ones (the module's docstring): a region counts only with one.
+    frame : (K,) int64
+        The placed frame (index into ``Scan.sheet_planes_t``) whose sheet crossed each.
+    """
+
+    index: np.ndarray
+    core: np.ndarray
+    frame: np.ndarray
+
+
+NONE_MISSING = MissingSamples(np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, np.int64))
+
+
+def sheet_crossings(samples_p: np.ndarray, planes_p: np.ndarray):
+    """The frame whose sheet crossed each sample, where two placed frames bracket it closely.
+
+    Parameters
+    ----------
+    samples_p : (M, 3) float64
+        mm in {P}.
+    planes_p : (F, 4) float64
+        Each placed frame's sheet in {P}, ``(n, offset)`` with ``n . x = offset``.
+
+    Returns
+    -------
+    frame : (M,) int64
+        Index into the F frames of the nearer bracketing frame; -1 where none brackets the
+        sample within ``GAP_STEPS`` of the median step (before or after the pass, or over a
+        lost frame).
+    step_mm : float
+        The median step between neighbouring frames' sheets, mm (NaN: fewer than 2 frames).
+    direction : (3,) float64
+        The sheets' mean normal in {P}.
+    """
+    samples_p = np.asarray(samples_p, dtype=np.float64).reshape(-1, 3)
+    frame = np.full(len(samples_p), -1, np.int64)
+    if len(planes_p) < 2:
+        return frame, float("nan"), np.array([0.0, 0.0, 1.0])
+    normals = planes_p[:, :3]
+    direction = normals.mean(axis=0)
+    direction /= np.linalg.norm(direction)
+    # the sheets' positions along their mean normal (they turn by the robot's few mdeg)
+    positions = planes_p[:, 3] / (normals @ direction)
+    order = np.argsort(positions)
+    sorted_positions = positions[order]
+    gaps = np.diff(sorted_positions)
+    step = float(np.median(gaps))
+    height = samples_p @ direction
+    right = np.searchsorted(sorted_positions, height)
+    inside = (right > 0) & (right < len(order))
+    right = np.clip(right, 1, len(order) - 1)
+    left = right - 1
+    close = gaps[left] <= GAP_STEPS * step
+    nearer = np.where(height - sorted_positions[left] <= sorted_positions[right] - height,
+                      left, right)
+    ok = inside & close
+    frame[ok] = order[nearer[ok]]
+    return frame, step, direction
+
+
+def lit_and_seen(samples_p, normals_p, sensors_p, sheets_p, occluded=None, *,
+                 max_incidence_deg: float = MAX_INCIDENCE_DEG) -> np.ndarray:
+    """Which samples the laser lights and the camera sees, each at its own frame.
+
+    Parameters
+    ----------
+    samples_p, normals_p : (K, 3) float64
+        Points of the model's surface and their outward unit normals, {P}.
+    sensors_p : (K, 3) float64
+        The camera centre of each sample's frame, {P}.
+    sheets_p : (K, 4) float64
+        That frame's sheet, ``(n, offset)``.
+    occluded : callable(origins (R, 3), directions (R, 3)) -> (R,) bool, optional
+        Whether a ray meets the model (``PartModel.occluded``); None: the faces' turn alone.
+    max_incidence_deg : float
+
+    Returns
+    -------
+    (K,) bool
+    """
+    if not len(samples_p):
+        return np.zeros(0, bool)
+    cos_limit = math.cos(math.radians(max_incidence_deg))
+    to_camera = sensors_p - samples_p
+    foot = np.einsum("ij,ij->i", sheets_p[:, :3], sensors_p) - sheets_p[:, 3]
+    source = sensors_p - foot[:, None] * sheets_p[:, :3]
+    # along the sheet, square to the light's way to the sample: where the source is least known
+    aside = np.cross(sheets_p[:, :3], source - samples_p)
+    aside /= np.maximum(np.linalg.norm(aside, axis=1, keepdims=True), 1e-12)
+    rays = [to_camera] + [source + k * LASER_SOURCE_SPREAD_MM * aside - samples_p
+                          for k in (0.0, -1.0, 1.0)]
+    out = np.ones(len(samples_p), bool)
+    for ray in rays:
+        length = np.linalg.norm(ray, axis=1)
+        out &= np.einsum("ij,ij->i", normals_p, ray) > cos_limit * length
+    if occluded is None:
+        return out
+    for ray in rays:
+        which = np.nonzero(out)[0]
+        if not len(which):
+            break
+        origins = samples_p[which] + RAY_OFFSET_MM * normals_p[which]
+        out[which[occluded(origins, ray[which])]] = False
+    return out
+
+
+def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.ndarray,
+                    sheet_planes_t: np.ndarray, sensor_positions_t: np.ndarray, *,
+                    point_spacing_mm: float) -> MissingSamples:
+    """The model's samples the scan should have seen at this pose and has no point near.
+
+    Parameters
+    ----------
+    points_p : (N, 3) float64
+        The cloud in {P}, mm.
+    samples : scanner_core.pose.models.SurfaceModel
+        The model's surface samples (``PartModel.coverage_model``), {P}, with their tree.
+    occluded : callable(origins, directions) -> bool array
+        Whether rays in {P} meet the model (``PartModel.occluded``).
+    pose_matrix : (4, 4) float64
+        The registered ^T X_P.
+    sheet_planes_t, sensor_positions_t : (F, 4), (F, 3) float64
+        ``Scan.sheet_planes_t``, ``Scan.sensor_positions_t``.
+    point_spacing_mm : float
+        The step between a profile's points, mm.
+
+    Returns
+    -------
+    MissingSamples
+        None missing where the scan carries no sheets (a scan made by hand, a file's).
+    """
+    sheet_planes_t = np.asarray(sheet_planes_t, dtype=np.float64).reshape(-1, 4)
+    sensors_t = np.asarray(sensor_positions_t, dtype=np.float64).reshape(-1, 3)
+    if len(sheet_planes_t) < 2 or len(sensors_t) != len(sheet_planes_t) or not len(points_p):
+        return NONE_MISSING
+    pose = np.asarray(pose_matrix, dtype=np.float64)
+    rotation, translation = pose[:3, :3], pose[:3, 3]
+    planes_p = np.column_stack([sheet_planes_t[:, :3] @ rotation,
+                                sheet_planes_t[:, 3] - sheet_planes_t[:, :3] @ translation])
+    sensors_p = (sensors_t - translation) @ rotation
+    frame, step, direction = sheet_crossings(samples.points, planes_p)
+    if not (math.isfinite(step) and step > 0):
+        return NONE_MISSING
+    point_step = point_spacing_mm if math.isfinite(point_spacing_mm) and point_spacing_mm > 0 \
+        else step
+    crossed = np.nonzero(frame >= 0)[0]
+    # turned to the camera (the light's turn and the rays later, on the uncovered few)
+    to_camera = sensors_p[frame[crossed]] - samples.points[crossed]
+    turned = np.einsum("ij,ij->i", samples.normals[crossed], to_camera) > \
+        math.cos(math.radians(MAX_INCIDENCE_DEG)) * np.linalg.norm(to_camera, axis=1)
+    crossed = crossed[turned]
+    q, n = samples.points[crossed], samples.normals[crossed]
+    # covered: a cloud point near, a frame's step along the pass counting FRAME_STEPS points'
+    shrink = min(FRAME_STEPS * point_step / step, 1.0)
+
+    def squeezed(x):
+        return x + (shrink - 1.0) * np.outer(x @ direction, direction)
+
+    sine = np.clip(np.abs(n @ direction), 0.0, 0.999)
+    radius = COVER_STEPS * point_step + 0.5 * step * sine / np.sqrt(1.0 - sine**2)
+    cloud = squeezed(points_p)
+    query = squeezed(q)
+    near = COVER_STEPS * point_step
+    # a sample in a cube (of diagonal `near`) that holds a point is covered; the others ask a
+    # KD-tree of the cloud, first within `near`, then within their own radius
+    distance = np.where(_in_occupied_cubes(query, cloud, near / math.sqrt(3.0)), 0.0, np.inf)
+    ask = np.nonzero(np.isinf(distance))[0]
+    if len(ask):
+        tree = cKDTree(cloud, balanced_tree=False, compact_nodes=False)
+        distance[ask], _ = tree.query(query[ask], distance_upper_bound=near, workers=1)
+        farther = ask[np.isinf(distance[ask])]
+        if len(farther):
+            distance[farther], _ = tree.query(query[farther], workers=1,
+                                              distance_upper_bound=float(radius[farther].max()))
+    open_ = np.nonzero(distance > radius)[0]
+    if not len(open_):
+        return NONE_MISSING
+    which = crossed[open_]
+    seen = lit_and_seen(q[open_], n[open_], sensors_p[frame[which]], planes_p[frame[which]],
+                        occluded)
+    missing = which[seen]
+    if not len(missing):
+        return NONE_MISSING
+    # the core: missing samples whose neighbours are expected (covered or missing), away
+    # from the prediction's edges
+    status = np.zeros(len(samples.points), np.int8)  # 0 unexpected, 1 covered, 2 missing
+    status[crossed[distance <= radius]] = 1
+    status[missing] = 2
+    margin = max(step, MIN_MARGIN_STEPS * samples.spacing_mm)
+    neighbours = samples.tree.query_ball_point(samples.points[missing], margin, workers=1)
+    core = np.array([np.count_nonzero(status[near] > 0) >= CORE_SHARE * len(near)
+                     for near in neighbours], bool)
+    return MissingSamples(missing, core, frame[missing])
+
+
+def _in_occupied_cubes(queries: np.ndarray, points: np.ndarray, side: float) -> np.ndarray:
+    """Whether each of `queries` (K, 3) falls in a cube of the grid of `side` (mm) that holds
+    one of `points` (N, 3): a sort of the points' cubes and a search, cheaper than a KD-tree
+    query for the many samples a cloud covers densely."""
+    low = np.minimum(points.min(axis=0), queries.min(axis=0))
+    cells = np.floor((points - low) / side).astype(np.int64)
+    wanted = np.floor((queries - low) / side).astype(np.int64)
+    span = np.maximum(cells.max(axis=0), wanted.max(axis=0)) + 1
+    keys = np.unique((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2])
+    asked = (wanted[:, 0] * span[1] + wanted[:, 1]) * span[2] + wanted[:, 2]
+    at = np.minimum(np.searchsorted(keys, asked), len(keys) - 1)
+    return keys[at] == asked
