@@ -12,6 +12,11 @@ In one calibrated realistic cell (``--perturb-seed`` `CELL_SEED`, every effect o
 - every fault of ``simulator.faults`` at each size of `SIZES_MM`, `TRIALS` times a part, each at
   its own random misplacement and fault draw: a fault is *detected* when the inspection fails.
 
+Each fault is also judged *seen* or not from the simulator's truth (``fault_seen``): whether
+the scan's profiles crossed its difference from the model, where the true cell lights and
+sees it, as much as the check's smallest region needs. What the scan does not see no check
+can find; what it sees, the check must.
+
 Per kind, the probability of detection (POD) against the fault's size is the hit/miss
 logistic fit of non-destructive testing (MIL-HDBK-1823A): ``POD(a) = 1 / (1 + exp(-(b0 + b1
 ln a)))`` by maximum likelihood, its lower 95 % confidence band from the fit's covariance
@@ -37,6 +42,11 @@ from benchmarks.calibrate import _calibrate
 from benchmarks.parts import DEMO_PART, bench_part, random_misplacement
 from benchmarks.place import QUICK_SESSION_POSITIONS, SESSION_POSITIONS
 from benchmarks.results import pyplot, save_figure, write_json
+from scanner_core.inspection import point_deviations, point_spacing
+from scanner_core.inspection.check import (MIN_PROFILE_POINTS, MIN_REGION_PROFILES,
+                                           MIN_REGION_SAMPLES)
+from scanner_core.inspection.coverage import lit_and_seen, sheet_crossings
+from scanner_core.pose.models import SurfaceModel
 from scanner_core.pose.registration import PoseParams
 from simulator.cell import load_cell
 from simulator.effects import realistic_cell
@@ -53,8 +63,8 @@ QUICK_PARTS = (DEMO_PART,)
 #: The faults' sizes, mm: a debris blob's diameter, a chip's radius, a variant's extra length,
 #: a bend's deflection at the ends (``simulator.faults``); a double pick has none.
 SIZES_MM = {"debris": (1.0, 2.0, 3.0, 4.0, 6.0), "chip": (0.5, 1.0, 2.0, 3.0, 5.0),
-            "variant": (0.25, 0.5, 1.0, 2.0, 4.0), "bend": (0.02, 0.05, 0.1, 0.2, 0.4),
-            "double": (0.0,)}
+            "variant": (0.25, 0.5, 1.0, 2.0, 4.0), "hole": (1.0, 2.0, 3.0, 4.0, 6.0),
+            "bend": (0.02, 0.05, 0.1, 0.2, 0.4), "double": (0.0,)}
 #: The quick run's sizes: each kind's smallest and largest.
 QUICK_SIZES_MM = {kind: tuple(sorted({sizes[0], sizes[-1]})) for kind, sizes in SIZES_MM.items()}
 #: Trials of each fault size on each part; good picks in all (spread over the parts).
@@ -63,6 +73,9 @@ GOOD_PICKS, QUICK_GOOD_PICKS = 300, 4
 CELL_SEED = 34
 MISPLACEMENT_UP_TO_MM, MISPLACEMENT_UP_TO_DEG = 5.0, 10.0
 INSPECT_SEED = 44
+#: Whether the scan saw a fault (the evaluation's, from the simulator's truth): the model's
+#: and the held mesh's surfaces sampled this finely (``fault_seen``).
+SEEN_SPACING_MM = 0.2
 
 
 def run(out_dir, quick: bool = False, *, jobs: int = 2, progress=None) -> dict:
@@ -130,14 +143,21 @@ def _part_rows(task) -> list[dict]:
                 if kind != "good":
                     mesh = faulty_mesh(part.mesh, kind, size, toward, rng)
                     held = part_from_mesh(mesh, name=f"{name} {kind}", grasp=part.grasp)
-                _, report = run_simulated_scan(part, cell, calibration=calibration,
-                                               misplacement=misplacement_matrix(values),
-                                               seed=i, evaluate=False, pose_params=params,
-                                               held=held)
+                scan, report = run_simulated_scan(part, cell, calibration=calibration,
+                                                  misplacement=misplacement_matrix(values),
+                                                  seed=i, evaluate=False, pose_params=params,
+                                                  held=held)
             except Exception as exc:  # a chip of an open mesh, a fault that leaves nothing, say
                 rows.append({"part": name, "kind": kind, "size_mm": size, "error": repr(exc)})
                 continue
-            rows.append(_row(name, kind, size, report))
+            row = _row(name, kind, size, report)
+            thresholds = (report.get("inspection") or {}).get("thresholds")
+            if held is not None and thresholds:
+                limit = thresholds["deform_mm" if kind == "bend" else "extra_mm"]
+                row.update(fault_seen(scan, part.mesh, held.mesh,
+                                      misplacement_matrix(values) @ part.grasp, cell, limit,
+                                      point_spacing(scan.cloud, scan.frame_ids)))
+            rows.append(row)
     return rows
 
 
@@ -151,6 +171,58 @@ def _row(name, kind, size, report) -> dict:
             "sigma_um": inspection.get("sigma_um"), "points": report.get("points"),
             "check_ms": inspection.get("time_ms"),
             "reasons": [r for r in pose.get("act_reasons", []) if not r.startswith("inspection")]}
+
+
+def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
+               point_step_mm: float) -> dict:
+    """Whether the scan's profiles crossed the fault where the true cell lights and sees it,
+    as much as the check needs to call a region.
+
+    The difference between the model and the held mesh (each's surface samples farther than
+    `threshold_mm` from the other's surface: material taken away, as a good part would have
+    shown it; material added or moved, as the held one shows it), at the true pose
+    ``true_pose`` (^T X_P), lit by the cell's true laser source and seen by its true camera
+    (the scan's placed frames, the true cell's sheet), with nothing of the mesh in the way.
+    A profile's chord across it is the samples within half their spacing of its sheet times
+    that spacing. Seen: ``MIN_REGION_PROFILES`` profiles with a chord of at least
+    ``MIN_PROFILE_POINTS`` point steps, and ``MIN_REGION_SAMPLES`` point steps of chord in
+    all: no fewer points than the check's smallest region holds. Returns ``{"seen": bool,
+    "seen_profiles": int, "seen_chord_mm": float}``."""
+    rotations = np.asarray(scan.tcp_rotations_b, dtype=np.float64).reshape(-1, 3, 3)
+    positions = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
+    if len(rotations) < 2:
+        return {"seen": False, "seen_profiles": 0}
+    truth = cell.calibration
+    sheet = truth.light_plane_b
+    to_t = lambda points_b: np.einsum("fji,fj->fi", rotations, points_b - positions)  # noqa: E731
+    planes_t = np.column_stack([rotations.transpose(0, 2, 1) @ sheet.normal,
+                                sheet.offset - positions @ sheet.normal])
+    rotation, translation = true_pose[:3, :3], true_pose[:3, 3]
+    planes_p = np.column_stack([planes_t[:, :3] @ rotation,
+                                planes_t[:, 3] - planes_t[:, :3] @ translation])
+    sensors_p = (to_t(truth.camera.origin) - translation) @ rotation
+    lasers_p = (to_t(cell.laser_origin_b) - translation) @ rotation
+    good = SurfaceModel.from_mesh(good_mesh, spacing_mm=SEEN_SPACING_MM, seed=2)
+    held = SurfaceModel.from_mesh(held_mesh, spacing_mm=SEEN_SPACING_MM, seed=3)
+    counts = {}
+    for samples, other, mesh in ((good, held, good_mesh), (held, good, held_mesh)):
+        index = np.nonzero(np.abs(point_deviations(samples.points, other)) > threshold_mm)[0]
+        frame, _, _ = sheet_crossings(samples.points[index], planes_p)
+        index, frame = index[frame >= 0], frame[frame >= 0]
+        lit = lit_and_seen(samples.points[index], samples.normals[index], sensors_p[frame],
+                           planes_p[frame], lambda o, d, m=mesh: m.ray.intersects_any(o, d),
+                           sources_p=lasers_p[frame])
+        index, frame = index[lit], frame[lit]
+        off_sheet = np.abs(np.einsum("ij,ij->i", planes_p[frame, :3], samples.points[index])
+                           - planes_p[frame, 3])
+        for k in frame[off_sheet <= 0.5 * samples.spacing_mm]:
+            counts[int(k)] = counts.get(int(k), 0) + 1
+    chords = np.array([c * SEEN_SPACING_MM for c in counts.values()])
+    crossing = chords[chords >= MIN_PROFILE_POINTS * point_step_mm]
+    seen = (len(crossing) >= MIN_REGION_PROFILES
+            and crossing.sum() >= MIN_REGION_SAMPLES * point_step_mm)
+    return {"seen": bool(seen), "seen_profiles": int(len(crossing)),
+            "seen_chord_mm": round(float(crossing.sum()), 3)}
 
 
 def pod_fit(sizes, hits) -> dict:
@@ -201,9 +273,20 @@ def _summary(rows) -> dict:
         hit = [r["conforms"] is False for r in mine]
         by_size = {str(s): {"trials": sum(r["size_mm"] == s for r in mine),
                             "detected": sum(h for r, h in zip(mine, hit) if r["size_mm"] == s),
+                            "seen": sum(bool(r.get("seen")) for r in mine if r["size_mm"] == s),
+                            "detected_of_seen": sum(h for r, h in zip(mine, hit)
+                                                    if r["size_mm"] == s and r.get("seen")),
                             "acted_on": sum(r["act"] for r in mine if r["size_mm"] == s)}
                    for s in sizes}
+        seen = [r for r in mine if r.get("seen")]
         entry = {"trials": len(mine), "detected": int(sum(hit)),
+                 # the faults the scan's profiles crossed as much as the check's smallest
+                 # region needs (``fault_seen``, from the simulator's truth)
+                 "seen": len(seen), "detected_of_seen": sum(r["conforms"] is False for r in seen),
+                 "seen_missed": [{"part": r["part"], "size_mm": r["size_mm"],
+                                  "seen_profiles": r["seen_profiles"],
+                                  "seen_chord_mm": r["seen_chord_mm"]}
+                                 for r in seen if r["conforms"] is not False],
                  # a scan that failed (the second part hid the marker, say), or a pose refused:
                  # never acted on, though the check never ran
                  "scan_failed_or_refused": sum(not r["posed"] for r in mine),
@@ -269,8 +352,16 @@ def _chart(result, path) -> None:
                 ax.axvline(pod["a90"], color="tab:red", ls=":",
                            label=f"a90 {pod['a90']:.2f} mm"
                                  + (f", a90/95 {pod['a90_95']:.2f}" if pod.get("a90_95") else ""))
+        by_size = summary["faults"][kind]["by_size"]
+        seen_sizes = [float(k) for k, v in by_size.items() if v.get("seen")]
+        if seen_sizes:
+            ax.semilogx(seen_sizes, [by_size[str(k) if str(k) in by_size else k]
+                                     ["detected_of_seen"] / by_size[str(k)]["seen"]
+                                     for k in seen_sizes], "s", color="tab:green", ms=6,
+                        mfc="none", label="detected of those seen")
         ax.axhline(0.9, color="gray", lw=0.5)
-        ax.set_title(kind, fontsize=9)
+        ax.set_title(f"{kind}: {summary['faults'][kind]['detected_of_seen']} of "
+                     f"{summary['faults'][kind]['seen']} seen detected", fontsize=9)
         ax.set_xlabel("size, mm")
         ax.set_ylim(-0.1, 1.1)
         ax.legend(fontsize=7, loc="lower right")

@@ -136,7 +136,7 @@ def sheet_crossings(samples_p: np.ndarray, planes_p: np.ndarray):
 
 
 def lit_and_seen(samples_p, normals_p, sensors_p, sheets_p, occluded=None, *,
-                 max_incidence_deg: float = MAX_INCIDENCE_DEG) -> np.ndarray:
+                 max_incidence_deg: float = MAX_INCIDENCE_DEG, sources_p=None) -> np.ndarray:
     """Which samples the laser lights and the camera sees, each at its own frame.
 
     Parameters
@@ -150,6 +150,10 @@ def lit_and_seen(samples_p, normals_p, sensors_p, sheets_p, occluded=None, *,
     occluded : callable(origins (R, 3), directions (R, 3)) -> (R,) bool, optional
         Whether a ray meets the model (``PartModel.occluded``); None: the faces' turn alone.
     max_incidence_deg : float
+    sources_p : (K, 3) float64, optional
+        The laser's source for each sample where it is known (the simulator's, for an
+        evaluation): its light alone; None: the camera's foot on the sheet, and to either
+        side (the module's docstring).
 
     Returns
     -------
@@ -166,6 +170,8 @@ def lit_and_seen(samples_p, normals_p, sensors_p, sheets_p, occluded=None, *,
     aside /= np.maximum(np.linalg.norm(aside, axis=1, keepdims=True), 1e-12)
     rays = [to_camera] + [source + k * LASER_SOURCE_SPREAD_MM * aside - samples_p
                           for k in (0.0, -1.0, 1.0)]
+    if sources_p is not None:
+        rays = [to_camera, np.asarray(sources_p, dtype=np.float64) - samples_p]
     out = np.ones(len(samples_p), bool)
     for ray in rays:
         length = np.linalg.norm(ray, axis=1)

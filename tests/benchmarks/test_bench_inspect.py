@@ -33,7 +33,15 @@ def test_quick_bench_inspect(tmp_path):
     double = summary["faults"]["double"]  # caught: detected, or its scan failed
     assert double["trials"] == 1 and double["acted_on"] == 0
     assert double["detected"] + double["scan_failed_or_refused"] >= 1
-    for kind in ("debris", "chip", "variant", "bend"):
+    for kind in ("debris", "chip", "variant", "hole", "bend"):
         mine = [r for r in rows if r["kind"] == kind]
         assert summary["faults"][kind]["detected"] == sum(r["conforms"] is False for r in mine)
+        seen = [r for r in mine if r.get("seen")]
+        assert summary["faults"][kind]["seen"] == len(seen)
+        assert all(r["seen_profiles"] >= 2 for r in seen)
+    # a 6 mm hole drilled through the block: seen by the profiles, and found with no points
+    (hole,) = [r for r in rows if r["kind"] == "hole" and r["size_mm"] == 6.0]
+    assert hole["seen"] and hole["conforms"] is False and "missing_material" in hole["failing"]
+    (pinhole,) = [r for r in rows if r["kind"] == "hole" and r["size_mm"] == 1.0]
+    assert not pinhole["seen"]  # 1 mm across: at most one profile crosses it
     assert summary["check_ms"]["median"] > 0
