@@ -263,7 +263,7 @@ class FlyscanClient:
         return self._json("GET", "/parts")["parts"]
 
     def upload_part(self, name: str, path: str | os.PathLike, units: str,
-                    grasp=None) -> dict:
+                    grasp=None, inspection: dict | None = None) -> dict:
         """``PUT /parts/{name}?units=...&format=...[&grasp=...]``: upload a mesh file (STL, OBJ
         or PLY, told by its suffix) as a part; returns its PartInfo (``nominal_grasp``: the
         ^T X_P the place correction starts from).
@@ -272,10 +272,14 @@ class FlyscanClient:
         `grasp` is the nominal grasp: a name (``centred``, ``flat`` or ``identity``: see
         docs/design.md), or the taught ^T X_P itself, a (4, 4) rigid transform in mm of the
         part's CAD frame in the TCP (sent as ``grasp_matrix``); None: the service's default,
-        ``centred``. Raises Unprocessable (422) for a bad unit, grasp or mesh, ValueError for a
+        ``centred``. `inspection`: the part's own inspection thresholds, some of
+        ``extra_mm``, ``deform_mm``, ``min_area_mm2`` (mm, mm^2; sent as ``inspect_<name>``).
+        Raises Unprocessable (422) for a bad unit, grasp, threshold or mesh, ValueError for a
         grasp that is neither a name nor a 4x4.
         """
         params = {"units": units, "format": os.path.splitext(os.fspath(path))[1][1:].lower()}
+        for key, value in (inspection or {}).items():
+            params[f"inspect_{key}"] = value
         if isinstance(grasp, str):
             params["grasp"] = grasp
         elif grasp is not None:

@@ -3,6 +3,7 @@ that run before any pass (a bad input writes nothing)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import re
 import tempfile
 from pathlib import Path
@@ -144,6 +145,8 @@ def load_part_model(args):
     part = load_part(args.part, args.units, grasp=plan.nominal_grasp)
     check_plan_grasp(plan, part.vertices)
     args.loaded_plan = plan
+    if plan.inspection is not None:  # the part's own thresholds, over the command's
+        part = dataclasses.replace(part, inspection=plan.inspection)
     return part
 
 

@@ -27,6 +27,7 @@ from scanner_core.geometry import apply_transform, check_rigid
 from scanner_core.io.meshfile import check_ply_counts, clean_triangles, is_binary_stl, read_mesh
 
 if TYPE_CHECKING:  # imported where used: ray casting alone needs neither trimesh nor scipy
+    from scanner_core.inspection import InspectionParams
     import trimesh
 
 __all__ = ["UNITS_MM", "PLAUSIBLE_SIZE_MM", "INSPECTION_VOLUME_MM", "GRIPPER_TOLERANCE_MM",
@@ -81,6 +82,9 @@ class PartModel:
         The unit of the source file, one of `UNITS_MM`.
     grasp : (4, 4) float64
         Nominal ^T X_P, mm: X_T = R X_P + t. Read-only.
+    inspection : scanner_core.inspection.InspectionParams or None
+        The part's own thresholds for the inspection (from its plan or its upload), over
+        those of the service or the command; None: none of its own.
 
     The models built from the mesh for registration (``surface_model``, ``edge_model``,
     ``model_edges``) are built on first use and kept (``prepare`` builds them, with their
@@ -95,6 +99,7 @@ class PartModel:
     source: str
     units: str
     grasp: np.ndarray = field(repr=False)
+    inspection: InspectionParams | None = field(default=None, repr=False)
 
     @cached_property
     def mesh(self) -> "trimesh.Trimesh":

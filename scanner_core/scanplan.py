@@ -67,6 +67,9 @@ class ScanPlan:
         The pass.
     mesh_sha256 : str
         SHA-256 of the mesh file the plan was made for.
+    inspection : scanner_core.inspection.InspectionParams or None
+        The part's own inspection thresholds (the plan's ``inspection``: some of
+        ``extra_mm``, ``deform_mm``, ``min_area_mm2``), None where the plan gives none.
     """
 
     part: str
@@ -78,6 +81,7 @@ class ScanPlan:
     speed_mm_s: float
     fps: float
     mesh_sha256: str
+    inspection: object = None
 
     def check_mesh(self, path) -> None:
         """PlanError unless the mesh file at `path` is the one the plan was made for."""
@@ -157,7 +161,8 @@ def load_scan_plan(path) -> ScanPlan:
                         base_grasp=base, pass_direction_deg=float(chosen["pass_direction_deg"]),
                         nominal_grasp=nominal, preset=str(chosen["preset"]),
                         speed_mm_s=float(chosen["speed_mm_s"]), fps=float(chosen["fps"]),
-                        mesh_sha256=str(data["mesh_sha256"]))
+                        mesh_sha256=str(data["mesh_sha256"]),
+                        inspection=_inspection(data.get("inspection"), p))
     except (KeyError, TypeError, ValueError) as exc:
         raise PlanError(f"{p}: a scan plan needs part, mesh_sha256 and chosen (grasp name and "
                         f"base, pass_direction_deg, nominal_grasp, preset, speed_mm_s, fps): "
@@ -166,6 +171,17 @@ def load_scan_plan(path) -> ScanPlan:
             and plan.fps > 0 and np.isfinite(plan.pass_direction_deg)):
         raise PlanError(f"{p}: speed_mm_s and fps must be positive and the turn finite")
     return plan
+
+
+def _inspection(data, path):
+    """A plan's ``inspection`` thresholds (``InspectionParams``), None where it has none."""
+    if data is None:
+        return None
+    from scanner_core.inspection import InspectionParams
+    try:
+        return InspectionParams.from_dict(data)
+    except ValueError as exc:
+        raise PlanError(f"{path}: inspection: {exc}") from None
 
 
 def check_plan_grasp(plan: ScanPlan, vertices) -> None:

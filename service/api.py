@@ -25,6 +25,7 @@ from starlette.routing import compile_path
 from fastapi.exception_handlers import http_exception_handler
 
 from scanner_core.geometry.calibration import Calibration, CalibrationError
+from scanner_core.inspection import InspectionParams
 from service.daemon import Service
 from service.engine import EngineBusy, EngineFault
 from service.models import (CalibrationModel, Health, PartInfo, PartList, Problem, ScanAccepted, ScanInfo, ScanList,
@@ -261,11 +262,23 @@ async def put_part(name: str, request: Request, service: ServiceDep,
                        max_length=1000,
                        description="the nominal grasp ^T X_P instead, as taught: 16 comma-"
                                    "separated numbers, a 4x4 row-major rigid transform, mm")]
+                   = None,
+                   inspect_extra_mm: Annotated[float | None, Query(
+                       gt=0, description="this part's inspection: extra or missing material "
+                                         "beyond this many mm off the model; default the "
+                                         "service's setting, or derived from each scan")]
+                   = None,
+                   inspect_deform_mm: Annotated[float | None, Query(
+                       gt=0, description="this part's deformation threshold, mm")] = None,
+                   inspect_min_area_mm2: Annotated[float | None, Query(
+                       gt=0, description="this part's smallest failing region, mm^2")]
                    = None) -> dict:
     library = service.parts
     if grasp is not None and grasp_matrix is not None:
         raise HTTPException(422, "give grasp (a name) or grasp_matrix (a 4x4), not both")
     try:  # the cheap refusals before a byte of the body is read
+        inspection = InspectionParams(extra_mm=inspect_extra_mm, deform_mm=inspect_deform_mm,
+                                      min_area_mm2=inspect_min_area_mm2)
         chosen = (grasp or "centred") if grasp_matrix is None else grasp_from_query(grasp_matrix)
         library.check_name(name)
         library.check_room(name)
@@ -284,7 +297,8 @@ async def put_part(name: str, request: Request, service: ServiceDep,
             async for chunk in request.stream():
                 mesh.write(chunk)
         part = await asyncio.to_thread(library.add_staged, name, staging, units,
-                                       suffix=f".{format}", grasp=chosen)
+                                       suffix=f".{format}", grasp=chosen,
+                                       inspection=inspection)
         await asyncio.to_thread(service.prepare_part, name)
     except (PartError, ValueError) as exc:
         raise HTTPException(422, str(exc)) from None

@@ -225,6 +225,10 @@ class PartInfo(BaseModel):
     source: str
     extents_mm: list[float]
     nominal_grasp: list[list[float]]
+    inspection: dict[str, float] | None = Field(
+        None, description="the part's own inspection thresholds (extra_mm, deform_mm, "
+                          "min_area_mm2), from its upload or its plan, over the service's "
+                          "settings; None: the service's, or derived from each scan")
 
 
 class PartList(BaseModel):

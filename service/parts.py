@@ -28,6 +28,7 @@ gives them back at once.
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import gc
 import json
 import logging
@@ -48,6 +49,7 @@ import numpy as np
 
 from scanner_core.cad import (GRASPS, PartError, PartModel, check_fits, load_part, saved_part,
                               simplified_for_scan)
+from scanner_core.inspection import InspectionParams
 from scanner_core.scanplan import check_plan_grasp, load_scan_plan
 
 log = logging.getLogger("flyscan.parts")
@@ -86,7 +88,8 @@ def part_info(part: PartModel, simplified: dict | None = None) -> dict:
             "faces": int(len(part.faces)),
             "source": "built-in" if part.source.startswith("procedural") else "uploaded",
             "extents_mm": np.round(part.extents, 4).tolist(),
-            "nominal_grasp": np.asarray(part.grasp).tolist()}
+            "nominal_grasp": np.asarray(part.grasp).tolist(),
+            "inspection": part.inspection.given() if part.inspection is not None else None}
 
 
 def check_solid(part: PartModel) -> None:
@@ -241,10 +244,15 @@ class PartLibrary:
             try:
                 meta = json.loads((folder / "part.json").read_text())
                 grasp = _grasp(meta["grasp"])
+                inspection = (InspectionParams.from_dict(meta["inspection"])
+                              if meta.get("inspection") else None)
                 if (folder / PLAN_FILE).is_file():
                     plan = load_scan_plan(folder / PLAN_FILE)
                     plan.check_mesh(folder / meta["file"])
                     grasp = plan.nominal_grasp
+                    if plan.inspection is not None:  # the plan's over the upload's
+                        inspection = (plan.inspection if inspection is None
+                                      else plan.inspection.over(inspection))
                 if meta.get("model"):  # the simplified model, as it was made
                     with np.load(folder / meta["model"]) as model:
                         part = saved_part(model["vertices"], model["faces"], grasp,
@@ -254,6 +262,8 @@ class PartLibrary:
                 else:
                     part = load_part(folder / meta["file"], meta["units"], name=folder.name,
                                      grasp=grasp)
+                if inspection is not None:
+                    part = dataclasses.replace(part, inspection=inspection)
                 if (folder / PLAN_FILE).is_file():
                     check_plan_grasp(plan, part.vertices)
                     log.info("part %s: nominal grasp from its plan (%s, turned %g degrees)",
@@ -290,7 +300,7 @@ class PartLibrary:
         return Path(tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}upload-", dir=self.root))
 
     def add(self, name: str, data: bytes, units: str, *, suffix: str = ".stl",
-            grasp="centred") -> PartModel:
+            grasp="centred", inspection: InspectionParams | None = None) -> PartModel:
         """Check and keep an uploaded mesh given as bytes (see `add_staged`)."""
         if not data:
             raise PartError("the mesh file is empty")
@@ -300,13 +310,15 @@ class PartLibrary:
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-        return self.add_staged(name, tmp, units, suffix=suffix, grasp=grasp)
+        return self.add_staged(name, tmp, units, suffix=suffix, grasp=grasp,
+                               inspection=inspection)
 
     def add_staged(self, name: str, tmp: Path, units: str, *, suffix: str = ".stl",
-                   grasp="centred") -> PartModel:
+                   grasp="centred", inspection: InspectionParams | None = None) -> PartModel:
         """Check and keep the mesh ``tmp/mesh<suffix>`` (``tmp`` from `staging`, moved into
         place or removed). ``grasp``: a name of ``GRASPS``, or the nominal ^T X_P itself,
-        (4, 4) mm. Raises PartError (or ValueError) with the reason, PartQuotaExceeded,
+        (4, 4) mm. ``inspection``: the part's own inspection thresholds, kept with it.
+        Raises PartError (or ValueError) with the reason, PartQuotaExceeded,
         OSError when the disk refuses."""
         try:
             self.check_name(name)
@@ -330,6 +342,9 @@ class PartLibrary:
                 meta.update(model="model.npz", grasp=np.asarray(part.grasp).tolist())
             if simplified is not None:
                 meta["simplified"] = simplified
+            if inspection is not None and inspection.given():
+                meta["inspection"] = inspection.given()
+                part = dataclasses.replace(part, inspection=inspection)
             (tmp / "part.json").write_text(json.dumps(meta))
             final = self.root / name
             if final.resolve().parent != self.root.resolve():

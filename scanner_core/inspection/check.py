@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
@@ -44,6 +44,8 @@ __all__ = ["InspectionParams", "Inspection", "Region", "KINDS", "point_deviation
            "inspect_scan", "point_spacing", "EXTRA_SIGMAS", "DEFORM_SIGMAS", "EXTRA_SPACINGS",
            "MIN_REGION_SAMPLES", "MIN_REGION_PROFILES", "LINK_SPACINGS"]
 
+#: The thresholds a part, the service or a caller may set (mm, mm^2); the rest are derived.
+GIVEN_THRESHOLDS = ("extra_mm", "deform_mm", "min_area_mm2")
 #: The kinds of a failing inspection, in the order they are reported.
 KINDS = ("extra_material", "missing_material", "deformation", "wrong_part")
 #: Off the model by more than this many of the scan's sigmas is material that is not the
@@ -94,12 +96,36 @@ class InspectionParams:
     wrong_part_share: float = WRONG_PART_SHARE
 
     def __post_init__(self):
-        for name in ("extra_mm", "deform_mm", "min_area_mm2"):
+        for name in GIVEN_THRESHOLDS:
             value = getattr(self, name)
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise ValueError(f"`{name}` must be positive, got {value}")
+            if value is not None and not (isinstance(value, (int, float))
+                                          and math.isfinite(value) and value > 0):
+                raise ValueError(f"`{name}` must be a positive number of mm (mm^2 for an "
+                                 f"area), got {value!r}")
         if not 0.0 < self.wrong_part_share <= 1.0:
             raise ValueError(f"`wrong_part_share` must be in (0, 1], got {self.wrong_part_share}")
+
+    @classmethod
+    def from_dict(cls, data) -> "InspectionParams":
+        """The thresholds a part's plan or upload gives: a mapping of some of
+        ``GIVEN_THRESHOLDS`` to positive numbers; ValueError naming what is wrong."""
+        if not isinstance(data, dict):
+            raise ValueError(f"the inspection's thresholds must be a mapping of "
+                             f"{', '.join(GIVEN_THRESHOLDS)}, got {type(data).__name__}")
+        unknown = sorted(set(data) - set(GIVEN_THRESHOLDS))
+        if unknown:
+            raise ValueError(f"unknown inspection thresholds {unknown}: give "
+                             f"{', '.join(GIVEN_THRESHOLDS)}")
+        return cls(**{k: (float(v) if isinstance(v, int) and not isinstance(v, bool) else v)
+                      for k, v in data.items()})
+
+    def given(self) -> dict:
+        """The thresholds set (not derived from the scan), by name."""
+        return {k: getattr(self, k) for k in GIVEN_THRESHOLDS if getattr(self, k) is not None}
+
+    def over(self, base: "InspectionParams") -> "InspectionParams":
+        """These thresholds where set, `base`'s elsewhere (a part's over the service's)."""
+        return replace(base, **self.given())
 
 
 @dataclass(frozen=True)
@@ -223,31 +249,26 @@ def point_deviations(points_p: np.ndarray, surface, *, exact_above: float | None
     if exact_above is None:
         _, index = surface.tree.query(points_p, workers=1)
         return _to_samples(points_p, surface, index)
-    distance, index = surface.lookup.query(points_p, np.inf)
-    out = _to_samples(points_p, surface, np.minimum(index, len(surface.points) - 1))
-    again = np.nonzero((np.abs(out) > exact_above) | ~np.isfinite(distance)
-                       | _beyond(points_p, surface, index))[0]
+    table = surface.lookup
+    distance, index = table.query(points_p, np.inf)
+    found = np.isfinite(distance)
+    out = np.full(len(points_p), np.inf)
+    offset = points_p[found] - surface.points[index[found]]
+    out[found] = np.einsum("ij,ij->i", offset, surface.normals[index[found]])
+    # the table's sample lies within a voxel's diagonal of the nearest: a point farther than
+    # that beyond the samples' reach may lie beyond the surface's edge, and asks the tree
+    reach = 2.0 * surface.spacing_mm + table.voxel_mm * math.sqrt(3.0)
+    again = np.nonzero(~(np.abs(out) <= exact_above) | ~(distance <= reach))[0]
     if len(again):
         _, exact = surface.tree.query(points_p[again], workers=1)
         out[again] = _to_samples(points_p[again], surface, exact)
     return out
 
 
-def _offsets(points_p, surface, index):
+def _to_samples(points_p, surface, index) -> np.ndarray:
     offset = points_p - surface.points[index]
     along = np.einsum("ij,ij->i", offset, surface.normals[index])
     across = np.sqrt(np.maximum(np.einsum("ij,ij->i", offset, offset) - along**2, 0.0))
-    return offset, along, across
-
-
-def _beyond(points_p, surface, index) -> np.ndarray:
-    """Whether each point lies beyond its sample's reach along the surface."""
-    index = np.minimum(index, len(surface.points) - 1)
-    return _offsets(points_p, surface, index)[2] > 2.0 * surface.spacing_mm
-
-
-def _to_samples(points_p, surface, index) -> np.ndarray:
-    offset, along, across = _offsets(points_p, surface, index)
     beyond = across > 2.0 * surface.spacing_mm
     out = along.copy()
     out[beyond] = np.copysign(np.linalg.norm(offset[beyond], axis=1), along[beyond])

@@ -29,8 +29,9 @@ sheet: a shadow's edge is uncertain, so the prediction keeps to what every plaus
 lights. A region counts only from its *core*: missing samples with at most
 ``1 - CORE_SHARE`` of their neighbours within the margin (the pass's profile step, at least
 ``MIN_MARGIN_STEPS`` sample spacings) unexpected (not crossed, turned away, hidden), away
-from the prediction's edges (a silhouette's, a grazing face's, a partly lit end's); a hole in
-a face, ringed by covered samples, has one.
+from the prediction's edges (a silhouette's, a grazing face's, a partly lit end's), and at
+least ``MISSING_SHARE`` of them missing (no sliver narrower than the margin); a hole in a
+face, ringed by covered samples, has one when it is wider than about twice the margin.
 """
 from __future__ import annotations
 
@@ -58,6 +59,10 @@ COVER_STEPS = 3.0
 FRAME_STEPS = 3.0
 #: A core sample: at least this share of its neighbours within the margin expected.
 CORE_SHARE = 0.9
+#: ... and at least this share of them missing: a region narrower than the margin (a thin
+#: ledge, which the stripe crosses in too few pixels to be kept as a profile's segment) is
+#: not one the scan can be said to have missed.
+MISSING_SHARE = 0.5
 #: The margin is at least this many sample spacings.
 MIN_MARGIN_STEPS = 2.0
 #: Spacing of the model's samples the coverage is judged on, mm (``PartModel.coverage_model``).
@@ -221,16 +226,29 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     planes_p = np.column_stack([sheet_planes_t[:, :3] @ rotation,
                                 sheet_planes_t[:, 3] - sheet_planes_t[:, :3] @ translation])
     sensors_p = (sensors_t - translation) @ rotation
-    frame, step, direction = sheet_crossings(samples.points, planes_p)
+    # the samples no frame's camera can see within the limit (the part's far side) first
+    # out: their faces turn from the camera centres of the pass's first, middle and last
+    # frames (the view turns monotonically along a pass) by more than the limit
+    limit = math.radians(MAX_INCIDENCE_DEG)
+    candidates = np.zeros(len(samples.points), bool)
+    for sensor in sensors_p[[0, len(sensors_p) // 2, -1]]:
+        view = sensor - samples.points
+        candidates |= (np.einsum("ij,ij->i", samples.normals, view)
+                       > math.cos(limit) * np.linalg.norm(view, axis=1))
+    candidates = np.nonzero(candidates)[0]
+    frame = np.full(len(samples.points), -1, np.int64)
+    frame[candidates], step, direction = sheet_crossings(samples.points[candidates], planes_p)
     if not (math.isfinite(step) and step > 0):
         return NONE_MISSING
     point_step = point_spacing_mm if math.isfinite(point_spacing_mm) and point_spacing_mm > 0 \
         else step
     crossed = np.nonzero(frame >= 0)[0]
-    # turned to the camera (the light's turn and the rays later, on the uncovered few)
+    # turned to the camera, and not so square to the pass that no light in the sheet meets
+    # it within the limit (the laser's exact turn and the rays later, on the uncovered few)
     to_camera = sensors_p[frame[crossed]] - samples.points[crossed]
-    turned = np.einsum("ij,ij->i", samples.normals[crossed], to_camera) > \
-        math.cos(math.radians(MAX_INCIDENCE_DEG)) * np.linalg.norm(to_camera, axis=1)
+    turned = ((np.einsum("ij,ij->i", samples.normals[crossed], to_camera)
+               > math.cos(limit) * np.linalg.norm(to_camera, axis=1))
+              & (np.abs(samples.normals[crossed] @ direction) <= math.sin(limit)))
     crossed = crossed[turned]
     q, n = samples.points[crossed], samples.normals[crossed]
     # covered: a cloud point near, a frame's step along the pass counting FRAME_STEPS points'
@@ -239,22 +257,18 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     def squeezed(x):
         return x + (shrink - 1.0) * np.outer(x @ direction, direction)
 
-    sine = np.clip(np.abs(n @ direction), 0.0, 0.999)
+    sine = np.abs(n @ direction)
     radius = COVER_STEPS * point_step + 0.5 * step * sine / np.sqrt(1.0 - sine**2)
     cloud = squeezed(points_p)
     query = squeezed(q)
     near = COVER_STEPS * point_step
-    # a sample in a cube (of diagonal `near`) that holds a point is covered; the others ask a
-    # KD-tree of the cloud, first within `near`, then within their own radius
-    distance = np.where(_in_occupied_cubes(query, cloud, near / math.sqrt(3.0)), 0.0, np.inf)
-    ask = np.nonzero(np.isinf(distance))[0]
-    if len(ask):
-        tree = cKDTree(cloud, balanced_tree=False, compact_nodes=False)
-        distance[ask], _ = tree.query(query[ask], distance_upper_bound=near, workers=1)
-        farther = ask[np.isinf(distance[ask])]
-        if len(farther):
-            distance[farther], _ = tree.query(query[farther], workers=1,
-                                              distance_upper_bound=float(radius[farther].max()))
+    # most samples have a point within the smallest radius: asked first, the rest with theirs
+    tree = cKDTree(cloud, balanced_tree=False, compact_nodes=False)
+    distance, _ = tree.query(query, distance_upper_bound=near, workers=1)
+    farther = np.nonzero(np.isinf(distance))[0]
+    if len(farther):
+        distance[farther], _ = tree.query(query[farther], workers=1,
+                                          distance_upper_bound=float(radius[farther].max()))
     open_ = np.nonzero(distance > radius)[0]
     if not len(open_):
         return NONE_MISSING
@@ -272,19 +286,7 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     margin = max(step, MIN_MARGIN_STEPS * samples.spacing_mm)
     neighbours = samples.tree.query_ball_point(samples.points[missing], margin, workers=1)
     core = np.array([np.count_nonzero(status[near] > 0) >= CORE_SHARE * len(near)
+                     and np.count_nonzero(status[near] == 2) >= MISSING_SHARE * len(near)
                      for near in neighbours], bool)
     return MissingSamples(missing, core, frame[missing])
 
-
-def _in_occupied_cubes(queries: np.ndarray, points: np.ndarray, side: float) -> np.ndarray:
-    """Whether each of `queries` (K, 3) falls in a cube of the grid of `side` (mm) that holds
-    one of `points` (N, 3): a sort of the points' cubes and a search, cheaper than a KD-tree
-    query for the many samples a cloud covers densely."""
-    low = np.minimum(points.min(axis=0), queries.min(axis=0))
-    cells = np.floor((points - low) / side).astype(np.int64)
-    wanted = np.floor((queries - low) / side).astype(np.int64)
-    span = np.maximum(cells.max(axis=0), wanted.max(axis=0)) + 1
-    keys = np.unique((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2])
-    asked = (wanted[:, 0] * span[1] + wanted[:, 1]) * span[2] + wanted[:, 2]
-    at = np.minimum(np.searchsorted(keys, asked), len(keys) - 1)
-    return keys[at] == asked

@@ -253,6 +253,8 @@ def _inspect(scan: Scan, part_model, pose, pose_report: dict,
     """The check at the pose (``scanner_core.inspection.inspect_scan``): its verdict into the
     pose's report (``inspection``; ``act`` false with the reasons when it fails), every
     point's deviation into the scan."""
+    if part_model.inspection is not None:  # the part's own thresholds first
+        params = part_model.inspection.over(params)
     inspection = inspect_scan(scan.cloud, scan.frame_ids, pose.matrix, part_model.surface_model,
                               profile_spacing_mm=scan.profile_spacing_mm,
                               point_spacing_mm=point_spacing(scan.cloud, scan.frame_ids),

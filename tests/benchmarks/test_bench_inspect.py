@@ -45,3 +45,4 @@ def test_quick_bench_inspect(tmp_path):
     (pinhole,) = [r for r in rows if r["kind"] == "hole" and r["size_mm"] == 1.0]
     assert not pinhole["seen"]  # 1 mm across: at most one profile crosses it
     assert summary["check_ms"]["median"] > 0
+    assert summary["check_ms"]["timed_picks"] == len(result["timed"]) >= 1  # apart, one core

@@ -17,6 +17,7 @@ from planning.catalogue import procedural_catalogue, read_catalogue
 from planning.evaluate import PLAN_SEED, evaluate
 from planning.run import local_cluster, plan_catalogue
 from scanner_core.cad import part_from_mesh
+from scanner_core.inspection import InspectionParams
 from scanner_core.scanplan import PlanError, load_scan_plan, turned_grasp
 from flyscan import main
 
@@ -140,9 +141,15 @@ def test_flyscan_scan_takes_the_plan(planned, catalogue, tmp_path, capsys):
     name = "p0000_block"
     plan_path = out / "plans" / name / "plan.json"
     plan = json.loads(plan_path.read_text())
+    # the part's own inspection thresholds, written into its plan
+    plan["inspection"] = {"extra_mm": 0.9, "min_area_mm2": 2.5}
+    plan_path = tmp_path / "plan.json"
+    plan_path.write_text(json.dumps(plan))
     assert main(["scan", "--part", str(catalogue / f"{name}.stl"), "--units", "mm", "--plan",
                  str(plan_path), "--no-eval", "--out", str(tmp_path / "scan")]) == 0
     report = json.loads((tmp_path / "scan" / "report.json").read_text())
+    assert report["inspection"]["thresholds"]["extra_mm"] == 0.9
+    assert report["inspection"]["thresholds"]["min_area_mm2"] == 2.5
     np.testing.assert_allclose(report["ground_truth"]["nominal_grasp"],
                                plan["chosen"]["nominal_grasp"], atol=1e-9)
     assert report["frames"] == plan["chosen"]["predicted"]["frames"]
@@ -153,6 +160,11 @@ def test_flyscan_scan_takes_the_plan(planned, catalogue, tmp_path, capsys):
     assert main(["scan", "--part", str(other), "--units", "mm", "--plan", str(plan_path),
                  "--out", str(tmp_path / "x")]) == 2
     assert "made for another mesh" in capsys.readouterr().err
+    wrong = dict(plan, inspection={"extra_mm": "big"})
+    (tmp_path / "wrong.json").write_text(json.dumps(wrong))
+    assert main(["scan", "--part", str(catalogue / f"{name}.stl"), "--units", "mm", "--plan",
+                 str(tmp_path / "wrong.json"), "--out", str(tmp_path / "w")]) == 2
+    assert "inspection" in capsys.readouterr().err
     bad = tmp_path / "bad.json"
     bad.write_text("{\"format\": \"something\"}")
     assert main(["scan", "--part", str(other), "--units", "mm", "--plan", str(bad),
@@ -167,13 +179,18 @@ def test_the_service_takes_a_stored_parts_plan(planned, catalogue, tmp_path):
     name = "p0000_block"
     library = PartLibrary(tmp_path)
     library.open()
-    library.add(name, (catalogue / f"{name}.stl").read_bytes(), "mm")
+    library.add(name, (catalogue / f"{name}.stl").read_bytes(), "mm",
+                inspection=InspectionParams(extra_mm=0.6, deform_mm=0.2))
     centred = library.get(name).grasp
     plan = load_scan_plan(out / "plans" / name / "plan.json")
-    shutil.copy(out / "plans" / name / "plan.json", tmp_path / "parts" / name / PLAN_FILE)
+    data = json.loads((out / "plans" / name / "plan.json").read_text())
+    data["inspection"] = {"extra_mm": 0.7}
+    (tmp_path / "parts" / name / PLAN_FILE).write_text(json.dumps(data))
     again = PartLibrary(tmp_path)
     again.open()
     np.testing.assert_allclose(again.get(name).grasp, plan.nominal_grasp, atol=1e-9)
+    # the upload's thresholds kept with the part, the plan's over them
+    assert again.get(name).inspection.given() == {"extra_mm": 0.7, "deform_mm": 0.2}
     assert plan.grasp_name != "centred" or plan.pass_direction_deg != 0 or \
         np.allclose(centred, plan.nominal_grasp)
 

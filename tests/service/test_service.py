@@ -138,8 +138,11 @@ def test_parts_uploaded_with_their_unit_are_scanned(service, tmp_path):
     mesh_path = tmp_path / "plate.stl"
     trimesh.creation.box(extents=(4.0, 3.0, 1.0)).export(mesh_path)  # cm
     with FlyscanClient(service.url) as client:
-        info = client.upload_part("plate", mesh_path, "cm")
+        info = client.upload_part("plate", mesh_path, "cm", inspection={"extra_mm": 0.8})
         assert info["units"] == "cm" and info["faces"] == 12
+        assert info["inspection"] == {"extra_mm": 0.8}  # its own threshold, kept with it
+        with pytest.raises(Unprocessable, match="inspect_deform_mm"):
+            client.upload_part("plate2", mesh_path, "cm", inspection={"deform_mm": -1.0})
         assert np.allclose(sorted(info["extents_mm"]), [10.0, 30.0, 40.0])
         assert "plate" in [p["name"] for p in client.parts()]
         with pytest.raises(Unprocessable, match="unit"):
@@ -149,6 +152,7 @@ def test_parts_uploaded_with_their_unit_are_scanned(service, tmp_path):
         scan = client.wait(client.arm(part="plate"), timeout=30)
         cloud = client.cloud(scan["scan_id"])
     assert scan["state"] == "done" and scan["part"] == "plate"
+    assert scan["inspection"]["thresholds"]["extra_mm"] == 0.8  # the part's, over the default
     # The plate's underside (10 mm below the TCP) is flat and 40 x 30 mm. Within a millimetre
     # of its outline the stripe only partly covers the pixels, and the peak moves a little.
     inside = (np.abs(cloud[:, 0]) < 19.0) & (np.abs(cloud[:, 1]) < 14.0)
