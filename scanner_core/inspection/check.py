@@ -38,7 +38,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage
 
-from scanner_core.inspection.coverage import MissingSamples, missing_samples
+from scanner_core.inspection.coverage import NONE_MISSING, MissingSamples, missing_samples
 
 __all__ = ["InspectionParams", "Inspection", "Region", "KINDS", "point_deviations",
            "inspect_scan", "point_spacing", "EXTRA_SIGMAS", "DEFORM_SIGMAS", "EXTRA_SPACINGS",
@@ -278,7 +278,8 @@ def _to_samples(points_p, surface, index) -> np.ndarray:
 def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.ndarray, surface,
                  *, profile_spacing_mm: float, point_spacing_mm: float,
                  params: InspectionParams = InspectionParams(), coverage_model=None,
-                 occluded=None, sheet_planes_t=None, sensor_positions_t=None) -> Inspection:
+                 occluded=None, sheet_planes_t=None, sensor_positions_t=None,
+                 sheet_frame_ids=None) -> Inspection:
     """The check of a cloud against the model at its registered pose.
 
     Parameters
@@ -302,6 +303,9 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
     occluded : callable(origins (R, 3), directions (R, 3)) -> (R,) bool, optional
         Whether rays in {P} meet the model (``PartModel.occluded``).
     sheet_planes_t, sensor_positions_t : (F, 4), (F, 3) float64, optional
+    sheet_frame_ids : (F,) int, optional
+        The frame of each sheet (``Scan.tcp_frame_ids``), as ``frame_ids`` names them; None:
+        ``0 .. F-1``.
 
     Returns
     -------
@@ -334,7 +338,17 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
     off = kinds >= 0
     off_share = float(off.mean()) if len(dev) else 0.0
     regions = []
-    for kind in (0, 1, 2):
+    if sheet_frame_ids is None and sheet_planes_t is not None:
+        sheet_frame_ids = np.arange(len(sheet_planes_t))
+    missing, samples = NONE_MISSING, None
+    if coverage_model is not None and occluded is not None and sheet_planes_t is not None:
+        samples = coverage_model
+        missing = missing_samples(points_p, coverage_model, occluded, pose_matrix,
+                                  sheet_planes_t, sensor_positions_t, point_spacing_mm=along)
+    regions += _missing_regions(points_p, np.nonzero(kinds == 1)[0], dev, frame_ids, missing,
+                                samples, sheet_frame_ids, min_area, sample_area,
+                                LINK_SPACINGS * across)
+    for kind in (0, 2):
         members = np.nonzero(kinds == kind)[0]
         if len(members) * sample_area < min_areas[kind]:
             continue
@@ -348,10 +362,6 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
             regions.append(Region(KINDS[kind], int(len(idx)), float(area),
                                   float(np.max(np.abs(dev[idx]))), points_p[idx].mean(axis=0),
                                   profiles=int((per_profile >= MIN_PROFILE_POINTS).sum())))
-    if coverage_model is not None and occluded is not None and sheet_planes_t is not None:
-        missing = missing_samples(points_p, coverage_model, occluded, pose_matrix,
-                                  sheet_planes_t, sensor_positions_t, point_spacing_mm=along)
-        regions += _unseen_regions(missing, coverage_model, min_area, along)
     failing = [k for k in KINDS[:3] if any(r.kind == k for r in regions)]
     reasons = [r.reason() for r in regions]
     if off_share > params.wrong_part_share:
@@ -367,22 +377,44 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
                       reasons=reasons)
 
 
-def _unseen_regions(missing: MissingSamples, samples, min_area: float,
-                    point_step: float) -> list[Region]:
-    """Missing material where the scan has no point: the missing samples' groups that hold a
-    core sample, span ``MIN_REGION_PROFILES`` frames' sheets and reach ``min_area``."""
-    if not missing.core.any():
+def _missing_regions(points_p, recessed, dev, frame_ids, missing: MissingSamples, samples,
+                     sheet_frame_ids, min_area: float, point_area: float,
+                     link: float) -> list[Region]:
+    """Missing material: the points inside the model by more than ``extra_mm`` (`recessed`,
+    indices into `points_p`) and the model's samples the scan should have seen and has no
+    point near (`missing`), grouped together. A group is a region when it spans
+    ``MIN_REGION_PROFILES`` profiles (those with ``MIN_PROFILE_POINTS`` of its points, and
+    the frames whose sheets crossed its missing samples), reaches `min_area` (its points'
+    area and its samples'), and stands on something sure: a profile's recessed points, or a
+    core missing sample (``scanner_core.inspection.coverage``). A chip seen as recessed points
+    by one profile and as nothing by the next is one region."""
+    n_points = len(recessed)
+    if samples is None or not len(missing.index):
+        sample_points, sample_area = np.zeros((0, 3)), 0.0
+        sheet_ids = np.zeros(0, np.int64)
+    else:
+        sample_points, sample_area = samples.points[missing.index], samples.spacing_mm**2
+        sheet_ids = np.asarray(sheet_frame_ids)[missing.frame]
+    if n_points * point_area + len(sample_points) * sample_area < min_area:
         return []
-    points = samples.points[missing.index]
-    sample_area = samples.spacing_mm**2
+    if n_points == 0 and not missing.core.any():
+        return []
     out = []
-    for group in _groups(points, LINK_SPACINGS * max(samples.spacing_mm, point_step)):
-        area = len(group) * sample_area
-        profiles = len(np.unique(missing.frame[group]))
-        if not missing.core[group].any() or area < min_area or profiles < MIN_REGION_PROFILES:
+    for group in _groups(np.vstack([points_p[recessed], sample_points]), link):
+        idx, smp = recessed[group[group < n_points]], group[group >= n_points] - n_points
+        ids, per_profile = np.unique(frame_ids[idx], return_counts=True)
+        by_points = set(ids[per_profile >= MIN_PROFILE_POINTS].tolist())
+        profiles = len(by_points | set(sheet_ids[smp].tolist()))
+        area = len(idx) * point_area + len(smp) * sample_area
+        sure = bool(by_points) or bool(missing.core[smp].any())
+        if not sure or area < min_area or profiles < MIN_REGION_PROFILES:
             continue
-        out.append(Region("missing_material", 0, float(area), float("nan"),
-                          points[group].mean(axis=0), evidence="no points", profiles=profiles))
+        centre = np.vstack([points_p[idx], sample_points[smp]]).mean(axis=0)
+        evidence = ("off the model" if not len(smp) else "no points" if not len(idx)
+                    else "off the model and no points")
+        out.append(Region("missing_material", int(len(idx)), float(area),
+                          float(np.max(np.abs(dev[idx]))) if len(idx) else float("nan"),
+                          centre, evidence=evidence, profiles=profiles))
     return out
 
 

@@ -190,3 +190,31 @@ def test_what_is_lit_and_seen(plate_views):
     under = np.array([[0.0, 0.0, -1.0]])  # below the plate, looking up through it
     assert not lit_and_seen(under, np.array([up]), sensors[:1], planes[:1], occluded)[0]
     assert lit_and_seen(under, np.array([up]), sensors[:1], planes[:1])[0]  # no rays: turned
+
+
+def test_a_chip_seen_by_one_profile_and_missed_by_the_next_is_one_region(plate, plate_views):
+    """Profile 20 sees a chip's floor 0.8 mm inside the plate over 3 mm; profile 21 has no
+    point there at all. Neither alone is a region; together they are."""
+    rng = np.random.default_rng(9)
+    cloud, frames = _scan(rng, half_width=29.9)
+    at = np.abs(cloud[:, 0] - 5.0) < 1.5
+    cloud[at & (frames == 20), 2] -= 0.8
+    keep = ~(at & (frames == 21))
+    cloud, frames = cloud[keep], frames[keep]
+    assert _inspect(plate, cloud, frames).conforms  # the points alone: one profile
+    result = _inspect_seen(plate, plate_views, cloud, frames, _ys())
+    assert result.failing == ["missing_material"], result.reasons
+    (region,) = result.regions
+    assert region.evidence == "off the model and no points" and region.profiles == 2
+    assert region.max_deviation_mm == pytest.approx(0.8, abs=0.05)
+    np.testing.assert_allclose(region.centre_p[:2], [5.0, _ys()[20] + 0.5], atol=0.8)
+
+
+def test_one_profile_glinting_inside_the_model_is_no_region(plate, plate_views):
+    """Thirty points of one profile 1 mm inside (an interreflection), the plate's every other
+    point where it should be: no region, with or without the coverage."""
+    rng = np.random.default_rng(10)
+    cloud, frames = _scan(rng, half_width=29.9)
+    cloud[(frames == 12) & (np.abs(cloud[:, 0]) < 3.0), 2] -= 1.0
+    assert _inspect(plate, cloud, frames).conforms
+    assert _inspect_seen(plate, plate_views, cloud, frames, _ys()).conforms
