@@ -69,6 +69,12 @@ MIN_REGION_PROFILES = 2
 MIN_PROFILE_POINTS = 3
 #: Points in touching cubes of this many sampling steps are one region.
 LINK_SPACINGS = 1.5
+#: A point farther than this many ``extra_mm`` from the model is off it, whatever its exact
+#: distance (``point_deviations``' ``far_mm``).
+FAR_EXTRAS = 4.0
+#: ... and than this many of the model's sample spacings (the noise's first estimate takes
+#: the table's answer farther than that: such points are its outliers anyway).
+FAR_SPACINGS = 8.0
 #: A wrong part: more than this share of the cloud off the model by ``deform_mm``.
 WRONG_PART_SHARE = 0.5
 #: The noise is never taken below this, mm (a cloud that fits to the micrometre is no reason
@@ -217,8 +223,8 @@ class Inspection:
                 "off_share": round(self.off_share, 4), "time_ms": round(self.time_ms, 3)}
 
 
-def point_deviations(points_p: np.ndarray, surface, *, exact_above: float | None = None
-                     ) -> np.ndarray:
+def point_deviations(points_p: np.ndarray, surface, *, exact_above: float | None = None,
+                     far_mm: float | None = None) -> np.ndarray:
     """Signed deviation of each point from the model's surface, mm (outward positive).
 
     Parameters
@@ -235,6 +241,11 @@ def point_deviations(points_p: np.ndarray, surface, *, exact_above: float | None
         deviation from the nearest sample's plane is at most its distance to the sample the
         table gives, so no point the tree would put farther off than ``exact_above`` is left
         to the table near a face; the table's answer differs only near an edge, by less.
+    far_mm : float, optional
+        With ``exact_above``: a point farther than this from every sample keeps the table's
+        answer (its distance to the table's sample, signed by that sample's normal), and one
+        beyond the table's band is outside by the band: off the model either way, and a
+        KD-tree query slows with the distance (a second part's thousands of points).
 
     Returns
     -------
@@ -250,18 +261,26 @@ def point_deviations(points_p: np.ndarray, surface, *, exact_above: float | None
         _, index = surface.tree.query(points_p, workers=1)
         return _to_samples(points_p, surface, index)
     table = surface.lookup
-    distance, index = table.query(points_p, np.inf)
+    bounded = far_mm is not None
+    distance, index = table.query(points_p, table.band_mm if bounded else np.inf)
     found = np.isfinite(distance)
-    out = np.full(len(points_p), np.inf)
+    out = np.full(len(points_p), table.band_mm)
     offset = points_p[found] - surface.points[index[found]]
-    out[found] = np.einsum("ij,ij->i", offset, surface.normals[index[found]])
+    along = np.einsum("ij,ij->i", offset, surface.normals[index[found]])
+    out[found] = np.copysign(distance[found], along) if bounded else along
+    if bounded:  # the table's own answer where the point lies over its sample
+        over = np.abs(along) >= distance[found] - 2.0 * surface.spacing_mm
+        out[np.nonzero(found)[0][over]] = along[over]
     # the table's sample lies within a voxel's diagonal of the nearest: a point farther than
     # that beyond the samples' reach may lie beyond the surface's edge, and asks the tree
     reach = 2.0 * surface.spacing_mm + table.voxel_mm * math.sqrt(3.0)
-    again = np.nonzero(~(np.abs(out) <= exact_above) | ~(distance <= reach))[0]
+    again = np.nonzero(found & (~(np.abs(out) <= exact_above) | (distance > reach))
+                       | (~found & (not bounded)))[0]
     if len(again):
-        _, exact = surface.tree.query(points_p[again], workers=1)
-        out[again] = _to_samples(points_p[again], surface, exact)
+        near, exact = surface.tree.query(points_p[again], workers=1,
+                                         distance_upper_bound=far_mm if bounded else np.inf)
+        ok = np.isfinite(near)
+        out[again[ok]] = _to_samples(points_p[again[ok]], surface, exact[ok])
     return out
 
 
@@ -321,12 +340,14 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
     # the noise from the lookup table's deviations (exact on planar faces, a point's own
     # changes between neighbours); then every point they put off by half the smallest
     # threshold asks the KD-tree
-    dev = point_deviations(points_p, surface, exact_above=np.inf)
+    dev = point_deviations(points_p, surface, exact_above=np.inf,
+                           far_mm=FAR_SPACINGS * surface.spacing_mm)
     sigma = _noise(dev, frame_ids)
     extra = params.extra_mm or max(EXTRA_SIGMAS * sigma, EXTRA_SPACINGS * along)
     deform = min(params.deform_mm or DEFORM_SIGMAS * sigma, extra)
     again = np.nonzero(np.abs(dev) > 0.5 * deform)[0]
-    dev[again] = point_deviations(points_p[again], surface)
+    dev[again] = point_deviations(points_p[again], surface, exact_above=0.5 * deform,
+                                  far_mm=max(FAR_EXTRAS * extra, FAR_SPACINGS * surface.spacing_mm))
     sample_area = across * along
     min_area = params.min_area_mm2 or MIN_REGION_SAMPLES * sample_area
     min_areas = (min_area, min_area,

@@ -284,9 +284,14 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     status[crossed[distance <= radius]] = 1
     status[missing] = 2
     margin = max(step, MIN_MARGIN_STEPS * samples.spacing_mm)
-    neighbours = samples.tree.query_ball_point(samples.points[missing], margin, workers=1)
-    core = np.array([np.count_nonzero(status[near] > 0) >= CORE_SHARE * len(near)
-                     and np.count_nonzero(status[near] == 2) >= MISSING_SHARE * len(near)
-                     for near in neighbours], bool)
+    at = samples.points[missing]
+
+    def neighbours(tree):
+        return np.asarray(tree.query_ball_point(at, margin, return_length=True, workers=1))
+
+    around = neighbours(samples.tree)
+    expected = neighbours(cKDTree(samples.points[status > 0]))
+    gone = neighbours(cKDTree(at))
+    core = (expected >= CORE_SHARE * around) & (gone >= MISSING_SHARE * around)
     return MissingSamples(missing, core, frame[missing])
 
