@@ -83,6 +83,7 @@ def simulated(model: PartModel, surface: Surface | None = None) -> Part:
         return model
     return Part(name=model.name, vertices=model.vertices, faces=model.faces,
                 source=model.source, units=model.units, grasp=model.grasp,
+                inspection=model.inspection,
                 surface=Surface() if surface is None else surface)
 
 
