@@ -43,6 +43,7 @@ from benchmarks.calibrate import _calibrate
 from benchmarks.parts import DEMO_PART, bench_part, random_misplacement
 from benchmarks.place import QUICK_SESSION_POSITIONS, SESSION_POSITIONS
 from benchmarks.results import pyplot, save_figure, write_json
+from scanner_core.geometry import planes_moved
 from scanner_core.inspection import point_deviations, point_spacing
 from scanner_core.inspection.check import (MIN_PROFILE_POINTS, MIN_REGION_PROFILES,
                                            MIN_REGION_SAMPLES)
@@ -231,15 +232,15 @@ def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
     truth = cell.calibration
     sheet = truth.light_plane_b
     to_t = lambda points_b: np.einsum("fji,fj->fi", rotations, points_b - positions)  # noqa: E731
-    planes_t = np.column_stack([rotations.transpose(0, 2, 1) @ sheet.normal,
-                                sheet.offset - positions @ sheet.normal])
+    inverse = rotations.transpose(0, 2, 1)
+    planes_t = planes_moved(np.tile(np.r_[sheet.normal, sheet.offset], (len(inverse), 1)),
+                            inverse, -np.einsum("fij,fj->fi", inverse, positions))
     model_pose = np.asarray(true_pose if registered_pose is None else registered_pose,
                             dtype=np.float64)
     held_mesh = held_mesh.copy()
     held_mesh.apply_transform(np.linalg.inv(model_pose) @ np.asarray(true_pose))
     rotation, translation = model_pose[:3, :3], model_pose[:3, 3]
-    planes_p = np.column_stack([planes_t[:, :3] @ rotation,
-                                planes_t[:, 3] - planes_t[:, :3] @ translation])
+    planes_p = planes_moved(planes_t, rotation.T, -rotation.T @ translation)
     sensors_p = (to_t(truth.camera.origin) - translation) @ rotation
     lasers_p = (to_t(cell.laser_origin_b) - translation) @ rotation
     good = SurfaceModel.from_mesh(good_mesh, spacing_mm=SEEN_SPACING_MM, seed=2)

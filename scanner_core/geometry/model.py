@@ -114,6 +114,30 @@ def check_rigid(matrix, tol: float = 1e-6) -> np.ndarray:
     return m
 
 
+def planes_moved(planes: np.ndarray, rotation: np.ndarray, translation: np.ndarray
+                 ) -> np.ndarray:
+    """Planes ``n . x = offset`` after ``x -> R x + t``: ``(R n, offset + (R n) . t)``.
+
+    Parameters
+    ----------
+    planes : (K, 4) or (4,) float
+        ``(n_x, n_y, n_z, offset)``, unit n.
+    rotation : (3, 3) or (K, 3, 3) float
+        One R for all, or one per plane.
+    translation : (3,) or (K, 3) float, mm
+
+    Returns
+    -------
+    (K, 4) float64
+    """
+    planes = np.asarray(planes, dtype=np.float64).reshape(-1, 4)
+    rotation = np.asarray(rotation, dtype=np.float64)
+    normals = (np.einsum("kij,kj->ki", rotation, planes[:, :3]) if rotation.ndim == 3
+               else planes[:, :3] @ rotation.T)
+    translation = np.broadcast_to(np.asarray(translation, dtype=np.float64), normals.shape)
+    return np.column_stack([normals, planes[:, 3] + np.einsum("ki,ki->k", normals, translation)])
+
+
 def apply_transform(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 homogeneous transform to (N, 3) points."""
     points = np.asarray(points, dtype=np.float64)

@@ -41,6 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from scanner_core.geometry import planes_moved
+
 __all__ = ["MissingSamples", "missing_samples", "sheet_crossings", "lit_and_seen",
            "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS", "FRAME_STEPS", "CORE_SHARE",
            "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM"]
@@ -223,8 +225,7 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
         return NONE_MISSING
     pose = np.asarray(pose_matrix, dtype=np.float64)
     rotation, translation = pose[:3, :3], pose[:3, 3]
-    planes_p = np.column_stack([sheet_planes_t[:, :3] @ rotation,
-                                sheet_planes_t[:, 3] - sheet_planes_t[:, :3] @ translation])
+    planes_p = planes_moved(sheet_planes_t, rotation.T, -rotation.T @ translation)
     sensors_p = (sensors_t - translation) @ rotation
     # the samples no frame's camera can see within the limit (the part's far side) first
     # out: their faces turn from the camera centres of the pass's first, middle and last

@@ -27,7 +27,7 @@ from scanner_core.edges.kinds import AsideEdges, sheet_range_b, turned_away
 from scanner_core.edges import (EdgeKind, EdgePoints, chamfered_dropouts, grazing_edges,
                                 occluded_dropouts)
 from scanner_core.pipeline.exposure import merge_exposure_pairs, partly_lit
-from scanner_core.geometry import base_to_tcp
+from scanner_core.geometry import base_to_tcp, planes_moved
 from scanner_core.pipeline.trigger import EndReason
 from scanner_core.types import Profile, Scan
 
@@ -255,10 +255,12 @@ class PassAccumulator:
         scan.sensor_positions_t = np.einsum(
             "fji,fj->fi", scan.tcp_rotations_b,
             self.calibration.camera.origin - scan.tcp_positions_b)
+        # x_T = R^T (x_B - p) per frame
         sheet = self.calibration.light_plane_b
-        scan.sheet_planes_t = np.column_stack([
-            scan.tcp_rotations_b.transpose(0, 2, 1) @ sheet.normal,
-            sheet.offset - scan.tcp_positions_b @ sheet.normal])
+        inverse = scan.tcp_rotations_b.transpose(0, 2, 1)
+        scan.sheet_planes_t = planes_moved(
+            np.tile(np.r_[sheet.normal, sheet.offset], (len(inverse), 1)), inverse,
+            -np.einsum("fij,fj->fi", inverse, scan.tcp_positions_b))
         if cached is None:
             _stitch_edges(scan, placed, self.calibration)
             # What the points and edges came from (the profiles up to the last with points,

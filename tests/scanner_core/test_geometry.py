@@ -135,3 +135,26 @@ def test_marker_from_parallel_views_is_refused(cell):
                         np.repeat(views.to_base[:1], 3, 0), np.repeat(views.to_camera[:1], 3, 0))
     with pytest.raises(ValueError, match="parallel"):
         triangulate_marker(same, cal.camera, cal.mirrors[:2], views=views)
+
+
+def test_planes_moved_carry_their_points():
+    """A point on a plane, moved by (R, t), lies on the moved plane; one R for all and one
+    per plane agree."""
+    from scipy.spatial.transform import Rotation
+
+    from scanner_core.geometry import planes_moved
+
+    rng = np.random.default_rng(4)
+    normals = rng.normal(size=(5, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    points = rng.normal(size=(5, 3)) * 50.0
+    planes = np.c_[normals, np.einsum("ki,ki->k", normals, points)]
+    rotations = Rotation.random(5, random_state=rng).as_matrix()
+    shifts = rng.normal(size=(5, 3)) * 20.0
+    moved = planes_moved(planes, rotations, shifts)
+    carried = np.einsum("kij,kj->ki", rotations, points) + shifts
+    np.testing.assert_allclose(np.einsum("ki,ki->k", moved[:, :3], carried), moved[:, 3],
+                               atol=1e-9)
+    one = planes_moved(planes, rotations[0], shifts[0])
+    np.testing.assert_allclose(one, planes_moved(planes, np.repeat(rotations[:1], 5, axis=0),
+                                                 np.repeat(shifts[:1], 5, axis=0)), atol=1e-12)
