@@ -89,7 +89,8 @@ def add_parser(command) -> None:
     sim.add_argument("--fault", default=None, metavar="KIND[:SIZE]",
                      help="the gripper holds the part with a fault, SIZE in mm: double (a "
                           "second part hooked on it), debris:D, chip:R, variant:L (longer), "
-                          "bend:F (its ends F toward the sensor); the scanner registers the "
+                          "hole:D (a variant drilled through), bend:F (its ends F toward the "
+                          "sensor); the scanner registers the "
                           "good part (simulator.faults)")
     sim.add_argument("--held", type=Path, default=None, metavar="MESH",
                      help="the gripper holds this mesh instead (in the part's CAD frame and "
