@@ -105,6 +105,7 @@ class InspectionParams:
         for name in GIVEN_THRESHOLDS:
             value = getattr(self, name)
             if value is not None and not (isinstance(value, (int, float))
+                                          and not isinstance(value, bool)
                                           and math.isfinite(value) and value > 0):
                 raise ValueError(f"`{name}` must be a positive number of mm (mm^2 for an "
                                  f"area), got {value!r}")
@@ -122,8 +123,7 @@ class InspectionParams:
         if unknown:
             raise ValueError(f"unknown inspection thresholds {unknown}: give "
                              f"{', '.join(GIVEN_THRESHOLDS)}")
-        return cls(**{k: (float(v) if isinstance(v, int) and not isinstance(v, bool) else v)
-                      for k, v in data.items()})
+        return cls(**data)
 
     def given(self) -> dict:
         """The thresholds set (not derived from the scan), by name."""

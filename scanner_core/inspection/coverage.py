@@ -227,18 +227,8 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     rotation, translation = pose[:3, :3], pose[:3, 3]
     planes_p = planes_moved(sheet_planes_t, rotation.T, -rotation.T @ translation)
     sensors_p = (sensors_t - translation) @ rotation
-    # the samples no frame's camera can see within the limit (the part's far side) first
-    # out: their faces turn from the camera centres of the pass's first, middle and last
-    # frames (the view turns monotonically along a pass) by more than the limit
+    frame, step, direction = sheet_crossings(samples.points, planes_p)
     limit = math.radians(MAX_INCIDENCE_DEG)
-    candidates = np.zeros(len(samples.points), bool)
-    for sensor in sensors_p[[0, len(sensors_p) // 2, -1]]:
-        view = sensor - samples.points
-        candidates |= (np.einsum("ij,ij->i", samples.normals, view)
-                       > math.cos(limit) * np.linalg.norm(view, axis=1))
-    candidates = np.nonzero(candidates)[0]
-    frame = np.full(len(samples.points), -1, np.int64)
-    frame[candidates], step, direction = sheet_crossings(samples.points[candidates], planes_p)
     if not (math.isfinite(step) and step > 0):
         return NONE_MISSING
     point_step = point_spacing_mm if math.isfinite(point_spacing_mm) and point_spacing_mm > 0 \

@@ -104,7 +104,9 @@ def test_the_thresholds_can_be_given_and_are_checked(plate):
     cloud, frames = _scan(rng, blob)
     assert not _inspect(plate, cloud, frames).conforms  # 0.3 mm proud: beyond 12 sigmas
     assert _inspect(plate, cloud, frames, extra_mm=0.5, deform_mm=0.5).conforms
-    for bad in ({"extra_mm": 0.0}, {"min_area_mm2": -1.0}, {"wrong_part_share": 1.5}):
+    assert InspectionParams.from_dict({"extra_mm": 1}).given() == {"extra_mm": 1}
+    for bad in ({"extra_mm": 0.0}, {"min_area_mm2": -1.0}, {"wrong_part_share": 1.5},
+                {"extra_mm": True}, {"deform_mm": "0.1"}):
         with pytest.raises(ValueError):
             InspectionParams(**bad)
 
