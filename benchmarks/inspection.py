@@ -14,8 +14,9 @@ In one calibrated realistic cell (``--perturb-seed`` `CELL_SEED`, every effect o
 
 Each fault is also judged *seen* or not from the simulator's truth (``fault_seen``): whether
 the scan's profiles crossed its difference from the model, where the true cell lights and
-sees it, as much as the check's smallest region needs. What the scan does not see no check
-can find; what it sees, the check must.
+sees it, as much as the check's smallest region needs, at a pose that fixes every axis (where
+an axis is loose the difference may slide along it: those picks, never acted on, are counted
+apart). What the scan does not see no check can find; what it sees, the check must.
 
 Per kind, the probability of detection (POD) against the fault's size is the hit/miss
 logistic fit of non-destructive testing (MIL-HDBK-1823A): ``POD(a) = 1 / (1 + exp(-(b0 + b1
@@ -327,16 +328,21 @@ def _summary(rows, timed=()) -> dict:
         hit = [r["conforms"] is False for r in mine]
         by_size = {str(s): {"trials": sum(r["size_mm"] == s for r in mine),
                             "detected": sum(h for r, h in zip(mine, hit) if r["size_mm"] == s),
-                            "seen": sum(bool(r.get("seen")) for r in mine if r["size_mm"] == s),
+                            "seen": sum(_seen(r) for r in mine if r["size_mm"] == s),
                             "detected_of_seen": sum(h for r, h in zip(mine, hit)
-                                                    if r["size_mm"] == s and r.get("seen")),
+                                                    if r["size_mm"] == s and _seen(r)),
                             "acted_on": sum(r["act"] for r in mine if r["size_mm"] == s)}
                    for s in sizes}
-        seen = [r for r in mine if r.get("seen")]
+        seen = [r for r in mine if _seen(r)]
+        loose = [r for r in mine if r.get("seen") and not r["observable"]]
         entry = {"trials": len(mine), "detected": int(sum(hit)),
                  # the faults the scan's profiles crossed as much as the check's smallest
-                 # region needs (``fault_seen``, from the simulator's truth)
+                 # region needs (``fault_seen``, from the simulator's truth), at a pose that
+                 # fixes every axis (``_seen``)
                  "seen": len(seen), "detected_of_seen": sum(r["conforms"] is False for r in seen),
+                 # ... and at a pose that leaves an axis loose: never acted on either way
+                 "seen_pose_loose": len(loose),
+                 "detected_of_seen_pose_loose": sum(r["conforms"] is False for r in loose),
                  "seen_missed": [{"part": r["part"], "size_mm": r["size_mm"],
                                   "seen_profiles": r["seen_profiles"],
                                   "seen_chord_mm": r["seen_chord_mm"]}
@@ -378,6 +384,15 @@ def _summary(rows, timed=()) -> dict:
                                                              if len(loaded) else None)},
         "errors": [r for r in rows if "error" in r],
     }
+
+
+def _seen(row) -> bool:
+    """Whether the scan saw a fault's difference from the model: its profiles crossed it
+    (``fault_seen``) and the pose fixes every axis. Where an axis is loose (free, or 3 sigma
+    beyond the act tolerance) the model may sit anywhere along it within its sigmas, and so
+    may the difference: a longer part slid along its length fits as a good one. Such picks
+    are never acted on, and are counted apart, as the good picks are."""
+    return bool(row.get("seen")) and bool(row["observable"])
 
 
 def _progress_line(rows, elapsed_s) -> str:

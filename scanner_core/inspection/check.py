@@ -365,7 +365,8 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
     if coverage_model is not None and occluded is not None and sheet_planes_t is not None:
         samples = coverage_model
         missing = missing_samples(points_p, coverage_model, occluded, pose_matrix,
-                                  sheet_planes_t, sensor_positions_t, point_spacing_mm=along)
+                                  sheet_planes_t, sensor_positions_t, point_spacing_mm=along,
+                                  frame_ids=frame_ids, sheet_frame_ids=sheet_frame_ids)
     regions += _missing_regions(points_p, np.nonzero(kinds == 1)[0], dev, frame_ids, missing,
                                 samples, sheet_frame_ids, min_area, sample_area,
                                 LINK_SPACINGS * across)
@@ -406,8 +407,9 @@ def _missing_regions(points_p, recessed, dev, frame_ids, missing: MissingSamples
     point near (`missing`), grouped together. A group is a region when it spans
     ``MIN_REGION_PROFILES`` profiles (those with ``MIN_PROFILE_POINTS`` of its points, and
     the frames whose sheets crossed its missing samples), reaches `min_area` (its points'
-    area and its samples'), and stands on something sure: a profile's recessed points, or a
-    core missing sample (``scanner_core.inspection.coverage``). A chip seen as recessed points
+    area and its samples'), and stands on something sure: recessed points of such profiles
+    covering `min_area` themselves, or a core missing sample
+    (``scanner_core.inspection.coverage``). A chip seen as recessed points
     by one profile and as nothing by the next is one region."""
     n_points = len(recessed)
     if samples is None or not len(missing.index):
@@ -427,7 +429,10 @@ def _missing_regions(points_p, recessed, dev, frame_ids, missing: MissingSamples
         by_points = set(ids[per_profile >= MIN_PROFILE_POINTS].tolist())
         profiles = len(by_points | set(sheet_ids[smp].tolist()))
         area = len(idx) * point_area + len(smp) * sample_area
-        sure = bool(by_points) or bool(missing.core[smp].any())
+        # either evidence must hold a region's area on its own: a few recessed points at a
+        # face's edge beside the strip its sheets missed are neither
+        placed = np.isin(frame_ids[idx], list(by_points)).sum() * point_area
+        sure = placed >= min_area or bool(missing.core[smp].any())
         if not sure or area < min_area or profiles < MIN_REGION_PROFILES:
             continue
         centre = np.vstack([points_p[idx], sample_points[smp]]).mean(axis=0)

@@ -13,12 +13,14 @@ gripper pose). For a sample ``q`` of the model's surface (normal ``n``):
 - **lit and seen**: at that frame, ``n`` turns to the camera centre ``C`` and to the laser's
   source ``L`` within ``MAX_INCIDENCE_DEG``, and no part of the model lies between ``q`` and
   either (rays cast against the mesh);
-- **covered**: a cloud point lies within ``COVER_STEPS`` point steps of ``q``, a step along
-  the pass between two frames' sheets counting as ``FRAME_STEPS`` point steps: profiles
-  sample the part densely along each and sparsely across, a sample between two lies half a
-  frame from both, and a profile two frames off does not cover it. On a face inclined to the
-  sheet (``n . m = sin b`` for the pass direction ``m``) a profile lies ``s tan b`` across
-  from a sample ``s`` beyond it, and that is allowed for.
+- **covered**: a point of its own frame's profile lies within ``COVER_STEPS`` point steps of
+  ``q``, a step along the pass between two frames' sheets counting as ``FRAME_STEPS`` point
+  steps (the sample lies at most half a step off that sheet). Each profile answers for the
+  samples nearer its sheet than any other's, as a hole's true edge between two profiles is
+  as likely nearer the one as the other: a neighbouring profile, whose points beside a hole
+  lie a step away, says nothing of the samples the hole's own profile crossed. On a face
+  inclined to the sheet (``n . m = sin b`` for the pass direction ``m``) a profile lies
+  ``s tan b`` across from a sample ``s`` beyond it, and that is allowed for.
 
 Missing: crossed, lit and seen, not covered. The calibration does not hold the laser's
 source: it is taken at the foot of the camera centre on the sheet, ``L = C - (n_s . C -
@@ -43,7 +45,8 @@ from scipy.spatial import cKDTree
 
 from scanner_core.geometry import planes_moved
 
-__all__ = ["MissingSamples", "missing_samples", "sheet_crossings", "lit_and_seen",
+__all__ = ["MissingSamples", "missing_samples", "sheet_crossings", "bracketing_frames",
+           "lit_and_seen",
            "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS", "FRAME_STEPS", "CORE_SHARE",
            "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM"]
 
@@ -116,10 +119,18 @@ def sheet_crossings(samples_p: np.ndarray, planes_p: np.ndarray):
     direction : (3,) float64
         The sheets' mean normal in {P}.
     """
+    frame, _, step, direction = bracketing_frames(samples_p, planes_p)
+    return frame, step, direction
+
+
+def bracketing_frames(samples_p: np.ndarray, planes_p: np.ndarray):
+    """``sheet_crossings``, and the farther of the two bracketing frames too: ``(nearer
+    (M,), farther (M,), step_mm, direction)``, both -1 where no two bracket a sample."""
     samples_p = np.asarray(samples_p, dtype=np.float64).reshape(-1, 3)
     frame = np.full(len(samples_p), -1, np.int64)
+    farther = frame.copy()
     if len(planes_p) < 2:
-        return frame, float("nan"), np.array([0.0, 0.0, 1.0])
+        return frame, farther, float("nan"), np.array([0.0, 0.0, 1.0])
     normals = planes_p[:, :3]
     direction = normals.mean(axis=0)
     direction /= np.linalg.norm(direction)
@@ -135,11 +146,11 @@ def sheet_crossings(samples_p: np.ndarray, planes_p: np.ndarray):
     right = np.clip(right, 1, len(order) - 1)
     left = right - 1
     close = gaps[left] <= GAP_STEPS * step
-    nearer = np.where(height - sorted_positions[left] <= sorted_positions[right] - height,
-                      left, right)
+    left_nearer = height - sorted_positions[left] <= sorted_positions[right] - height
     ok = inside & close
-    frame[ok] = order[nearer[ok]]
-    return frame, step, direction
+    frame[ok] = order[np.where(left_nearer, left, right)[ok]]
+    farther[ok] = order[np.where(left_nearer, right, left)[ok]]
+    return frame, farther, step, direction
 
 
 def lit_and_seen(samples_p, normals_p, sensors_p, sheets_p, occluded=None, *,
@@ -196,7 +207,8 @@ def lit_and_seen(samples_p, normals_p, sensors_p, sheets_p, occluded=None, *,
 
 def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.ndarray,
                     sheet_planes_t: np.ndarray, sensor_positions_t: np.ndarray, *,
-                    point_spacing_mm: float) -> MissingSamples:
+                    point_spacing_mm: float, frame_ids=None,
+                    sheet_frame_ids=None) -> MissingSamples:
     """The model's samples the scan should have seen at this pose and has no point near.
 
     Parameters
@@ -213,6 +225,10 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
         ``Scan.sheet_planes_t``, ``Scan.sensor_positions_t``.
     point_spacing_mm : float
         The step between a profile's points, mm.
+    frame_ids : (N,) int, optional
+        Each point's frame; None: any profile covers any sample (the scan's frames unknown).
+    sheet_frame_ids : (F,) int, optional
+        The frame of each sheet, as ``frame_ids`` names them; None: ``0 .. F-1``.
 
     Returns
     -------
@@ -227,7 +243,7 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     rotation, translation = pose[:3, :3], pose[:3, 3]
     planes_p = planes_moved(sheet_planes_t, rotation.T, -rotation.T @ translation)
     sensors_p = (sensors_t - translation) @ rotation
-    frame, step, direction = sheet_crossings(samples.points, planes_p)
+    frame, other, step, direction = bracketing_frames(samples.points, planes_p)
     limit = math.radians(MAX_INCIDENCE_DEG)
     if not (math.isfinite(step) and step > 0):
         return NONE_MISSING
@@ -253,6 +269,17 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     cloud = squeezed(points_p)
     query = squeezed(q)
     near = COVER_STEPS * point_step
+    if frame_ids is not None:
+        # a fourth coordinate keeps each sample to its own frame's profile: frames lie
+        # farther apart in it than any radius asked
+        sheets = (np.arange(len(sheet_planes_t)) if sheet_frame_ids is None
+                  else np.asarray(sheet_frame_ids))
+        order = np.argsort(sheets)
+        at = np.clip(np.searchsorted(sheets[order], frame_ids), 0, len(order) - 1)
+        own = np.where(sheets[order][at] == frame_ids, order[at], -1)
+        apart = 2.0 * float(radius.max()) + 1.0
+        cloud = np.column_stack([cloud, apart * own])
+        query = np.column_stack([query, apart * frame[crossed]])
     # most samples have a point within the smallest radius: asked first, the rest with theirs
     tree = cKDTree(cloud, balanced_tree=False, compact_nodes=False)
     distance, _ = tree.query(query, distance_upper_bound=near, workers=1)
@@ -284,5 +311,13 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     expected = neighbours(cKDTree(samples.points[status > 0]))
     gone = neighbours(cKDTree(at))
     core = (expected >= CORE_SHARE * around) & (gone >= MISSING_SHARE * around)
+    if frame_ids is not None and core.any():
+        # and missing from the other bracketing profile's view too: where a face's edge lies
+        # between the two sheets, the sample's own sheet may pass beyond it
+        ask = np.nonzero(core)[0]
+        beside = np.column_stack([squeezed(at[ask]), apart * other[missing[ask]]])
+        reach = radius[np.searchsorted(crossed, missing[ask])]
+        covered, _ = tree.query(beside, distance_upper_bound=float(reach.max()), workers=1)
+        core[ask[covered <= reach]] = False
     return MissingSamples(missing, core, frame[missing])
 

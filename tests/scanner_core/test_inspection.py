@@ -135,13 +135,13 @@ def _sheets(frames_y):
     return planes, sensors
 
 
-def _inspect_seen(plate, plate_views, cloud, frames, frames_y):
+def _inspect_seen(plate, plate_views, cloud, frames, frames_y, sheet_frame_ids=None):
     samples, occluded = plate_views
     planes, sensors = _sheets(frames_y)
     return inspect_scan(cloud, frames, np.eye(4), plate, profile_spacing_mm=PROFILE_MM,
                         point_spacing_mm=point_spacing(cloud, frames),
                         coverage_model=samples, occluded=occluded, sheet_planes_t=planes,
-                        sensor_positions_t=sensors)
+                        sensor_positions_t=sensors, sheet_frame_ids=sheet_frame_ids)
 
 
 def _ys():
@@ -166,6 +166,20 @@ def test_a_hole_the_scan_should_have_seen_is_missing_material_with_no_points(pla
     assert region.to_dict()["max_deviation_mm"] is None
 
 
+def test_a_hole_crossed_by_two_profiles_is_found(plate, plate_views):
+    """A 2.6 mm hole between two profiles (1 mm apart), each crossing it over 2.4 mm: the
+    profiles beside it, a step off, do not cover what the two crossed."""
+    rng = np.random.default_rng(10)
+    cloud, frames = _scan(rng, half_width=29.9)
+    hole = np.hypot(cloud[:, 0] + 7.3, cloud[:, 1] - 2.5) < 1.3
+    assert len(np.unique(frames[hole])) == 2
+    result = _inspect_seen(plate, plate_views, cloud[~hole], frames[~hole], _ys())
+    assert result.failing == ["missing_material"], result.reasons
+    (region,) = result.regions
+    assert region.evidence == "no points" and region.profiles == 2
+    np.testing.assert_allclose(region.centre_p, [-7.3, 2.5, 10.0], atol=0.6)
+
+
 def test_no_region_where_the_scan_could_not_say(plate, plate_views):
     """A frame lost (no sheet, no points), a strip the prediction's edge cannot place (the
     plate's outer 0.5 mm), the plate's far end beyond the pass: none is missing material."""
@@ -175,7 +189,8 @@ def test_no_region_where_the_scan_could_not_say(plate, plate_views):
     lost = np.isin(frames, [10, 11])  # two frames in a row: a 3 mm gap between sheets
     keep = ~lost & (np.abs(cloud[:, 0]) < 29.5)
     kept_ys = np.delete(ys, [10, 11])
-    result = _inspect_seen(plate, plate_views, cloud[keep], frames[keep], kept_ys)
+    result = _inspect_seen(plate, plate_views, cloud[keep], frames[keep], kept_ys,
+                           np.delete(np.arange(len(ys)), [10, 11]))
     assert result.conforms, result.reasons
 
 
