@@ -48,7 +48,7 @@ from scanner_core.geometry import planes_moved
 from scanner_core.inspection import point_deviations, point_spacing
 from scanner_core.inspection.check import (MIN_PROFILE_POINTS, MIN_REGION_PROFILES,
                                            MIN_REGION_SAMPLES)
-from scanner_core.inspection.coverage import lit_and_seen, sheet_crossings
+from scanner_core.inspection.coverage import COVER_STEPS, lit_and_seen, sheet_crossings
 from scanner_core.pose.models import SurfaceModel
 from scanner_core.pose.registration import PoseParams
 from simulator.cell import load_cell
@@ -76,6 +76,12 @@ GOOD_PICKS, QUICK_GOOD_PICKS = 300, 4
 CELL_SEED = 34
 MISPLACEMENT_UP_TO_MM, MISPLACEMENT_UP_TO_DEG = 5.0, 10.0
 INSPECT_SEED = 44
+#: A finer pass: the paper's slow speed at the camera's full rate puts the profiles about
+#: 0.3 mm apart (1.2 mm at the default pass, where a 1 mm chip is crossed by one profile at
+#: most): chips, and good picks for the false rejects there.
+FINE_PASS_SPEED_MM_S = 50.0
+FINE_SIZES_MM = {"chip": (0.5, 1.0, 2.0)}
+FINE_GOOD_PICKS = 5
 #: Good picks of each part the check is timed on apart, on one idle core.
 TIMED_PICKS = 5
 #: Whether the scan saw a fault (the evaluation's, from the simulator's truth): the model's
@@ -105,6 +111,11 @@ def run(out_dir, quick: bool = False, *, jobs: int = 2, progress=None) -> dict:
         per_part = good // len(names) + (index < good % len(names))
         tasks.append((name, index, per_part, trials, QUICK_SIZES_MM if quick else SIZES_MM,
                       cell, calibration))
+    timing_tasks = list(tasks)
+    if not quick:  # the finer pass, its own draws
+        fine = cell.with_pass(speed_mm_s=FINE_PASS_SPEED_MM_S)
+        tasks += [(name, (index, 1), FINE_GOOD_PICKS, trials, FINE_SIZES_MM, fine, calibration)
+                  for index, name in enumerate(names)]
     rows = []
     if jobs > 1 and len(tasks) > 1:
         with ProcessPoolExecutor(max_workers=min(jobs, len(tasks))) as pool:
@@ -118,7 +129,7 @@ def run(out_dir, quick: bool = False, *, jobs: int = 2, progress=None) -> dict:
             say(_progress_line(part_rows, time.perf_counter() - t_start))
     # the check's time apart, on one idle core: the pool's two processes share the machine
     say("bench inspect: timing the check on one idle core")
-    timed = [_timed_check(task, TIMED_PICKS if not quick else 1) for task in tasks]
+    timed = [_timed_check(task, TIMED_PICKS if not quick else 1) for task in timing_tasks]
     result = {"quick": quick,
               "settings": {"parts": list(names), "cell": CELL_SEED, "trials": trials,
                            "good_picks": good,
@@ -126,10 +137,19 @@ def run(out_dir, quick: bool = False, *, jobs: int = 2, progress=None) -> dict:
                                         (QUICK_SIZES_MM if quick else SIZES_MM).items()},
                            "misplacement_up_to": {"mm": MISPLACEMENT_UP_TO_MM,
                                                   "deg": MISPLACEMENT_UP_TO_DEG},
+                           "fine_pass": None if quick else {
+                               "speed_mm_s": FINE_PASS_SPEED_MM_S,
+                               "fps": cell.pass_profile.fps, "good_picks_per_part":
+                                   FINE_GOOD_PICKS,
+                               "sizes_mm": {k: list(v) for k, v in FINE_SIZES_MM.items()}},
                            "calibration": cal_row, "blas_threads": 1, "jobs": jobs},
               "rows": rows, "timed": [t for part in timed for t in part],
-              "summary": _summary(rows, [t for part in timed for t in part]),
+              "summary": _summary([r for r in rows if r.get("pass") != "fine"],
+                                  [t for part in timed for t in part]),
               "elapsed_s": round(time.perf_counter() - t_start, 1)}
+    fine_rows = [r for r in rows if r.get("pass") == "fine"]
+    if fine_rows:
+        result["summary"]["fine_pass"] = _summary(fine_rows)
     result = write_json(out / "inspect.json", result, digits=6)
     _chart(result, out / "inspect.png")
     say(f"bench inspect done in {result['elapsed_s']:.0f} s: {out / 'inspect.json'}")
@@ -139,11 +159,13 @@ def run(out_dir, quick: bool = False, *, jobs: int = 2, progress=None) -> dict:
 def _part_rows(task) -> list[dict]:
     """One part's good picks and faulty ones (a process of its own with ``jobs``)."""
     name, index, good, trials, sizes_mm, cell, calibration = task
+    # a finer pass's task names its part's index with the series: (index, 1)
+    series = "fine" if isinstance(index, tuple) else "default"
     rows = []
     with threadpool_limits(limits=1, user_api="blas"):
         part = bench_part(name)
         params = replace(PoseParams(), robot_rotation_std_deg=cell.effects.tcp_rotation_error_deg)
-        rng = np.random.default_rng([INSPECT_SEED, index])
+        rng = np.random.default_rng([INSPECT_SEED, *np.atleast_1d(index)])
         toward = part.grasp[2, :3]
         cases = [("good", 0.0)] * good + [(kind, size) for kind, sizes in sizes_mm.items()
                                           for size in sizes for _ in range(trials)]
@@ -160,9 +182,12 @@ def _part_rows(task) -> list[dict]:
                                                   seed=i, evaluate=False, pose_params=params,
                                                   held=held)
             except Exception as exc:  # a chip of an open mesh, a fault that leaves nothing, say
-                rows.append({"part": name, "kind": kind, "size_mm": size, "error": repr(exc)})
+                rows.append({"part": name, "kind": kind, "size_mm": size, "pass": series,
+                             "error": repr(exc)})
                 continue
             row = _row(name, kind, size, report)
+            row["pass"] = series
+            row["profile_spacing_mm"] = round(float(scan.profile_spacing_mm), 4)
             thresholds = (report.get("inspection") or {}).get("thresholds")
             if held is not None and thresholds:
                 limit = thresholds["deform_mm" if kind == "bend" else "extra_mm"]
@@ -214,13 +239,16 @@ def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
     """Whether the scan's profiles crossed the fault where the true cell lights and sees it,
     as much as the check needs to call a region.
 
-    The difference between the model and the held mesh (each's surface samples farther than
-    `threshold_mm` from the other's surface: material taken away, as a good part would have
-    shown it; material added or moved, as the held one shows it), at the true pose
-    ``true_pose`` (^T X_P) and the model at ``registered_pose`` (the scan's; default the
-    true one: what the registration absorbed of a bend or a longer part, no check at that
-    pose can see), lit by the cell's true laser source and seen by its true camera (the
-    scan's placed frames, the true cell's sheet), with nothing of the mesh in the way.
+    The difference between the model and the held mesh, at the true pose ``true_pose``
+    (^T X_P) and the model at ``registered_pose`` (the scan's; default the true one: what the
+    registration absorbed of a bend or a longer part, no check at that pose can see): the
+    held mesh's surface samples farther than `threshold_mm` from the model's (material added
+    or moved, where the scan's points lie off the model), and the model's samples farther
+    than that and than the scan's cover radius (``COVER_STEPS`` point steps) from the held
+    mesh's surface (material taken away, where the scan has no point: a surface moved by
+    less lends the scan points near the model's); lit by the cell's true laser source and
+    seen by its true camera (the scan's placed frames, the true cell's sheet), with nothing
+    of the mesh in the way.
     A profile's chord across it is the samples within half their spacing of its sheet times
     that spacing. Seen: ``MIN_REGION_PROFILES`` profiles with a chord of at least
     ``MIN_PROFILE_POINTS`` point steps, and ``MIN_REGION_SAMPLES`` point steps of chord in
@@ -247,8 +275,10 @@ def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
     good = SurfaceModel.from_mesh(good_mesh, spacing_mm=SEEN_SPACING_MM, seed=2)
     held = SurfaceModel.from_mesh(held_mesh, spacing_mm=SEEN_SPACING_MM, seed=3)
     counts = {}
-    for samples, other, mesh, other_mesh in ((good, held, good_mesh, held_mesh),
-                                             (held, good, held_mesh, good_mesh)):
+    no_points = max(threshold_mm, COVER_STEPS * point_step_mm)
+    for samples, other, mesh, other_mesh, threshold_mm in (
+            (good, held, good_mesh, held_mesh, no_points),
+            (held, good, held_mesh, good_mesh, threshold_mm)):
         # off the other's samples, then off its mesh itself (the samples' own spacing puts
         # points near an edge off by a little)
         deviation = np.abs(point_deviations(samples.points, other))
@@ -324,6 +354,8 @@ def _summary(rows, timed=()) -> dict:
     per_kind = {}
     for kind in SIZES_MM:
         mine = [r for r in faults if r["kind"] == kind]
+        if not mine and faults:  # a series without this kind (the finer pass's)
+            continue
         sizes = sorted({r["size_mm"] for r in mine})
         hit = [r["conforms"] is False for r in mine]
         by_size = {str(s): {"trials": sum(r["size_mm"] == s for r in mine),
@@ -397,6 +429,8 @@ def _seen(row) -> bool:
 
 def _progress_line(rows, elapsed_s) -> str:
     name = rows[0]["part"] if rows else "?"
+    if rows and rows[0].get("pass") == "fine":
+        name += " (finer pass)"
     good = [r for r in rows if r.get("kind") == "good" and r.get("observable")]
     faults = [r for r in rows if r.get("kind") not in ("good", None) and "error" not in r]
     return (f"bench inspect: {name}: {sum(r['conforms'] is False for r in good)} of {len(good)} "
@@ -409,7 +443,7 @@ def _chart(result, path) -> None:
     plt = pyplot()
     kinds = [k for k in SIZES_MM if k != "double"]
     fig, axes = plt.subplots(1, len(kinds) + 1, figsize=(4.0 * (len(kinds) + 1), 3.6))
-    rows = [r for r in result["rows"] if "error" not in r]
+    rows = [r for r in result["rows"] if "error" not in r and r.get("pass") != "fine"]
     summary = result["summary"]
     for ax, kind in zip(axes, kinds):
         mine = [r for r in rows if r["kind"] == kind]
@@ -426,6 +460,15 @@ def _chart(result, path) -> None:
                 ax.axvline(pod["a90"], color="tab:red", ls=":",
                            label=f"a90 {pod['a90']:.2f} mm"
                                  + (f", a90/95 {pod['a90_95']:.2f}" if pod.get("a90_95") else ""))
+        fine = (summary.get("fine_pass") or {}).get("faults", {}).get(kind)
+        if fine:
+            fine_rows = [r for r in result["rows"] if "error" not in r and r["kind"] == kind
+                         and r.get("pass") == "fine"]
+            ax.semilogx([r["size_mm"] * 1.04 for r in fine_rows],
+                        [float(r["conforms"] is False) - 0.06 for r in fine_rows], "^",
+                        alpha=0.35, color="tab:purple",
+                        label=f"finer pass: {fine['detected_of_seen']} of {fine['seen']} seen "
+                              "detected")
         by_size = summary["faults"][kind]["by_size"]
         seen_sizes = [float(k) for k, v in by_size.items() if v.get("seen")]
         if seen_sizes:
