@@ -177,11 +177,13 @@ class FlyscanClient:
 
     # -- scans --------------------------------------------------------------------------------
     def arm(self, part: str | None = None, timeout_s: float | None = None,
-            misplace=None, record: bool = False, taught_place=None) -> str:
+            misplace=None, record: bool = False, taught_place=None,
+            fault: str | None = None) -> str:
         """``POST /scans``: arm the trigger for the next pass; return the new scan id.
 
         ``misplace`` ([tx, ty, tz, rx, ry, rz], mm and degrees) moves the part in the gripper
-        for the pass: honoured by a simulated cell only. ``record`` also records the pass on
+        for the pass, and ``fault`` (``KIND[:SIZE_MM]``, as ``flyscan scan --fault``) has the
+        gripper hold that fault of the part instead: honoured by a simulated cell only. ``record`` also records the pass on
         the service's side (its ScanInfo's ``recording.path``, once written).
         ``taught_place``, the TCP pose in the robot base at which a nominally held part lands
         right (^B X_T,place: a UR pose [x, y, z (m), rx, ry, rz (rad)] or a 4x4 in mm), has
@@ -196,6 +198,8 @@ class FlyscanClient:
             request["record"] = True
         if misplace is not None:
             request["misplace"] = [float(v) for v in misplace]
+        if fault is not None:
+            request["fault"] = str(fault)
         if taught_place is not None:
             request["taught_place"] = np.asarray(taught_place, dtype=np.float64).tolist()
         body = self._json("POST", "/scans", json=request)

@@ -211,25 +211,19 @@ def _held(args, part):
     import numpy as np
 
     from scanner_core.cad import load_part
-    from simulator.faults import faulty_mesh, parse_fault
+    from simulator.faults import faulty_part
     from simulator.parts import part_from_mesh
-
-    if args.held is not None:
-        units = args.units or "mm"
-        mesh = load_part(args.held, units, name=args.held.stem, grasp=part.grasp).mesh
-        name, source = args.held.stem, str(args.held)
-    else:
-        try:
-            kind, size = parse_fault(args.fault)
-        except ValueError as exc:
-            raise UsageError(f"--fault: {exc}") from None
-        mesh = faulty_mesh(part.mesh, kind, size, part.grasp[2, :3],
-                           np.random.default_rng(args.seed))
-        name, source = f"{part.name} ({args.fault})", f"fault:{args.fault}"
     from simulator.surfaces import with_surface
 
-    return with_surface(part_from_mesh(mesh, name=name, source=source, grasp=part.grasp),
-                        part.surface)
+    if args.fault is not None:
+        try:
+            return faulty_part(part, args.fault, np.random.default_rng(args.seed))
+        except ValueError as exc:
+            raise UsageError(f"--fault: {exc}") from None
+    units = args.units or "mm"
+    mesh = load_part(args.held, units, name=args.held.stem, grasp=part.grasp).mesh
+    return with_surface(part_from_mesh(mesh, name=args.held.stem, source=str(args.held),
+                                       grasp=part.grasp), part.surface)
 
 
 def _from_recording(args) -> int:

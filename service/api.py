@@ -119,7 +119,7 @@ async def arm_scan(service: ServiceDep, http: Request,
     try:
         job = await asyncio.to_thread(
             service.arm, request.part, request.timeout_s, request.misplace,
-            record=request.record, taught_place=request.taught_place)
+            record=request.record, taught_place=request.taught_place, fault=request.fault)
     except KeyError:
         raise HTTPException(404, f"unknown part {request.part!r}: see GET /parts") from None
     except ValueError as exc:  # a misplacement out of the inspection volume (PartError), a

@@ -19,6 +19,7 @@ import threading
 import time
 from collections import OrderedDict
 from pathlib import Path
+from typing import NamedTuple
 
 from clients.placement import correction_entry
 from scanner_core.geometry.calibration import (Calibration, check_cell_geometry, check_marker_track,
@@ -54,6 +55,15 @@ RECENT_JOBS = 32
 #: What a stored scan takes per cloud or edge point (its PLY rows), bytes: the room a pose is
 #: only acted on with.
 STORED_BYTES_PER_POINT = 64
+
+
+class PassOrder(NamedTuple):
+    """What an armed scan asks of the cell's driver for its pass (``PassDriver.start_pass``):
+    the part's misplacement in the gripper, and what the gripper holds instead of the part
+    (``PassDriver.holding``), each None for none."""
+
+    misplacement: object
+    holding: object
 
 
 def build_devices(settings: Settings):
@@ -196,18 +206,22 @@ class Service:
     # -- scans ------------------------------------------------------------------------------
 
     def arm(self, part: str | None, timeout_s: float | None, misplace=None, *,
-            record: bool = False, taught_place=None) -> ScanJob:
+            record: bool = False, taught_place=None, fault: str | None = None) -> ScanJob:
         """Arm a scan of ``part``; KeyError for an unknown part, PartError for a misplacement
         that leaves the inspection volume, EngineBusy, EngineFault. With ``record`` the pass
         is also recorded into ``recordings/<scan_id>`` of the data folder. ``taught_place``
         (a UR pose vector, m and rad, or a 4x4 in mm; default the settings') is the taught
         place pose the finished scan's ``correction`` starts from (ValueError unless rigid).
+        ``fault`` (``KIND[:SIZE_MM]``, a simulated cell's only: FaultUnsupported, a
+        ValueError, elsewhere) has the gripper hold that fault of the part instead of the
+        part, while the scan is registered against the part.
         Waits for work between passes under way (`between_passes`) to end first: a pass never
         runs beside it."""
         with self._between_passes:
-            return self._arm(part, timeout_s, misplace, record=record, taught_place=taught_place)
+            return self._arm(part, timeout_s, misplace, record=record, taught_place=taught_place,
+                             fault=fault)
 
-    def _arm(self, part, timeout_s, misplace, *, record, taught_place) -> ScanJob:
+    def _arm(self, part, timeout_s, misplace, *, record, taught_place, fault) -> ScanJob:
         if taught_place is None:
             taught_place = self.settings.taught_place
         taught = None if taught_place is None else taught_place_matrix(taught_place)
@@ -215,9 +229,11 @@ class Service:
             check_reach(taught, self.settings.robot_reach_mm)
         name = part or self.default_part
         held = self.parts.get(name) if name is not None else None  # KeyError before arming
-        misplacement = None
+        misplacement = holding = None
         if misplace is not None:
             misplacement = self.driver.misplacement(held, misplace)
+        if fault is not None:
+            holding = self.driver.holding(held, fault)
         if held is not None and held.prepared:
             self.parts.prepare(name, held)  # the most recently armed, for the budget
         # A part not prepared (its upload's preparation skipped during a pass, released by
@@ -230,7 +246,8 @@ class Service:
             self._check_room_to_record(reserve)
         if self.engine.trigger.state.value in ("idle", "fault"):
             self.driver.before_arm()
-        job = self.engine.arm(name, timeout_s, context=misplacement, part_model=held,
+        job = self.engine.arm(name, timeout_s, context=PassOrder(misplacement, holding),
+                              part_model=held,
                               record_to=self.recordings_dir if record else None,
                               record_keep_free_bytes=reserve)
         job.taught_place = taught  # read by the finisher, a pass (>= 0.1 s) later
@@ -296,8 +313,9 @@ class Service:
     def _on_pass_armed(self, job: ScanJob) -> None:
         def go():
             try:
-                self.driver.start_pass(job.part_model, job.context,
-                                       wanted=lambda: job.end_monotonic is None)
+                self.driver.start_pass(job.part_model, job.context.misplacement,
+                                       wanted=lambda: job.end_monotonic is None,
+                                       holding=job.context.holding)
             except Exception as exc:  # the pass never comes: the armed scan will time out
                 log.error("the pass for %s not started: %s", job.scan_id, exc)
                 job.note = f"the cell's pass not started: {exc}"

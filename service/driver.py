@@ -13,12 +13,16 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["PassDriver", "ControllerDriven", "MisplaceUnsupported"]
+__all__ = ["PassDriver", "ControllerDriven", "MisplaceUnsupported", "FaultUnsupported"]
 
 
 class MisplaceUnsupported(ValueError):
     """A misplacement was asked of a cell that cannot put the part anywhere but where the
     gripper took it."""
+
+
+class FaultUnsupported(ValueError):
+    """A fault was asked of a cell whose gripper holds whatever it picked."""
 
 
 @runtime_checkable
@@ -51,9 +55,10 @@ class PassDriver(Protocol):
     def before_arm(self) -> None:
         """Return once the robot has finished the pass under way, if any."""
 
-    def start_pass(self, part, misplacement: np.ndarray | None, wanted) -> None:
+    def start_pass(self, part, misplacement: np.ndarray | None, wanted, holding=None) -> None:
         """Carry ``part`` through the sheet, held off its grasp by ``misplacement`` ((4, 4) in
-        {T}, mm, or None), unless ``wanted()`` says False first (the scan timed out)."""
+        {T}, mm, or None), unless ``wanted()`` says False first (the scan timed out); with
+        ``holding`` (``holding``'s answer), the gripper holds that instead."""
 
     def park(self, *, calibration_pass: bool = False) -> None:
         """Take the TCP out of the views to where a pass begins; ``calibration_pass``: the
@@ -65,6 +70,11 @@ class PassDriver(Protocol):
     def misplacement(self, part, values) -> np.ndarray | None:
         """``[tx, ty, tz, rx, ry, rz]`` (mm, degrees) as the (4, 4) transform in {T} the next
         pass holds ``part`` with; None for None. MisplaceUnsupported where the cell cannot."""
+
+    def holding(self, part, fault: str):
+        """What the gripper is to hold instead of ``part`` on the next pass: the fault
+        ``KIND[:SIZE_MM]`` (``flyscan scan --fault``), for ``start_pass``. FaultUnsupported
+        where the cell cannot, ValueError for a malformed fault."""
 
     def plan_geometry(self, nominal):
         """The cell's pass and tools for a calibration plan
@@ -92,7 +102,7 @@ class ControllerDriven:
     def before_arm(self) -> None:
         pass
 
-    def start_pass(self, part, misplacement, wanted) -> None:
+    def start_pass(self, part, misplacement, wanted, holding=None) -> None:
         pass
 
     def park(self, *, calibration_pass: bool = False) -> None:
@@ -106,6 +116,10 @@ class ControllerDriven:
             return None
         raise MisplaceUnsupported("misplace is for the simulated cell only: a real cell's "
                                   "part sits where the gripper took it")
+
+    def holding(self, part, fault):
+        raise FaultUnsupported("fault is for the simulated cell only: a real cell's gripper "
+                               "holds what it picked")
 
     def plan_geometry(self, nominal):
         return None

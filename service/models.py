@@ -149,6 +149,12 @@ class ScanRequest(BaseModel):
                                             "samples) for replay: see the scan's `recording`")
     taught_place: TaughtPlace | None = Field(
         None, description=TAUGHT_PLACE_DESCRIPTION + "; default the service's setting")
+    fault: str | None = Field(
+        None, min_length=1, max_length=40, pattern=r"^[a-z]+(:[0-9.eE+-]+)?$",
+        description="simulated mode only: what the gripper holds instead of the part, "
+                    "KIND[:SIZE_MM] as `flyscan scan --fault` takes it (a double pick, "
+                    "debris, a chip, a longer or drilled variant, a bend); the scan is "
+                    "registered against the part and inspected")
 
 
 class PlaceCorrection(BaseModel):

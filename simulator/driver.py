@@ -15,6 +15,7 @@ import numpy as np
 
 from scanner_core.cad import check_fits
 from simulator.cell import CALIBRATION_SPEED_SHAPE
+from simulator.faults import faulty_part
 from simulator.live import PassInProgress
 from simulator.parts import simulated
 from simulator.session import misplacement_matrix
@@ -25,6 +26,8 @@ __all__ = ["SimPassDriver", "SimulatedCellOptions", "CellDevices", "simulated_ce
 
 #: The simulated robot finishes its previous pass (its lead-out) before starting the next, s.
 PREVIOUS_PASS_WAIT_S = 5.0
+#: The seed of the faults a simulated pass's gripper is asked to hold (``holding``).
+FAULT_SEED = 44
 #: Parts the simulated cell keeps dressed for its ray casting (each holds its scene).
 DRESSED_PARTS = 4
 #: The demo block's name in the service's parts (``service.parts.DEMO_PART``).
@@ -51,6 +54,7 @@ class SimPassDriver:
         self._scenes = None  # simulator.calsession.StepScenes, made at the first hold
         self._held_at = None  # the TCP position of the emulator's hold, (3,) mm
         self._calibration_next = False  # the next pass is a calibration session's (park)
+        self._fault_rng = np.random.default_rng(FAULT_SEED)  # the faults' draws (``holding``)
 
     def _simulated(self, part):
         """The part as the simulator shows it (the same object every time, so that its
@@ -152,16 +156,25 @@ class SimPassDriver:
         while self.sim.pass_active and time.monotonic() < deadline:
             time.sleep(0.01)
 
-    def start_pass(self, part, misplacement: np.ndarray | None, wanted=lambda: True) -> None:
+    def holding(self, part, fault: str):
+        """The fault ``KIND[:SIZE_MM]`` built on ``part`` (``simulator.faults.faulty_part``,
+        drawn from the driver's own generator, seeded): ValueError for a malformed one."""
+        if part is None:
+            raise ValueError("fault needs a part to put it in")
+        return faulty_part(self._simulated(part), fault, self._fault_rng)
+
+    def start_pass(self, part, misplacement: np.ndarray | None, wanted=lambda: True,
+                   holding=None) -> None:
         """Start the pass once the robot has finished the previous one (its lead-out goes on
         after the scan has ended), as a robot program would; not at all when ``wanted()`` says
         False by then (the scan it was for has timed out while the part's pass was prepared:
-        the next scan, of another part, must not take it)."""
+        the next scan, of another part, must not take it). The gripper holds ``holding``
+        (``holding``'s) where given, else ``part``."""
         profile = None
         if self._calibration_next:
             self._calibration_next = False
             profile = self.sim.cell.with_pass(speed_shape=CALIBRATION_SPEED_SHAPE).pass_profile
-        simulated = self._simulated(part)
+        simulated = self._simulated(part) if holding is None else holding
         self.sim.prepare_pass(simulated, misplacement, profile=profile)  # cached for the start
         live = self._after_the_pass(
             lambda: self.sim.start_pass(simulated, misplacement, profile=profile), wanted)

@@ -22,7 +22,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-__all__ = ["FAULT_KINDS", "DEFAULT_SIZES_MM", "faulty_mesh", "parse_fault"]
+__all__ = ["FAULT_KINDS", "DEFAULT_SIZES_MM", "faulty_mesh", "faulty_part", "parse_fault"]
 
 FAULT_KINDS = ("double", "debris", "chip", "variant", "hole", "bend")
 #: The size of each fault when none is given, mm (``double``: unused).
@@ -45,6 +45,20 @@ def parse_fault(text: str) -> tuple[str, float]:
     if not (np.isfinite(value) and value >= 0):
         raise ValueError(f"the fault's size must be a non-negative number of mm, got {size!r}")
     return kind, value
+
+
+def faulty_part(part, fault: str, rng: np.random.Generator):
+    """What the gripper holds instead of ``part`` (a ``simulator.parts.Part``): the fault
+    ``KIND[:SIZE]`` (``parse_fault``) built on its mesh, held by its grasp, with its surface.
+    ValueError for a malformed fault, or one its mesh cannot take (a chip of an open mesh)."""
+    from simulator.parts import part_from_mesh
+    from simulator.surfaces import with_surface
+
+    kind, size = parse_fault(fault)
+    mesh = faulty_mesh(part.mesh, kind, size, part.grasp[2, :3], rng)
+    return with_surface(part_from_mesh(mesh, name=f"{part.name} ({fault})",
+                                       source=f"fault:{fault}", grasp=part.grasp),
+                        part.surface)
 
 
 def faulty_mesh(mesh: trimesh.Trimesh, kind: str, size_mm: float, toward_p,

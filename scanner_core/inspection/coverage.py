@@ -37,10 +37,12 @@ face, ringed by covered samples, has one when it is wider than about twice the m
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from scanner_core.geometry import planes_moved
@@ -123,34 +125,77 @@ def sheet_crossings(samples_p: np.ndarray, planes_p: np.ndarray):
     return frame, step, direction
 
 
-def bracketing_frames(samples_p: np.ndarray, planes_p: np.ndarray):
+def bracketing_frames(samples_p: np.ndarray, planes_p: np.ndarray, sensors_p=None,
+                      normals_p=None, max_incidence_deg: float = MAX_INCIDENCE_DEG):
     """``sheet_crossings``, and the farther of the two bracketing frames too: ``(nearer
-    (M,), farther (M,), step_mm, direction)``, both -1 where no two bracket a sample."""
+    (M,), farther (M,), step_mm, direction)``, both -1 where no two bracket a sample.
+
+    With `sensors_p` (F, 3) and `normals_p` (M, 3), also -1 where the sample's face turns
+    farther than `max_incidence_deg` from the nearer frame's camera centre, or is so square
+    to the pass (``|n . m| > sin`` of it) that no light in the sheet meets it within it.
+    """
     samples_p = np.asarray(samples_p, dtype=np.float64).reshape(-1, 3)
-    frame = np.full(len(samples_p), -1, np.int64)
-    farther = frame.copy()
     if len(planes_p) < 2:
-        return frame, farther, float("nan"), np.array([0.0, 0.0, 1.0])
+        none = np.full(len(samples_p), -1, np.int64)
+        return none, none.copy(), float("nan"), np.array([0.0, 0.0, 1.0])
     normals = planes_p[:, :3]
     direction = normals.mean(axis=0)
     direction /= np.linalg.norm(direction)
     # the sheets' positions along their mean normal (they turn by the robot's few mdeg)
     positions = planes_p[:, 3] / (normals @ direction)
     order = np.argsort(positions)
-    sorted_positions = positions[order]
-    gaps = np.diff(sorted_positions)
-    step = float(np.median(gaps))
-    height = samples_p @ direction
-    right = np.searchsorted(sorted_positions, height)
-    inside = (right > 0) & (right < len(order))
-    right = np.clip(right, 1, len(order) - 1)
-    left = right - 1
-    close = gaps[left] <= GAP_STEPS * step
-    left_nearer = height - sorted_positions[left] <= sorted_positions[right] - height
-    ok = inside & close
-    frame[ok] = order[np.where(left_nearer, left, right)[ok]]
-    farther[ok] = order[np.where(left_nearer, right, left)[ok]]
-    return frame, farther, step, direction
+    sorted_positions = np.ascontiguousarray(positions[order])
+    step = float(np.median(np.diff(sorted_positions)))
+    facing = sensors_p is not None and normals_p is not None
+    limit = math.radians(max_incidence_deg)
+    nearer, farther = _bracket(
+        np.ascontiguousarray(samples_p), sorted_positions, order.astype(np.int64), direction,
+        GAP_STEPS * step,
+        np.ascontiguousarray(normals_p if facing else samples_p, dtype=np.float64),
+        np.ascontiguousarray(sensors_p if facing else planes_p[:, :3], dtype=np.float64),
+        facing, math.cos(limit), math.sin(limit))
+    return nearer, farther, step, direction
+
+
+@njit(nogil=True, cache=True)
+def _bracket(points, sorted_positions, order, direction, widest, normals, sensors, facing,
+             cos_limit, sin_limit):
+    """The loop of ``bracketing_frames``, one sample at a time (no (M, 3) temporaries)."""
+    m, f = points.shape[0], sorted_positions.shape[0]
+    nearer = np.full(m, -1, np.int64)
+    farther = np.full(m, -1, np.int64)
+    for i in range(m):
+        height = (points[i, 0] * direction[0] + points[i, 1] * direction[1]
+                  + points[i, 2] * direction[2])
+        if height <= sorted_positions[0] or height > sorted_positions[f - 1]:
+            continue
+        lo, right = 0, f - 1  # the first position at or beyond the height
+        while lo < right:
+            mid = (lo + right) // 2
+            if sorted_positions[mid] < height:
+                lo = mid + 1
+            else:
+                right = mid
+        left = right - 1
+        if sorted_positions[right] - sorted_positions[left] > widest:
+            continue
+        if height - sorted_positions[left] <= sorted_positions[right] - height:
+            near, far = order[left], order[right]
+        else:
+            near, far = order[right], order[left]
+        if facing:
+            along = (normals[i, 0] * direction[0] + normals[i, 1] * direction[1]
+                     + normals[i, 2] * direction[2])
+            if abs(along) > sin_limit:
+                continue
+            dx = sensors[near, 0] - points[i, 0]
+            dy = sensors[near, 1] - points[i, 1]
+            dz = sensors[near, 2] - points[i, 2]
+            turn = normals[i, 0] * dx + normals[i, 1] * dy + normals[i, 2] * dz
+            if turn <= cos_limit * math.sqrt(dx * dx + dy * dy + dz * dz):
+                continue
+        nearer[i], farther[i] = near, far
+    return nearer, farther
 
 
 def lit_and_seen(samples_p, normals_p, sensors_p, sheets_p, occluded=None, *,
@@ -243,20 +288,16 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     rotation, translation = pose[:3, :3], pose[:3, 3]
     planes_p = planes_moved(sheet_planes_t, rotation.T, -rotation.T @ translation)
     sensors_p = (sensors_t - translation) @ rotation
-    frame, other, step, direction = bracketing_frames(samples.points, planes_p)
-    limit = math.radians(MAX_INCIDENCE_DEG)
+    # crossed, turned to the camera, and not so square to the pass that no light in the
+    # sheet meets it within the limit (the laser's exact turn and the rays later, on the
+    # uncovered few)
+    frame, other, step, direction = bracketing_frames(samples.points, planes_p, sensors_p,
+                                                      samples.normals)
     if not (math.isfinite(step) and step > 0):
         return NONE_MISSING
     point_step = point_spacing_mm if math.isfinite(point_spacing_mm) and point_spacing_mm > 0 \
         else step
     crossed = np.nonzero(frame >= 0)[0]
-    # turned to the camera, and not so square to the pass that no light in the sheet meets
-    # it within the limit (the laser's exact turn and the rays later, on the uncovered few)
-    to_camera = sensors_p[frame[crossed]] - samples.points[crossed]
-    turned = ((np.einsum("ij,ij->i", samples.normals[crossed], to_camera)
-               > math.cos(limit) * np.linalg.norm(to_camera, axis=1))
-              & (np.abs(samples.normals[crossed] @ direction) <= math.sin(limit)))
-    crossed = crossed[turned]
     q, n = samples.points[crossed], samples.normals[crossed]
     # covered: a cloud point near, a frame's step along the pass counting FRAME_STEPS points'
     shrink = min(FRAME_STEPS * point_step / step, 1.0)
@@ -303,14 +344,16 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     status[missing] = 2
     margin = max(step, MIN_MARGIN_STEPS * samples.spacing_mm)
     at = samples.points[missing]
-
-    def neighbours(tree):
-        return np.asarray(tree.query_ball_point(at, margin, return_length=True, workers=1))
-
-    around = neighbours(samples.tree)
-    expected = neighbours(cKDTree(samples.points[status > 0]))
-    gone = neighbours(cKDTree(at))
-    core = (expected >= CORE_SHARE * around) & (gone >= MISSING_SHARE * around)
+    # each missing sample's neighbours by their status (a tree over the few missing ones'
+    # balls, not over the thousands expected)
+    balls = samples.tree.query_ball_point(at, margin, workers=1)
+    sizes = np.fromiter(map(len, balls), np.int64, len(balls))
+    owner = np.repeat(np.arange(len(at)), sizes)
+    around_status = status[np.fromiter(itertools.chain.from_iterable(balls), np.int64,
+                                       int(sizes.sum()))]
+    expected = np.bincount(owner[around_status > 0], minlength=len(at))
+    gone = np.bincount(owner[around_status == 2], minlength=len(at))
+    core = (expected >= CORE_SHARE * sizes) & (gone >= MISSING_SHARE * sizes)
     if frame_ids is not None and core.any():
         # and missing from the other bracketing profile's view too: where a face's edge lies
         # between the two sheets, the sample's own sheet may pass beyond it

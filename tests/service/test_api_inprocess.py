@@ -20,11 +20,13 @@ class _Service:
         self.driver = ControllerDriven()
         self.armed, self.raises, self.scans = [], None, {}
 
-    def arm(self, part, timeout_s, misplace, *, record, taught_place):
+    def arm(self, part, timeout_s, misplace, *, record, taught_place, fault=None):
         if self.raises is not None:
             raise self.raises
         if misplace is not None:
             self.driver.misplacement(None, misplace)
+        if fault is not None:
+            self.driver.holding(None, fault)
         self.armed.append((part, timeout_s, misplace, record, taught_place))
         return SimpleNamespace(scan_id="s1", state="armed")
 
@@ -63,9 +65,18 @@ def test_a_real_cell_refuses_a_misplacement_and_arms_nothing(api):
     assert service.armed == [(None, 2.5, None, True, None)]
 
 
+def test_a_real_cell_refuses_a_fault_and_arms_nothing(api):
+    client, service = api
+    answer = client.post("/scans", json={"fault": "chip:2"})
+    assert answer.status_code == 422 and "simulated cell only" in answer.text
+    assert service.armed == []
+
+
 @pytest.mark.parametrize("body", [b"{", b'{"timeout_s": -1}', b'{"misplace": [1, 2]}',
-                                  b'{"timeout_s": "soon"}'],
-                         ids=["not JSON", "negative timeout", "short misplacement", "a word"])
+                                  b'{"timeout_s": "soon"}', b'{"fault": "chip:two"}',
+                                  b'{"fault": ""}', b'{"fault": 3}'],
+                         ids=["not JSON", "negative timeout", "short misplacement", "a word",
+                              "a fault's size in words", "an empty fault", "a fault's number"])
 def test_a_malformed_arm_is_422_before_the_service_hears_of_it(api, body):
     client, service = api
     answer = client.post("/scans", content=body, headers={"Content-Type": "application/json"})

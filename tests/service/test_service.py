@@ -73,6 +73,27 @@ def test_a_misplacement_out_of_the_volume_is_refused(service):
         assert client.status()["state"] == "idle"  # nothing was armed
 
 
+def test_a_simulated_gripper_holds_the_fault_asked_for_and_it_is_not_acted_on(service):
+    """A double pick asked over HTTP (``fault``): the scan is registered against the demo
+    part, the second part is extra material, and the pose is not to be acted on."""
+    with FlyscanClient(service.url) as client:
+        with pytest.raises(Unprocessable, match="unknown fault"):
+            client.arm(fault="dent:2")
+        assert client.status()["state"] == "idle"  # nothing was armed
+        info = client.wait(client.arm(fault="double"), timeout=60)
+        good = client.wait(client.arm(), timeout=60)
+    assert good["inspection"]["conforms"], good["inspection"]["reasons"]
+    # (the service's faults are drawn from a seeded generator: this draw leaves the LED seen)
+    assert info["state"] == "done" and info["part"] == good["part"]
+    assert not info["inspection"]["conforms"]
+    assert info["inspection"]["failing"] == ["extra_material"]
+    (region,) = info["inspection"]["regions"]
+    assert region["area_mm2"] > 100.0 and region["max_deviation_mm"] > 5.0  # a whole part
+    assert info["pose"]["act"] is False
+    assert any(r.startswith("inspection: extra material") for r in info["pose"]["act_reasons"])
+    assert info["points"] > 1.3 * good["points"]  # the second part's points
+
+
 def test_unknown_scan_and_part(service):
     with FlyscanClient(service.url) as client:
         with pytest.raises(NotFound):
