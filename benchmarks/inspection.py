@@ -12,6 +12,9 @@ In one calibrated realistic cell (``--perturb-seed`` `CELL_SEED`, every effect o
 - every fault of ``simulator.faults`` at each size of `SIZES_MM`, `TRIALS` times a part, each at
   its own random misplacement and fault draw: a fault is *detected* when the inspection fails.
 
+The variant the other way about, ``filled``: the model registered is the part with a hole
+drilled (as ``hole`` drills it), the gripper holds the part without it.
+
 Each fault is also judged *seen* or not from the simulator's truth (``fault_seen``): whether
 the scan's profiles crossed its difference from the model, where the true cell lights and
 sees it, as much as the check's smallest region needs, at a pose that fixes every axis (where
@@ -64,9 +67,12 @@ __all__ = ["run", "pod_fit", "PARTS", "SIZES_MM", "GOOD_PICKS", "TRIALS", "CELL_
 PARTS = (DEMO_PART, "bracket", "crowned_block", "idler_riser", "ADIS16480", "featuretype")
 QUICK_PARTS = (DEMO_PART,)
 #: The faults' sizes, mm: a debris blob's diameter, a chip's radius, a variant's extra length,
-#: a bend's deflection at the ends (``simulator.faults``); a double pick has none.
+#: a drilled hole's diameter, a bend's deflection at the ends (``simulator.faults``); a double
+#: pick has none. ``filled`` is the variant the other way about: the expected part (the model
+#: registered) has the hole drilled, and the gripper holds the part without it.
 SIZES_MM = {"debris": (1.0, 2.0, 3.0, 4.0, 6.0), "chip": (0.5, 1.0, 2.0, 3.0, 5.0),
             "variant": (0.25, 0.5, 1.0, 2.0, 4.0), "hole": (1.0, 2.0, 3.0, 4.0, 6.0),
+            "filled": (1.0, 2.0, 3.0, 4.0, 6.0),
             "bend": (0.02, 0.05, 0.1, 0.2, 0.4), "double": (0.0,)}
 #: The quick run's sizes: each kind's smallest and largest.
 QUICK_SIZES_MM = {kind: tuple(sorted({sizes[0], sizes[-1]})) for kind, sizes in SIZES_MM.items()}
@@ -172,12 +178,16 @@ def _part_rows(task) -> list[dict]:
         for i, (kind, size) in enumerate(cases):
             values = random_misplacement(rng, MISPLACEMENT_UP_TO_MM, MISPLACEMENT_UP_TO_DEG,
                                          up_to=True)
-            held = None
+            held, model = None, part
             try:
-                if kind != "good":
+                if kind == "filled":
+                    mesh = faulty_mesh(part.mesh, "hole", size, toward, rng)
+                    model = part_from_mesh(mesh, name=f"{name} drilled", grasp=part.grasp)
+                    held = part
+                elif kind != "good":
                     mesh = faulty_mesh(part.mesh, kind, size, toward, rng)
                     held = part_from_mesh(mesh, name=f"{name} {kind}", grasp=part.grasp)
-                scan, report = run_simulated_scan(part, cell, calibration=calibration,
+                scan, report = run_simulated_scan(model, cell, calibration=calibration,
                                                   misplacement=misplacement_matrix(values),
                                                   seed=i, evaluate=False, pose_params=params,
                                                   held=held)
@@ -191,7 +201,7 @@ def _part_rows(task) -> list[dict]:
             thresholds = (report.get("inspection") or {}).get("thresholds")
             if held is not None and thresholds:
                 limit = thresholds["deform_mm" if kind == "bend" else "extra_mm"]
-                row.update(fault_seen(scan, part.mesh, held.mesh,
+                row.update(fault_seen(scan, model.mesh, held.mesh,
                                       misplacement_matrix(values) @ part.grasp, cell, limit,
                                       point_spacing(scan.cloud, scan.frame_ids),
                                       np.array(report["pose"]["matrix"])))
@@ -251,9 +261,10 @@ def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
     of the mesh in the way.
     A profile's chord across it is the samples within half their spacing of its sheet times
     that spacing. Seen: ``MIN_REGION_PROFILES`` profiles with a chord of at least
-    ``MIN_PROFILE_POINTS`` point steps, and ``MIN_REGION_SAMPLES`` point steps of chord in
-    all: no fewer points than the check's smallest region holds. Returns ``{"seen": bool,
-    "seen_profiles": int, "seen_chord_mm": float}``."""
+    ``MIN_PROFILE_POINTS`` + 1 point steps (a chord's ends lie at the threshold itself, where
+    the scan's noise takes about half the points below it), and ``MIN_REGION_SAMPLES`` point
+    steps of chord in all: no fewer points than the check's smallest region holds. Returns
+    ``{"seen": bool, "seen_profiles": int, "seen_chord_mm": float}``."""
     rotations = np.asarray(scan.tcp_rotations_b, dtype=np.float64).reshape(-1, 3, 3)
     positions = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
     if len(rotations) < 2:
@@ -303,7 +314,7 @@ def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
         for k in frame[off_sheet <= 0.5 * samples.spacing_mm]:
             counts[int(k)] = counts.get(int(k), 0) + 1
     chords = np.array([c * SEEN_SPACING_MM for c in counts.values()])
-    crossing = chords[chords >= MIN_PROFILE_POINTS * point_step_mm]
+    crossing = chords[chords >= (MIN_PROFILE_POINTS + 1) * point_step_mm]
     seen = (len(crossing) >= MIN_REGION_PROFILES
             and crossing.sum() >= MIN_REGION_SAMPLES * point_step_mm)
     return {"seen": bool(seen), "seen_profiles": int(len(crossing)),

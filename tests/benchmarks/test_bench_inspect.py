@@ -33,7 +33,7 @@ def test_quick_bench_inspect(tmp_path):
     double = summary["faults"]["double"]  # caught: detected, or its scan failed
     assert double["trials"] == 1 and double["acted_on"] == 0
     assert double["detected"] + double["scan_failed_or_refused"] >= 1
-    for kind in ("debris", "chip", "variant", "hole", "bend"):
+    for kind in ("debris", "chip", "variant", "hole", "filled", "bend"):
         mine = [r for r in rows if r["kind"] == kind]
         assert summary["faults"][kind]["detected"] == sum(r["conforms"] is False for r in mine)
         seen = [r for r in mine if r.get("seen") and r["observable"]]  # at a fixed pose
@@ -44,5 +44,10 @@ def test_quick_bench_inspect(tmp_path):
     assert hole["seen"] and hole["conforms"] is False and "missing_material" in hole["failing"]
     (pinhole,) = [r for r in rows if r["kind"] == "hole" and r["size_mm"] == 1.0]
     assert not pinhole["seen"]  # 1 mm across: at most one profile crosses it
+    # the model drilled 6 mm, the gripper holding the block without the hole: the plug's
+    # face, where the model has none, is extra material
+    (filled,) = [r for r in rows if r["kind"] == "filled" and r["size_mm"] == 6.0]
+    assert filled["seen"] and filled["conforms"] is False
+    assert "extra_material" in filled["failing"]
     assert summary["check_ms"]["median"] > 0
     assert summary["check_ms"]["timed_picks"] == len(result["timed"]) >= 1  # apart, one core
