@@ -32,8 +32,10 @@ lights. A region counts only from its *core*: missing samples with at most
 ``1 - CORE_SHARE`` of their neighbours within the margin (the pass's profile step, at least
 ``MIN_MARGIN_STEPS`` sample spacings) unexpected (not crossed, turned away, hidden), away
 from the prediction's edges (a silhouette's, a grazing face's, a partly lit end's), and at
-least ``MISSING_SHARE`` of them missing (no sliver narrower than the margin); a hole in a
-face, ringed by covered samples, has one when it is wider than about twice the margin.
+least ``MISSING_SHARE`` of them missing (no sliver narrower than the margin), and missing
+from the other bracketing profile's view too (where a face's edge lies between two sheets,
+the nearer one may pass beyond it); a hole in a face, ringed by covered samples, has one
+when it is wider than about twice the margin.
 """
 from __future__ import annotations
 
@@ -48,8 +50,7 @@ from scipy.spatial import cKDTree
 from scanner_core.geometry import planes_moved
 
 __all__ = ["MissingSamples", "missing_samples", "sheet_crossings", "bracketing_frames",
-           "lit_and_seen",
-           "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS", "FRAME_STEPS", "CORE_SHARE",
+           "lit_and_seen", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS", "FRAME_STEPS", "CORE_SHARE",
            "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM"]
 
 #: A face turned farther than this from the camera or the laser returns too little light to
