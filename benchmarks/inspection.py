@@ -260,7 +260,8 @@ def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
     seen by its true camera (the scan's placed frames, the true cell's sheet), with nothing
     of the mesh in the way.
     A profile's chord across it is the samples within half their spacing of its sheet times
-    that spacing. Seen: ``MIN_REGION_PROFILES`` profiles with a chord of at least
+    that spacing, each weighted by ``sqrt(1 - (n . m)^2)`` (a face turned by ``n . m`` to the
+    sheet's normal ``m`` lays a strip that much wider within the slab). Seen: ``MIN_REGION_PROFILES`` profiles with a chord of at least
     ``MIN_PROFILE_POINTS`` + 1 point steps (a chord's ends lie at the threshold itself, where
     the scan's noise takes about half the points below it), and ``MIN_REGION_SAMPLES`` point
     steps of chord in all: no fewer points than the check's smallest region holds. Returns
@@ -311,8 +312,13 @@ def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
         index, frame = index[lit], frame[lit]
         off_sheet = np.abs(np.einsum("ij,ij->i", planes_p[frame, :3], samples.points[index])
                            - planes_p[frame, 3])
-        for k in frame[off_sheet <= 0.5 * samples.spacing_mm]:
-            counts[int(k)] = counts.get(int(k), 0) + 1
+        # a face inclined to the sheet lays a wider strip of samples within the slab about
+        # it: each counts for the slab's width across the face, sqrt(1 - (n . m)^2)
+        on = off_sheet <= 0.5 * samples.spacing_mm
+        width = np.sqrt(np.clip(1.0 - np.einsum("ij,ij->i", planes_p[frame[on], :3],
+                                                samples.normals[index[on]]) ** 2, 0.0, 1.0))
+        for k, w in zip(frame[on], width):
+            counts[int(k)] = counts.get(int(k), 0.0) + float(w)
     chords = np.array([c * SEEN_SPACING_MM for c in counts.values()])
     crossing = chords[chords >= (MIN_PROFILE_POINTS + 1) * point_step_mm]
     seen = (len(crossing) >= MIN_REGION_PROFILES
@@ -377,15 +383,15 @@ def _summary(rows, timed=()) -> dict:
                             "acted_on": sum(r["act"] for r in mine if r["size_mm"] == s)}
                    for s in sizes}
         seen = [r for r in mine if _seen(r)]
-        loose = [r for r in mine if r.get("seen") and not r["observable"]]
+        seen_loose = [r for r in mine if r.get("seen") and not r["observable"]]
         entry = {"trials": len(mine), "detected": int(sum(hit)),
                  # the faults the scan's profiles crossed as much as the check's smallest
                  # region needs (``fault_seen``, from the simulator's truth), at a pose that
                  # fixes every axis (``_seen``)
                  "seen": len(seen), "detected_of_seen": sum(r["conforms"] is False for r in seen),
                  # ... and at a pose that leaves an axis loose: never acted on either way
-                 "seen_pose_loose": len(loose),
-                 "detected_of_seen_pose_loose": sum(r["conforms"] is False for r in loose),
+                 "seen_pose_loose": len(seen_loose),
+                 "detected_of_seen_pose_loose": sum(r["conforms"] is False for r in seen_loose),
                  "seen_missed": [{"part": r["part"], "size_mm": r["size_mm"],
                                   "seen_profiles": r["seen_profiles"],
                                   "seen_chord_mm": r["seen_chord_mm"]}
@@ -491,6 +497,8 @@ def _chart(result, path) -> None:
         ax.set_title(f"{kind}: {summary['faults'][kind]['detected_of_seen']} of "
                      f"{summary['faults'][kind]['seen']} seen detected", fontsize=9)
         ax.set_xlabel("size, mm")
+        ax.set_xticks(SIZES_MM[kind], [f"{v:g}" for v in SIZES_MM[kind]])
+        ax.minorticks_off()
         ax.set_ylim(-0.1, 1.1)
         ax.legend(fontsize=7, loc="lower right")
     axes[0].set_ylabel("detected (POD)")
