@@ -261,10 +261,10 @@ def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
     of the mesh in the way.
     A profile's chord across it is the samples within half their spacing of its sheet times
     that spacing, each weighted by ``sqrt(1 - (n . m)^2)`` (a face turned by ``n . m`` to the
-    sheet's normal ``m`` lays a strip that much wider within the slab). Seen: ``MIN_REGION_PROFILES`` profiles with a chord of at least
-    ``MIN_PROFILE_POINTS`` + 1 point steps (a chord's ends lie at the threshold itself, where
-    the scan's noise takes about half the points below it), and ``MIN_REGION_SAMPLES`` point
-    steps of chord in all: no fewer points than the check's smallest region holds. Returns
+    sheet's normal ``m`` lays a strip that much wider within the slab). Seen:
+    ``MIN_REGION_PROFILES`` profiles with a chord of at least ``MIN_PROFILE_POINTS`` + 1 point
+    steps (a chord's ends lie at the threshold itself, where the scan's noise takes about
+    half the points below it), and ``MIN_REGION_SAMPLES`` point steps of chord in all: no fewer points than the check's smallest region holds. Returns
     ``{"seen": bool, "seen_profiles": int, "seen_chord_mm": float}``."""
     rotations = np.asarray(scan.tcp_rotations_b, dtype=np.float64).reshape(-1, 3, 3)
     positions = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)

@@ -183,8 +183,9 @@ class FlyscanClient:
 
         ``misplace`` ([tx, ty, tz, rx, ry, rz], mm and degrees) moves the part in the gripper
         for the pass, and ``fault`` (``KIND[:SIZE_MM]``, as ``flyscan scan --fault``) has the
-        gripper hold that fault of the part instead: honoured by a simulated cell only. ``record`` also records the pass on
-        the service's side (its ScanInfo's ``recording.path``, once written).
+        gripper hold that fault of the part instead: honoured by a simulated cell only.
+        ``record`` also records the pass on the service's side (its ScanInfo's
+        ``recording.path``, once written).
         ``taught_place``, the TCP pose in the robot base at which a nominally held part lands
         right (^B X_T,place: a UR pose [x, y, z (m), rx, ry, rz (rad)] or a 4x4 in mm), has
         the finished scan's info carry ``correction``: the corrected TCP place pose, or why

@@ -50,8 +50,8 @@ from scipy.spatial import cKDTree
 from scanner_core.geometry import planes_moved
 
 __all__ = ["MissingSamples", "missing_samples", "sheet_crossings", "bracketing_frames",
-           "lit_and_seen", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS", "FRAME_STEPS", "CORE_SHARE",
-           "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM"]
+           "lit_and_seen", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS", "FRAME_STEPS",
+           "CORE_SHARE", "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM"]
 
 #: A face turned farther than this from the camera or the laser returns too little light to
 #: be counted on (a grazing face drops out of real scans first).
@@ -149,6 +149,8 @@ def bracketing_frames(samples_p: np.ndarray, planes_p: np.ndarray, sensors_p=Non
     step = float(np.median(np.diff(sorted_positions)))
     facing = sensors_p is not None and normals_p is not None
     limit = math.radians(max_incidence_deg)
+    # without the facing test the kernel never reads normals or sensors: any arrays of their
+    # types stand in, so that one compiled signature serves both
     nearer, farther = _bracket(
         np.ascontiguousarray(samples_p), sorted_positions, order.astype(np.int64), direction,
         GAP_STEPS * step,
