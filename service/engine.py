@@ -32,6 +32,7 @@ from scanner_core.pipeline.finish import CrossCheckState, PassOutcome, finish_pa
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_in_view,
                                    measure_frame, warm_up)
 from scanner_core.pose.ahead import pose_ahead
+from scanner_core.inspection.coverage import warm_up_coverage
 from scanner_core.pose.warm import warm_up_pose
 from scanner_core.pipeline.trigger import EndReason, Trigger, TriggerError, TriggerState
 from scanner_core.types import Frame, MarkerObservation
@@ -130,7 +131,8 @@ class Engine:
     # -- life cycle -------------------------------------------------------------------------
 
     def start(self) -> None:
-        self.warmup_ms = warm_up(self.calibration, self.params) + warm_up_pose()
+        self.warmup_ms = (warm_up(self.calibration, self.params) + warm_up_pose()
+                          + warm_up_coverage())
         self._running.set()
         self._open_camera()
         try:

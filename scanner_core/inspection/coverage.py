@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,7 +51,7 @@ from scipy.spatial import cKDTree
 from scanner_core.geometry import planes_moved
 
 __all__ = ["MissingSamples", "missing_samples", "sheet_crossings", "bracketing_frames",
-           "lit_and_seen", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS", "FRAME_STEPS",
+           "lit_and_seen", "warm_up_coverage", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS", "FRAME_STEPS",
            "CORE_SHARE", "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM"]
 
 #: A face turned farther than this from the camera or the laser returns too little light to
@@ -158,6 +159,19 @@ def bracketing_frames(samples_p: np.ndarray, planes_p: np.ndarray, sensors_p=Non
         np.ascontiguousarray(sensors_p if facing else planes_p[:, :3], dtype=np.float64),
         facing, math.cos(limit), math.sin(limit))
     return nearer, farther, step, direction
+
+
+def warm_up_coverage() -> float:
+    """Compile `bracketing_frames`' kernel before the first check (some 1-2 s on a fresh
+    install, and the compiler's memory with it, which the first pass would otherwise take):
+    three samples and two sheets, with the argument types a check gives it. Returns the time
+    it took, ms."""
+    t0 = time.perf_counter()
+    samples = np.array([[0.0, 0.5, 0.0], [0.0, 0.2, 1.0], [0.0, 3.0, 0.0]])
+    planes = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 1.0]])
+    bracketing_frames(samples, planes, np.array([[0.0, 0.0, 50.0], [0.0, 1.0, 50.0]]),
+                      np.tile([0.0, 0.0, 1.0], (3, 1)))
+    return (time.perf_counter() - t0) * 1e3
 
 
 @njit(nogil=True, cache=True)

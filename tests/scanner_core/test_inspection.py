@@ -235,3 +235,21 @@ def test_one_profile_glinting_inside_the_model_is_no_region(plate, plate_views):
     cloud[(frames == 12) & (np.abs(cloud[:, 0]) < 3.0), 2] -= 1.0
     assert _inspect(plate, cloud, frames).conforms
     assert _inspect_seen(plate, plate_views, cloud, frames, _ys()).conforms
+
+
+def test_the_bracketing_frames_and_their_warm_up():
+    """Sheets y = 0, 1, 2 (lost between 2 and 4): the nearer and farther frame of each
+    sample, none beyond the pass or over the lost frame, none turned from the camera."""
+    from scanner_core.inspection.coverage import bracketing_frames, warm_up_coverage
+
+    assert warm_up_coverage() > 0.0
+    planes = np.array([[0.0, 1.0, 0.0, y] for y in (0.0, 1.0, 2.0, 4.0)])
+    samples = np.array([[0.0, 0.3, 0.0], [0.0, 1.8, 0.0], [0.0, 3.0, 0.0], [0.0, -1.0, 0.0],
+                        [0.0, 0.6, 0.0]])
+    nearer, farther, step, direction = bracketing_frames(samples, planes)
+    assert nearer.tolist() == [0, 2, -1, -1, 1] and farther.tolist() == [1, 1, -1, -1, 0]
+    assert step == pytest.approx(1.0) and direction == pytest.approx([0.0, 1.0, 0.0])
+    sensors = np.array([[0.0, y, 50.0] for y in (0.0, 1.0, 2.0, 4.0)])
+    normals = np.array([[0.0, 0.0, 1.0]] * 4 + [[0.0, 0.0, -1.0]])  # the last turned away
+    nearer, _, _, _ = bracketing_frames(samples, planes, sensors, normals)
+    assert nearer.tolist() == [0, 2, -1, -1, -1]
