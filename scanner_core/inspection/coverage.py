@@ -315,6 +315,8 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     point_step = point_spacing_mm if math.isfinite(point_spacing_mm) and point_spacing_mm > 0 \
         else step
     crossed = np.nonzero(frame >= 0)[0]
+    if not len(crossed):  # the sheets met none of the model (a pass's first frames alone)
+        return NONE_MISSING
     q, n = samples.points[crossed], samples.normals[crossed]
     # covered: a cloud point near, a frame's step along the pass counting FRAME_STEPS points'
     shrink = min(FRAME_STEPS * point_step / step, 1.0)

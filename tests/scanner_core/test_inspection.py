@@ -237,6 +237,15 @@ def test_one_profile_glinting_inside_the_model_is_no_region(plate, plate_views):
     assert _inspect_seen(plate, plate_views, cloud, frames, _ys()).conforms
 
 
+def test_sheets_that_meet_none_of_the_model_leave_nothing_missing(plate, plate_views):
+    """A scan whose placed frames' sheets all lie beyond the plate (the pass's first frames,
+    before the part met the sheet): nothing was to be seen, and nothing is missing."""
+    rng = np.random.default_rng(11)
+    cloud, frames = _scan(rng, half_width=29.9)
+    result = _inspect_seen(plate, plate_views, cloud, frames, 100.0 + _ys())
+    assert result.conforms and result.regions == []
+
+
 def test_the_bracketing_frames_and_their_warm_up():
     """Sheets y = 0, 1, 2 (lost between 2 and 4): the nearer and farther frame of each
     sample, none beyond the pass or over the lost frame, none turned from the camera."""
