@@ -39,7 +39,6 @@ when it is wider than about twice the margin.
 """
 from __future__ import annotations
 
-import itertools
 import math
 import time
 from dataclasses import dataclass
@@ -363,15 +362,17 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     status[missing] = 2
     margin = max(step, MIN_MARGIN_STEPS * samples.spacing_mm)
     at = samples.points[missing]
-    # each missing sample's neighbours by their status (a tree over the few missing ones'
-    # balls, not over the thousands expected)
-    balls = samples.tree.query_ball_point(at, margin, workers=1)
-    sizes = np.fromiter(map(len, balls), np.int64, len(balls))
-    owner = np.repeat(np.arange(len(at)), sizes)
-    around_status = status[np.fromiter(itertools.chain.from_iterable(balls), np.int64,
-                                       int(sizes.sum()))]
-    expected = np.bincount(owner[around_status > 0], minlength=len(at))
-    gone = np.bincount(owner[around_status == 2], minlength=len(at))
+    # each missing sample's neighbours by their status: as many nearest as the fullest ball
+    # holds, in arrays (a ball's list of Python ints for each of thousands of missing
+    # samples is memory the interpreter keeps), not a tree over the thousands expected
+    most = int(samples.tree.query_ball_point(at, margin, return_length=True, workers=1).max())
+    _, near = samples.tree.query(at, k=max(most, 1), distance_upper_bound=margin, workers=1)
+    near = near.reshape(len(at), -1)
+    inside = near < len(samples.points)
+    around_status = np.where(inside, status[np.minimum(near, len(samples.points) - 1)], -1)
+    sizes = inside.sum(axis=1)
+    expected = (around_status > 0).sum(axis=1)
+    gone = (around_status == 2).sum(axis=1)
     core = (expected >= CORE_SHARE * sizes) & (gone >= MISSING_SHARE * sizes)
     if frame_ids is not None and core.any():
         # and missing from the other bracketing profile's view too: where a face's edge lies
