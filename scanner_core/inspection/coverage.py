@@ -334,8 +334,8 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
         sheets = (np.arange(len(sheet_planes_t)) if sheet_frame_ids is None
                   else np.asarray(sheet_frame_ids))
         order = np.argsort(sheets)
-        at = np.clip(np.searchsorted(sheets[order], frame_ids), 0, len(order) - 1)
-        own = np.where(sheets[order][at] == frame_ids, order[at], -1)
+        slot = np.clip(np.searchsorted(sheets[order], frame_ids), 0, len(order) - 1)
+        own = np.where(sheets[order][slot] == frame_ids, order[slot], -1)
         apart = 2.0 * float(radius.max()) + 1.0
         cloud = np.column_stack([cloud, apart * own])
         query = np.column_stack([query, apart * frame[crossed]])
@@ -366,10 +366,12 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     # holds, in arrays (a ball's list of Python ints for each of thousands of missing
     # samples is memory the interpreter keeps), not a tree over the thousands expected
     most = int(samples.tree.query_ball_point(at, margin, return_length=True, workers=1).max())
-    _, near = samples.tree.query(at, k=max(most, 1), distance_upper_bound=margin, workers=1)
-    near = near.reshape(len(at), -1)
-    inside = near < len(samples.points)
-    around_status = np.where(inside, status[np.minimum(near, len(samples.points) - 1)], -1)
+    _, neighbour = samples.tree.query(at, k=max(most, 1), distance_upper_bound=margin,
+                                      workers=1)
+    neighbour = neighbour.reshape(len(at), -1)
+    inside = neighbour < len(samples.points)
+    around_status = np.where(inside, status[np.minimum(neighbour, len(samples.points) - 1)],
+                             -1)
     sizes = inside.sum(axis=1)
     expected = (around_status > 0).sum(axis=1)
     gone = (around_status == 2).sum(axis=1)
