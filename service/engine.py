@@ -354,7 +354,12 @@ class Engine:
             if job is None:
                 return
             if state is TriggerState.SCANNING:
-                job.frames_dropped += gap
+                # a loss counts against the pass once a frame after it is the pass's (a gap
+                # before the frame that ends it lies outside it, as in ``PassAccumulator.scan``)
+                job.frames_dropped_pending += gap
+                if step.emit:
+                    job.frames_dropped += job.frames_dropped_pending
+                    job.frames_dropped_pending = 0
                 job.acquisition_lag_ms = max(job.acquisition_lag_ms, lag_ms)
             if self.trigger.state is TriggerState.SCANNING and job.state == "armed":
                 job.state = "scanning"

@@ -27,6 +27,9 @@ class ScanJob:
     note: str | None = None
     context: object = None
     frames_dropped: int = 0
+    #: Frames lost before frames the trigger holds or ends the pass on: the pass's own only
+    #: when a later frame of it comes (``Engine._on_frame``).
+    frames_dropped_pending: int = 0
     queue_overflows: int = 0
     worker_errors: list[str] = field(default_factory=list)
     finished: float | None = None

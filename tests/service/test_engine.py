@@ -14,7 +14,7 @@ import pytest
 
 from scanner_core.devices import CameraTimeout, TcpPose
 from scanner_core.pipeline import PipelineParams
-from scanner_core.pipeline.trigger import TriggerParams
+from scanner_core.pipeline.trigger import TriggerParams, TriggerState
 from scanner_core.types import Frame
 from service.driver import ControllerDriven
 from service.api import create_app
@@ -91,6 +91,56 @@ def test_a_late_read_shows_as_the_pass_acquisition_lag_without_losing_frames(sim
     assert slept and info["state"] == "done", info["reason"]
     assert info["frames_dropped"] == 0
     assert 55.0 <= info["timings_ms"]["acquisition_lag"] < 1000.0, info["timings_ms"]
+
+
+def _late_once(sim, scanning, seconds):
+    """The camera's first read once `scanning()` is true comes `seconds` late."""
+    grab, slept = sim.camera.grab, []
+
+    def late_grab(timeout=1.0):
+        if scanning() and not slept:
+            slept.append(time.monotonic())
+            time.sleep(seconds)
+        return grab(timeout)
+
+    sim.camera.grab = late_grab
+    return slept
+
+
+def test_frames_lost_mid_pass_are_the_pass_s_dropped_frames(sim_service):
+    """A read 250 ms late mid-pass loses the frames the camera's buffer could not keep; the
+    scan counts them, as the frame ids it received say."""
+    client, sim = sim_service
+    scanning = threading.Event()
+    slept = _late_once(sim, scanning.is_set, 0.25)
+    lost_before = sim.camera.frames_lost
+    scan_id = client.post("/scans", json={}).json()["scan_id"]
+    wait_for(lambda: client.get("/status").json()["state"] == "scanning")
+    scanning.set()
+    info = wait_for(lambda: finished(client, scan_id))
+    lost = sim.camera.frames_lost - lost_before
+    assert slept and lost >= 10  # 250 ms at 162 fps, less the 16 frames kept
+    assert info["frames_dropped"] == lost, (info["frames_dropped"], lost)
+
+
+def test_frames_lost_before_the_frame_that_ends_a_pass_are_not_the_pass_s(tmp_path, cell):
+    """A pass allowed 50 ms, read 250 ms late after its start: it ends "too long" at the late
+    frame, and the frames lost before that frame lie outside the pass (its first to last
+    frame has no gap), as a replay of its frames would count them."""
+    sim = LiveSimCell(cell.with_pass(speed_mm_s=1000.0), seed=4)
+    settings = Settings(data=tmp_path / "data", zmq="tcp://127.0.0.1:0", max_pass_s=0.05)
+    service = Service(settings, devices=(sim.camera, sim.robot, SimPassDriver(sim),
+                                         cell.calibration))
+    with serve_in_thread(create_app(service=service)) as client:
+        # late at the pass's second frame, from the camera's own thread
+        slept = _late_once(sim, lambda: service.engine.trigger.state is TriggerState.SCANNING,
+                           0.25)
+        lost_before = sim.camera.frames_lost
+        scan_id = client.post("/scans", json={}).json()["scan_id"]
+        info = wait_for(lambda: finished(client, scan_id))
+        lost = sim.camera.frames_lost - lost_before
+    assert slept and lost >= 10 and info["end_reason"] == "too long", info["end_reason"]
+    assert info["frames_dropped"] == 0, info["frames_dropped"]
 
 
 def test_an_armed_scan_without_a_pass_times_out(tmp_path, cell):
