@@ -367,9 +367,12 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
         missing = missing_samples(points_p, coverage_model, occluded, pose_matrix,
                                   sheet_planes_t, sensor_positions_t, point_spacing_mm=along,
                                   frame_ids=frame_ids, sheet_frame_ids=sheet_frame_ids)
-    regions += _missing_regions(points_p, np.nonzero(kinds == 1)[0], dev, frame_ids, missing,
-                                samples, sheet_frame_ids, min_area, sample_area,
-                                LINK_SPACINGS * across)
+    missing_regions, flanks = _missing_regions(
+        points_p, np.nonzero(kinds == 1)[0], np.nonzero((kinds == 2) & (dev < 0))[0], dev,
+        frame_ids, missing, samples, sheet_frame_ids, min_area, sample_area,
+        LINK_SPACINGS * across)
+    regions += missing_regions
+    kinds[flanks] = 1  # a chip's flanks are the chip's, not a deformation beside it
     for kind in (0, 2):
         members = np.nonzero(kinds == kind)[0]
         if len(members) * sample_area < min_areas[kind]:
@@ -399,32 +402,42 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
                       reasons=reasons)
 
 
-def _missing_regions(points_p, recessed, dev, frame_ids, missing: MissingSamples, samples,
-                     sheet_frame_ids, min_area: float, point_area: float,
-                     link: float) -> list[Region]:
+def _missing_regions(points_p, recessed, sunken, dev, frame_ids, missing: MissingSamples,
+                     samples, sheet_frame_ids, min_area: float, point_area: float,
+                     link: float) -> tuple[list[Region], np.ndarray]:
     """Missing material: the points inside the model by more than ``extra_mm`` (`recessed`,
-    indices into `points_p`) and the model's samples the scan should have seen and has no
-    point near (`missing`), grouped together. A group is a region when it spans
-    ``MIN_REGION_PROFILES`` profiles (those with ``MIN_PROFILE_POINTS`` of its points, and
-    the frames whose sheets crossed its missing samples), reaches `min_area` (its points'
-    area and its samples'), and stands on something sure: recessed points of such profiles
-    covering `min_area` themselves, or a core missing sample
-    (``scanner_core.inspection.coverage``). A chip seen as recessed points
-    by one profile and as nothing by the next is one region."""
-    n_points = len(recessed)
+    indices into `points_p`), the points inside it by less, down to ``deform_mm``, beside them
+    (`sunken`: a chip's flanks, which slope from the model's surface to its deepest point), and
+    the model's samples the scan should have seen and has no point near (`missing`), grouped
+    together, a group holding recessed points or a core missing sample. It is a region when it
+    spans ``MIN_REGION_PROFILES`` profiles (those with ``MIN_PROFILE_POINTS`` of its points,
+    and the frames whose sheets crossed its missing samples), reaches `min_area` (its points' area and its samples'), and
+    stands on something sure: the points of such profiles covering `min_area` themselves, or a
+    core missing sample (``scanner_core.inspection.coverage``). A chip seen as recessed points
+    by one profile and as nothing by the next is one region; sunken points alone are a
+    deformation's, or the texture's, not missing material. Returns the regions and the sunken
+    points in them."""
+    n_points = len(recessed) + len(sunken)
     if samples is None or not len(missing.index):
         sample_points, sample_area = np.zeros((0, 3)), 0.0
         sheet_ids = np.zeros(0, np.int64)
     else:
         sample_points, sample_area = samples.points[missing.index], samples.spacing_mm**2
         sheet_ids = np.asarray(sheet_frame_ids)[missing.frame]
+    nothing = [], np.zeros(0, np.int64)
+    if len(recessed) == 0 and not missing.core.any():
+        return nothing
     if n_points * point_area + len(sample_points) * sample_area < min_area:
-        return []
-    if n_points == 0 and not missing.core.any():
-        return []
-    out = []
-    for group in _groups(np.vstack([points_p[recessed], sample_points]), link):
-        idx, smp = recessed[group[group < n_points]], group[group >= n_points] - n_points
+        return nothing
+    members = np.concatenate([recessed, sunken]).astype(np.int64)
+    deep = np.zeros(n_points, bool)
+    deep[:len(recessed)] = True
+    out, flanks = [], []
+    for group in _groups(np.vstack([points_p[members], sample_points]), link):
+        at, smp = group[group < n_points], group[group >= n_points] - n_points
+        if not deep[at].any() and not missing.core[smp].any():
+            continue
+        idx = members[at]
         ids, per_profile = np.unique(frame_ids[idx], return_counts=True)
         by_points = set(ids[per_profile >= MIN_PROFILE_POINTS].tolist())
         profiles = len(by_points | set(sheet_ids[smp].tolist()))
@@ -441,7 +454,8 @@ def _missing_regions(points_p, recessed, dev, frame_ids, missing: MissingSamples
         out.append(Region("missing_material", int(len(idx)), float(area),
                           float(np.max(np.abs(dev[idx]))) if len(idx) else float("nan"),
                           centre, evidence=evidence, profiles=profiles))
-    return out
+        flanks.append(members[at[~deep[at]]])
+    return out, np.concatenate(flanks) if flanks else nothing[1]
 
 
 def _noise(dev: np.ndarray, frame_ids: np.ndarray) -> float:

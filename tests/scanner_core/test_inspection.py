@@ -20,11 +20,12 @@ def plate():
     return SurfaceModel.from_mesh(mesh, spacing_mm=0.25)
 
 
-def _scan(rng, shape=None, half_width=28.0):
-    """The top face seen by profiles along x (up to `half_width` off its middle), one per y;
-    ``shape(x, y)`` moves it along z. Returns (cloud (N, 3) in {P} = {T}, frame ids (N,))."""
+def _scan(rng, shape=None, half_width=28.0, profile_mm=PROFILE_MM):
+    """The top face seen by profiles along x (up to `half_width` off its middle), one per y,
+    `profile_mm` apart; ``shape(x, y)`` moves it along z. Returns (cloud (N, 3) in {P} = {T},
+    frame ids (N,))."""
     x = np.arange(-half_width, half_width + 1e-9, POINT_MM)
-    ys = np.arange(-18.0, 18.0 + 1e-9, PROFILE_MM)
+    ys = np.arange(-18.0, 18.0 + 1e-9, profile_mm)
     cloud, frames = [], []
     for k, y in enumerate(ys):
         z = 10.0 + rng.normal(0.0, NOISE_MM, len(x))
@@ -35,8 +36,8 @@ def _scan(rng, shape=None, half_width=28.0):
     return np.vstack(cloud), np.concatenate(frames)
 
 
-def _inspect(plate, cloud, frames, **params):
-    return inspect_scan(cloud, frames, np.eye(4), plate, profile_spacing_mm=PROFILE_MM,
+def _inspect(plate, cloud, frames, profile_mm=PROFILE_MM, **params):
+    return inspect_scan(cloud, frames, np.eye(4), plate, profile_spacing_mm=profile_mm,
                         point_spacing_mm=point_spacing(cloud, frames),
                         params=InspectionParams(**params))
 
@@ -80,6 +81,24 @@ def test_a_recess_is_missing_material_and_a_gentle_bend_a_deformation(plate):
     assert result.failing == ["deformation"]
     assert max(r.max_deviation_mm for r in result.regions) == pytest.approx(0.25, abs=0.03)
     assert result.sigma_mm == pytest.approx(NOISE_MM, rel=0.25)  # the bend is not noise
+
+
+def test_a_small_chip_is_missing_material_from_its_flanks_too(plate):
+    """A cone-shaped chip 3 mm across, 0.5 mm deep, under profiles 0.3 mm apart: only its
+    middle profile's 3 middle points lie deeper than ``extra_mm`` (0.4 mm: two point steps),
+    too few to hold a region's area; its flanks, sunk by more than ``deform_mm``, are the
+    chip's too. The same cone 0.35 mm deep (nothing beyond ``extra_mm``) is a deformation,
+    not missing material."""
+    rng = np.random.default_rng(8)
+    for depth, failing in ((0.5, ["missing_material"]), (0.35, ["deformation"])):
+        cone = lambda x, y: -depth * np.clip(1.0 - np.hypot(x - 6.0, y - 3.0) / 1.5, 0.0, None)
+        cloud, frames = _scan(rng, cone, profile_mm=0.3)
+        result = _inspect(plate, cloud, frames, profile_mm=0.3)
+        assert result.thresholds["extra_mm"] == pytest.approx(2 * POINT_MM, rel=0.02)
+        assert result.failing == failing, (depth, result.reasons)
+        (region,) = result.regions
+        np.testing.assert_allclose(region.centre_p[:2], [6.0, 3.0], atol=0.3)
+        assert region.max_deviation_mm == pytest.approx(depth, abs=0.05)
 
 
 def test_a_cloud_off_the_model_everywhere_is_a_wrong_part(plate):
