@@ -49,8 +49,9 @@ from benchmarks.place import QUICK_SESSION_POSITIONS, SESSION_POSITIONS
 from benchmarks.results import pyplot, save_figure, write_json
 from scanner_core.geometry import planes_moved
 from scanner_core.inspection import point_deviations, point_spacing
-from scanner_core.inspection.check import (MIN_PROFILE_POINTS, MIN_REGION_PROFILES,
-                                           MIN_REGION_SAMPLES)
+from scanner_core.inspection.check import (LINK_SPACINGS, MIN_PROFILE_POINTS,
+                                           MIN_REGION_PROFILES, MIN_REGION_SAMPLES,
+                                           touching_groups)
 from scanner_core.inspection.coverage import COVER_STEPS, lit_and_seen, sheet_crossings
 from scanner_core.pose.models import SurfaceModel
 from scanner_core.pose.registration import PoseParams
@@ -261,11 +262,16 @@ def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
     of the mesh in the way.
     A profile's chord across it is the samples within half their spacing of its sheet times
     that spacing, each weighted by ``sqrt(1 - (n . m)^2)`` (a face turned by ``n . m`` to the
-    sheet's normal ``m`` lays a strip that much wider within the slab). Seen:
+    sheet's normal ``m`` lays a strip that much wider within the slab). Seen: one piece of the
+    difference (its samples on the sheets grouped as the check groups a region's points,
+    ``touching_groups`` at ``LINK_SPACINGS`` of the scan's larger sampling step) crossed by
     ``MIN_REGION_PROFILES`` profiles with a chord of at least ``MIN_PROFILE_POINTS`` + 1 point
     steps (a chord's ends lie at the threshold itself, where the scan's noise takes about
-    half the points below it), and ``MIN_REGION_SAMPLES`` point steps of chord in all: no fewer points than the check's smallest region holds. Returns
-    ``{"seen": bool, "seen_profiles": int, "seen_chord_mm": float}``."""
+    half the points below it), and ``MIN_REGION_SAMPLES`` point steps of chord in all: no
+    fewer points than the check's smallest region holds. Two profiles each across another
+    piece (a plug through a stepped part, one face a profile) are two regions of one profile.
+    Returns ``{"seen": bool, "seen_profiles": int, "seen_chord_mm": float}``, the last two of
+    the piece crossed most."""
     rotations = np.asarray(scan.tcp_rotations_b, dtype=np.float64).reshape(-1, 3, 3)
     positions = np.asarray(scan.tcp_positions_b, dtype=np.float64).reshape(-1, 3)
     if len(rotations) < 2:
@@ -286,7 +292,7 @@ def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
     lasers_p = (to_t(cell.laser_origin_b) - translation) @ rotation
     good = SurfaceModel.from_mesh(good_mesh, spacing_mm=SEEN_SPACING_MM, seed=2)
     held = SurfaceModel.from_mesh(held_mesh, spacing_mm=SEEN_SPACING_MM, seed=3)
-    counts = {}
+    on_sheets, on_frames, weights = [], [], []
     no_points = max(threshold_mm, COVER_STEPS * point_step_mm)
     for samples, other, mesh, other_mesh, threshold_mm in (
             (good, held, good_mesh, held_mesh, no_points),
@@ -317,14 +323,33 @@ def fault_seen(scan, good_mesh, held_mesh, true_pose, cell, threshold_mm: float,
         on = off_sheet <= 0.5 * samples.spacing_mm
         width = np.sqrt(np.clip(1.0 - np.einsum("ij,ij->i", planes_p[frame[on], :3],
                                                 samples.normals[index[on]]) ** 2, 0.0, 1.0))
-        for k, w in zip(frame[on], width):
-            counts[int(k)] = counts.get(int(k), 0.0) + float(w)
-    chords = np.array([c * SEEN_SPACING_MM for c in counts.values()])
-    crossing = chords[chords >= (MIN_PROFILE_POINTS + 1) * point_step_mm]
-    seen = (len(crossing) >= MIN_REGION_PROFILES
-            and crossing.sum() >= MIN_REGION_SAMPLES * point_step_mm)
-    return {"seen": bool(seen), "seen_profiles": int(len(crossing)),
-            "seen_chord_mm": round(float(crossing.sum()), 3)}
+        on_sheets.append(samples.points[index[on]])
+        on_frames.append(frame[on])
+        weights.append(width)
+    step = float(scan.profile_spacing_mm)
+    return seen_piece(*(np.concatenate(x) for x in (on_sheets, on_frames, weights)),
+                      max(step, point_step_mm) if math.isfinite(step) else point_step_mm,
+                      point_step_mm)
+
+
+def seen_piece(points, frames, width, sampling_mm: float, point_step_mm: float) -> dict:
+    """``fault_seen``'s verdict from the difference's samples on the sheets: `points` (K, 3)
+    mm, the frame of each (K,), the width each counts for (K,); grouped at ``LINK_SPACINGS``
+    of `sampling_mm` (the scan's larger sampling step), the piece crossed most."""
+    best = {"seen": False, "seen_profiles": 0, "seen_chord_mm": 0.0}
+    if not len(points):
+        return best
+    for group in touching_groups(points, LINK_SPACINGS * sampling_mm):
+        ids, inverse = np.unique(frames[group], return_inverse=True)
+        chords = np.bincount(inverse, weights=width[group]) * SEEN_SPACING_MM
+        crossing = chords[chords >= (MIN_PROFILE_POINTS + 1) * point_step_mm]
+        seen = (len(crossing) >= MIN_REGION_PROFILES
+                and crossing.sum() >= MIN_REGION_SAMPLES * point_step_mm)
+        piece = {"seen": bool(seen), "seen_profiles": int(len(crossing)),
+                 "seen_chord_mm": round(float(crossing.sum()), 3)}
+        if (piece["seen"], piece["seen_chord_mm"]) > (best["seen"], best["seen_chord_mm"]):
+            best = piece
+    return best
 
 
 def pod_fit(sizes, hits) -> dict:

@@ -41,7 +41,7 @@ from scipy import ndimage
 from scanner_core.inspection.coverage import NONE_MISSING, MissingSamples, missing_samples
 
 __all__ = ["InspectionParams", "Inspection", "Region", "KINDS", "point_deviations",
-           "inspect_scan", "point_spacing", "EXTRA_SIGMAS", "DEFORM_SIGMAS", "EXTRA_SPACINGS",
+           "inspect_scan", "point_spacing", "touching_groups", "EXTRA_SIGMAS", "DEFORM_SIGMAS", "EXTRA_SPACINGS",
            "MIN_REGION_SAMPLES", "MIN_REGION_PROFILES", "LINK_SPACINGS"]
 
 #: The thresholds a part, the service or a caller may set (mm, mm^2); the rest are derived.
@@ -377,7 +377,7 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
         members = np.nonzero(kinds == kind)[0]
         if len(members) * sample_area < min_areas[kind]:
             continue
-        for group in _groups(cloud_t[members], LINK_SPACINGS * across):
+        for group in touching_groups(cloud_t[members], LINK_SPACINGS * across):
             idx = members[group]
             area = len(idx) * sample_area
             _, per_profile = np.unique(frame_ids[idx], return_counts=True)
@@ -433,7 +433,7 @@ def _missing_regions(points_p, recessed, sunken, dev, frame_ids, missing: Missin
     deep = np.zeros(n_points, bool)
     deep[:len(recessed)] = True
     out, flanks = [], []
-    for group in _groups(np.vstack([points_p[members], sample_points]), link):
+    for group in touching_groups(np.vstack([points_p[members], sample_points]), link):
         at, smp = group[group < n_points], group[group >= n_points] - n_points
         if not deep[at].any() and not missing.core[smp].any():
             continue
@@ -493,7 +493,7 @@ def point_spacing(cloud_t: np.ndarray, frame_ids: np.ndarray) -> float:
     return float(np.median(steps))
 
 
-def _groups(points: np.ndarray, radius: float) -> list[np.ndarray]:
+def touching_groups(points: np.ndarray, radius: float) -> list[np.ndarray]:
     """Indices of `points` (M, 3) split into groups, largest first: the points of cubes of
     side `radius` that touch (face, edge or corner) are one group. Two points within
     `radius` always are; two of touching cubes may be up to 2 sqrt(3) `radius` apart. Linear

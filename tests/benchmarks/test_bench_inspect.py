@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from benchmarks.inspection import pod_fit
+from benchmarks.inspection import SEEN_SPACING_MM, pod_fit, seen_piece
 from flyscan import main
 
 
@@ -18,6 +18,25 @@ def test_the_pod_fit_finds_a_known_curve():
     assert fit["a90"] == pytest.approx(np.exp((np.log(9.0) - b0) / b1), rel=0.1)
     assert fit["a90_95"] > fit["a90"]
     assert pod_fit([1.0, 2.0, 3.0, 4.0], [True] * 4)["a90"] is None  # no slope to fit
+
+
+def test_a_fault_is_seen_by_two_profiles_across_one_piece_of_it():
+    """A difference 2 mm wide on two neighbouring sheets 1.2 mm apart is seen; the same two
+    chords 12.7 mm apart (a plug through a stepped part, one face a profile) are two regions
+    of one profile each, as the check would group them, and not seen."""
+    along = np.arange(0.0, 2.0, SEEN_SPACING_MM)
+
+    def chords(second_at):
+        points = np.vstack([np.c_[along, np.zeros_like(along), np.zeros_like(along)],
+                            np.c_[along, np.full_like(along, 1.2), np.full_like(along, second_at)]])
+        frames = np.repeat([7, 8], len(along))
+        return points, frames, np.ones(len(points))
+
+    near = seen_piece(*chords(0.0), sampling_mm=1.2, point_step_mm=0.18)
+    assert near["seen"] and near["seen_profiles"] == 2
+    assert near["seen_chord_mm"] == pytest.approx(2 * len(along) * SEEN_SPACING_MM)
+    apart = seen_piece(*chords(12.7), sampling_mm=1.2, point_step_mm=0.18)
+    assert not apart["seen"] and apart["seen_profiles"] == 1
 
 
 def test_quick_bench_inspect(tmp_path):
