@@ -41,8 +41,8 @@ from scipy import ndimage
 from scanner_core.inspection.coverage import NONE_MISSING, MissingSamples, missing_samples
 
 __all__ = ["InspectionParams", "Inspection", "Region", "KINDS", "point_deviations",
-           "inspect_scan", "point_spacing", "touching_groups", "EXTRA_SIGMAS", "DEFORM_SIGMAS", "EXTRA_SPACINGS",
-           "MIN_REGION_SAMPLES", "MIN_REGION_PROFILES", "LINK_SPACINGS"]
+           "inspect_scan", "point_spacing", "touching_groups", "EXTRA_SIGMAS", "DEFORM_SIGMAS",
+           "EXTRA_SPACINGS", "MIN_REGION_SAMPLES", "MIN_REGION_PROFILES", "LINK_SPACINGS"]
 
 #: The thresholds a part, the service or a caller may set (mm, mm^2); the rest are derived.
 GIVEN_THRESHOLDS = ("extra_mm", "deform_mm", "min_area_mm2")
@@ -411,9 +411,9 @@ def _missing_regions(points_p, recessed, sunken, dev, frame_ids, missing: Missin
     the model's samples the scan should have seen and has no point near (`missing`), grouped
     together, a group holding recessed points or a core missing sample. It is a region when it
     spans ``MIN_REGION_PROFILES`` profiles (those with ``MIN_PROFILE_POINTS`` of its points,
-    and the frames whose sheets crossed its missing samples), reaches `min_area` (its points' area and its samples'), and
-    stands on something sure: the points of such profiles covering `min_area` themselves, or a
-    core missing sample (``scanner_core.inspection.coverage``). A chip seen as recessed points
+    and the frames whose sheets crossed its missing samples), reaches `min_area` (its points'
+    area and its samples'), and stands on something sure: the points of such profiles
+    covering `min_area` themselves, or a core missing sample (``scanner_core.inspection.coverage``). A chip seen as recessed points
     by one profile and as nothing by the next is one region; sunken points alone are a
     deformation's, or the texture's, not missing material. Returns the regions and the sunken
     points in them."""
