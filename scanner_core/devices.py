@@ -64,11 +64,47 @@ class TcpPose:
         TCP position in {B}, mm.
     rotation : (3, 3) float64
         Rotation of {T} in {B} (columns are the {T} axes).
+    interpolation_mm : float
+        How far ``position`` may lie from the TCP's true one, mm, where it was interpolated
+        between two reports (``chord_deviation_mm``): 0 at a report, and for a robot that
+        knows its pose at any time.
     """
 
     t: float
     position: np.ndarray
     rotation: np.ndarray
+    interpolation_mm: float = 0.0
+
+
+def chord_deviation_mm(before, start, end, after) -> float:
+    """How far the straight chord between two robot reports may lie from the TCP's path, mm.
+
+    Each argument is a report ``(t s, position (3,) mm)``; `before` and `after` are the
+    reports beside the chord's ends, or None where there is none. The path's velocity turns
+    from ``v0`` (from `before` to `start`) to ``v1`` (from `end` to `after`) within the chord's
+    ``dt``; the chord's own velocity ``c`` lies between them. A turn in the middle puts the
+    path ``|v1 - v0| dt / 4 = |c - v0| dt / 2`` off the chord; the larger of the two sides is
+    returned (constant acceleration ``a``, ``a dt^2 / 8`` off, reads about twice that). On a
+    stream without gaps ``dt`` is one sample period and this is micrometres at most; across
+    samples a loaded reader missed it grows with ``dt^2``.
+    """
+    t0, p0 = start
+    t1, p1 = end
+    span = float(t1) - float(t0)
+    if not span > 0:
+        return 0.0
+    chord = (np.asarray(p1, dtype=np.float64) - np.asarray(p0, dtype=np.float64)) / span
+    worst = 0.0
+    for first, second in ((before, start), (end, after)):
+        if first is None or second is None:
+            continue
+        (ta, pa), (tb, pb) = first, second
+        if not float(tb) > float(ta):
+            continue
+        velocity = (np.asarray(pb, dtype=np.float64) - np.asarray(pa, dtype=np.float64)) \
+            / (float(tb) - float(ta))
+        worst = max(worst, float(np.linalg.norm(chord - velocity)))
+    return worst * span / 2.0
 
 
 @runtime_checkable

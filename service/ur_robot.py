@@ -41,7 +41,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from scanner_core.io import rtde
-from scanner_core.devices import TcpPose
+from scanner_core.devices import TcpPose, chord_deviation_mm
 from scanner_core.io.rtde import MAX_FREQUENCY_HZ, RTDE_PORT, ur_pose_parts
 
 __all__ = ["URRobot", "parse_robot_url", "probe_rtde", "RtdeProbeError", "RTDE_PORT",
@@ -292,7 +292,8 @@ class URRobot:
 
     def pose_at(self, t: float) -> TcpPose:
         """Pose at robot time ``t``, s: position linearly interpolated between the samples
-        around it, rotation along the shortest arc between theirs.
+        around it (``TcpPose.interpolation_mm`` how far the path may bow from that chord),
+        rotation along the shortest arc between theirs.
 
         Raises
         ------
@@ -318,6 +319,10 @@ class URRobot:
                                   "robot's stream")
             p0, p1 = self._positions[i - 1], self._positions[i]
             r0, r1 = self._rotvecs[i - 1], self._rotvecs[i]
+            # samples a loaded reader missed leave a chord the path may bow away from
+            deviation = chord_deviation_mm(
+                (times[i - 2], self._positions[i - 2]) if i >= 2 else None, (t0, p0), (t1, p1),
+                (times[i + 1], self._positions[i + 1]) if i + 1 < len(times) else None)
         w = (t - t0) / (t1 - t0)
         position = (1.0 - w) * p0 + w * p1
         a = Rotation.from_rotvec(r0)
@@ -326,7 +331,7 @@ class URRobot:
         else:
             step = (a.inv() * Rotation.from_rotvec(r1)).as_rotvec()
             rotation = (a * Rotation.from_rotvec(w * step)).as_matrix()
-        return TcpPose(t, position, rotation)
+        return TcpPose(t, position, rotation, deviation)
 
     # -- diagnostics -------------------------------------------------------------------------------
     def status(self) -> dict:

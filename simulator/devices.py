@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scanner_core.devices import CameraClosed, RobotConnection, TcpPose
+from scanner_core.devices import CameraClosed, RobotConnection, TcpPose, chord_deviation_mm
 from scanner_core.io.rtde import MAX_FREQUENCY_HZ
 from scanner_core.types import Frame
 from simulator.effects import BLUR_SAMPLES, CellEffects
@@ -178,5 +178,11 @@ class SimRobot(RobotConnection):
         k0 = min(max(float(math.floor(t * ROBOT_RATE_HZ)), k_first), max(k_last - 1, k_first))
         t0, t1 = k0 / ROBOT_RATE_HZ, min(k0 + 1, k_last) / ROBOT_RATE_HZ
         w = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
-        pos = (1 - w) * self._position(t0) + w * self._position(t1)
-        return TcpPose(float(t), pos, self._reported_rotation.copy())
+        p0, p1 = self._position(t0), self._position(t1)
+        pos = (1 - w) * p0 + w * p1
+        # as a reader of these reports would bound the chord (a pass's start is a corner)
+        before, after = (k0 - 1) / ROBOT_RATE_HZ, (k0 + 2) / ROBOT_RATE_HZ
+        deviation = 0.0 if not 0.0 < w < 1.0 else chord_deviation_mm(
+            (before, self._position(before)) if k0 > k_first else None, (t0, p0), (t1, p1),
+            (after, self._position(after)) if k0 + 2 <= k_last else None)
+        return TcpPose(float(t), pos, self._reported_rotation.copy(), deviation)

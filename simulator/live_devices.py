@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from scanner_core.devices import CameraClosed, CameraTimeout, RobotConnection, TcpPose
+from scanner_core.devices import (CameraClosed, CameraTimeout, RobotConnection, TcpPose,
+                                   chord_deviation_mm)
 from scanner_core.types import Frame
 from simulator.cell import Cell
 from simulator.frame_truth import frame_image
@@ -274,9 +275,15 @@ class LiveSimRobot(RobotConnection):
         k0 = min(max(math.floor(t * self.rate_hz), k_lo), k_hi - 1)
         t0, t1 = k0 / self.rate_hz, (k0 + 1) / self.rate_hz
         w = (t - t0) / (t1 - t0)
-        pos = (1.0 - w) * self._sample(passes, k0) + w * self._sample(passes, k0 + 1)
+        p0, p1 = self._sample(passes, k0), self._sample(passes, k0 + 1)
+        pos = (1.0 - w) * p0 + w * p1
+        # as a reader of these reports would bound the chord (a pass's start is a corner)
+        deviation = 0.0 if not 0.0 < w < 1.0 else chord_deviation_mm(
+            ((k0 - 1) / self.rate_hz, self._sample(passes, k0 - 1)) if k0 > k_lo else None,
+            (t0, p0), (t1, p1),
+            ((k0 + 2) / self.rate_hz, self._sample(passes, k0 + 2)) if k0 + 2 <= k_hi else None)
         # The rotation is the nearer sample's: it changes only where a hold begins.
-        return TcpPose(t, pos, self._rotation_of(passes, k0 if w < 0.5 else k0 + 1))
+        return TcpPose(t, pos, self._rotation_of(passes, k0 if w < 0.5 else k0 + 1), deviation)
 
 
 def _warm_up_image_model(cell: Cell) -> None:

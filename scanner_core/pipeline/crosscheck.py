@@ -25,6 +25,11 @@ from scanner_core.devices import Robot
 #: Deviation above which the cross-check is flagged, mm (the marker's triangulation errs by
 #: a few micrometres; a robot that reports a pose 0.1 mm off is worth a look).
 DEFAULT_TOLERANCE_MM = 0.1
+#: A robot position interpolated over a chord that may lie farther than this from the TCP's
+#: path (``TcpPose.interpolation_mm``: samples a loaded reader missed, on a track that
+#: accelerates or turns) is no position to check the marker against, mm: a quarter of the
+#: default tolerance (or of the tolerance asked, if smaller).
+MAX_CHORD_DEVIATION_MM = DEFAULT_TOLERANCE_MM / 4.0
 #: Finite-difference step for the robot's velocity, s (a few samples at 500 Hz).
 VELOCITY_STEP_S = 0.004
 #: The clock offset moves at most this far from its starting value in one estimate, s: along a
@@ -44,14 +49,18 @@ MAX_OFFSET_SAMPLES = 120
 MIN_SPEED_MM_S = 1.0
 
 
-def _robot_positions(robot: Robot, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) positions and (N,) bool: which times the robot's history covers."""
+def _robot_positions(robot: Robot, times: np.ndarray, max_chord_mm: float = MAX_CHORD_DEVIATION_MM
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) positions and (N,) bool: which times the robot's history covers, with a
+    position interpolated no farther than `max_chord_mm` from the path."""
     out = np.full((len(times), 3), np.nan)
     for i, t in enumerate(times):
         try:
-            out[i] = robot.pose_at(float(t)).position
+            pose = robot.pose_at(float(t))
         except (LookupError, RuntimeError):
-            pass
+            continue
+        if getattr(pose, "interpolation_mm", 0.0) <= max_chord_mm:
+            out[i] = pose.position
     return out, np.isfinite(out).all(axis=1)
 
 
@@ -167,7 +176,9 @@ def cross_check(times, positions_b, robot: Robot, *, clock_offset_s: float = 0.0
                                       difference_b=rotations @ correction)
         if found is not None:
             offset, estimated = found, True
-    robot_p, ok = _robot_positions(robot, times + offset) if len(times) else (np.zeros((0, 3)), np.zeros(0, bool))
+    robot_p, ok = (_robot_positions(robot, times + offset,
+                                    min(MAX_CHORD_DEVIATION_MM, tolerance_mm / 4.0))
+                   if len(times) else (np.zeros((0, 3)), np.zeros(0, bool)))
     result |= {"samples": int(ok.sum()), "clock_offset_s": offset, "offset_estimated": estimated}
     if not ok.any() or rotations is None:
         reason = "robot not connected" if not connected else "no robot pose for the pass's times"

@@ -13,7 +13,8 @@ import time
 
 import numpy as np
 
-from scanner_core.devices import CameraClosed, CameraTimeout, RobotConnection, TcpPose
+from scanner_core.devices import (CameraClosed, CameraTimeout, RobotConnection, TcpPose,
+                                   chord_deviation_mm)
 from scanner_core.types import Frame
 from scanner_core.recording.format import ROBOT_COLUMNS
 from scanner_core.recording.reader import Recording
@@ -112,8 +113,9 @@ class ReplayRobot(RobotConnection):
 
     def pose_at(self, t: float) -> TcpPose:
         """The pose at robot time ``t``: positions interpolated linearly between the two
-        samples around it (as the simulated robot does), the rotation slerped (kept as is when
-        both samples hold the same one).
+        samples around it (as the simulated robot does; ``TcpPose.interpolation_mm`` how far
+        the path may bow from that chord, where the recorded robot's stream had a gap), the
+        rotation slerped (kept as is when both samples hold the same one).
 
         Raises
         ------
@@ -133,13 +135,16 @@ class ReplayRobot(RobotConnection):
         t0, t1 = ts[k], ts[k + 1]
         w = (t - t0) / (t1 - t0)
         position = (1 - w) * self._p[k] + w * self._p[k + 1]
+        deviation = 0.0 if not 0.0 < w < 1.0 else chord_deviation_mm(
+            (ts[k - 1], self._p[k - 1]) if k >= 1 else None, (t0, self._p[k]),
+            (t1, self._p[k + 1]), (ts[k + 2], self._p[k + 2]) if k + 2 < len(ts) else None)
         r0, r1 = self._r[k], self._r[k + 1]
         if np.array_equal(r0, r1):
             rotation = r0.copy()
         else:
             from scipy.spatial.transform import Rotation, Slerp
             rotation = Slerp([t0, t1], Rotation.from_matrix(np.stack([r0, r1])))(t).as_matrix()
-        return TcpPose(float(t), position, rotation)
+        return TcpPose(float(t), position, rotation, deviation)
 
 
 def replay_recording(recording: Recording, params=None):

@@ -25,6 +25,7 @@ from scanner_core.recording.format import (FORMAT_NAME, FORMAT_VERSION, FRAME_IN
                                            FRAMES_FILE, INDEX_COLUMNS, METADATA_FILE, PART_FILE,
                                            ROBOT_COLUMNS, ROBOT_FILE, ROBOT_SAMPLE_HZ,
                                            RecordingError)
+from scanner_core.pipeline.crosscheck import MAX_CHORD_DEVIATION_MM
 from scanner_core.types import Frame
 
 __all__ = ["PassRecorder", "robot_samples"]
@@ -32,13 +33,17 @@ __all__ = ["PassRecorder", "robot_samples"]
 
 def robot_samples(robot, t0: float, t1: float) -> list:
     """The robot's poses (``TcpPose``) on the sample grid (``ROBOT_SAMPLE_HZ``) between robot
-    times t0 and t1: what it has of them."""
+    times t0 and t1: what it has of them. A pose interpolated over a chord that may lie
+    farther than ``MAX_CHORD_DEVIATION_MM`` from the path (samples the live reader missed) is
+    left out: the replay then sees the same gap, and checks no marker against it either."""
     poses = []
     for k in range(int(np.ceil(t0 * ROBOT_SAMPLE_HZ)), int(np.floor(t1 * ROBOT_SAMPLE_HZ)) + 1):
         try:
-            poses.append(robot.pose_at(k / ROBOT_SAMPLE_HZ))
+            pose = robot.pose_at(k / ROBOT_SAMPLE_HZ)
         except (LookupError, RuntimeError):
             continue
+        if getattr(pose, "interpolation_mm", 0.0) <= MAX_CHORD_DEVIATION_MM:
+            poses.append(pose)
     return poses
 
 
