@@ -413,10 +413,10 @@ def _missing_regions(points_p, recessed, sunken, dev, frame_ids, missing: Missin
     spans ``MIN_REGION_PROFILES`` profiles (those with ``MIN_PROFILE_POINTS`` of its points,
     and the frames whose sheets crossed its missing samples), reaches `min_area` (its points'
     area and its samples'), and stands on something sure: the points of such profiles
-    covering `min_area` themselves, or a core missing sample (``scanner_core.inspection.coverage``). A chip seen as recessed points
-    by one profile and as nothing by the next is one region; sunken points alone are a
-    deformation's, or the texture's, not missing material. Returns the regions and the sunken
-    points in them."""
+    covering `min_area` themselves, or a core missing sample
+    (``scanner_core.inspection.coverage``). A chip seen as recessed points by one profile and
+    as nothing by the next is one region; sunken points alone are a deformation's, or the
+    texture's, not missing material. Returns the regions and the sunken points in them."""
     n_points = len(recessed) + len(sunken)
     if samples is None or not len(missing.index):
         sample_points, sample_area = np.zeros((0, 3)), 0.0

@@ -50,8 +50,8 @@ from scipy.spatial import cKDTree
 from scanner_core.geometry import planes_moved
 
 __all__ = ["MissingSamples", "missing_samples", "sheet_crossings", "bracketing_frames",
-           "lit_and_seen", "warm_up_coverage", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS", "FRAME_STEPS",
-           "CORE_SHARE", "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM"]
+           "lit_and_seen", "warm_up_coverage", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS",
+           "FRAME_STEPS", "CORE_SHARE", "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM"]
 
 #: A face turned farther than this from the camera or the laser returns too little light to
 #: be counted on (a grazing face drops out of real scans first).

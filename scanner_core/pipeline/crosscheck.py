@@ -59,7 +59,7 @@ def _robot_positions(robot: Robot, times: np.ndarray, max_chord_mm: float = MAX_
             pose = robot.pose_at(float(t))
         except (LookupError, RuntimeError):
             continue
-        if getattr(pose, "interpolation_mm", 0.0) <= max_chord_mm:
+        if pose.interpolation_mm <= max_chord_mm:
             out[i] = pose.position
     return out, np.isfinite(out).all(axis=1)
 

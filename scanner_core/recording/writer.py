@@ -42,7 +42,7 @@ def robot_samples(robot, t0: float, t1: float) -> list:
             pose = robot.pose_at(k / ROBOT_SAMPLE_HZ)
         except (LookupError, RuntimeError):
             continue
-        if getattr(pose, "interpolation_mm", 0.0) <= MAX_CHORD_DEVIATION_MM:
+        if pose.interpolation_mm <= MAX_CHORD_DEVIATION_MM:
             poses.append(pose)
     return poses
 
