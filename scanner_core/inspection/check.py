@@ -298,7 +298,7 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
                  *, profile_spacing_mm: float, point_spacing_mm: float,
                  params: InspectionParams = InspectionParams(), coverage_model=None,
                  occluded=None, sheet_planes_t=None, sensor_positions_t=None,
-                 sheet_frame_ids=None) -> Inspection:
+                 sheet_frame_ids=None, sharp_edges=None) -> Inspection:
     """The check of a cloud against the model at its registered pose.
 
     Parameters
@@ -325,6 +325,9 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
     sheet_frame_ids : (F,) int, optional
         The frame of each sheet (``Scan.tcp_frame_ids``), as ``frame_ids`` names them; None:
         ``0 .. F-1``.
+    sharp_edges : scanner_core.pose.models.EdgeModel, optional
+        The model's sharp edges (``PartModel.edge_model``): with them a hole narrower than
+        twice the profile step is found too (``coverage.missing_samples``).
 
     Returns
     -------
@@ -366,7 +369,8 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
         samples = coverage_model
         missing = missing_samples(points_p, coverage_model, occluded, pose_matrix,
                                   sheet_planes_t, sensor_positions_t, point_spacing_mm=along,
-                                  frame_ids=frame_ids, sheet_frame_ids=sheet_frame_ids)
+                                  frame_ids=frame_ids, sheet_frame_ids=sheet_frame_ids,
+                                  sharp_edges=sharp_edges)
     missing_regions, flanks = _missing_regions(
         points_p, np.nonzero(kinds == 1)[0], np.nonzero((kinds == 2) & (dev < 0))[0], dev,
         frame_ids, missing, samples, sheet_frame_ids, min_area, sample_area,

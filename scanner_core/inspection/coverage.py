@@ -36,6 +36,14 @@ least ``MISSING_SHARE`` of them missing (no sliver narrower than the margin), an
 from the other bracketing profile's view too (where a face's edge lies between two sheets,
 the nearer one may pass beyond it); a hole in a face, ringed by covered samples, has one
 when it is wider than about twice the margin.
+
+A narrower hole, crossed by two profiles, has a core of another kind: on each of them a
+*ringed stretch*, missing samples that lie along the profile's line on their face with a
+covered sample of that profile as the nearest one on either side (not an unexpected one,
+nor none: a face's end, a shadow, the pass's end), and a ringed stretch of another profile
+within ``PAIR_MARGINS`` margins (one profile's gap is a glint's or a speck's as likely as
+the part's). Samples within a margin of the model's sharp edges are left out of it: where a
+profile ends beside an edge decides whether a sample there is covered.
 """
 from __future__ import annotations
 
@@ -51,7 +59,8 @@ from scanner_core.geometry import planes_moved
 
 __all__ = ["MissingSamples", "missing_samples", "sheet_crossings", "bracketing_frames",
            "lit_and_seen", "warm_up_coverage", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS",
-           "FRAME_STEPS", "CORE_SHARE", "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM"]
+           "FRAME_STEPS", "CORE_SHARE", "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM",
+           "RING_MARGINS", "MIN_STRETCH_SAMPLES", "PAIR_MARGINS"]
 
 #: A face turned farther than this from the camera or the laser returns too little light to
 #: be counted on (a grazing face drops out of real scans first).
@@ -73,6 +82,17 @@ CORE_SHARE = 0.9
 MISSING_SHARE = 0.5
 #: The margin is at least this many sample spacings.
 MIN_MARGIN_STEPS = 2.0
+#: A stretch of a profile missing, ringed by covered samples of that profile: looked for
+#: within this many margins of each missing sample, ...
+RING_MARGINS = 2.5
+#: ... among the samples this many spacings off its tangent plane at most, and turned from its
+#: normal by less than this (the same face, a curved one's too), ...
+RING_BAND_SPACINGS = 0.5
+RING_TURN_DEG = 30.0
+#: ... holding at least this many missing samples; and with a ringed sample of another
+#: profile within this many margins.
+MIN_STRETCH_SAMPLES = 2
+PAIR_MARGINS = 2.0
 #: Spacing of the model's samples the coverage is judged on, mm (``PartModel.coverage_model``).
 COVERAGE_SPACING_MM = 0.6
 #: Rays leave a sample this far off its face, mm, so as not to meet the face itself.
@@ -269,7 +289,7 @@ def lit_and_seen(samples_p, normals_p, sensors_p, sheets_p, occluded=None, *,
 def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.ndarray,
                     sheet_planes_t: np.ndarray, sensor_positions_t: np.ndarray, *,
                     point_spacing_mm: float, frame_ids=None,
-                    sheet_frame_ids=None) -> MissingSamples:
+                    sheet_frame_ids=None, sharp_edges=None) -> MissingSamples:
     """The model's samples the scan should have seen at this pose and has no point near.
 
     Parameters
@@ -290,6 +310,10 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
         Each point's frame; None: any profile covers any sample (the scan's frames unknown).
     sheet_frame_ids : (F,) int, optional
         The frame of each sheet, as ``frame_ids`` names them; None: ``0 .. F-1``.
+    sharp_edges : scanner_core.pose.models.EdgeModel, optional
+        The model's sharp edges, with their tree (``PartModel.edge_model``): with them and
+        `frame_ids`, a stretch of a profile ringed by its own covered samples is a core too
+        (the module's docstring).
 
     Returns
     -------
@@ -384,5 +408,78 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
         reach = radius[np.searchsorted(crossed, missing[ask])]
         covered, _ = tree.query(beside, distance_upper_bound=float(reach.max()), workers=1)
         core[ask[covered <= reach]] = False
+    if frame_ids is not None and sharp_edges is not None and not core.all():
+        # a hole between one and two margins wide holds no such sample, but each profile that
+        # crossed it has a stretch missing with its own covered samples either side; within a
+        # margin of a sharp edge, where a profile ends decides whether a sample is covered
+        rest = np.nonzero(~core)[0]
+        edge, _ = sharp_edges.tree.query(at[rest], distance_upper_bound=margin, workers=1)
+        rest = rest[np.isinf(edge)]
+        rest = rest[_paired(at[rest], frame[missing[rest]], margin)]
+        rest = rest[_ringed_stretches(samples, status, missing[rest], frame[missing[rest]],
+                                      planes_p, step, margin)]
+        core[rest[_paired(at[rest], frame[missing[rest]], margin)]] = True
     return MissingSamples(missing, core, frame[missing])
+
+
+def _ringed_stretches(samples, status: np.ndarray, which: np.ndarray, frames: np.ndarray,
+                      planes_p: np.ndarray, step: float, margin: float) -> np.ndarray:
+    """Which of the missing samples `which` (K,) lie on a stretch of their own profile that
+    is ringed by covered samples of it: along the profile's line on the sample's face (``t =
+    m x n``, the sheet's normal ``m`` and the face's ``n``), among the samples within half a
+    step of the sample's sheet (`frames` (K,), into `planes_p`) and on its face (within
+    ``RING_BAND_SPACINGS`` of its tangent plane, turned less than ``RING_TURN_DEG``), the
+    nearest sample that is not missing on each side, within ``RING_MARGINS`` margins, is
+    covered, and at least ``MIN_STRETCH_SAMPLES`` missing ones lie between the two. `status`
+    (M,) int8: 0 unexpected, 1 covered, 2 missing, over all the samples. Returns (K,) bool.
+
+    A face's edge, a shadow or a silhouette ends a stretch with an unexpected sample, or
+    with none: only a gap inside the face a profile was seen on is ringed."""
+    if not len(which):
+        return np.zeros(0, bool)
+    points, normals = samples.points, samples.normals
+    at, up = points[which], normals[which]
+    reach = RING_MARGINS * margin
+    most = int(samples.tree.query_ball_point(at, reach, return_length=True, workers=1).max())
+    _, near = samples.tree.query(at, k=max(most, 1), distance_upper_bound=reach, workers=1)
+    near = near.reshape(len(at), -1)
+    inside = near < len(points)
+    near = np.minimum(near, len(points) - 1)
+    offset = points[near] - at[:, None, :]
+    sheet = planes_p[frames]
+    beside = np.einsum("kjd,kd->kj", points[near], sheet[:, :3]) - sheet[:, 3:4]
+    on_face = ((np.abs(np.einsum("kjd,kd->kj", offset, up))
+                <= RING_BAND_SPACINGS * samples.spacing_mm)
+               & (np.einsum("kjd,kd->kj", normals[near], up)
+                  >= math.cos(math.radians(RING_TURN_DEG))))
+    along = np.cross(sheet[:, :3], up)
+    along /= np.maximum(np.linalg.norm(along, axis=1, keepdims=True), 1e-12)
+    u = np.einsum("kjd,kd->kj", offset, along)
+    line = inside & on_face & (np.abs(beside) <= 0.5 * step)
+    state = status[near]
+    ends = []
+    for side in (-1.0, 1.0):
+        # the nearest sample on this side that is not missing: covered, or the stretch is
+        # not ringed
+        distance = np.where(line & (side * u > 0) & (state != 2), side * u, np.inf)
+        first = np.argmin(distance, axis=1)
+        rows = np.arange(len(at))
+        ringed = np.isfinite(distance[rows, first]) & (state[rows, first] == 1)
+        ends.append((ringed, side * distance[rows, first]))
+    (left_ok, left), (right_ok, right) = ends
+    between = (line & (state == 2) & (u > left[:, None]) & (u < right[:, None])).sum(axis=1)
+    return left_ok & right_ok & (between >= MIN_STRETCH_SAMPLES)
+
+
+def _paired(at: np.ndarray, frames: np.ndarray, margin: float) -> np.ndarray:
+    """Which of the samples at `at` (K, 3) have one of another profile (`frames` (K,))
+    within ``PAIR_MARGINS`` margins: a gap one profile alone shows is a glint's or a speck's
+    as likely as the part's."""
+    if len(at) < 2:
+        return np.zeros(len(at), bool)
+    pairs = cKDTree(at).query_pairs(PAIR_MARGINS * margin, output_type="ndarray")
+    other = frames[pairs[:, 0]] != frames[pairs[:, 1]]
+    out = np.zeros(len(at), bool)
+    out[pairs[other].ravel()] = True
+    return out
 

@@ -261,7 +261,8 @@ def _inspect(scan: Scan, part_model, pose, pose_report: dict,
                               params=params, coverage_model=part_model.coverage_model,
                               occluded=part_model.occluded, sheet_planes_t=scan.sheet_planes_t,
                               sensor_positions_t=scan.sensor_positions_t,
-                              sheet_frame_ids=scan.tcp_frame_ids)
+                              sheet_frame_ids=scan.tcp_frame_ids,
+                              sharp_edges=part_model.edge_model)
     scan.deviations_mm = inspection.deviations_mm
     pose_report["inspection"] = inspection.to_dict()
     if not inspection.conforms and pose_report.get("act"):

@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 from scanner_core.inspection import InspectionParams, inspect_scan, point_deviations, point_spacing
-from scanner_core.pose.models import SurfaceModel
+from scanner_core.pose.models import EdgeModel, SurfaceModel
 
 #: The synthetic scan: profiles 1 mm apart along y, points 0.2 mm apart along x, noise 10 um.
 PROFILE_MM, POINT_MM, NOISE_MM = 1.0, 0.2, 0.010
@@ -20,12 +20,12 @@ def plate():
     return SurfaceModel.from_mesh(mesh, spacing_mm=0.25)
 
 
-def _scan(rng, shape=None, half_width=28.0, profile_mm=PROFILE_MM):
-    """The top face seen by profiles along x (up to `half_width` off its middle), one per y,
-    `profile_mm` apart; ``shape(x, y)`` moves it along z. Returns (cloud (N, 3) in {P} = {T},
-    frame ids (N,))."""
+def _scan(rng, shape=None, half_width=28.0, profile_mm=PROFILE_MM, y_range=(-18.0, 18.0)):
+    """The top face seen by profiles along x (up to `half_width` off its middle), one per y
+    over `y_range`, `profile_mm` apart; ``shape(x, y)`` moves it along z. Returns (cloud
+    (N, 3) in {P} = {T}, frame ids (N,))."""
     x = np.arange(-half_width, half_width + 1e-9, POINT_MM)
-    ys = np.arange(-18.0, 18.0 + 1e-9, profile_mm)
+    ys = np.arange(y_range[0], y_range[1] + 1e-9, profile_mm)
     cloud, frames = [], []
     for k, y in enumerate(ys):
         z = 10.0 + rng.normal(0.0, NOISE_MM, len(x))
@@ -197,6 +197,72 @@ def test_a_hole_crossed_by_two_profiles_is_found(plate, plate_views):
     (region,) = result.regions
     assert region.evidence == "no points" and region.profiles == 2
     np.testing.assert_allclose(region.centre_p, [-7.3, 2.5, 10.0], atol=0.6)
+
+
+@pytest.fixture(scope="module")
+def plate_edges():
+    """The plate's sharp edges (``PartModel.edge_model``'s kind)."""
+    mesh = trimesh.creation.box((60.0, 40.0, 10.0))
+    mesh.apply_translation([0.0, 0.0, 5.0])
+    return EdgeModel.from_mesh(mesh)
+
+
+def _inspect_ringed(plate, plate_views, plate_edges, cloud, frames, frames_y, edges=True):
+    samples, occluded = plate_views
+    planes, sensors = _sheets(frames_y)
+    return inspect_scan(cloud, frames, np.eye(4), plate,
+                        profile_spacing_mm=float(np.median(np.diff(frames_y))),
+                        point_spacing_mm=point_spacing(cloud, frames),
+                        coverage_model=samples, occluded=occluded, sheet_planes_t=planes,
+                        sensor_positions_t=sensors, sharp_edges=plate_edges if edges else None)
+
+
+def test_a_hole_narrower_than_two_margins_is_found_from_its_profiles_stretches(
+        plate, plate_views, plate_edges):
+    """A 2.8 mm hole under two profiles 1.25 mm apart (the default pass's), 0.35 and 0.9 mm
+    from its centre: no sample deep in missing ones within the margin (one profile step), but
+    each profile has a stretch missing with its own covered samples either side. Found with
+    the model's sharp edges, at its place; the clean scan still conforms."""
+    rng = np.random.default_rng(21)
+    step = 1.25
+    ys = np.arange(-18.0, 18.0 + 1e-9, step)
+    cloud, frames = _scan(rng, half_width=29.9, profile_mm=step)
+    assert _inspect_ringed(plate, plate_views, plate_edges, cloud, frames, ys).conforms
+    centre = np.array([-8.75, 2.35])
+    hole = np.hypot(cloud[:, 0] - centre[0], cloud[:, 1] - centre[1]) < 1.4
+    assert len(np.unique(frames[hole])) == 2
+    cloud, frames, hole_frames = cloud[~hole], frames[~hole], frames[hole]
+    assert _inspect_ringed(plate, plate_views, plate_edges, cloud, frames, ys,
+                           edges=False).conforms  # the margin's core alone: not found
+    result = _inspect_ringed(plate, plate_views, plate_edges, cloud, frames, ys)
+    assert result.failing == ["missing_material"], result.reasons
+    (region,) = result.regions
+    assert region.evidence == "no points" and region.profiles == 2
+    np.testing.assert_allclose(region.centre_p, [*centre, 10.0], atol=0.6)
+    # one profile's stretch alone (a glint's, a speck's) is no hole
+    cloud, frames = _scan(np.random.default_rng(21), half_width=29.9, profile_mm=step)
+    alone = ((np.hypot(cloud[:, 0] - centre[0], cloud[:, 1] - centre[1]) < 1.4)
+             & (frames == hole_frames.max()))
+    assert _inspect_ringed(plate, plate_views, plate_edges, cloud[~alone], frames[~alone],
+                           ys).conforms
+
+
+def test_a_stretch_missing_along_a_sharp_edge_is_no_hole(plate, plate_views, plate_edges):
+    """Profiles up to 0.5 mm from the plate's rim (y = 20), the pass going on beyond it, the
+    two nearest the rim missing 2.2 mm of their points side by side: where a profile ends
+    beside a sharp edge decides whether a sample there is covered, so such stretches are no
+    hole; told of no sharp edge there, the check would call them one."""
+    rng = np.random.default_rng(13)
+    cloud, frames = _scan(rng, half_width=29.9, y_range=(-19.5, 19.5))
+    sheets_y = np.arange(-19.5, 22.5 + 1e-9, PROFILE_MM)  # the last three meet no part
+    assert _inspect_ringed(plate, plate_views, plate_edges, cloud, frames, sheets_y).conforms
+    gap = (np.abs(cloud[:, 0] - 4.0) < 1.1) & (cloud[:, 1] > 18.0)
+    assert len(np.unique(frames[gap])) == 2
+    cloud, frames = cloud[~gap], frames[~gap]
+    result = _inspect_ringed(plate, plate_views, plate_edges, cloud, frames, sheets_y)
+    assert result.conforms, result.reasons
+    no_edges = EdgeModel(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert not _inspect_ringed(plate, plate_views, no_edges, cloud, frames, sheets_y).conforms
 
 
 def test_no_region_where_the_scan_could_not_say(plate, plate_views):
