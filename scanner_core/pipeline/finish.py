@@ -159,6 +159,15 @@ def pass_failure(scan: Scan, end_reason: EndReason | None, *, detail: str | None
     if scan.frames == 0 and scan.frames_without_rotation:
         return ("no profile could be placed: the robot gave no pose to take the gripper's "
                 "rotation from")
+    if scan.frames == 0 and scan.frames_unplaced:
+        # found but never placed: something hides or stands for part of the LED's views
+        residual = scan.marker_residual_px
+        views = (f"its views disagreeing by {residual:.0f} px" if np.isfinite(residual)
+                 else "in fewer than two views")
+        return (f"no profile could be placed: the marker was found in {scan.frames_unplaced} "
+                f"frame{'s' if scan.frames_unplaced != 1 else ''} and never triangulated "
+                f"({views}); something may hide the gripper's LED (a second part held, say), "
+                f"or the calibration does not fit the cell")
     if scan.frames == 0:
         return "no profile could be placed (the marker was never triangulated)"
     if len(scan.cloud) == 0:

@@ -45,6 +45,14 @@ def test_no_profile_placed_says_why():
         "no profile could be placed (the marker")
     no_robot = _empty_scan(0, frames_without_rotation=12)
     assert "the robot gave no pose" in pass_failure(no_robot, EndReason.MARKER_GONE)
+    # found, but its views disagree (a second part hiding the LED in some of them, say)
+    hidden = pass_failure(_empty_scan(0, frames_unplaced=1, marker_residual_px=123.8),
+                          EndReason.MARKER_GONE)
+    assert hidden.startswith("no profile could be placed: the marker was found in 1 frame "
+                             "and never triangulated (its views disagreeing by 124 px)")
+    assert "hide the gripper's LED" in hidden
+    one_view = pass_failure(_empty_scan(0, frames_unplaced=3), EndReason.MARKER_GONE)
+    assert "found in 3 frames" in one_view and "(in fewer than two views)" in one_view
 
 
 def test_a_timeout_with_a_note():
