@@ -29,7 +29,7 @@ from scanner_core.pipeline.exposure import ExposureParams
 from scanner_core.pipeline import PipelineParams
 from scanner_core.pipeline.finish import CrossCheckState
 from scanner_core.pose.registration import PoseParams
-from scanner_core.pipeline.trigger import TriggerParams
+from scanner_core.pipeline.trigger import TriggerParams, TriggerState
 from scanner_core.types import Scan
 from service.calhistory import CalibrationHistory, open_history
 from service.calsessions import CalibrationSessions
@@ -548,12 +548,17 @@ class Service:
         finish of its first scan builds it): an uploaded part's first pose waits for none."""
         def prepare():
             try:
-                if self.parts.prepare(name):
-                    settle_objects()
+                took = self.parts.prepare(name)
             except KeyError:  # deleted meanwhile
-                pass
+                took = 0.0
             except Exception:  # said again, to its caller, by the arm that needs it
                 log.exception("part %s could not be prepared", name)
+                took = 0.0
+            if self.parts.memory_to_return:  # a part replaced: its old models' memory back
+                self.parts.memory_to_return = False
+                return_memory()
+            elif took:
+                settle_objects()
         self.between_passes(prepare)
 
     def between_passes(self, work) -> bool:
@@ -592,6 +597,11 @@ class Service:
             if self._status_event is None or now - self._status_event[0] >= max_age_s:
                 self._status_event = (now, f"event: status\ndata: {json.dumps(self.status())}\n\n")
             return self._status_event[1]
+
+    def acquiring(self) -> bool:
+        """Whether a scan is armed or its pass runs: the camera's frames must not wait (the
+        edge reads request bodies slower then, ``service.edge``)."""
+        return self.engine.trigger.state in (TriggerState.ARMED, TriggerState.SCANNING)
 
     def status(self) -> dict:
         status = self.engine.status()

@@ -13,6 +13,10 @@ headers first, so it can refuse cheaply what must never cost the service work:
   an arm request's few bytes) takes no slot, so uploads dribbled slowly cannot keep a cell
   controller from arming; a body whose next piece takes longer than ``body_idle_s`` is
   answered 408 and its slot freed;
+- a body arriving while a scan is armed or its pass runs: read no faster than
+  ``body_rate_in_pass_mb_s`` (each piece then waits its turn in an ``asyncio`` sleep, and TCP
+  holds the sender back). What took frames on a slow machine was the reading itself:
+  uploads streamed to their 64 MiB limit, a dozen in a pass, competing with the camera;
 - reads faster than ``read_interval_s`` on one connection, or than ``max_reads_per_s`` all
   together: paced, i.e. the answer waits its turn (an ``asyncio`` sleep, which costs the
   camera nothing), and beyond ``MAX_READ_WAIT_S`` of waiting, 503 with ``Retry-After``.
@@ -89,13 +93,17 @@ class EdgeGuard:
     app : ASGI application
     settings : Settings
         ``token``, ``protect_reads``, ``max_body_bytes``, ``max_part_bytes``,
-        ``max_concurrent_bodies``, ``body_idle_s``, ``read_interval_s``, ``max_reads_per_s``;
-        read at each request (tests change them).
+        ``max_concurrent_bodies``, ``body_idle_s``, ``body_rate_in_pass_mb_s``,
+        ``read_interval_s``, ``max_reads_per_s``; read at each request (tests change them).
+    acquiring : callable() -> bool, optional
+        Whether a scan is armed or its pass runs (``Service.acquiring``): bodies are then read
+        at ``body_rate_in_pass_mb_s``. None: never.
     """
 
-    def __init__(self, app, settings: Settings):
+    def __init__(self, app, settings: Settings, acquiring=None):
         self.app = app
         self.settings = settings
+        self.acquiring = acquiring
         self.bodies_in_flight = 0  # one event loop: no lock needed
         self._next_on_connection: dict = {}  # (host, port) -> when its next read may go
         self._next_read = 0.0  # when the next read may go, all connections together
@@ -208,7 +216,10 @@ class EdgeGuard:
                 raise BodyTooLarge("the request body stalled") from None
             complete = message["type"] != "http.request" or not message.get("more_body")
             if message["type"] == "http.request":
-                received += len(message.get("body", b""))
+                piece = len(message.get("body", b""))
+                received += piece
+                if piece and self.acquiring is not None and self.acquiring():
+                    await asyncio.sleep(piece / (self.settings.body_rate_in_pass_mb_s * 1e6))
                 if received > limit:
                     if not started:
                         refused = True

@@ -70,6 +70,8 @@ MIN_AREA_SHARE = 0.05
 STAGING_PREFIX = ".tmp-"
 #: ``prctl``'s option: the signal a process gets when its parent ends (linux/prctl.h).
 PR_SET_PDEATHSIG = 1
+#: The loader process's niceness: the service's threads (the camera's) come first.
+LOADER_NICE = 10
 #: A stored part's scan plan, beside its part.json.
 PLAN_FILE = "plan.json"
 
@@ -143,7 +145,7 @@ def _loader_start() -> None:
     service whatever ends it (Linux's parent-death signal: a worker left behind by a killed
     service would wait for uploads for ever, holding its 150 MB)."""
     try:
-        os.nice(10)
+        os.setpriority(os.PRIO_PROCESS, 0, LOADER_NICE)
     except OSError:
         pass
     try:
@@ -230,6 +232,9 @@ class PartLibrary:
         self._loader_lock = threading.Lock()  # one upload read at a time
         # name -> (model, bytes) of the prepared parts, least recently scanned first
         self._prepared: OrderedDict[str, tuple[PartModel, int]] = OrderedDict()
+        #: A part was replaced and its old models dropped: `return_memory` is due, between
+        #: passes.
+        self.memory_to_return = False
         self.released = 0  # parts that gave their prepared models back (the budget)
 
     def open(self) -> None:
@@ -358,7 +363,9 @@ class PartLibrary:
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         if replaced:
-            return_memory()
+            # not now: a full collection holds the interpreter's lock for a hundred ms and
+            # more, and an upload may end during a pass (the service returns it between them)
+            self.memory_to_return = True
         return part
 
     def _read(self, mesh_path: Path, units: str, name: str, grasp):
@@ -373,8 +380,16 @@ class PartLibrary:
                         max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                         initializer=_loader_start)
                 try:
-                    return self._loader.submit(read_upload, str(mesh_path), units, name,
-                                               grasp).result()
+                    future = self._loader.submit(read_upload, str(mesh_path), units, name,
+                                                 grasp)
+                    # at once: a process just spawned imports the libraries for a second or
+                    # more before its initializer runs, and that took a pass's frames
+                    for worker in list(getattr(self._loader, "_processes", {}).values()):
+                        try:
+                            os.setpriority(os.PRIO_PROCESS, worker.pid, LOADER_NICE)
+                        except (OSError, TypeError):
+                            pass
+                    return future.result()
                 except BrokenProcessPool:  # the loader died (killed, out of memory): anew
                     self._loader = None
                     if attempt:

@@ -73,6 +73,11 @@ class Settings(BaseSettings):
     body_idle_s: float = Field(10.0, gt=0.0, le=600.0,
                                description="a request body whose next piece takes longer is "
                                            "answered 408, s")
+    body_rate_in_pass_mb_s: float = Field(32.0, gt=0.0, le=100_000.0,
+                                          description="while a scan is armed or its pass "
+                                                      "runs, request bodies are read at most "
+                                                      "this fast, MB/s (the sender waits; "
+                                                      "the camera's frames come first)")
     max_pending_pictures: int = Field(4, ge=1, le=64,
                                       description="requests waiting at once for a scan's preview "
                                                   "to be drawn (503 beyond)")

@@ -91,3 +91,53 @@ def test_event_streams_are_bounded(service):
     finally:
         for s in streams:
             s.close()
+
+
+def test_bodies_are_read_at_the_pass_rate_only_while_a_scan_is_armed_or_running(monkeypatch):
+    """Each piece of a body waits ``piece / rate`` while the service acquires, and not at all
+    otherwise; the body reaches the app whole either way."""
+    import asyncio
+
+    import service.edge as edge
+    from service.edge import EdgeGuard
+    from service.settings import Settings
+
+    waits = []
+
+    async def recorded_sleep(seconds):
+        waits.append(seconds)
+
+    monkeypatch.setattr(edge.asyncio, "sleep", recorded_sleep)
+    pieces = [b"x" * 1000, b"y" * 3000, b""]
+    got = []
+
+    async def app(scope, receive, send):
+        while True:
+            message = await receive()
+            got.append(message.get("body", b""))
+            if not message.get("more_body"):
+                break
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"{}"})
+
+    def run(acquiring):
+        queue = [{"type": "http.request", "body": p, "more_body": i < len(pieces) - 1}
+                 for i, p in enumerate(pieces)]
+
+        async def receive():
+            return queue.pop(0)
+
+        async def send(message):
+            pass
+
+        guard = EdgeGuard(app, Settings(body_rate_in_pass_mb_s=2.0), acquiring=lambda: acquiring)
+        scope = {"type": "http", "method": "POST", "path": "/scans", "headers": [
+            (b"content-type", b"application/json"), (b"transfer-encoding", b"chunked")],
+            "client": ("127.0.0.1", 5)}
+        asyncio.run(guard(scope, receive, send))
+
+    run(False)
+    assert waits == [] and b"".join(got) == b"".join(pieces)
+    got.clear()
+    run(True)
+    assert waits == [1000 / 2e6, 3000 / 2e6] and b"".join(got) == b"".join(pieces)
