@@ -424,7 +424,8 @@ def create_app(settings: Settings | None = None, *, service: Service | None = No
         app.include_router(router)
     # Outside every route, inside Starlette's error middleware: the token and the body's size
     # are checked before FastAPI reads the body (it reads it before solving dependencies).
-    app.add_middleware(EdgeGuard, settings=service.settings, acquiring=service.acquiring)
+    app.add_middleware(EdgeGuard, settings=service.settings,
+                       acquiring=getattr(service, "acquiring", None))
 
     @app.exception_handler(StarletteHTTPException)
     async def http_problem(request: Request, exc: StarletteHTTPException) -> Response:

@@ -548,17 +548,12 @@ class Service:
         finish of its first scan builds it): an uploaded part's first pose waits for none."""
         def prepare():
             try:
-                took = self.parts.prepare(name)
+                if self.parts.prepare(name):
+                    settle_objects()
             except KeyError:  # deleted meanwhile
-                took = 0.0
+                pass
             except Exception:  # said again, to its caller, by the arm that needs it
                 log.exception("part %s could not be prepared", name)
-                took = 0.0
-            if self.parts.memory_to_return:  # a part replaced: its old models' memory back
-                self.parts.memory_to_return = False
-                return_memory()
-            elif took:
-                settle_objects()
         self.between_passes(prepare)
 
     def between_passes(self, work) -> bool:

@@ -43,6 +43,7 @@ import threading
 from collections import OrderedDict
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from os import PRIO_PROCESS, setpriority
 from pathlib import Path
 
 import numpy as np
@@ -140,14 +141,20 @@ def read_upload(mesh_path, units: str, name: str, grasp) -> tuple[PartModel, dic
     return part, simplified
 
 
+def _lower_priority(pid) -> None:
+    """Give the process `pid` (0: this one) the niceness ``LOADER_NICE``, where the system
+    lets it."""
+    try:
+        setpriority(PRIO_PROCESS, pid or 0, LOADER_NICE)
+    except (OSError, TypeError):  # no such process any more; not a pid yet
+        pass
+
+
 def _loader_start() -> None:
     """In the loader process: yield the cores to the service's (nice 10), and end with the
     service whatever ends it (Linux's parent-death signal: a worker left behind by a killed
     service would wait for uploads for ever, holding its 150 MB)."""
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, LOADER_NICE)
-    except OSError:
-        pass
+    _lower_priority(0)
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
@@ -232,9 +239,6 @@ class PartLibrary:
         self._loader_lock = threading.Lock()  # one upload read at a time
         # name -> (model, bytes) of the prepared parts, least recently scanned first
         self._prepared: OrderedDict[str, tuple[PartModel, int]] = OrderedDict()
-        #: A part was replaced and its old models dropped: `return_memory` is due, between
-        #: passes.
-        self.memory_to_return = False
         self.released = 0  # parts that gave their prepared models back (the budget)
 
     def open(self) -> None:
@@ -363,9 +367,7 @@ class PartLibrary:
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         if replaced:
-            # not now: a full collection holds the interpreter's lock for a hundred ms and
-            # more, and an upload may end during a pass (the service returns it between them)
-            self.memory_to_return = True
+            return_memory()
         return part
 
     def _read(self, mesh_path: Path, units: str, name: str, grasp):
@@ -385,10 +387,7 @@ class PartLibrary:
                     # at once: a process just spawned imports the libraries for a second or
                     # more before its initializer runs, and that took a pass's frames
                     for worker in list(getattr(self._loader, "_processes", {}).values()):
-                        try:
-                            os.setpriority(os.PRIO_PROCESS, worker.pid, LOADER_NICE)
-                        except (OSError, TypeError):
-                            pass
+                        _lower_priority(worker.pid)
                     return future.result()
                 except BrokenProcessPool:  # the loader died (killed, out of memory): anew
                     self._loader = None
