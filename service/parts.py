@@ -145,7 +145,7 @@ def _lower_priority(pid) -> None:
     """Give the process `pid` (0: this one) the niceness ``LOADER_NICE``, where the system
     lets it."""
     try:
-        setpriority(PRIO_PROCESS, pid or 0, LOADER_NICE)
+        setpriority(PRIO_PROCESS, pid, LOADER_NICE)  # None (not started yet): TypeError
     except (OSError, TypeError):  # no such process any more; not a pid yet
         pass
 
