@@ -73,7 +73,7 @@ class FrameTruth:
 
 
 def frame_image(cell: Cell, truth: FrameTruth | None, rng: np.random.Generator,
-                image_model=None) -> np.ndarray:
+                image_model=None, background: np.ndarray | None = None) -> np.ndarray:
     """The image model applied to a frame's geometry, with noise from ``rng``.
 
     Parameters
@@ -86,6 +86,9 @@ def frame_image(cell: Cell, truth: FrameTruth | None, rng: np.random.Generator,
     rng : numpy.random.Generator
     image_model : simulator.imaging.ImageModel, optional
         Instead of the cell's (a camera's exposure and gain applied to it).
+    background : (H, W) uint8, optional
+        A background frame rendered earlier from the same image model, drawn over
+        (``simulator.imaging.render_image``).
 
     Returns
     -------
@@ -95,7 +98,8 @@ def frame_image(cell: Cell, truth: FrameTruth | None, rng: np.random.Generator,
     cam = cell.calibration.camera
     model = cell.image_model if image_model is None else image_model
     if truth is None:
-        return render_image(cam.height, cam.width, model, rng)
+        return render_image(cam.height, cam.width, model, rng) if background is None \
+            else background.copy()
     cols, rows, gain = truth.stripe_columns, truth.stripe_rows, truth.stripe_gain
     if len(truth.reflection_columns):
         cols = np.concatenate([cols, truth.reflection_columns])
@@ -104,10 +108,11 @@ def frame_image(cell: Cell, truth: FrameTruth | None, rng: np.random.Generator,
     blobs = truth.marker_blobs
     if blobs is None:
         return render_image(cam.height, cam.width, model, rng, stripe_cols=cols,
-                            stripe_rows=rows, stripe_gain=gain, marker_xy=truth.marker_pixels)
+                            stripe_rows=rows, stripe_gain=gain, marker_xy=truth.marker_pixels,
+                            background=background)
     return render_image(cam.height, cam.width, model, rng, stripe_cols=cols, stripe_rows=rows,
                         stripe_gain=gain, marker_xy=blobs[:, :2], marker_gain=blobs[:, 2],
-                        marker_sigma=blobs[:, 3])
+                        marker_sigma=blobs[:, 3], background=background)
 
 
 #: A stripe that moves across a column during the exposure is drawn as a smear of samples

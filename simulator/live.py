@@ -9,11 +9,14 @@ the work is split:
 * :meth:`LiveSimCell.prepare_pass` computes the geometry of every frame of a pass once (its
   ``FrameTruth``: the stripe samples and marker pixels, all the image model needs) and keeps
   it in a small LRU cache per (part, misplacement, pass profile);
-* each grabbed frame of a pass then costs only the image model with fresh noise
-  (``render_image`` with the camera's own seeded generator, about 2.5 ms);
 * between passes the camera cycles a small ring of noise-only frames rendered at ``open``;
   so does it for the frames of a pass that show nothing but background (before the marker
-  enters the views and after it leaves them).
+  enters the views and after it leaves them);
+* each grabbed frame of a pass that shows the stripe or the marker is the ring's background
+  with the pixels of their supports drawn afresh (``render_image(..., background=)`` with the
+  camera's own seeded generator): a copy and a few thousand pixels, where a whole frame's
+  noise took as long as the frame period on a machine that copies a frame in 0.2 ms. Under
+  another exposure or gain than the cell's own, a frame is drawn whole.
 
 One clock is shared by the camera and the robot: seconds of ``time.monotonic()`` since the
 cell's clock started (the first ``camera.open()`` or ``robot.connect()``). The camera exposes

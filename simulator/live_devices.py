@@ -1,9 +1,9 @@
 """The live simulated cell's camera and robot: ordinary devices on the cell's real clock.
 
 Both are made by ``simulator.live.LiveSimCell`` and read its schedule of passes under its
-lock. The camera delivers frame ``k`` at camera clock ``k / fps``, rendering only the image
-model (with fresh noise) over the geometry the cell prepared, or a frame of its background
-ring; the robot samples its TCP on the cell's track every ``1 / rate_hz`` s of its own clock.
+lock. The camera delivers frame ``k`` at camera clock ``k / fps``, drawing only the image
+model's stripe and marker (with fresh noise) over a frame of its background ring, from the
+geometry the cell prepared; the robot samples its TCP on the cell's track every ``1 / rate_hz`` s of its own clock.
 """
 from __future__ import annotations
 
@@ -177,8 +177,15 @@ class LiveSimCamera:
             rng, ring = self._rng, self._ring
             exposure_us, gain = self.exposure_us, self.gain
         model = exposed_model(sim.cell.image_model, exposure_us, gain)
-        if truth is None and model is sim.cell.image_model:
-            image = ring[frame_id % len(ring)]
+        if model is sim.cell.image_model:
+            # A real camera's frame costs its reader nothing: the pass's frames are drawn over
+            # the ring's backgrounds, which leaves the reader most of a frame period.
+            background = ring[frame_id % len(ring)]
+            if truth is None:
+                image = background
+            else:
+                with self._render_lock:
+                    image = frame_image(sim.cell, truth, rng, model, background)
         else:
             with self._render_lock:
                 image = frame_image(sim.cell, truth, rng, model)

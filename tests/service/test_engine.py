@@ -48,10 +48,21 @@ def finished(client, scan_id):
 
 def test_a_camera_that_stops_mid_pass_fails_the_scan_and_the_service_recovers(sim_service):
     client, sim = sim_service
+    grab, read = sim.camera.grab, []
+
+    def reading(timeout=1.0):
+        frame = grab(timeout)
+        read.append(frame.frame_id)
+        return frame
+
+    sim.camera.grab = reading
     scan_id = client.post("/scans", json={}).json()["scan_id"]
     wait_for(lambda: client.get("/status").json()["state"] == "scanning")
-    # The demo block spans y_T -20..20 mm: stop when the TCP has passed the sheet (y_B = 0).
+    # The demo block spans y_T -20..20 mm: stop when the TCP has passed the sheet (y_B = 0)
+    # and the service has read the frames exposed until then (a loaded reader lags).
     wait_for(lambda: sim.robot.latest().position[1] > 5.0)
+    exposed = int(sim.now() * sim.camera.fps)
+    wait_for(lambda: read and read[-1] >= exposed)
     sim.camera.stall()
     info = wait_for(lambda: finished(client, scan_id))
     assert info["state"] == "failed" and info["reason"].startswith("camera stopped")

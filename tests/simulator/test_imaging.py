@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from simulator.imaging import ImageModel, cramer_rao_bound_px, render_image
+from simulator.imaging import (RENDER_HALF_WIDTH_SIGMAS, ImageModel, cramer_rao_bound_px,
+                               render_image)
 
 # Background statistics over 0.5 Mpx: standard error of the mean ~0.004 DN; the 256-level noise
 # table quantises the distribution (see simulator.imaging), allowing ~1 % on the std.
@@ -97,6 +98,39 @@ def test_same_seed_same_image():
     c = render_image(64, 300, ImageModel(), np.random.default_rng(8), **kw)
     assert np.array_equal(a, b)
     assert not np.array_equal(a, c)
+
+
+def test_stripe_over_a_background_frame():
+    """Drawn over a background frame, a stripe is the same stripe and the background is that
+    frame's, pixel for pixel; a frame drawn next shows nothing of the one before."""
+    model = ImageModel()
+    rng = np.random.default_rng(4)
+    n = 3000
+    background = render_image(64, n, model, rng)
+    rows = rng.uniform(20.0, 44.0, n)
+    img = render_image(64, n, model, rng, stripe_cols=np.arange(n), stripe_rows=rows,
+                       background=background)
+    r = np.arange(64)[:, None]
+    reach = math.ceil(RENDER_HALF_WIDTH_SIGMAS * model.stripe_sigma_px) + 1  # drawn afresh
+    support = np.abs(r - rows[None, :]) <= reach
+    assert np.array_equal(img[~support], background[~support])
+    assert not np.array_equal(img[support], background[support])
+    w = np.where(np.abs(r - rows[None, :]) <= 6, img.astype(float) - model.background_dn, 0.0)
+    err = (w * r).sum(axis=0) / w.sum(axis=0) - rows
+    assert abs(err.mean()) < CENTROID_BIAS_TOL_PX
+    assert np.sqrt(np.mean(err**2)) < CENTROID_RMS_TOL_PX
+    # the same scene drawn whole: the same peak level
+    whole = render_image(64, n, model, rng, stripe_cols=np.arange(n), stripe_rows=rows)
+    assert_allclose(np.median(img.max(axis=0)), np.median(whole.max(axis=0)), atol=2.0)
+    elsewhere = render_image(64, n, model, rng, stripe_cols=np.arange(n),
+                             stripe_rows=np.full(n, 5.0), background=background)
+    far = np.broadcast_to(np.abs(r - 5.0) > reach, img.shape)
+    assert np.array_equal(elsewhere[far], background[far])
+    again = render_image(64, n, model, rng, stripe_cols=np.arange(n), stripe_rows=rows,
+                         background=background)
+    assert_allclose(np.median(again.max(axis=0)), np.median(img.max(axis=0)), atol=2.0)
+    with pytest.raises(ValueError, match="background"):
+        render_image(64, n, model, rng, background=background[:, :10])
 
 
 def test_cramer_rao_bound_reference():
