@@ -41,7 +41,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["ImageModel", "render_image", "cramer_rao_bound_px", "speckle_factors",
-           "exposed_model", "NOMINAL_EXPOSURE_US", "EXPOSURE_RANGE_US", "GAIN_RANGE"]
+           "uniform_bytes", "background_image", "exposed_model", "NOMINAL_EXPOSURE_US", "EXPOSURE_RANGE_US", "GAIN_RANGE"]
 
 #: The exposure at which an ``ImageModel``'s amplitudes hold, us.
 NOMINAL_EXPOSURE_US = 1000.0
@@ -184,6 +184,59 @@ def speckle_factors(width: int, model: ImageModel, rng: np.random.Generator) -> 
     return np.clip(1.0 + model.speckle_contrast * field, 0.0, None)
 
 
+def uniform_bytes(height: int, width: int, rng: np.random.Generator) -> np.ndarray:
+    """A frame's background draw: one uniform random byte per pixel.
+
+    Straight from the bit generator's raw 64-bit words (4x faster than
+    ``rng.integers(dtype=np.uint8)``); ``background_image`` maps them to grey levels.
+
+    Returns
+    -------
+    (height, width) uint8
+    """
+    n_px = int(height) * int(width)
+    return rng.bit_generator.random_raw((n_px + 7) // 8).view(np.uint8)[:n_px].reshape(
+        int(height), int(width))
+
+
+def background_image(u: np.ndarray, model: ImageModel) -> np.ndarray:
+    """The background of a frame (no stripe, no marker) from its uniform bytes.
+
+    ``pixel = round(clip(background + ambient + N(0, read_noise), 0, sat))``, each pixel's
+    normal deviate the quantile of its byte ``u`` (the module's speed trick). The same bytes
+    through another model's tables give that model's background with the same draw: a camera
+    whose exposure or gain changes needs no new draw.
+
+    Parameters
+    ----------
+    u : (H, W) uint8
+        From :func:`uniform_bytes`.
+    model : ImageModel
+
+    Returns
+    -------
+    (H, W) uint8
+        DN.
+    """
+    _check_model(model)
+    u = np.ascontiguousarray(u, dtype=np.uint8)
+    out = np.empty(u.shape, np.uint8)
+    if model.ambient_dn == 0.0:
+        table = _noise_tables(model, np.array([model.background_dn]))[0]
+        _lut_constant(u, table.astype(np.uint8), out)
+    else:
+        # one table of (unclipped) integer offsets per quantised fractional part of the mean;
+        # the integer part is added and the result clipped per pixel
+        from scipy.special import ndtri
+
+        fractions = np.arange(AMBIENT_FRACTION_STEPS + 1) / AMBIENT_FRACTION_STEPS
+        z = ndtri((np.arange(NOISE_TABLE_SIZE) + 0.5) / NOISE_TABLE_SIZE)
+        tables = np.rint(fractions[:, None] + model.read_noise_dn * z[None, :]).astype(np.int16)
+        _lut_ambient(u, tables, model.background_dn, model.ambient_dn, model.saturation_dn,
+                     AMBIENT_FRACTION_STEPS, out)
+    return out
+
+
 def _noise_tables(model: ImageModel, base_levels: np.ndarray) -> np.ndarray:
     """Quantised Gaussian quantiles: ``(len(base_levels), 256)`` int16 grey levels."""
     from scipy.special import ndtri  # only where images are made: scipy.special is slow to load
@@ -296,33 +349,14 @@ def render_image(
                              f"{background.shape} {background.dtype}")
     # 1. random draws, in a fixed order
     speckle = speckle_factors(width, model, rng)
-    # uniform bytes straight from the bit generator (4x faster than rng.integers(dtype=uint8))
-    n_px = height * width
-    u = None if background is not None else rng.bit_generator.random_raw(
-        (n_px + 7) // 8).view(np.uint8)[:n_px].reshape(height, width)
+    u = None if background is not None else uniform_bytes(height, width, rng)
     s_half = int(math.ceil(RENDER_HALF_WIDTH_SIGMAS * model.stripe_sigma_px))
     # supports: rows floor(y) - half .. floor(y) + half + 1 (and the same along columns)
     n_fg = cols.shape[0] * (2 * s_half + 2) + int(np.sum((2 * m_halves + 2) ** 2))
     normals = rng.standard_normal(n_fg) * model.read_noise_dn
 
-    # 2. background through the quantile tables
-    if background is not None:
-        out = background.copy()
-    elif model.ambient_dn == 0.0:
-        out = np.empty((height, width), np.uint8)
-        table = _noise_tables(model, np.array([model.background_dn]))[0]
-        _lut_constant(u, table.astype(np.uint8), out)
-    else:
-        # one table of (unclipped) integer offsets per quantised fractional part of the mean;
-        # the integer part is added and the result clipped per pixel
-        from scipy.special import ndtri
-
-        out = np.empty((height, width), np.uint8)
-        fractions = np.arange(AMBIENT_FRACTION_STEPS + 1) / AMBIENT_FRACTION_STEPS
-        z = ndtri((np.arange(NOISE_TABLE_SIZE) + 0.5) / NOISE_TABLE_SIZE)
-        tables = np.rint(fractions[:, None] + model.read_noise_dn * z[None, :]).astype(np.int16)
-        _lut_ambient(u, tables, model.background_dn, model.ambient_dn, model.saturation_dn,
-                     AMBIENT_FRACTION_STEPS, out)
+    # 2. the background
+    out = background.copy() if background is not None else background_image(u, model)
 
     # 3. exact foreground
     if cols.shape[0] or markers.shape[0]:

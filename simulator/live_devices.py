@@ -20,7 +20,8 @@ from scanner_core.types import Frame
 from simulator.cell import Cell
 from simulator.frame_truth import frame_image
 from simulator.imaging import (EXPOSURE_RANGE_US, GAIN_RANGE, NOMINAL_EXPOSURE_US,
-                               check_exposure, exposed_model, render_image)
+                               background_image, check_exposure, exposed_model, render_image,
+                               uniform_bytes)
 
 if TYPE_CHECKING:
     from simulator.live import LiveSimCell
@@ -58,6 +59,7 @@ class LiveSimCamera:
         self._delivered = 0
         self._rng: np.random.Generator | None = None
         self._ring: tuple[np.ndarray, ...] = ()
+        self._ring_draws: tuple[np.ndarray, ...] = ()  # each ring frame's uniform bytes
         self._render_lock = threading.Lock()  # the generator is not thread-safe
         self.exposure_us, self.gain = NOMINAL_EXPOSURE_US, 1.0
 
@@ -89,15 +91,17 @@ class LiveSimCamera:
             return
         rng = np.random.default_rng(self.seed)
         _warm_up_image_model(self._sim.cell)
-        ring = []
+        cam = self._sim.cell.calibration.camera
+        draws, ring = [], []
         for _ in range(self.background_frames):
-            image = frame_image(self._sim.cell, None, rng)
+            draws.append(uniform_bytes(cam.height, cam.width, rng))
+            image = background_image(draws[-1], self._sim.cell.image_model)
             image.setflags(write=False)  # shared by every idle frame that shows it
             ring.append(image)
         with self._sim._lock:
             started_here = self._sim._epoch is None
             self._sim._start_clock_locked()
-            self._rng, self._ring = rng, tuple(ring)
+            self._rng, self._ring, self._ring_draws = rng, tuple(ring), tuple(draws)
             # The first frame delivered is the first exposed after opening (frame 0 when this
             # opening started the clock).
             self._next_id = 0 if started_here else math.ceil(self._sim._now_locked() * self.fps)
@@ -108,7 +112,7 @@ class LiveSimCamera:
         """Stop delivering; a ``grab`` waiting in another thread raises CameraClosed."""
         with self._sim._lock:
             self._open = False
-            self._ring = ()
+            self._ring, self._ring_draws = (), ()
             self._sim._lock.notify_all()
 
     def stall(self) -> None:
@@ -174,21 +178,20 @@ class LiveSimCamera:
             self._next_id += 1
             self._delivered += 1
             truth = sim._frame_source(frame_id)
-            rng, ring = self._rng, self._ring
+            rng, ring, draws = self._rng, self._ring, self._ring_draws
             exposure_us, gain = self.exposure_us, self.gain
         model = exposed_model(sim.cell.image_model, exposure_us, gain)
-        if model is sim.cell.image_model:
-            # A real camera's frame costs its reader nothing: the pass's frames are drawn over
-            # the ring's backgrounds, which leaves the reader most of a frame period.
-            background = ring[frame_id % len(ring)]
-            if truth is None:
-                image = background
-            else:
-                with self._render_lock:
-                    image = frame_image(sim.cell, truth, rng, model, background)
+        # A real camera's frame costs its reader nothing: a pass's frame is its stripe and LED
+        # drawn over a ring frame's background, which leaves the reader most of a frame period.
+        # Under another exposure or gain, that frame's draw through the exposed model's tables.
+        slot = frame_id % len(ring)
+        background = ring[slot] if model is sim.cell.image_model \
+            else background_image(draws[slot], model)
+        if truth is None:
+            image = background
         else:
             with self._render_lock:
-                image = frame_image(sim.cell, truth, rng, model)
+                image = frame_image(sim.cell, truth, rng, model, background)
         return Frame(image, frame_id, frame_id / self.fps, exposure_us, gain)
 
 

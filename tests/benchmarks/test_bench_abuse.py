@@ -3,7 +3,12 @@ hostile clients run; what each client was answered, and that no pass failed. (Fr
 are reported, not asserted: on a shared machine a pass loses frames without any client.)"""
 import json
 
+import pytest
+
 from benchmarks.abuse import STREAMS, run
+
+#: Timing: runs after the parallel suite, alone on the machine (`make test`).
+pytestmark = pytest.mark.realtime
 
 
 def test_bench_abuse_quick(tmp_path):

@@ -9,6 +9,9 @@ from service.settings import Settings
 from simulator.imaging import NOMINAL_EXPOSURE_US
 from running import serve_in_thread, wait_for
 
+#: Timing: runs after the parallel suite, alone on the machine (`make test`).
+pytestmark = pytest.mark.realtime
+
 
 def finished(client, scan_id):
     info = client.get(f"/scans/{scan_id}").json()

@@ -142,6 +142,7 @@ def test_the_simplified_model_keeps_the_pose(tmp_path):
     assert verdicts(light.flags) == verdicts(whole.flags)
 
 
+@pytest.mark.realtime  # timing: after the parallel suite, alone (`make test`)
 def test_uploads_during_passes_cost_no_frame(tmp_path):
     """Two clients upload fine meshes over and over while passes run: the meshes are read
     and simplified in the loader process, and no pass loses a frame."""

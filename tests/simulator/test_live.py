@@ -305,3 +305,24 @@ def test_passes_are_prepared_once_and_checked(fast_cell, demo_part, misplacement
         sim.prepare_pass(demo_part, profile=fast_cell.with_pass(fps=16.0).pass_profile)
     with pytest.raises(ValueError, match="misplacement"):
         sim.prepare_pass(demo_part, np.eye(3))
+
+
+def test_a_gain_amplifies_the_live_cameras_background_noise(fast_cell):
+    """Frames under another gain keep the black level and scale the read noise, from the
+    same ring of draws; another exposure alone leaves the background as it was."""
+    sim = LiveSimCell(fast_cell, seed=3)
+    camera = sim.camera
+    camera.open()
+    try:
+        nominal = camera.grab().image.astype(float)
+        camera.set_exposure(camera.exposure_us * 2.0, 1.0)
+        longer = camera.grab().image.astype(float)
+        camera.set_exposure(camera.exposure_us / 2.0, 2.0)
+        gained = camera.grab().image.astype(float)
+    finally:
+        camera.close()
+    noise = fast_cell.image_model.read_noise_dn
+    assert np.std(nominal) == pytest.approx(np.sqrt(noise**2 + 1 / 12), rel=0.05)
+    assert np.std(longer) == pytest.approx(np.std(nominal), rel=0.02)
+    assert np.std(gained) == pytest.approx(2.0 * noise, rel=0.05)
+    assert np.median(gained) == pytest.approx(np.median(nominal), abs=0.5)
