@@ -102,12 +102,14 @@ def open_files() -> int:
 
 class OncePerInterval(logging.Filter):
     """Let a record whose message contains one of `needles` through at most once per
-    `interval_s`, saying how many were held back since; other records pass."""
+    `interval_s`, saying how many were held back since; other records pass. `clock` gives
+    the time, s (``time.monotonic``)."""
 
-    def __init__(self, needles, interval_s: float = LOG_INTERVAL_S):
+    def __init__(self, needles, interval_s: float = LOG_INTERVAL_S, clock=time.monotonic):
         super().__init__()
         self.needles = tuple(needles)
         self.interval_s = float(interval_s)
+        self.clock = clock
         self.last = -float("inf")
         self.held = 0
 
@@ -117,7 +119,7 @@ class OncePerInterval(logging.Filter):
             text += f" {record.exc_info[1]}"
         if not any(n in text for n in self.needles):
             return True
-        now = time.monotonic()
+        now = self.clock()
         if now - self.last < self.interval_s:
             self.held += 1
             return False
