@@ -22,8 +22,8 @@ scan-demo: $(BIN)/flyscan
 # Every test: on every core (a test module's tests stay on one worker: they share set-up), then
 # those that time the service against the camera, one at a time on an otherwise idle machine.
 test: $(BIN)/flyscan
-	$(BIN)/python -m pytest -q -n auto --dist loadfile -m "not realtime"; parallel=$$?; \
-	$(BIN)/python -m pytest -q -m realtime; serial=$$?; \
+	$(BIN)/python -m pytest -q -n auto --dist loadfile -m "not alone"; parallel=$$?; \
+	$(BIN)/python -m pytest -q -m alone; serial=$$?; \
 	test $$parallel -eq 0 -a $$serial -eq 0
 
 # The loop of work: the core, the simulator, the clients, the API in-process and the layers.

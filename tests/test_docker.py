@@ -165,7 +165,7 @@ def _cannot_build_here():
 
 
 @pytest.mark.slow
-@pytest.mark.realtime  # its scan runs on the container's live cell: alone (`make test`)
+@pytest.mark.alone  # its scan runs on the container's live cell: alone (`make test`)
 def test_the_image_builds_serves_scans_and_runs_as_its_user(tmp_path):
     reason = _cannot_build_here()
     if reason is not None:

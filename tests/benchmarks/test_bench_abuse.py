@@ -8,7 +8,7 @@ import pytest
 from benchmarks.abuse import STREAMS, run
 
 #: Timing: runs after the parallel suite, alone on the machine (`make test`).
-pytestmark = pytest.mark.realtime
+pytestmark = pytest.mark.alone
 
 
 def test_bench_abuse_quick(tmp_path):

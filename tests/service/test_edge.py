@@ -97,7 +97,7 @@ def _bodies_during_a_pass(url: str) -> tuple[dict, list]:
     return info, answers
 
 
-@pytest.mark.realtime  # timing: after the parallel suite, alone (`make test`)
+@pytest.mark.alone  # timing: after the parallel suite, alone (`make test`)
 def test_big_bodies_are_refused_before_they_are_read_while_a_pass_runs(guarded):
     pid = guarded.process.pid
     # warm: the first pass of a process and the first requests of each route build what

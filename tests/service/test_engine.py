@@ -27,7 +27,7 @@ from running import serve_in_thread, wait_for
 from simulator.live import LiveSimCell
 
 #: Timing: runs after the parallel suite, alone on the machine (`make test`).
-pytestmark = pytest.mark.realtime
+pytestmark = pytest.mark.alone
 
 #: The engine's camera timeout in these tests, s: short, so that a stop is noticed quickly.
 CAMERA_TIMEOUT_S = 0.3

@@ -10,7 +10,7 @@ from simulator.imaging import NOMINAL_EXPOSURE_US
 from running import serve_in_thread, wait_for
 
 #: Timing: runs after the parallel suite, alone on the machine (`make test`).
-pytestmark = pytest.mark.realtime
+pytestmark = pytest.mark.alone
 
 
 def finished(client, scan_id):

@@ -17,7 +17,7 @@ from service.settings import Settings
 from running import free_port, serve_in_thread, wait_for
 
 #: Timing: runs after the parallel suite, alone on the machine (`make test`).
-pytestmark = pytest.mark.realtime
+pytestmark = pytest.mark.alone
 
 #: The simulated robot's clock runs ahead of the camera's by this much, s.
 CLOCK_OFFSET_S = 7.25

@@ -38,6 +38,7 @@ def _upload(url, name, path):
     return response.json()
 
 
+@pytest.mark.alone  # resident memory: after the parallel suite, alone (`make test`)
 def test_a_fine_mesh_is_simplified_prepared_at_upload_and_its_memory_returned(tmp_path):
     fine, fine_path = _fine_mesh(tmp_path)
     running = _with_budget(tmp_path, "4096")
@@ -142,7 +143,7 @@ def test_the_simplified_model_keeps_the_pose(tmp_path):
     assert verdicts(light.flags) == verdicts(whole.flags)
 
 
-@pytest.mark.realtime  # timing: after the parallel suite, alone (`make test`)
+@pytest.mark.alone  # timing: after the parallel suite, alone (`make test`)
 def test_uploads_during_passes_cost_no_frame(tmp_path):
     """Two clients upload fine meshes over and over while passes run: the meshes are read
     and simplified in the loader process, and no pass loses a frame."""
