@@ -20,7 +20,7 @@ scan-demo: $(BIN)/flyscan
 	$(BIN)/flyscan scan --demo --out $(OUT)/demo
 
 # Every test: on every core (a test module's tests stay on one worker: they share set-up), then
-# those that time the service against the camera, one at a time on an otherwise idle machine.
+# those another worker's load would change (marked alone), one at a time on an idle machine.
 test: $(BIN)/flyscan
 	$(BIN)/python -m pytest -q -n auto --dist loadfile -m "not alone"; parallel=$$?; \
 	$(BIN)/python -m pytest -q -m alone; serial=$$?; \

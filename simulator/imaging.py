@@ -41,7 +41,8 @@ import numpy as np
 from numba import njit
 
 __all__ = ["ImageModel", "render_image", "cramer_rao_bound_px", "speckle_factors",
-           "uniform_bytes", "background_image", "exposed_model", "NOMINAL_EXPOSURE_US", "EXPOSURE_RANGE_US", "GAIN_RANGE"]
+           "uniform_bytes", "background_image", "exposed_model", "NOMINAL_EXPOSURE_US",
+           "EXPOSURE_RANGE_US", "GAIN_RANGE"]
 
 #: The exposure at which an ``ImageModel``'s amplitudes hold, us.
 NOMINAL_EXPOSURE_US = 1000.0

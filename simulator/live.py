@@ -16,7 +16,8 @@ the work is split:
   with the pixels of their supports drawn afresh (``render_image(..., background=)`` with the
   camera's own seeded generator): a copy and a few thousand pixels, where a whole frame's
   noise took as long as the frame period on a machine that copies a frame in 0.2 ms. Under
-  another exposure or gain than the cell's own, a frame is drawn whole.
+  another exposure or gain than the cell's own, the background is the same ring frame's
+  uniform draw through that model's tables (``background_image``).
 
 One clock is shared by the camera and the robot: seconds of ``time.monotonic()`` since the
 cell's clock started (the first ``camera.open()`` or ``robot.connect()``). The camera exposes

@@ -3,7 +3,8 @@
 Both are made by ``simulator.live.LiveSimCell`` and read its schedule of passes under its
 lock. The camera delivers frame ``k`` at camera clock ``k / fps``, drawing only the image
 model's stripe and marker (with fresh noise) over a frame of its background ring, from the
-geometry the cell prepared; the robot samples its TCP on the cell's track every ``1 / rate_hz`` s of its own clock.
+geometry the cell prepared; the robot samples its TCP on the cell's track every
+``1 / rate_hz`` s of its own clock.
 """
 from __future__ import annotations
 
