@@ -57,6 +57,7 @@ import numpy as np
 from benchmarks.live import ServeProcess, resident_mb
 from benchmarks.stats import spread
 from benchmarks.results import machine_info, pyplot, save_figure, write_json
+from service.pictures import FRAME_PERIOD_S
 from simulator.cell import load_cell
 from simulator.live import CAMERA_BUFFER_FRAMES
 
@@ -95,6 +96,8 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 STREAMS = 40
 #: The service's memory is sampled this often, s.
 MEMORY_PERIOD_S = 0.2
+#: ``/frame.png`` renders before the patterns (one every ``FRAME_PERIOD_S``).
+WARM_FRAME_PICTURES = 5
 
 
 def _one_pass(client: httpx.Client, part: str | None = None) -> dict:
@@ -109,6 +112,20 @@ def _one_pass(client: httpx.Client, part: str | None = None) -> dict:
         time.sleep(0.1)
     return {"scan_id": scan_id, "state": "timeout", "frames": 0, "frames_dropped": None,
             "queue_overflows": None, "latency_ms": {}, "arm_ms": arm_ms}
+
+
+def _warm(client: httpx.Client, pid: int) -> dict:
+    """What a process builds once and keeps: a first pass, then the pictures of its frames
+    and of its scan. Its memory before and after, MB: a pattern's growth is then what its
+    clients add, not the first use of what they ask for."""
+    before = resident_mb(pid)
+    scan_id = _one_pass(client)["scan_id"]
+    for _ in range(WARM_FRAME_PICTURES):
+        client.get("/frame.png")
+        time.sleep(FRAME_PERIOD_S)
+    client.get(f"/scans/{scan_id}/preview.png")
+    client.get("/")
+    return {"before": before, "after": resident_mb(pid)}
 
 
 def _seed(data: Path, count: int) -> None:
@@ -454,7 +471,9 @@ def run(out_dir, quick: bool = False, passes: int | None = None, target_passes: 
                               start_timeout_s=START_TIMEOUT_S, file_limit=FILE_LIMIT)
         try:
             with httpx.Client(base_url=served.url, timeout=60, headers=AUTH) as client:
-                _one_pass(client)  # warm: the first pass of a process builds what it keeps
+                warm = _warm(client, served.process.pid)
+            print(f"warm-up: service {warm['before']:.0f} MB before its first pass and "
+                  f"pictures, {warm['after']:.0f} MB after", flush=True)
             results, catalogue = {}, None
             for p in patterns:
                 if p == "catalogue":
@@ -484,7 +503,8 @@ def run(out_dir, quick: bool = False, passes: int | None = None, target_passes: 
                                                           "rss_end_mb", "budget_mb",
                                                           "prepared_max_mb")}
         summary["catalogue"]["arm_max_ms"] = catalogue["arm_ms"].get("max")
-    result = {"summary": summary, "stored_scans": stored, "loadavg_before": load_before,
+    result = {"summary": summary, "warm_rss_mb": warm, "stored_scans": stored,
+              "loadavg_before": load_before,
               "loadavg_after": os.getloadavg(), "patterns": results, "catalogue": catalogue,
               "file_limit": FILE_LIMIT, "machine": machine_info()}
     write_json(out_dir / "abuse.json", result)

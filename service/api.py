@@ -351,14 +351,15 @@ def static_file(name: str) -> FileResponse:
                            "description": "the latest frame with the stripe and marker drawn"},
                      404: {"model": Problem, "description": "no frame yet"}})
 async def latest_frame(service: ServiceDep) -> Response:
-    # on the event loop when the picture kept is fresh (no thread hop), in a thread to draw it
+    # on the event loop when the picture kept is fresh (no thread hop), on its thread to draw it
     latest = service.engine.latest
     if latest is None:
         raise HTTPException(404, "no frame has arrived yet")
     hit = service.frame_picture.cached(latest[0].frame_id)
     if hit is None:
-        hit = await asyncio.to_thread(service.frame_picture.get, latest,
-                                      service.engine.calibration, service.engine.params)
+        hit = await asyncio.get_running_loop().run_in_executor(
+            service.frame_picture.thread, service.frame_picture.get, latest,
+            service.engine.calibration, service.engine.params)
     png, frame_id = hit
     return Response(png, media_type="image/png",
                     headers={"Cache-Control": "no-store", "X-Frame-Id": str(frame_id)})

@@ -194,6 +194,7 @@ class Service:
         self.publisher.stop()
         self.parts.close()
         self.driver.close()
+        self.frame_picture.close()
 
     @property
     def default_part(self) -> str | None:

@@ -3,9 +3,10 @@ last cloud seen from below. Drawn with OpenCV (a few ms), on request only, and b
 camera, the trigger and the pipeline share the process.
 
 - ``FramePicture``: ``/frame.png`` is rendered at most once per camera frame and at most every
-  ``FRAME_PERIOD_S``, one render at a time; every client in between gets the same cached bytes.
-  The frame is downscaled first (``cv2.resize``), then drawn and encoded by OpenCV, which
-  releases the GIL.
+  ``FRAME_PERIOD_S``, one render at a time, on its own thread; every client in between gets the
+  same cached bytes. The frame is downscaled first (``cv2.resize``), then drawn and encoded by
+  OpenCV, which releases the GIL. The render's full-frame temporaries stay in one thread's
+  malloc arena: spread over a pool's threads, each thread's arena kept its own (tens of MB).
 - ``PreviewPictures``: a scan's ``preview.png`` is rendered once (on its first request) and kept
   (the last ``PREVIEW_CACHE`` scans); renders run one at a time, and beyond
   ``max_pending`` requests waiting for one the answer is ``Busy`` (a 503 with Retry-After).
@@ -15,6 +16,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -76,7 +78,8 @@ class Busy(Exception):
 
 class FramePicture:
     """``/frame.png``, rendered at most once per frame id and once per ``period_s``; the same
-    bytes for every request in between. ``renders`` counts the renders."""
+    bytes for every request in between. ``renders`` counts the renders; ``thread`` is the one
+    thread to call ``get`` on (``close`` ends it; the next call starts another)."""
 
     def __init__(self, period_s: float = FRAME_PERIOD_S, clock=time.monotonic):
         self.period_s = period_s
@@ -84,6 +87,15 @@ class FramePicture:
         self._lock = threading.Lock()
         self._kept: tuple[bytes, int, float] | None = None  # (PNG, frame id, when drawn)
         self.renders = 0
+        self.thread = self._new_thread()
+
+    @staticmethod
+    def _new_thread() -> ThreadPoolExecutor:
+        return ThreadPoolExecutor(max_workers=1, thread_name_prefix="frame-picture")
+
+    def close(self) -> None:
+        ended, self.thread = self.thread, self._new_thread()  # a thread starts at its first call
+        ended.shutdown(wait=True, cancel_futures=True)
 
     def cached(self, frame_id: int) -> tuple[bytes, int] | None:
         """(PNG, frame id shown) when the picture kept is fresh for ``frame_id``, else None.
