@@ -350,8 +350,9 @@ def process_frame(frame: Frame, calibration: Calibration, params: PipelineParams
 def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams()) -> float:
     """Compile the numba kernels before the first pass, so that no frame of a pass waits for
     the JIT: a synthetic frame with a stripe and a marker blob in every view goes through the
-    marker search (whole strips and near a prediction) and the frame processing, and a frame
-    without the marker through the search. (Read-only frames reach the kernels as writable
+    marker search (whole strips and near a prediction) and the frame processing, the
+    geometric window's rows are found for the inspection volume, and a frame without the
+    marker goes through the search. (Read-only frames reach the kernels as writable
     copies: ``validate.check_image``.) Returns the time it took, ms."""
     t0 = time.perf_counter()
     cam = calibration.camera
@@ -372,7 +373,9 @@ def warm_up(calibration: Calibration, params: PipelineParams = PipelineParams())
     marker = tracker.observe(frame)
     tracker.observe(frame)
     process_frame(frame, calibration, params, marker)
-    if params.geometric_window:  # the windowed kernel compiles apart
+    if params.geometric_window:  # the window's kernels and the windowed search compile apart
+        volume_rows(calibration, np.zeros(3), np.eye(3), params.inspection_volume_mm,
+                    margin_mm=params.window_margin_mm)
         stripe_mod.extract(stripe_image(pixels, params)[0], columns=calibration.direct_columns,
                            row_min=0.0, row_max=cam.height / 2.0)
     tracker.observe(Frame(np.full_like(pixels, 10), -1, 0.0))  # no marker anywhere
