@@ -57,7 +57,7 @@ from scipy.spatial import cKDTree
 
 from scanner_core.geometry import planes_moved
 
-__all__ = ["MissingSamples", "missing_samples", "sheet_crossings", "bracketing_frames",
+__all__ = ["MissingSamples", "ProfileIndex", "missing_samples", "sheet_crossings", "bracketing_frames",
            "lit_and_seen", "warm_up_coverage", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS",
            "FRAME_STEPS", "CORE_SHARE", "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM",
            "RING_MARGINS", "MIN_STRETCH_SAMPLES", "PAIR_MARGINS"]
@@ -181,7 +181,7 @@ def bracketing_frames(samples_p: np.ndarray, planes_p: np.ndarray, sensors_p=Non
 
 
 def warm_up_coverage() -> float:
-    """Compile `bracketing_frames`' kernel before the first check (some 1-2 s on a fresh
+    """Compile `bracketing_frames`' and `ProfileIndex`'s kernels before the first check (some 1-2 s on a fresh
     install, and the compiler's memory with it, which the first pass would otherwise take):
     three samples and two sheets, with the argument types a check gives it. Returns the time
     it took, ms."""
@@ -190,6 +190,8 @@ def warm_up_coverage() -> float:
     planes = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 1.0]])
     bracketing_frames(samples, planes, np.array([[0.0, 0.0, 50.0], [0.0, 1.0, 50.0]]),
                       np.tile([0.0, 0.0, 1.0], (3, 1)))
+    ProfileIndex(samples, np.array([0, 1, -1]), 2, planes[0, :3]).covered(
+        samples, np.array([0, 1, 1]), np.ones(3))
     return (time.perf_counter() - t0) * 1e3
 
 
@@ -232,6 +234,105 @@ def _bracket(points, sorted_positions, order, direction, widest, normals, sensor
                 continue
         nearer[i], farther[i] = near, far
     return nearer, farther
+
+
+class ProfileIndex:
+    """A cloud's points by profile, each profile's sorted along one axis across the pass:
+    whether a profile holds a point within a radius of a query is a binary search and a
+    scan of the points within the radius along that axis, stopped at the first one near
+    enough. (A KD-tree over the cloud, a fourth coordinate keeping profiles apart, took
+    three times as long to build and ask: a profile's points lie along a curve, and the
+    tree's cells hold many profiles.)
+
+    Parameters
+    ----------
+    points : (N, 3) float64
+        The cloud, mm (in whatever metric the queries use: ``missing_samples`` squeezes the
+        pass's direction).
+    profiles : (N,) int64
+        Each point's profile, ``0 .. count - 1``; -1: none (the point is never asked for).
+    count : int
+        The number of profiles.
+    direction : (3,) float64
+        The pass's direction: the points are sorted along the axis across it in which the
+        cloud spreads most.
+    """
+
+    def __init__(self, points: np.ndarray, profiles: np.ndarray, count: int,
+                 direction: np.ndarray):
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        direction = np.asarray(direction, dtype=np.float64)
+        across = np.linalg.svd(np.eye(3) - np.outer(direction, direction))[0][:, :2]
+        # (2, N): a reduction along axis 0 of an (N, 2) array is ten times slower
+        spans = np.ptp(across.T @ points.T, axis=1) if len(points) else np.zeros(2)
+        self.axis = np.ascontiguousarray(across[:, int(np.argmax(spans))])
+        self.points, self.along, self.starts = _sort_by_profile(
+            points, np.asarray(profiles, dtype=np.int64), int(count), self.axis)
+
+    def covered(self, query: np.ndarray, profiles: np.ndarray, radius: np.ndarray) -> np.ndarray:
+        """(M,) bool: whether profile ``profiles[i]`` holds a point within ``radius[i]``
+        (mm) of ``query[i]`` (M, 3); False for a profile outside ``0 .. count - 1``."""
+        query = np.ascontiguousarray(query, dtype=np.float64).reshape(-1, 3)
+        return _covered(self.points, self.along, self.starts, query,
+                        np.asarray(profiles, dtype=np.int64),
+                        np.broadcast_to(np.asarray(radius, dtype=np.float64), len(query)).copy(),
+                        self.axis)
+
+
+@njit(nogil=True, cache=True)
+def _sort_by_profile(points, profiles, count, axis):
+    """``ProfileIndex``'s arrays: the points grouped by profile (a counting sort), each
+    group sorted along `axis`; their coordinate along it; where each group starts (count+1)."""
+    starts = np.zeros(count + 1, np.int64)
+    for p in profiles:
+        if 0 <= p < count:
+            starts[p + 1] += 1
+    for k in range(count):
+        starts[k + 1] += starts[k]
+    fill = starts[:-1].copy()
+    along = np.empty(starts[count])
+    slot = np.empty(starts[count], np.int64)
+    for i in range(points.shape[0]):
+        p = profiles[i]
+        if 0 <= p < count:
+            j = fill[p]
+            fill[p] += 1
+            slot[j] = i
+            along[j] = points[i, 0] * axis[0] + points[i, 1] * axis[1] + points[i, 2] * axis[2]
+    grouped = np.empty((starts[count], 3))
+    sorted_along = np.empty(starts[count])
+    for k in range(count):
+        a, b = starts[k], starts[k + 1]
+        order = np.argsort(along[a:b], kind="mergesort")
+        for r in range(b - a):
+            j = a + order[r]
+            sorted_along[a + r] = along[j]
+            grouped[a + r, :] = points[slot[j], :]
+    return grouped, sorted_along, starts
+
+
+@njit(nogil=True, cache=True)
+def _covered(points, along, starts, query, profiles, radius, axis):
+    """``ProfileIndex.covered``'s loop, one query at a time."""
+    m, count = query.shape[0], starts.shape[0] - 1
+    out = np.zeros(m, np.bool_)
+    for i in range(m):
+        p = profiles[i]
+        if p < 0 or p >= count:
+            continue
+        a, b = starts[p], starts[p + 1]
+        x, y, z = query[i, 0], query[i, 1], query[i, 2]
+        r = radius[i]
+        u = x * axis[0] + y * axis[1] + z * axis[2]
+        lo = a + np.searchsorted(along[a:b], u - r)
+        for j in range(lo, b):
+            if along[j] > u + r:
+                break
+            dx, dy, dz = points[j, 0] - x, points[j, 1] - y, points[j, 2] - z
+            if dx * dx + dy * dy + dz * dz <= r * r:
+                out[i] = True
+                break
+    return out
 
 
 def lit_and_seen(samples_p, normals_p, sensors_p, sheets_p, occluded=None, *,
@@ -349,28 +450,20 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
 
     sine = np.abs(n @ direction)
     radius = COVER_STEPS * point_step + 0.5 * step * sine / np.sqrt(1.0 - sine**2)
-    cloud = squeezed(points_p)
-    query = squeezed(q)
-    near = COVER_STEPS * point_step
     if frame_ids is not None:
-        # a fourth coordinate keeps each sample to its own frame's profile: frames lie
-        # farther apart in it than any radius asked
+        # each sample is asked of its own frame's profile only
         sheets = (np.arange(len(sheet_planes_t)) if sheet_frame_ids is None
                   else np.asarray(sheet_frame_ids))
         order = np.argsort(sheets)
         slot = np.clip(np.searchsorted(sheets[order], frame_ids), 0, len(order) - 1)
         own = np.where(sheets[order][slot] == frame_ids, order[slot], -1)
-        apart = 2.0 * float(radius.max()) + 1.0
-        cloud = np.column_stack([cloud, apart * own])
-        query = np.column_stack([query, apart * frame[crossed]])
-    # most samples have a point within the smallest radius: asked first, the rest with theirs
-    tree = cKDTree(cloud, balanced_tree=False, compact_nodes=False)
-    distance, _ = tree.query(query, distance_upper_bound=near, workers=1)
-    farther = np.nonzero(np.isinf(distance))[0]
-    if len(farther):
-        distance[farther], _ = tree.query(query[farther], workers=1,
-                                          distance_upper_bound=float(radius[farther].max()))
-    open_ = np.nonzero(distance > radius)[0]
+        profiles = ProfileIndex(squeezed(points_p), own, len(sheet_planes_t), direction)
+        is_covered = profiles.covered(squeezed(q), frame[crossed], radius)
+    else:
+        is_covered = ProfileIndex(squeezed(points_p), np.zeros(len(points_p), np.int64), 1,
+                                  direction).covered(squeezed(q), np.zeros(len(q), np.int64),
+                                                     radius)
+    open_ = np.nonzero(~is_covered)[0]
     if not len(open_):
         return NONE_MISSING
     which = crossed[open_]
@@ -382,7 +475,7 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     # the core: missing samples whose neighbours are expected (covered or missing), away
     # from the prediction's edges
     status = np.zeros(len(samples.points), np.int8)  # 0 unexpected, 1 covered, 2 missing
-    status[crossed[distance <= radius]] = 1
+    status[crossed[is_covered]] = 1
     status[missing] = 2
     margin = max(step, MIN_MARGIN_STEPS * samples.spacing_mm)
     at = samples.points[missing]
@@ -404,10 +497,8 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
         # and missing from the other bracketing profile's view too: where a face's edge lies
         # between the two sheets, the sample's own sheet may pass beyond it
         ask = np.nonzero(core)[0]
-        beside = np.column_stack([squeezed(at[ask]), apart * other[missing[ask]]])
         reach = radius[np.searchsorted(crossed, missing[ask])]
-        covered, _ = tree.query(beside, distance_upper_bound=float(reach.max()), workers=1)
-        core[ask[covered <= reach]] = False
+        core[ask[profiles.covered(squeezed(at[ask]), other[missing[ask]], reach)]] = False
     if frame_ids is not None and sharp_edges is not None and not core.all():
         # a hole between one and two margins wide holds no such sample, but each profile that
         # crossed it has a stretch missing with its own covered samples either side; within a

@@ -347,3 +347,40 @@ def test_the_bracketing_frames_and_their_warm_up():
     normals = np.array([[0.0, 0.0, 1.0]] * 4 + [[0.0, 0.0, -1.0]])  # the last turned away
     nearer, _, _, _ = bracketing_frames(samples, planes, sensors, normals)
     assert nearer.tolist() == [0, 2, -1, -1, -1]
+
+
+@pytest.mark.parametrize("direction", [[0.0, 1.0, 0.0], [0.6, 0.0, 0.8]])
+def test_a_profile_holds_a_point_within_the_radius_as_a_brute_force_search_says(direction):
+    """``ProfileIndex.covered`` against every point of the profile asked: profiles of curves
+    across the pass (a wall among them: many points at one coordinate across), points of no
+    profile, an empty profile, profiles out of range, radii from a tenth of a point step up."""
+    from scipy.spatial.transform import Rotation
+
+    from scanner_core.inspection.coverage import ProfileIndex
+
+    rng = np.random.default_rng(5)
+    direction = np.asarray(direction)
+    turn = Rotation.align_vectors([direction], [[0.0, 1.0, 0.0]])[0].as_matrix()
+    points, profiles = [], []
+    for k in range(30):
+        if k == 7:
+            continue  # no point at all
+        t = np.sort(rng.uniform(-20.0, 20.0, 150))
+        height = np.where(np.abs(t) < 3.0, 5.0 * rng.uniform(size=t.size), np.sin(t / 4.0))
+        points.append(np.column_stack([t, np.full(t.size, 0.8 * k), height]))
+        profiles.append(np.full(t.size, k if k != 12 else -1))
+    points = np.vstack(points) @ turn.T
+    profiles = np.concatenate(profiles)
+    index = ProfileIndex(points, profiles, 30, direction)
+    near = rng.integers(0, len(points), 4000)
+    query = points[near] + rng.normal(0.0, 1.0, (len(near), 3))
+    asked = np.where(rng.uniform(size=len(near)) < 0.8, profiles[near],
+                     rng.integers(-2, 32, len(near)))
+    radius = rng.uniform(0.03, 2.0, len(query))
+    got = index.covered(query, asked, radius)
+    distance = np.linalg.norm(query[:, None, :] - points[None, :, :], axis=2)
+    expected = ((distance <= radius[:, None]) & (profiles[None, :] == asked[:, None])
+                & (profiles[None, :] >= 0)).any(axis=1)
+    assert got.tolist() == expected.tolist()
+    assert 0.2 < expected.mean() < 0.8  # both answers asked often
+    assert not got[(asked == 7) | (asked == 12) | (asked < 0) | (asked >= 30)].any()
