@@ -52,9 +52,11 @@ from scanner_core.inspection import point_deviations, point_spacing
 from scanner_core.inspection.check import (LINK_SPACINGS, MIN_PROFILE_POINTS,
                                            MIN_REGION_PROFILES, MIN_REGION_SAMPLES,
                                            touching_groups)
-from scanner_core.inspection.coverage import COVER_STEPS, lit_and_seen, sheet_crossings
+from scanner_core.inspection.coverage import (COVER_STEPS, lit_and_seen, sheet_crossings,
+                                              warm_up_coverage)
 from scanner_core.pose.models import SurfaceModel
 from scanner_core.pose.registration import PoseParams
+from scanner_core.pose.warm import warm_up_pose
 from simulator.cell import load_cell
 from simulator.effects import realistic_cell
 from simulator.faults import faulty_mesh
@@ -212,10 +214,13 @@ def _part_rows(task) -> list[dict]:
 
 def _timed_check(task, picks: int) -> list[dict]:
     """The check's time on `picks` good picks of one part, scanned in this process alone
-    (the first of the part's random misplacements)."""
+    (the first of the part's random misplacements), its kernels warmed up first as the
+    service's are."""
     name, index, _, _, _, cell, calibration = task
     out = []
     with threadpool_limits(limits=1, user_api="blas"):
+        warm_up_pose()  # as the service does before it streams (``service.engine``)
+        warm_up_coverage()
         part = bench_part(name)
         part.prepare()
         params = replace(PoseParams(), robot_rotation_std_deg=cell.effects.tcp_rotation_error_deg)

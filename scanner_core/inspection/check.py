@@ -384,9 +384,10 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
         for group in touching_groups(cloud_t[members], LINK_SPACINGS * across):
             idx = members[group]
             area = len(idx) * sample_area
+            if area < min_areas[kind]:  # and so are the rest: the groups come largest first
+                break
             _, per_profile = np.unique(frame_ids[idx], return_counts=True)
-            if (area < min_areas[kind]
-                    or (per_profile >= MIN_PROFILE_POINTS).sum() < MIN_REGION_PROFILES):
+            if (per_profile >= MIN_PROFILE_POINTS).sum() < MIN_REGION_PROFILES:
                 continue
             regions.append(Region(KINDS[kind], int(len(idx)), float(area),
                                   float(np.max(np.abs(dev[idx]))), points_p[idx].mean(axis=0),
@@ -509,5 +510,6 @@ def touching_groups(points: np.ndarray, radius: float) -> list[np.ndarray]:
     grid[tuple(cells.T)] = True
     labels, count = ndimage.label(grid, structure=np.ones((3, 3, 3), bool))
     point_labels = labels[tuple(cells.T)] - 1
-    groups = [np.nonzero(point_labels == k)[0] for k in range(count)]
+    order = np.argsort(point_labels, kind="stable")
+    groups = np.split(order, np.cumsum(np.bincount(point_labels, minlength=count))[:-1])
     return sorted((g for g in groups if len(g)), key=len, reverse=True)

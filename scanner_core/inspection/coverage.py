@@ -202,18 +202,20 @@ def _bracket(points, sorted_positions, order, direction, widest, normals, sensor
     m, f = points.shape[0], sorted_positions.shape[0]
     nearer = np.full(m, -1, np.int64)
     farther = np.full(m, -1, np.int64)
+    first, last = sorted_positions[0], sorted_positions[f - 1]
+    # the sheets lie about evenly apart: the first position at or beyond a height is found
+    # from a guess in a step or two (a binary search's mispredicted branches cost more)
+    per_step = (f - 1) / (last - first) if last > first else 0.0
     for i in range(m):
         height = (points[i, 0] * direction[0] + points[i, 1] * direction[1]
                   + points[i, 2] * direction[2])
-        if height <= sorted_positions[0] or height > sorted_positions[f - 1]:
+        if height <= first or height > last:
             continue
-        lo, right = 0, f - 1  # the first position at or beyond the height
-        while lo < right:
-            mid = (lo + right) // 2
-            if sorted_positions[mid] < height:
-                lo = mid + 1
-            else:
-                right = mid
+        right = min(max(int((height - first) * per_step), 1), f - 1)
+        while sorted_positions[right - 1] >= height:
+            right -= 1
+        while sorted_positions[right] < height:
+            right += 1
         left = right - 1
         if sorted_positions[right] - sorted_positions[left] > widest:
             continue
@@ -303,7 +305,16 @@ def _sort_by_profile(points, profiles, count, axis):
     sorted_along = np.empty(starts[count])
     for k in range(count):
         a, b = starts[k], starts[k + 1]
-        order = np.argsort(along[a:b], kind="mergesort")
+        rising = falling = True  # a profile's points come by column: often sorted already
+        for j in range(a + 1, b):
+            rising &= along[j] >= along[j - 1]
+            falling &= along[j] <= along[j - 1]
+        if rising:
+            order = np.arange(b - a)
+        elif falling:
+            order = np.arange(b - a)[::-1]
+        else:
+            order = np.argsort(along[a:b], kind="mergesort")
         for r in range(b - a):
             j = a + order[r]
             sorted_along[a + r] = along[j]
