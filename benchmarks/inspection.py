@@ -46,7 +46,7 @@ from threadpoolctl import threadpool_limits
 from benchmarks.calibrate import _calibrate
 from benchmarks.parts import DEMO_PART, bench_part, random_misplacement
 from benchmarks.place import QUICK_SESSION_POSITIONS, SESSION_POSITIONS
-from benchmarks.results import pyplot, save_figure, write_json
+from benchmarks.results import machine_info, pyplot, save_figure, write_json
 from scanner_core.geometry import planes_moved
 from scanner_core.inspection import point_deviations, point_spacing
 from scanner_core.inspection.check import (LINK_SPACINGS, MIN_PROFILE_POINTS,
@@ -93,6 +93,8 @@ FINE_SIZES_MM = {"chip": (0.5, 1.0, 2.0)}
 FINE_GOOD_PICKS = 5
 #: Good picks of each part the check is timed on apart, on one idle core.
 TIMED_PICKS = 5
+#: Good picks of each part ``bench inspect --timing`` times.
+TIMING_PICKS = 10
 #: Whether the scan saw a fault (the evaluation's, from the simulator's truth): the model's
 #: and the held mesh's surfaces sampled this finely (``fault_seen``).
 SEEN_SPACING_MM = 0.2
@@ -163,6 +165,81 @@ def run(out_dir, quick: bool = False, *, jobs: int = 2, progress=None) -> dict:
     _chart(result, out / "inspect.png")
     say(f"bench inspect done in {result['elapsed_s']:.0f} s: {out / 'inspect.json'}")
     return result
+
+
+def run_timing(out_dir, quick: bool = False, *, progress=None) -> dict:
+    """The check's time alone (``flyscan bench inspect --timing``): `TIMING_PICKS` good picks
+    of each part in the bench's calibrated cell, in this process, on one core, its kernels
+    warmed up first; per pick its points and the check's ms. Writes ``inspect_timing.json``
+    and ``inspect_timing.png`` into `out_dir`: a machine's answer to "how long does the check
+    add to a scan", in minutes where the whole bench takes an hour."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    say = progress or (lambda line: print(line, file=sys.stderr, flush=True))
+    t_start = time.perf_counter()
+    names = QUICK_PARTS if quick else PARTS
+    positions = QUICK_SESSION_POSITIONS if quick else SESSION_POSITIONS
+    with threadpool_limits(limits=1, user_api="blas"):
+        cell = realistic_cell(load_cell(perturb_seed=CELL_SEED), seed=CELL_SEED)
+        calibration, cal_row = _calibrate(cell, CELL_SEED, *positions)
+    say(f"bench inspect --timing: cell {CELL_SEED} calibrated in {cal_row['time_s']:.0f} s")
+    timed = []
+    for index, name in enumerate(names):
+        part_times = _timed_check((name, index, 0, 0, {}, cell, calibration),
+                                  1 if quick else TIMING_PICKS)
+        timed += part_times
+        say(f"  {name}: " + ", ".join(f"{t['check_ms']:.1f} ms ({t['points']} points)"
+                                      for t in part_times))
+    checks = np.array([t["check_ms"] for t in timed])
+    per_20k = np.array([t["check_ms"] * 20_000.0 / t["points"] for t in timed])
+    by_part = {}
+    for name in names:
+        mine = [t for t in timed if t["part"] == name]
+        if mine:
+            by_part[name] = {"points_median": float(np.median([t["points"] for t in mine])),
+                             "check_ms_median": float(np.median([t["check_ms"] for t in mine])),
+                             "check_ms_max": float(np.max([t["check_ms"] for t in mine]))}
+    result = {"quick": quick,
+              "settings": {"parts": list(names), "cell": CELL_SEED, "blas_threads": 1,
+                           "picks_per_part": 1 if quick else TIMING_PICKS,
+                           "calibration": cal_row},
+              "timed": timed,
+              "summary": {"picks": len(timed),
+                          "check_ms_median": float(np.median(checks)),
+                          "check_ms_p95": float(np.percentile(checks, 95)),
+                          "per_20000_points_median": float(np.median(per_20k)),
+                          "per_20000_points_p95": float(np.percentile(per_20k, 95)),
+                          "by_part": by_part},
+              "machine": machine_info(),
+              "elapsed_s": round(time.perf_counter() - t_start, 1)}
+    result = write_json(out / "inspect_timing.json", result, digits=6)
+    _timing_chart(result, out / "inspect_timing.png")
+    say(f"bench inspect --timing done in {result['elapsed_s']:.0f} s: "
+        f"{out / 'inspect_timing.json'}")
+    return result
+
+
+def _timing_chart(result, path) -> None:
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for name in result["settings"]["parts"]:
+        mine = [t for t in result["timed"] if t["part"] == name]
+        ax.plot([t["points"] for t in mine], [t["check_ms"] for t in mine], "o", alpha=0.7,
+                label=name)
+    top = max([t["points"] for t in result["timed"]] + [20_000])
+    grid = np.linspace(0, top, 50)
+    ax.plot(grid, 20.0 * grid / 20_000.0, color="tab:red", ls=":", lw=0.8,
+            label="20 ms per 20 000 points")
+    ax.axhline(20.0, color="tab:red", lw=0.5)
+    summary = result["summary"]
+    ax.set_title(f"the check on one core: median {summary['check_ms_median']:.1f} ms; "
+                 f"per 20 000 points median {summary['per_20000_points_median']:.1f}, "
+                 f"p95 {summary['per_20000_points_p95']:.1f} ms", fontsize=8)
+    ax.set_xlabel("cloud points")
+    ax.set_ylabel("check, ms")
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    save_figure(fig, path)
 
 
 def _part_rows(task) -> list[dict]:

@@ -51,6 +51,9 @@ def add_parser(command) -> None:
                             "eight; --quick block); for checks on parts the bench was not made "
                             "on, bracket_wide, block_tall, fan_disk_6, dome and the public "
                             "meshes bunny and bone")
+    bench.add_argument("--timing", action="store_true",
+                       help="inspect: only the check's time, on good picks of every part on "
+                            "one core (minutes; the whole bench takes about an hour)")
     bench.add_argument("--meshes", type=Path, default=None,
                        help="folder of the reference meshes and their manifest.json (or "
                             "$FLYSCAN_MESHES)")
@@ -129,6 +132,8 @@ def run(args) -> int:
     for option in ("picks", "cells", "parts"):
         if getattr(args, option) is not None and args.what != "place":
             raise UsageError(f"--{option} is for bench place only")
+    if args.timing and args.what != "inspect":
+        raise UsageError("--timing is for bench inspect only")
     if args.picks is not None and args.picks < 1:
         raise UsageError(f"--picks must be at least 1, got {args.picks}")
     if args.folder is not None and args.what != "real":
@@ -145,8 +150,9 @@ def run(args) -> int:
         extra = {"folder": args.folder}
     if args.what == "place":
         extra = {"picks": args.picks, "cells": _seeds(args.cells), "parts": _names(args.parts)}
+    runner = bench.run_timing if args.timing else bench.run
     try:
-        result = bench.run(args.out, quick=args.quick, **extra)
+        result = runner(args.out, quick=args.quick, **extra)
     except FileNotFoundError as exc:  # bench real: a set's clone missing or incomplete
         raise UsageError(str(exc)) from None
     print(json.dumps(result.get("summary", {}), indent=2))

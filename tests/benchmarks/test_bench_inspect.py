@@ -72,3 +72,18 @@ def test_quick_bench_inspect(tmp_path):
     assert "extra_material" in filled["failing"]
     assert summary["check_ms"]["median"] > 0
     assert summary["check_ms"]["timed_picks"] == len(result["timed"]) >= 1  # apart, one core
+
+
+def test_bench_inspect_timing_quick(tmp_path):
+    """``--timing``: the check's time alone, its summary as its picks say; refused elsewhere."""
+    assert main(["bench", "inspect", "--timing", "--quick", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "inspect_timing.json").read_text())
+    assert (tmp_path / "inspect_timing.png").stat().st_size > 10_000
+    timed, summary = result["timed"], result["summary"]
+    assert len(timed) == summary["picks"] >= 1
+    assert all(t["points"] > 1000 and t["check_ms"] > 0.0 for t in timed)
+    per_20k = [t["check_ms"] * 20_000 / t["points"] for t in timed]
+    assert summary["per_20000_points_median"] == pytest.approx(float(np.median(per_20k)))
+    assert summary["check_ms_median"] == pytest.approx(
+        float(np.median([t["check_ms"] for t in timed])))
+    assert main(["bench", "scan", "--timing", "--out", str(tmp_path)]) == 2
