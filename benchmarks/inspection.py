@@ -51,9 +51,8 @@ from scanner_core.geometry import planes_moved
 from scanner_core.inspection import point_deviations, point_spacing
 from scanner_core.inspection.check import (LINK_SPACINGS, MIN_PROFILE_POINTS,
                                            MIN_REGION_PROFILES, MIN_REGION_SAMPLES,
-                                           touching_groups)
-from scanner_core.inspection.coverage import (COVER_STEPS, lit_and_seen, sheet_crossings,
-                                              warm_up_coverage)
+                                           touching_groups, warm_up_inspection)
+from scanner_core.inspection.coverage import COVER_STEPS, lit_and_seen, sheet_crossings
 from scanner_core.pose.models import SurfaceModel
 from scanner_core.pose.registration import PoseParams
 from scanner_core.pose.warm import warm_up_pose
@@ -297,7 +296,7 @@ def _timed_check(task, picks: int) -> list[dict]:
     out = []
     with threadpool_limits(limits=1, user_api="blas"):
         warm_up_pose()  # as the service does before it streams (``service.engine``)
-        warm_up_coverage()
+        warm_up_inspection()
         part = bench_part(name)
         part.prepare()
         params = replace(PoseParams(), robot_rotation_std_deg=cell.effects.tcp_rotation_error_deg)

@@ -32,7 +32,7 @@ from scanner_core.pipeline.finish import CrossCheckState, PassOutcome, finish_pa
 from scanner_core.pipeline import (MarkerTracker, PassAccumulator, PipelineParams, marker_in_view,
                                    measure_frame, warm_up)
 from scanner_core.pose.ahead import pose_ahead
-from scanner_core.inspection.coverage import warm_up_coverage
+from scanner_core.inspection.check import warm_up_inspection
 from scanner_core.pose.warm import warm_up_pose
 from scanner_core.pipeline.trigger import EndReason, Trigger, TriggerError, TriggerState
 from scanner_core.types import Frame, MarkerObservation
@@ -132,7 +132,7 @@ class Engine:
 
     def start(self) -> None:
         self.warmup_ms = (warm_up(self.calibration, self.params) + warm_up_pose()
-                          + warm_up_coverage())
+                          + warm_up_inspection())
         self._running.set()
         self._open_camera()
         try:

@@ -255,8 +255,9 @@ def test_a_cold_start_loses_no_frame(tmp_path):
     """With numba's cache cold (a fresh install), the kernels compile at start-up, each
     holding the GIL for up to seconds: all of it before the camera streams, so the
     acquisition thread loses no frame while the service starts (it lost about 45), and the
-    first pass compiles nothing (the geometric window's kernels, left to it, took 3.5 s and
-    overflowed the processing queue with the part's frames: a pass without points)."""
+    first pass, its pose and its inspection compile nothing (the geometric window's kernels,
+    left to it, took 3.5 s and overflowed the processing queue with the part's frames: a pass
+    without points)."""
     script = textwrap.dedent(f"""
         import time
         from service.daemon import Service
@@ -272,6 +273,15 @@ def test_a_cold_start_loses_no_frame(tmp_path):
         service.start()
         time.sleep(1.0)
         print(sim.camera.frames_lost, sim.camera.frames_delivered)
+
+        def kernels():
+            import sys
+            from numba.core.registry import CPUDispatcher
+            return dict((name + "." + key, len(value.signatures))
+                        for name, module in list(sys.modules.items()) if module is not None
+                        for key, value in list(vars(module).items())
+                        if isinstance(value, CPUDispatcher))
+        before = kernels()
         job = service.arm(None, None)
         deadline = time.monotonic() + 120
         while job.state not in ("done", "failed") and time.monotonic() < deadline:
@@ -279,13 +289,15 @@ def test_a_cold_start_loses_no_frame(tmp_path):
         time.sleep(0.5)  # stored
         print(job.state, job.frames_dropped, job.queue_overflows,
               service.scan_info(job.scan_id)["points"])
+        print(sorted(k for k, n in kernels().items() if n > before.get(k, 0)))
         service.stop()
     """)
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=600,
                             env=env, text=True)
     assert result.returncode == 0, result.stderr[-2000:]
-    idle, first_pass = result.stdout.splitlines()[-2:]
+    idle, first_pass, compiled = result.stdout.splitlines()[-3:]
+    assert compiled == "[]", f"kernels compiled in the first pass: {compiled}"
     lost, delivered = map(int, idle.split())
     assert any((tmp_path / "numba-cache").rglob("*.nbi"))  # it did compile into the cold cache
     assert delivered > 100  # a second of idle frames at 162 fps
