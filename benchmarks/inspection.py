@@ -111,10 +111,7 @@ def run(out_dir, quick: bool = False, *, jobs: int = 2, progress=None) -> dict:
     names = QUICK_PARTS if quick else PARTS
     trials = QUICK_TRIALS if quick else TRIALS
     good = QUICK_GOOD_PICKS if quick else GOOD_PICKS
-    positions = QUICK_SESSION_POSITIONS if quick else SESSION_POSITIONS
-    with threadpool_limits(limits=1, user_api="blas"):
-        cell = realistic_cell(load_cell(perturb_seed=CELL_SEED), seed=CELL_SEED)
-        calibration, cal_row = _calibrate(cell, CELL_SEED, *positions)
+    cell, calibration, cal_row = _calibrated_cell(quick)
     say(f"bench inspect: cell {CELL_SEED} calibrated in {cal_row['time_s']:.0f} s")
     tasks = []
     for index, name in enumerate(names):
@@ -166,6 +163,16 @@ def run(out_dir, quick: bool = False, *, jobs: int = 2, progress=None) -> dict:
     return result
 
 
+def _calibrated_cell(quick: bool):
+    """The bench's realistic cell, and its calibration by the robot (``bench calibrate``'s
+    session, fewer positions when `quick`): ``(cell, calibration, its row)``."""
+    positions = QUICK_SESSION_POSITIONS if quick else SESSION_POSITIONS
+    with threadpool_limits(limits=1, user_api="blas"):
+        cell = realistic_cell(load_cell(perturb_seed=CELL_SEED), seed=CELL_SEED)
+        calibration, cal_row = _calibrate(cell, CELL_SEED, *positions)
+    return cell, calibration, cal_row
+
+
 def run_timing(out_dir, quick: bool = False, *, progress=None) -> dict:
     """The check's time alone (``flyscan bench inspect --timing``): `TIMING_PICKS` good picks
     of each part in the bench's calibrated cell, in this process, on one core, its kernels
@@ -177,10 +184,7 @@ def run_timing(out_dir, quick: bool = False, *, progress=None) -> dict:
     say = progress or (lambda line: print(line, file=sys.stderr, flush=True))
     t_start = time.perf_counter()
     names = QUICK_PARTS if quick else PARTS
-    positions = QUICK_SESSION_POSITIONS if quick else SESSION_POSITIONS
-    with threadpool_limits(limits=1, user_api="blas"):
-        cell = realistic_cell(load_cell(perturb_seed=CELL_SEED), seed=CELL_SEED)
-        calibration, cal_row = _calibrate(cell, CELL_SEED, *positions)
+    cell, calibration, cal_row = _calibrated_cell(quick)
     say(f"bench inspect --timing: cell {CELL_SEED} calibrated in {cal_row['time_s']:.0f} s")
     timed = []
     for index, name in enumerate(names):
