@@ -6,7 +6,7 @@ camera, the trigger and the pipeline share the process.
   ``FRAME_PERIOD_S``, one render at a time, on its own thread; every client in between gets the
   same cached bytes. The frame is downscaled first (``cv2.resize``), then drawn and encoded by
   OpenCV, which releases the GIL. The render's full-frame temporaries stay in one thread's
-  malloc arena: spread over a pool's threads, each thread's arena kept its own (tens of MB).
+  malloc arena: spread over a pool's threads, each thread's arena kept a copy of them.
 - ``PreviewPictures``: a scan's ``preview.png`` is rendered once (on its first request) and kept
   (the last ``PREVIEW_CACHE`` scans); renders run one at a time, and beyond
   ``max_pending`` requests waiting for one the answer is ``Busy`` (a 503 with Retry-After).

@@ -242,9 +242,9 @@ class ProfileIndex:
     """A cloud's points by profile, each profile's sorted along one axis across the pass:
     whether a profile holds a point within a radius of a query is a binary search and a
     scan of the points within the radius along that axis, stopped at the first one near
-    enough. (A KD-tree over the cloud, a fourth coordinate keeping profiles apart, took
-    three times as long to build and ask: a profile's points lie along a curve, and the
-    tree's cells hold many profiles.)
+    enough. (A KD-tree over the cloud, a fourth coordinate keeping profiles apart, is
+    slower to build and to ask: a profile's points lie along a curve, and the tree's cells
+    hold many profiles.)
 
     Parameters
     ----------
@@ -265,7 +265,7 @@ class ProfileIndex:
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         direction = np.asarray(direction, dtype=np.float64)
         across = np.linalg.svd(np.eye(3) - np.outer(direction, direction))[0][:, :2]
-        # (2, N): a reduction along axis 0 of an (N, 2) array is ten times slower
+        # (2, N): a reduction along axis 0 of an (N, 2) array is far slower
         spans = np.ptp(across.T @ points.T, axis=1) if len(points) else np.zeros(2)
         self.axis = np.ascontiguousarray(across[:, int(np.argmax(spans))])
         self.points, self.along, self.starts = _sort_by_profile(

@@ -255,9 +255,9 @@ def test_a_cold_start_loses_no_frame(tmp_path):
     """With numba's cache cold (a fresh install), the kernels compile at start-up, each
     holding the GIL for up to seconds: all of it before the camera streams, so the
     acquisition thread loses no frame while the service starts (it lost about 45), and the
-    first pass, its pose and its inspection compile nothing (the geometric window's kernels,
-    left to it, took 3.5 s and overflowed the processing queue with the part's frames: a pass
-    without points)."""
+    first pass, its pose and its inspection compile nothing (a kernel left to the first pass
+    holds the GIL while the part's frames overflow the processing queue: a pass without
+    points)."""
     script = textwrap.dedent(f"""
         import time
         from service.daemon import Service
