@@ -44,7 +44,8 @@ from scanner_core.inspection.coverage import (NONE_MISSING, MissingSamples, miss
 
 __all__ = ["InspectionParams", "Inspection", "Region", "KINDS", "point_deviations",
            "inspect_scan", "point_spacing", "touching_groups", "warm_up_inspection",
-           "EXTRA_SIGMAS", "DEFORM_SIGMAS", "EXTRA_SPACINGS", "MIN_REGION_SAMPLES", "MIN_REGION_PROFILES", "LINK_SPACINGS"]
+           "EXTRA_SIGMAS", "DEFORM_SIGMAS", "EXTRA_SPACINGS", "MIN_REGION_SAMPLES",
+           "MIN_REGION_PROFILES", "LINK_SPACINGS"]
 
 #: The thresholds a part, the service or a caller may set (mm, mm^2); the rest are derived.
 GIVEN_THRESHOLDS = ("extra_mm", "deform_mm", "min_area_mm2")

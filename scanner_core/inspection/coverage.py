@@ -57,8 +57,8 @@ from scipy.spatial import cKDTree
 
 from scanner_core.geometry import planes_moved
 
-__all__ = ["MissingSamples", "ProfileIndex", "missing_samples", "sheet_crossings", "bracketing_frames",
-           "lit_and_seen", "warm_up_coverage", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS",
+__all__ = ["MissingSamples", "ProfileIndex", "missing_samples", "sheet_crossings",
+           "bracketing_frames", "lit_and_seen", "warm_up_coverage", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS",
            "FRAME_STEPS", "CORE_SHARE", "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM",
            "RING_MARGINS", "MIN_STRETCH_SAMPLES", "PAIR_MARGINS"]
 
@@ -181,10 +181,10 @@ def bracketing_frames(samples_p: np.ndarray, planes_p: np.ndarray, sensors_p=Non
 
 
 def warm_up_coverage() -> float:
-    """Compile `bracketing_frames`' and `ProfileIndex`'s kernels before the first check (some 1-2 s on a fresh
-    install, and the compiler's memory with it, which the first pass would otherwise take):
-    three samples and two sheets, with the argument types a check gives it. Returns the time
-    it took, ms."""
+    """Compile `bracketing_frames`' and `ProfileIndex`'s kernels before the first check
+    (some 1-2 s on a fresh install, and the compiler's memory with it, which the first pass
+    would otherwise take): three samples and two sheets, with the argument types a check
+    gives them. Returns the time it took, ms."""
     t0 = time.perf_counter()
     samples = np.array([[0.0, 0.5, 0.0], [0.0, 0.2, 1.0], [0.0, 3.0, 0.0]])
     planes = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 1.0]])
