@@ -49,7 +49,7 @@ MAX_OFFSET_SAMPLES = 120
 MIN_SPEED_MM_S = 1.0
 
 
-def _robot_positions(robot: Robot, times: np.ndarray, max_chord_mm: float = MAX_CHORD_DEVIATION_MM
+def robot_positions(robot: Robot, times: np.ndarray, max_chord_mm: float = MAX_CHORD_DEVIATION_MM
                      ) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) positions and (N,) bool: which times the robot's history covers, with a
     position interpolated no farther than `max_chord_mm` from the path."""
@@ -67,9 +67,9 @@ def _robot_positions(robot: Robot, times: np.ndarray, max_chord_mm: float = MAX_
 def track_at(robot: Robot, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The robot's positions (N, 3) and central-difference velocities (N, 3) at robot times, and
     (N,) bool: where its history covers both."""
-    p, ok = _robot_positions(robot, times)
-    ahead, ok_ahead = _robot_positions(robot, times + VELOCITY_STEP_S)
-    behind, ok_behind = _robot_positions(robot, times - VELOCITY_STEP_S)
+    p, ok = robot_positions(robot, times)
+    ahead, ok_ahead = robot_positions(robot, times + VELOCITY_STEP_S)
+    behind, ok_behind = robot_positions(robot, times - VELOCITY_STEP_S)
     return p, (ahead - behind) / (2 * VELOCITY_STEP_S), ok & ok_ahead & ok_behind
 
 
@@ -176,7 +176,7 @@ def cross_check(times, positions_b, robot: Robot, *, clock_offset_s: float = 0.0
                                       difference_b=rotations @ correction)
         if found is not None:
             offset, estimated = found, True
-    robot_p, ok = (_robot_positions(robot, times + offset,
+    robot_p, ok = (robot_positions(robot, times + offset,
                                     min(MAX_CHORD_DEVIATION_MM, tolerance_mm / 4.0))
                    if len(times) else (np.zeros((0, 3)), np.zeros(0, bool)))
     result |= {"samples": int(ok.sum()), "clock_offset_s": offset, "offset_estimated": estimated}

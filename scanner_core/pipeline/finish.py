@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from scanner_core.pipeline.crosscheck import (DEFAULT_TOLERANCE_MM, MAX_DRIFT_STEP_S, MAX_OFFSET_STEP_S,
-                                              cross_check)
+                                              cross_check, robot_positions)
 from scanner_core.devices import Robot
 from scanner_core.edges.kinds import reclassify_with_model
 from scanner_core.inspection import Inspection, InspectionParams, inspect_scan, point_spacing
@@ -217,8 +217,12 @@ def check_against_robot(scan: Scan, robot: Robot, state: CrossCheckState, *,
                                     led_correction_from=scan_id or "a scan")
         result["led_correction_learned"] = True
     held = int(getattr(scan, "frames_held_rotation", 0))
-    unchecked = scan.frames - int(result.get("samples") or 0)
-    if held and unchecked > 0:
+    # the frames the robot still gives no pose for (not those the check left out for another
+    # reason, a chord too far from the path, say)
+    unposed = 0 if not held else int((~robot_positions(
+        robot, np.asarray(scan.tcp_times, dtype=np.float64) + float(result["clock_offset_s"]),
+        max_chord_mm=np.inf)[1]).sum())
+    if held and unposed > 0:
         # The robot lost for part of the pass: frames placed on a held rotation that it still
         # has no pose for were never checked, and their placement is a guess; the check says
         # so, and how much. (A frame held only because the robot's report came late, and

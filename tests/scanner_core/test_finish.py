@@ -154,6 +154,34 @@ def test_frames_on_a_held_rotation_flag_the_check_with_their_fraction(simulated_
     assert check["held_rotation_fraction"] == round(held.frames_held_rotation / scan.frames, 4)
     assert f"{held.frames_held_rotation} of {scan.frames} frames" in check["reason"]
     assert outcome.report["cross_check"]["held_rotation_fraction"] == check["held_rotation_fraction"]
+    # a frame held while its report was late, and another the check leaves out for its own
+    # reason (its pose interpolated too far from the path): the robot gives every frame a
+    # pose, and nothing is flagged
+    held.frames_held_rotation = 1
+    far = _ChordFarAt(sim.robot, scan.tcp_times[scan.frames // 2] + 0.0125)  # robot's clock
+    check = finish_pass(held, EndReason.MARKER_GONE, far, CrossCheckState()).cross_check
+    assert check["samples"] == scan.frames - 1 and not check["flagged"], check
+    assert "held_rotation_fraction" not in check
+
+
+class _ChordFarAt:
+    """The simulated robot, its pose within 1 ms of robot time ``t`` interpolated 1 mm from
+    its path."""
+
+    def __init__(self, robot, t: float):
+        self._robot, self._t = robot, t
+        self.connected = True
+
+    def pose_at(self, t: float):
+        import dataclasses
+
+        pose = self._robot.pose_at(t)
+        if abs(t - self._t) < 1e-3:
+            return dataclasses.replace(pose, interpolation_mm=1.0)
+        return pose
+
+    def latest(self):
+        return self._robot.latest()
 
 
 class _ReportsLate:
