@@ -261,21 +261,28 @@ def _await_reports(robot: Robot, tcp_times, clock_offset_s: float,
         time.sleep(REPORT_POLL_S)
 
 
-def _inspect(scan: Scan, part_model, pose, pose_report: dict,
-             params: InspectionParams) -> Inspection:
-    """The check at the pose (``scanner_core.inspection.inspect_scan``): its verdict into the
-    pose's report (``inspection``; ``act`` false with the reasons when it fails), every
-    point's deviation into the scan."""
+def inspect_pass(scan: Scan, part_model, pose_matrix: np.ndarray,
+                 params: InspectionParams = InspectionParams()) -> Inspection:
+    """The check of a pass's scan against its part's model at the registered pose
+    ``pose_matrix`` (^T X_P, (4, 4)): ``scanner_core.inspection.inspect_scan`` with the
+    part's own thresholds over `params`. Changes nothing in `scan`."""
     if part_model.inspection is not None:  # the part's own thresholds first
         params = part_model.inspection.over(params)
-    inspection = inspect_scan(scan.cloud, scan.frame_ids, pose.matrix, part_model.surface_model,
-                              profile_spacing_mm=scan.profile_spacing_mm,
-                              point_spacing_mm=point_spacing(scan.cloud, scan.frame_ids),
-                              params=params, coverage_model=part_model.coverage_model,
-                              occluded=part_model.occluded, sheet_planes_t=scan.sheet_planes_t,
-                              sensor_positions_t=scan.sensor_positions_t,
-                              sheet_frame_ids=scan.tcp_frame_ids,
-                              sharp_edges=part_model.edge_model)
+    return inspect_scan(scan.cloud, scan.frame_ids, pose_matrix, part_model.surface_model,
+                        profile_spacing_mm=scan.profile_spacing_mm,
+                        point_spacing_mm=point_spacing(scan.cloud, scan.frame_ids),
+                        params=params, coverage_model=part_model.coverage_model,
+                        occluded=part_model.occluded, sheet_planes_t=scan.sheet_planes_t,
+                        sensor_positions_t=scan.sensor_positions_t,
+                        sheet_frame_ids=scan.tcp_frame_ids, sharp_edges=part_model.edge_model)
+
+
+def _inspect(scan: Scan, part_model, pose, pose_report: dict,
+             params: InspectionParams) -> Inspection:
+    """The check at the pose (`inspect_pass`): its verdict into the pose's report
+    (``inspection``; ``act`` false with the reasons when it fails), every point's deviation
+    into the scan."""
+    inspection = inspect_pass(scan, part_model, pose.matrix, params)
     scan.deviations_mm = inspection.deviations_mm
     pose_report["inspection"] = inspection.to_dict()
     if not inspection.conforms and pose_report.get("act"):

@@ -86,4 +86,10 @@ def test_bench_inspect_timing_quick(tmp_path):
     assert summary["per_20000_points_median"] == pytest.approx(float(np.median(per_20k)))
     assert summary["check_ms_median"] == pytest.approx(
         float(np.median([t["check_ms"] for t in timed])))
+    # each pick's scan checked again: the least of all its runs, held to its budget
+    assert all(len(t["repeats_ms"]) == result["settings"]["repeats"] >= 1 for t in timed)
+    assert all(t["check_ms_least"] == min([t["check_ms"], *t["repeats_ms"]]) for t in timed)
+    budget = [t["check_ms_least"] * 20_000 / max(t["points"], 20_000) for t in timed]
+    assert summary["least_per_budget_20000_p95"] == pytest.approx(
+        float(np.percentile(budget, 95)))
     assert main(["bench", "scan", "--timing", "--out", str(tmp_path)]) == 2

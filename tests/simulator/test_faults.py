@@ -6,6 +6,7 @@ import trimesh
 
 from clients.ply import parse_ply
 from flyscan import main
+from scanner_core.pipeline.finish import inspect_pass
 from simulator.cell import load_cell
 from simulator.faults import FAULT_KINDS, faulty_mesh, parse_fault
 from simulator.parts import part_from_mesh
@@ -57,9 +58,14 @@ def test_a_faulty_pick_is_caught_and_not_acted_on(block, kind, size):
     assert good["inspection"]["conforms"] and good["pose"]["act"], good["inspection"]
     held = part_from_mesh(faulty_mesh(block, kind, size, TOWARD, np.random.default_rng(1)),
                           name="held", grasp=part.grasp)
-    _, bad = run_simulated_scan(part, cell, misplacement=misplace, seed=1, evaluate=False,
-                                held=held)
+    scan, bad = run_simulated_scan(part, cell, misplacement=misplace, seed=1, evaluate=False,
+                                   held=held)
     assert not bad["inspection"]["conforms"], bad["inspection"]
+    # the check asked again of the pass's scan (as ``bench inspect --timing`` does) answers
+    # as the pass did
+    again = inspect_pass(scan, part, np.asarray(bad["pose"]["matrix"]))
+    np.testing.assert_array_equal(again.deviations_mm, scan.deviations_mm)
+    assert again.to_dict()["failing"] == bad["inspection"]["failing"]
     assert bad["pose"]["act"] is False
     assert any(r.startswith("inspection: ") for r in bad["pose"]["act_reasons"])
     if kind == "hole":  # a hole through the part: no point where the scan should see one
