@@ -160,12 +160,34 @@ class PartModel:
 
     def occluded(self, origins, directions) -> np.ndarray:
         """Whether rays (origins (R, 3), directions (R, 3), {P} mm) meet the part: (R,) bool.
-        Embree's through trimesh where embreex is installed, trimesh's own tests otherwise."""
+        Embree's any-hit query where embreex is installed (it stops at the first face it
+        meets, where trimesh's ``intersects_any`` finds the nearest), trimesh's own tests
+        otherwise."""
         origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
         if not len(origins):
             return np.zeros(0, bool)
-        return np.asarray(self.mesh.ray.intersects_any(
-            origins, np.asarray(directions, dtype=np.float64).reshape(-1, 3)), bool)
+        directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        if self._occlusion_scene is None:
+            return np.asarray(self.mesh.ray.intersects_any(origins, directions), bool)
+        scene, origin = self._occlusion_scene
+        return scene.run((origins - origin).astype(np.float32), directions.astype(np.float32),
+                         query="OCCLUDED") != -1
+
+    @cached_property
+    def _occlusion_scene(self):
+        """Embree's scene of the mesh and the origin its float32 vertices are taken from (the
+        mesh's lower corner: the part's own extent keeps their precision), or None without
+        embreex."""
+        try:
+            from embreex import rtcore_scene
+            from embreex.mesh_construction import TriangleMesh
+        except ImportError:
+            return None
+        origin = np.asarray(self.mesh.vertices, dtype=np.float64).min(axis=0)
+        scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(scene=scene, vertices=(self.mesh.vertices - origin).astype(np.float32),
+                     indices=np.asarray(self.mesh.faces, dtype=np.int32))
+        return scene, origin
 
     @cached_property
     def edge_model(self):
@@ -208,8 +230,8 @@ class PartModel:
     def release(self) -> None:
         """Drop what `prepare` built (and the trimesh object): its memory goes back, and the
         next scan of the part builds it again. A scan holding one of them keeps it."""
-        for name in ("surface_model", "edge_model", "model_edges", "coverage_model", "mesh",
-                     "_prepared"):
+        for name in ("surface_model", "edge_model", "model_edges", "coverage_model",
+                     "_occlusion_scene", "mesh", "_prepared"):
             self.__dict__.pop(name, None)
 
     def vertices_t(self) -> np.ndarray:

@@ -181,10 +181,10 @@ def bracketing_frames(samples_p: np.ndarray, planes_p: np.ndarray, sensors_p=Non
 
 
 def warm_up_coverage() -> float:
-    """Compile `bracketing_frames`' and `ProfileIndex`'s kernels before the first check
-    (some 1-2 s on a fresh install, and the compiler's memory with it, which the first pass
-    would otherwise take): three samples and two sheets, with the argument types a check
-    gives them. Returns the time it took, ms."""
+    """Compile `bracketing_frames`', `ProfileIndex`'s and `lit_and_seen`'s kernels before the
+    first check (some 1-2 s on a fresh install, and the compiler's memory with it, which the
+    first pass would otherwise take): three samples and two sheets, with the argument types a
+    check gives them. Returns the time it took, ms."""
     t0 = time.perf_counter()
     samples = np.array([[0.0, 0.5, 0.0], [0.0, 0.2, 1.0], [0.0, 3.0, 0.0]])
     planes = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 1.0]])
@@ -192,6 +192,8 @@ def warm_up_coverage() -> float:
                       np.tile([0.0, 0.0, 1.0], (3, 1)))
     ProfileIndex(samples, np.array([0, 1, -1]), 2, planes[0, :3]).covered(
         samples, np.array([0, 1, 1]), np.ones(3))
+    lit_and_seen(samples, np.tile([0.0, 0.0, 1.0], (3, 1)), np.tile([0.0, 0.0, 50.0], (3, 1)),
+                 np.tile(planes[0], (3, 1)))
     return (time.perf_counter() - t0) * 1e3
 
 
@@ -256,20 +258,26 @@ class ProfileIndex:
     count : int
         The number of profiles.
     direction : (3,) float64
-        The pass's direction: the points are sorted along the axis across it in which the
-        cloud spreads most.
+        The pass's direction (unit): the points are sorted along the axis across it in which
+        the cloud spreads most.
+    shrink : float
+        Distances along `direction` count this many times theirs (points and queries alike
+        moved to ``x + (shrink - 1) (x . m) m``): ``missing_samples`` counts a frame's step
+        as a few point steps.
     """
 
     def __init__(self, points: np.ndarray, profiles: np.ndarray, count: int,
-                 direction: np.ndarray):
+                 direction: np.ndarray, shrink: float = 1.0):
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-        direction = np.asarray(direction, dtype=np.float64)
-        across = np.linalg.svd(np.eye(3) - np.outer(direction, direction))[0][:, :2]
+        self.direction = np.ascontiguousarray(direction, dtype=np.float64)
+        self.shrink = float(shrink)
+        across = np.linalg.svd(np.eye(3) - np.outer(self.direction, self.direction))[0][:, :2]
         # (2, N): a reduction along axis 0 of an (N, 2) array is far slower
         spans = np.ptp(across.T @ points.T, axis=1) if len(points) else np.zeros(2)
         self.axis = np.ascontiguousarray(across[:, int(np.argmax(spans))])
         self.points, self.along, self.starts = _sort_by_profile(
-            points, np.asarray(profiles, dtype=np.int64), int(count), self.axis)
+            points, np.asarray(profiles, dtype=np.int64), int(count), self.axis,
+            self.direction, self.shrink - 1.0)
 
     def covered(self, query: np.ndarray, profiles: np.ndarray, radius: np.ndarray) -> np.ndarray:
         """(M,) bool: whether profile ``profiles[i]`` holds a point within ``radius[i]``
@@ -278,13 +286,15 @@ class ProfileIndex:
         return _covered(self.points, self.along, self.starts, query,
                         np.asarray(profiles, dtype=np.int64),
                         np.broadcast_to(np.asarray(radius, dtype=np.float64), len(query)).copy(),
-                        self.axis)
+                        self.axis, self.direction, self.shrink - 1.0)
 
 
 @njit(nogil=True, cache=True)
-def _sort_by_profile(points, profiles, count, axis):
+def _sort_by_profile(points, profiles, count, axis, direction, stretch):
     """``ProfileIndex``'s arrays: the points grouped by profile (a counting sort), each
-    group sorted along `axis`; their coordinate along it; where each group starts (count+1)."""
+    group sorted along `axis` and squeezed along `direction` (``x + stretch (x . m) m``);
+    their coordinate along `axis` (square to `direction`); where each group starts
+    (count+1)."""
     starts = np.zeros(count + 1, np.int64)
     for p in profiles:
         if 0 <= p < count:
@@ -318,13 +328,18 @@ def _sort_by_profile(points, profiles, count, axis):
         for r in range(b - a):
             j = a + order[r]
             sorted_along[a + r] = along[j]
-            grouped[a + r, :] = points[slot[j], :]
+            i = slot[j]
+            moved = stretch * (points[i, 0] * direction[0] + points[i, 1] * direction[1]
+                               + points[i, 2] * direction[2])
+            for c in range(3):
+                grouped[a + r, c] = points[i, c] + moved * direction[c]
     return grouped, sorted_along, starts
 
 
 @njit(nogil=True, cache=True)
-def _covered(points, along, starts, query, profiles, radius, axis):
-    """``ProfileIndex.covered``'s loop, one query at a time."""
+def _covered(points, along, starts, query, profiles, radius, axis, direction, stretch):
+    """``ProfileIndex.covered``'s loop, one query at a time, each squeezed as the points
+    are."""
     m, count = query.shape[0], starts.shape[0] - 1
     out = np.zeros(m, np.bool_)
     for i in range(m):
@@ -332,7 +347,11 @@ def _covered(points, along, starts, query, profiles, radius, axis):
         if p < 0 or p >= count:
             continue
         a, b = starts[p], starts[p + 1]
-        x, y, z = query[i, 0], query[i, 1], query[i, 2]
+        moved = stretch * (query[i, 0] * direction[0] + query[i, 1] * direction[1]
+                           + query[i, 2] * direction[2])
+        x = query[i, 0] + moved * direction[0]
+        y = query[i, 1] + moved * direction[1]
+        z = query[i, 2] + moved * direction[2]
         r = radius[i]
         u = x * axis[0] + y * axis[1] + z * axis[2]
         lo = a + np.searchsorted(along[a:b], u - r)
@@ -373,20 +392,16 @@ def lit_and_seen(samples_p, normals_p, sensors_p, sheets_p, occluded=None, *,
     if not len(samples_p):
         return np.zeros(0, bool)
     cos_limit = math.cos(math.radians(max_incidence_deg))
-    to_camera = sensors_p - samples_p
-    foot = np.einsum("ij,ij->i", sheets_p[:, :3], sensors_p) - sheets_p[:, 3]
-    source = sensors_p - foot[:, None] * sheets_p[:, :3]
-    # along the sheet, square to the light's way to the sample: where the source is least known
-    aside = np.cross(sheets_p[:, :3], source - samples_p)
-    aside /= np.maximum(np.linalg.norm(aside, axis=1, keepdims=True), 1e-12)
-    rays = [to_camera] + [source + k * LASER_SOURCE_SPREAD_MM * aside - samples_p
-                          for k in (0.0, -1.0, 1.0)]
-    if sources_p is not None:
-        rays = [to_camera, np.asarray(sources_p, dtype=np.float64) - samples_p]
-    out = np.ones(len(samples_p), bool)
-    for ray in rays:
-        length = np.linalg.norm(ray, axis=1)
-        out &= np.einsum("ij,ij->i", normals_p, ray) > cos_limit * length
+    samples_p = np.ascontiguousarray(samples_p, dtype=np.float64)
+    normals_p = np.ascontiguousarray(normals_p, dtype=np.float64)
+    sensors_p = np.ascontiguousarray(sensors_p, dtype=np.float64)
+    if sources_p is None:
+        rays = _light_rays(samples_p, sensors_p, np.ascontiguousarray(sheets_p, np.float64),
+                           LASER_SOURCE_SPREAD_MM)
+    else:
+        rays = np.stack([sensors_p - samples_p,
+                         np.asarray(sources_p, dtype=np.float64) - samples_p])
+    out = _facing_all(normals_p, rays, cos_limit)
     if occluded is None:
         return out
     for ray in rays:
@@ -395,6 +410,46 @@ def lit_and_seen(samples_p, normals_p, sensors_p, sheets_p, occluded=None, *,
             break
         origins = samples_p[which] + RAY_OFFSET_MM * normals_p[which]
         out[which[occluded(origins, ray[which])]] = False
+    return out
+
+
+@njit(nogil=True, cache=True)
+def _light_rays(samples, sensors, sheets, spread):
+    """(4, K, 3): from each sample to its frame's camera centre, then to the laser's source at
+    the camera's foot on the sheet, ``L = C - (n_s . C - o_s) n_s``, and `spread` mm to
+    either side of it along the sheet (square to the light's way to the sample)."""
+    count = samples.shape[0]
+    rays = np.empty((4, count, 3))
+    for i in range(count):
+        nx, ny, nz = sheets[i, 0], sheets[i, 1], sheets[i, 2]
+        foot = nx * sensors[i, 0] + ny * sensors[i, 1] + nz * sensors[i, 2] - sheets[i, 3]
+        tx = sensors[i, 0] - foot * nx - samples[i, 0]
+        ty = sensors[i, 1] - foot * ny - samples[i, 1]
+        tz = sensors[i, 2] - foot * nz - samples[i, 2]
+        ax, ay, az = ny * tz - nz * ty, nz * tx - nx * tz, nx * ty - ny * tx
+        scale = spread / max(math.sqrt(ax * ax + ay * ay + az * az), 1e-12)
+        ax, ay, az = ax * scale, ay * scale, az * scale
+        for c in range(3):
+            rays[0, i, c] = sensors[i, c] - samples[i, c]
+        rays[1, i, 0], rays[1, i, 1], rays[1, i, 2] = tx, ty, tz
+        rays[2, i, 0], rays[2, i, 1], rays[2, i, 2] = tx - ax, ty - ay, tz - az
+        rays[3, i, 0], rays[3, i, 1], rays[3, i, 2] = tx + ax, ty + ay, tz + az
+    return rays
+
+
+@njit(nogil=True, cache=True)
+def _facing_all(normals, rays, cos_limit):
+    """(K,) bool: whether each sample's face turns within the limit to every one of its rays
+    (R, K, 3): ``n . r > cos_limit |r|``."""
+    count = normals.shape[0]
+    out = np.ones(count, np.bool_)
+    for r in range(rays.shape[0]):
+        for i in range(count):
+            if not out[i]:
+                continue
+            x, y, z = rays[r, i, 0], rays[r, i, 1], rays[r, i, 2]
+            turn = normals[i, 0] * x + normals[i, 1] * y + normals[i, 2] * z
+            out[i] = turn > cos_limit * math.sqrt(x * x + y * y + z * z)
     return out
 
 
@@ -456,9 +511,6 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     # covered: a cloud point near, a frame's step along the pass counting FRAME_STEPS points'
     shrink = min(FRAME_STEPS * point_step / step, 1.0)
 
-    def squeezed(x):
-        return x + (shrink - 1.0) * np.outer(x @ direction, direction)
-
     sine = np.abs(n @ direction)
     radius = COVER_STEPS * point_step + 0.5 * step * sine / np.sqrt(1.0 - sine**2)
     if frame_ids is not None:
@@ -468,12 +520,12 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
         order = np.argsort(sheets)
         slot = np.clip(np.searchsorted(sheets[order], frame_ids), 0, len(order) - 1)
         own = np.where(sheets[order][slot] == frame_ids, order[slot], -1)
-        profiles = ProfileIndex(squeezed(points_p), own, len(sheet_planes_t), direction)
-        is_covered = profiles.covered(squeezed(q), frame[crossed], radius)
+        profiles = ProfileIndex(points_p, own, len(sheet_planes_t), direction, shrink)
+        is_covered = profiles.covered(q, frame[crossed], radius)
     else:
-        is_covered = ProfileIndex(squeezed(points_p), np.zeros(len(points_p), np.int64), 1,
-                                  direction).covered(squeezed(q), np.zeros(len(q), np.int64),
-                                                     radius)
+        is_covered = ProfileIndex(points_p, np.zeros(len(points_p), np.int64), 1,
+                                  direction, shrink).covered(q, np.zeros(len(q), np.int64),
+                                                             radius)
     open_ = np.nonzero(~is_covered)[0]
     if not len(open_):
         return NONE_MISSING
@@ -509,7 +561,7 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
         # between the two sheets, the sample's own sheet may pass beyond it
         ask = np.nonzero(core)[0]
         reach = radius[np.searchsorted(crossed, missing[ask])]
-        core[ask[profiles.covered(squeezed(at[ask]), other[missing[ask]], reach)]] = False
+        core[ask[profiles.covered(at[ask], other[missing[ask]], reach)]] = False
     if frame_ids is not None and sharp_edges is not None and not core.all():
         # a hole between one and two margins wide holds no such sample, but each profile that
         # crossed it has a stretch missing with its own covered samples either side; within a

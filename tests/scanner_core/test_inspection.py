@@ -349,11 +349,14 @@ def test_the_bracketing_frames_and_their_warm_up():
     assert nearer.tolist() == [0, 2, -1, -1, -1]
 
 
-@pytest.mark.parametrize("direction", [[0.0, 1.0, 0.0], [0.6, 0.0, 0.8]])
-def test_a_profile_holds_a_point_within_the_radius_as_a_brute_force_search_says(direction):
+@pytest.mark.parametrize("direction, shrink", [([0.0, 1.0, 0.0], 1.0), ([0.6, 0.0, 0.8], 1.0),
+                                               ([0.6, 0.0, 0.8], 0.3)])
+def test_a_profile_holds_a_point_within_the_radius_as_a_brute_force_search_says(direction,
+                                                                                shrink):
     """``ProfileIndex.covered`` against every point of the profile asked: profiles of curves
     across the pass (a wall among them: many points at one coordinate across), points of no
-    profile, an empty profile, profiles out of range, radii from a tenth of a point step up."""
+    profile, an empty profile, profiles out of range, radii from a tenth of a point step up;
+    distances along the pass squeezed or not."""
     from scipy.spatial.transform import Rotation
 
     from scanner_core.inspection.coverage import ProfileIndex
@@ -371,14 +374,16 @@ def test_a_profile_holds_a_point_within_the_radius_as_a_brute_force_search_says(
         profiles.append(np.full(t.size, k if k != 12 else -1))
     points = np.vstack(points) @ turn.T
     profiles = np.concatenate(profiles)
-    index = ProfileIndex(points, profiles, 30, direction)
+    index = ProfileIndex(points, profiles, 30, direction, shrink)
     near = rng.integers(0, len(points), 4000)
     query = points[near] + rng.normal(0.0, 1.0, (len(near), 3))
     asked = np.where(rng.uniform(size=len(near)) < 0.8, profiles[near],
                      rng.integers(-2, 32, len(near)))
     radius = rng.uniform(0.03, 2.0, len(query))
     got = index.covered(query, asked, radius)
-    distance = np.linalg.norm(query[:, None, :] - points[None, :, :], axis=2)
+    offset = query[:, None, :] - points[None, :, :]
+    offset += (shrink - 1.0) * (offset @ direction)[:, :, None] * direction
+    distance = np.linalg.norm(offset, axis=2)
     expected = ((distance <= radius[:, None]) & (profiles[None, :] == asked[:, None])
                 & (profiles[None, :] >= 0)).any(axis=1)
     assert got.tolist() == expected.tolist()
