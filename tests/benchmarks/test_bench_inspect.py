@@ -92,4 +92,9 @@ def test_bench_inspect_timing_quick(tmp_path):
     budget = [t["check_ms_least"] * 20_000 / max(t["points"], 20_000) for t in timed]
     assert summary["least_per_budget_20000_p95"] == pytest.approx(
         float(np.percentile(budget, 95)))
+    if len({t["points"] for t in timed}) > 1:  # a line through the least times, at 20 000
+        line = np.polyfit([t["points"] for t in timed], [t["check_ms_least"] for t in timed], 1)
+        assert summary["least_fit_ms_at_20000"] == pytest.approx(np.polyval(line, 20_000))
+    else:  # one size of scan: no line
+        assert summary["least_fit_ms_at_20000"] is None
     assert main(["bench", "scan", "--timing", "--out", str(tmp_path)]) == 2
