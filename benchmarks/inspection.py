@@ -54,9 +54,9 @@ from scanner_core.inspection.check import (LINK_SPACINGS, MIN_PROFILE_POINTS,
                                            MIN_REGION_PROFILES, MIN_REGION_SAMPLES,
                                            touching_groups, warm_up_inspection)
 from scanner_core.inspection.coverage import COVER_STEPS, lit_and_seen, sheet_crossings
+from scanner_core.pipeline.finish import inspect_pass
 from scanner_core.pose.models import SurfaceModel
 from scanner_core.pose.registration import PoseParams
-from scanner_core.pipeline.finish import inspect_pass
 from scanner_core.pose.warm import warm_up_pose
 from simulator.cell import load_cell
 from simulator.effects import realistic_cell
