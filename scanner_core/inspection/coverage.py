@@ -58,7 +58,8 @@ from scipy.spatial import cKDTree
 from scanner_core.geometry import planes_moved
 
 __all__ = ["MissingSamples", "ProfileIndex", "missing_samples", "sheet_crossings",
-           "bracketing_frames", "lit_and_seen", "warm_up_coverage", "MAX_INCIDENCE_DEG", "GAP_STEPS", "COVER_STEPS",
+           "bracketing_frames", "lit_and_seen", "warm_up_coverage", "MAX_INCIDENCE_DEG",
+           "GAP_STEPS", "COVER_STEPS",
            "FRAME_STEPS", "CORE_SHARE", "COVERAGE_SPACING_MM", "LASER_SOURCE_SPREAD_MM",
            "RING_MARGINS", "MIN_STRETCH_SAMPLES", "PAIR_MARGINS"]
 
@@ -328,12 +329,18 @@ def _sort_by_profile(points, profiles, count, axis, direction, stretch):
         for r in range(b - a):
             j = a + order[r]
             sorted_along[a + r] = along[j]
-            i = slot[j]
-            moved = stretch * (points[i, 0] * direction[0] + points[i, 1] * direction[1]
-                               + points[i, 2] * direction[2])
-            for c in range(3):
-                grouped[a + r, c] = points[i, c] + moved * direction[c]
+            grouped[a + r, 0], grouped[a + r, 1], grouped[a + r, 2] = _squeezed(
+                points, slot[j], direction, stretch)
     return grouped, sorted_along, starts
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _squeezed(points, i, direction, stretch):
+    """Point ``i`` of `points` (N, 3) moved to ``x + stretch (x . m) m``, m `direction`."""
+    moved = stretch * (points[i, 0] * direction[0] + points[i, 1] * direction[1]
+                       + points[i, 2] * direction[2])
+    return (points[i, 0] + moved * direction[0], points[i, 1] + moved * direction[1],
+            points[i, 2] + moved * direction[2])
 
 
 @njit(nogil=True, cache=True)
@@ -347,11 +354,7 @@ def _covered(points, along, starts, query, profiles, radius, axis, direction, st
         if p < 0 or p >= count:
             continue
         a, b = starts[p], starts[p + 1]
-        moved = stretch * (query[i, 0] * direction[0] + query[i, 1] * direction[1]
-                           + query[i, 2] * direction[2])
-        x = query[i, 0] + moved * direction[0]
-        y = query[i, 1] + moved * direction[1]
-        z = query[i, 2] + moved * direction[2]
+        x, y, z = _squeezed(query, i, direction, stretch)
         r = radius[i]
         u = x * axis[0] + y * axis[1] + z * axis[2]
         lo = a + np.searchsorted(along[a:b], u - r)
