@@ -32,9 +32,10 @@ import cv2
 import numpy as np
 
 from benchmarks.results import write_json
-from scanner_core.stripe.extractor import EXCESS_OFFSET_DN, extract, stripe_signal
+from scanner_core.stripe.extractor import (EXCESS_OFFSET_DN, estimate_noise, extract,
+                                           stripe_signal)
 
-__all__ = ["PhotoSet", "SETS", "baseline_rows", "score_set", "run"]
+__all__ = ["PhotoSet", "SETS", "baseline_rows", "naive_signal", "score_set", "run"]
 
 #: The naive peak finder keeps a column whose argmax reaches this (DN of the signal).
 BASELINE_DN = 20.0
@@ -48,6 +49,18 @@ GROSS_PX = 3.0
 RIGHT_PX = 0.5
 #: Columns whose line point lies closer than this to the target's outline are not counted.
 OUTLINE_MARGIN_PX = 4.0
+#: A profile on the target shows the stripe (a person sees it) where the naive signal's
+#: largest value within VISIBLE_NEAR_PX of the line stands this many of the frame's noise
+#: sigmas over the column's medians VISIBLE_RING_PX away from the line, on each side (an
+#: overexposed line's excess is hollow across its white core and its red halo spreads a
+#: dozen rows: the core's maximum is read that wide, the sides beyond the halo).
+VISIBLE_SIGMAS = 5.0
+VISIBLE_NEAR_PX = 8
+VISIBLE_RING_PX = (15, 45)
+#: The methods scored: flyscan's pipeline, the naive peak finder on the photograph's colour
+#: excess (the issue's baseline), and the naive peak finder on flyscan's signal (what the
+#: signal alone is worth).
+METHODS = ("flyscan", "baseline", "baseline_on_flyscan_signal")
 
 
 @dataclass(frozen=True)
@@ -170,6 +183,21 @@ def baseline_rows(signal: np.ndarray, min_dn: float = BASELINE_DN):
     with np.errstate(divide="ignore", invalid="ignore"):
         off = np.where(den < 0, 0.5 * (y0 - y2) / den, 0.0)
     return np.where(inner, a1 + off, np.nan)
+
+
+def naive_signal(rgb: np.ndarray, ps_signal: str) -> np.ndarray:
+    """The signal the naive baseline reads: ``ps_signal``'s channel, or its colour excess
+    ``v_k - (v_i + v_j) / 2`` rounded half up, ``EXCESS_OFFSET_DN`` above zero, clipped to
+    [0, 255] and nothing more (flyscan's ``stripe_signal`` carries the excess on over a clipped
+    channel; the baseline takes the photograph's pixels as they are).
+
+    ``rgb`` (H, W, 3) uint8 -> (H, W) uint8."""
+    channel = {"red": 0, "green": 1, "blue": 2}[ps_signal.split("_")[0]]
+    if not ps_signal.endswith("_excess"):
+        return np.ascontiguousarray(rgb[:, :, channel])
+    v = rgb.astype(np.int32)
+    e2 = 2 * v[:, :, channel] - v[:, :, (channel + 1) % 3] - v[:, :, (channel + 2) % 3]
+    return np.clip(((e2 + 1) >> 1) + EXCESS_OFFSET_DN, 0, 255).astype(np.uint8)
 
 
 def _read_rgb(path: pathlib.Path) -> np.ndarray:
@@ -296,14 +324,18 @@ def _method_points(rows, along):
 def score_photo(rgb, ps: PhotoSet, rvec, tvec, k, dist) -> dict | None:
     """Both methods on one photograph against its target: per method the arrays the set's
     figures are made of, or None where the line cannot be fitted."""
-    signal = stripe_signal(rgb, ps.signal or f"{ps.laser}_excess")
+    name = ps.signal or f"{ps.laser}_excess"
+    signal = stripe_signal(rgb, name)
+    naive = naive_signal(rgb, name)
     if ps.along == "columns":
         signal = np.ascontiguousarray(signal.T)
+        naive = np.ascontiguousarray(naive.T)
     res = extract(signal, shoulders=True)  # a colour frame's, as the pipeline measures it
     # the peak finder's gate counts from the excess's zero, as on the bare excess
-    offset = EXCESS_OFFSET_DN if "excess" in (ps.signal or "excess") else 0.0
+    offset = EXCESS_OFFSET_DN if name.endswith("_excess") else 0.0
     methods = {"flyscan": np.where(res.valid, res.row, np.nan).astype(np.float64),
-               "baseline": baseline_rows(signal, BASELINE_DN + offset)}
+               "baseline": baseline_rows(naive, BASELINE_DN + offset),
+               "baseline_on_flyscan_signal": baseline_rows(signal, BASELINE_DN + offset)}
     outline = _outline(ps, rvec, tvec, k, dist)
     f_k = k[0, 0]  # undistorted distances in pixels of the camera's focal length
 
@@ -318,7 +350,7 @@ def score_photo(rgb, ps: PhotoSet, rvec, tvec, k, dist) -> dict | None:
     # the line through the points on the target (a profile measured elsewhere in its column,
     # on the floor or a wall, is scored below as off the line)
     union = np.vstack([_undistort(p[0][inside(p[0])], k, dist) if len(p[0]) else np.zeros((0, 2))
-                       for p in pts.values()]) * f_k
+                       for m, p in pts.items() if m in ("flyscan", "baseline")]) * f_k
     line = _fit_line(union)
     if line is None:
         return None
@@ -346,7 +378,8 @@ def score_photo(rgb, ps: PhotoSet, rvec, tvec, k, dist) -> dict | None:
     ok = np.isfinite(cross)
     board = np.zeros(n_cols, bool)
     board[ok] = inside(line_xy[ok])
-    out = {"profiles_on_target": int(board.sum())}
+    visible = board & _stripe_visible(naive, cross)
+    out = {"profiles_on_target": int(board.sum()), "profiles_visible": int(visible.sum())}
     # the target's plane in the camera, for the light plane
     rot, _ = cv2.Rodrigues(rvec)
     plane_n = rot[:, 2]
@@ -365,12 +398,33 @@ def score_photo(rgb, ps: PhotoSet, rvec, tvec, k, dist) -> dict | None:
         rays = np.c_[und, np.ones(len(und))]
         points = rays * (plane_d / (rays @ plane_n))[:, None]
         frac = np.abs(rows[cols_b] - np.round(rows[cols_b]))
-        out[name] = {"measured": int(len(d)), "distance_px": d, "points_mm": points,
+        out[name] = {"measured": int(len(d)), "measured_visible": int(visible[cols_b].sum()),
+                     "distance_px": d, "points_mm": points,
                      "whole_pixel": frac < WHOLE_PIXEL_PX}
     b, f = dist_px["baseline"], dist_px["flyscan"]
     right = np.abs(b) <= RIGHT_PX
     out["baseline_right"] = int(right.sum())
     out["baseline_right_flyscan_not"] = int((right & ~(np.abs(f) <= RIGHT_PX)).sum())
+    return out
+
+
+def _stripe_visible(signal: np.ndarray, cross: np.ndarray) -> np.ndarray:
+    """(W,) bool: the profiles where ``signal`` (H, W) uint8 shows a stripe at rows ``cross``
+    (W,) float (NaN: off the photograph), by ``VISIBLE_SIGMAS`` of the frame's noise
+    (``estimate_noise``) over the column's median beside the line."""
+    h, w = signal.shape
+    noise = estimate_noise(signal)[1]
+    near_lo, near_hi = VISIBLE_RING_PX
+    out = np.zeros(w, bool)
+    for c in np.flatnonzero(np.isfinite(cross)):
+        r = int(round(float(cross[c])))
+        core = signal[max(r - VISIBLE_NEAR_PX, 0):min(r + VISIBLE_NEAR_PX + 1, h), c]
+        above = signal[max(r - near_hi, 0):max(r - near_lo + 1, 0), c]
+        below = signal[min(r + near_lo, h):min(r + near_hi + 1, h), c]
+        if len(core) and len(above) and len(below):
+            # over both sides: a texture's edge under the line is no stripe
+            side = max(float(np.median(above)), float(np.median(below)))
+            out[c] = float(core.max()) - side >= VISIBLE_SIGMAS * noise
     return out
 
 
@@ -416,8 +470,8 @@ def score_set(ps: PhotoSet, root: pathlib.Path, progress=None) -> dict:
     k, dist, camera_from = _camera(ps, root, views)
     obj = _object_points(ps)
     totals = {"photographs": len(paths), "scored": 0, "profiles_on_target": 0,
-              "baseline_right": 0, "baseline_right_flyscan_not": 0}
-    pooled = {m: {"d": [], "points": [], "whole": []} for m in ("flyscan", "baseline")}
+              "profiles_visible": 0, "baseline_right": 0, "baseline_right_flyscan_not": 0}
+    pooled = {m: {"d": [], "points": [], "whole": [], "visible": 0} for m in METHODS}
     for i, (path, rgb, pts) in enumerate(per_photo):
         if progress:
             progress(f"{ps.folder}: {path.name} ({i + 1}/{len(per_photo)})")
@@ -430,9 +484,11 @@ def score_set(ps: PhotoSet, root: pathlib.Path, progress=None) -> dict:
         if s is None:
             continue
         totals["scored"] += 1
-        for key in ("profiles_on_target", "baseline_right", "baseline_right_flyscan_not"):
+        for key in ("profiles_on_target", "profiles_visible", "baseline_right",
+                    "baseline_right_flyscan_not"):
             totals[key] += s[key]
         for m in pooled:
+            pooled[m]["visible"] += s[m]["measured_visible"]
             pooled[m]["d"].append(s[m]["distance_px"])
             pooled[m]["points"].append(s[m]["points_mm"])
             pooled[m]["whole"].append(s[m]["whole_pixel"])
@@ -445,6 +501,7 @@ def score_set(ps: PhotoSet, root: pathlib.Path, progress=None) -> dict:
         figures[m] = {
             "measured": int(len(d)),
             "measured_share": len(d) / max(totals["profiles_on_target"], 1),
+            "measured_visible_share": p["visible"] / max(totals["profiles_visible"], 1),
             "rms_line_px": float(np.sqrt(np.mean(d[near] ** 2))) if near.any() else None,
             "beyond_1px_share": float(np.mean(np.abs(d) > OUTLIER_PX)) if len(d) else None,
             "gross_share": float(np.mean(~near)) if len(d) else None,
@@ -453,7 +510,7 @@ def score_set(ps: PhotoSet, root: pathlib.Path, progress=None) -> dict:
         }
     return {"name": ps.name, "repository": ps.repository, "commit": ps.commit,
             "laser": ps.laser, "camera": camera_from, "source": ps.source, **totals,
-            "flyscan": figures["flyscan"], "baseline": figures["baseline"]}
+            **{m: figures[m] for m in METHODS}}
 
 
 def _plot(sets: list[dict], path: pathlib.Path) -> None:
@@ -463,28 +520,30 @@ def _plot(sets: list[dict], path: pathlib.Path) -> None:
     import matplotlib.pyplot as plt
 
     panels = [("rms_line_px", "RMS about the line, px", 1.0),
-              ("measured_share", "profiles on the target measured, %", 100.0),
+              ("measured_visible_share", "profiles showing the stripe measured, %", 100.0),
               ("beyond_1px_share", "profiles > 1 px off the line, %", 100.0),
               ("whole_pixel_share", "rows within 0.02 px of a whole pixel, %", 100.0)]
     fig, axes = plt.subplots(1, len(panels), figsize=(17, 4.6))
     names = [s["name"].replace(", ", ",\n", 1) for s in sets]
     y = np.arange(len(sets))
+    labels = {"flyscan": "flyscan (defaults)",
+              "baseline": f"argmax + parabola (>= {BASELINE_DN:.0f} DN), the colour excess",
+              "baseline_on_flyscan_signal": "argmax + parabola, flyscan's signal"}
     for ax, (key, title, scale) in zip(axes, panels):
-        for k, (m, colour) in enumerate((("flyscan", "C0"), ("baseline", "C7"))):
+        for k, (m, colour) in enumerate(zip(METHODS, ("C0", "C7", "C8"))):
             vals = [(s[m][key] or 0.0) * scale for s in sets]
-            ax.barh(y + (0.2 if k else -0.2), vals, height=0.38, color=colour,
-                    label="flyscan (defaults)" if m == "flyscan" else
-                    f"argmax + parabola (>= {BASELINE_DN:.0f} DN)")
+            ax.barh(y + 0.27 * (k - 1), vals, height=0.26, color=colour, label=labels[m])
         if key == "whole_pixel_share":
             ax.axvline(100 * 2 * WHOLE_PIXEL_PX, color="k", lw=0.8, ls="--")
         ax.set_title(title, fontsize=10)
         ax.set_yticks(y)
         ax.set_yticklabels(names if ax is axes[0] else [], fontsize=8)
         ax.invert_yaxis()
-    axes[0].legend(fontsize=8, loc="lower right")
-    fig.suptitle("Real photographs of a laser line on a planar target: the colour excess, "
-                 "both methods")
-    fig.tight_layout()
+    handles, texts = axes[0].get_legend_handles_labels()
+    fig.legend(handles, texts, fontsize=9, loc="lower center", ncol=len(METHODS))
+    fig.suptitle("Real photographs of a laser line on a planar target: flyscan against a naive "
+                 "peak finder")
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -507,10 +566,10 @@ def run(out_dir: pathlib.Path, folder: pathlib.Path, *, quick: bool = False) -> 
                                 + "; ".join(missing))
     for line in missing:
         print(f"bench real: not scored (missing): clone {line}", file=sys.stderr)
-    summary = {s["name"]: {m: {k: s[m][k] for k in ("measured_share", "rms_line_px",
-                                                     "rms_plane_um", "beyond_1px_share",
-                                                     "whole_pixel_share")}
-                           for m in ("flyscan", "baseline")}
+    summary = {s["name"]: {m: {k: s[m][k] for k in ("measured_share", "measured_visible_share",
+                                                     "rms_line_px", "rms_plane_um",
+                                                     "beyond_1px_share", "whole_pixel_share")}
+                           for m in METHODS}
                for s in results}
     for s in results:
         summary[s["name"]]["baseline_right_flyscan_not"] = s["baseline_right_flyscan_not"]

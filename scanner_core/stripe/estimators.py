@@ -16,7 +16,7 @@ from numba import njit
 from scanner_core.numeric.linsolve import solve_in_place
 
 __all__ = ["SATURATION_DN", "FWHM_PER_SIGMA", "fwhm_width", "count_above", "cog",
-           "within_window", "width_count_cog", "parabola", "gaussian3", "blais_rioux",
+           "top_centroid", "within_window", "width_count_cog", "parabola", "gaussian3", "blais_rioux",
            "lsq_gauss", "saturated_centre", "narrow_clip_centre"]
 
 # Pixel value taken as saturated (uint8 full scale).
@@ -111,6 +111,51 @@ def cog(img, c, a, h, threshold, window, bg, reach):
             wgt = v - off
             s0 += wgt
             s1 += wgt * (r - a)
+    if s0 <= 0.0:
+        return math.nan
+    return a + s1 / s0
+
+
+@njit(nogil=True, cache=True)
+def top_centroid(img, c, a, h, level, reach):
+    """Centre of the part of the profile above ``level``, the profile taken as linear between
+    the pixel centres: ``int x (f(x) - level) dx / int (f(x) - level) dx`` over the run above
+    ``level`` through ``a`` (at most ``reach`` rows each way), its ends where the linear profile
+    crosses ``level``.
+
+    A centroid of the pixels above a level high on the peak moves by whole pixels as a pixel
+    crosses it (a flat top, a clipped run, makes every row a whole or half pixel); the crossings
+    move smoothly.  NaN when nothing lies above ``level``.
+    """
+    lo = a
+    while lo > 0 and a - lo < reach and img[lo - 1, c] > level:
+        lo -= 1
+    hi = a
+    while hi < h - 1 and hi - a < reach and img[hi + 1, c] > level:
+        hi += 1
+    # the segments from the last pixel below the level to the first one below it again
+    r0 = max(lo - 1, 0)
+    r1 = min(hi + 1, h - 1)
+    s0 = 0.0
+    s1 = 0.0
+    for r in range(r0, r1):
+        u0 = float(img[r, c]) - level
+        u1 = float(img[r + 1, c]) - level
+        x = float(r - a)
+        if u0 > 0.0 and u1 > 0.0:
+            area = 0.5 * (u0 + u1)
+            s0 += area
+            s1 += x * area + (u0 + 2.0 * u1) / 6.0
+        elif u0 > 0.0:  # falls through the level at z
+            z = u0 / (u0 - u1)
+            area = 0.5 * u0 * z
+            s0 += area
+            s1 += x * area + u0 * z * z / 6.0
+        elif u1 > 0.0:  # rises through the level at z
+            z = u0 / (u0 - u1)
+            area = 0.5 * u1 * (1.0 - z)
+            s0 += area
+            s1 += x * area + u1 * (1.0 / 3.0 - 0.5 * z + z * z * z / 6.0) / (1.0 - z)
     if s0 <= 0.0:
         return math.nan
     return a + s1 / s0

@@ -42,7 +42,7 @@ from scanner_core.stripe.kernel import (  # noqa: F401  (the gates' constants, d
     COG_PEAK_FRACTION, COG_SIGMAS, AUTO_MIN_PEAK_SIGMAS, AUTO_THRESHOLD_SIGMAS,
     CONTINUITY_BRIGHTNESS_PX, CONTINUITY_JUMP_CAP_PX, CONTINUITY_MAX_GAP, CORE_WIDTH_FACTOR,
     LINKED_WIDTH_FACTOR, MIN_PIXELS_ABOVE, MIN_WIDTH_PX, NARROW_MIN_SIGMAS, SEPARATE_SIGMAS,
-    SHOULDER_FRACTION, SHOULDER_RUN_WIDTHS,
+    SHOULDER_FRACTION,
     extract_kernel, window_bounds)
 from scanner_core.validate import check_columns, check_image
 
@@ -64,6 +64,10 @@ _CHANNEL = {"red": 0, "green": 1, "blue": 2}
 #: frame's noise estimate, which the stripe's floors and levels stand on, would read a
 #: chroma-subsampled JPEG's structured noise as none).
 EXCESS_OFFSET_DN = 16
+#: A colour channel at or above this is taken as clipped by ``stripe_signal``'s excess: full
+#: scale, less the ringing JPEG's blocks leave about a clipped run (pixels of 245-254 inside
+#: the white cores of overexposed red lines in the photographs of ``flyscan bench real``).
+CLIPPED_DN = 245
 #: Bayer mosaics by their first row's first two pixels and the second row's first (RGGB: red
 #: at (0, 0)), and the OpenCV conversion that demosaics each (OpenCV names a mosaic by its
 #: second row's second and third pixels).
@@ -252,8 +256,10 @@ def stripe_signal(frame, signal="auto", *, bayer=None) -> np.ndarray:
         mosaic) its ``"colour_excess"``. ``"mono"``: a mono frame as it is (a colour one is
         refused). ``"red"``, ``"green"``, ``"blue"``: that channel. ``"red_excess"``,
         ``"green_excess"``, ``"blue_excess"``: that channel's excess, rounded half up, plus
-        ``EXCESS_OFFSET_DN``, clipped to [0, 255], and full scale where the channel itself is
-        (its excess is unknown there). ``"colour_excess"``: the largest of the three.
+        ``EXCESS_OFFSET_DN``, clipped to [0, 255]; where the channel itself is clipped
+        (``CLIPPED_DN``), carried on from the rows either side of the clipped run by the
+        other channels' rise (the white core of an overexposed line). ``"colour_excess"``:
+        the largest of the three.
     bayer : str, optional
         The frame is a raw mosaic with this pattern (one of ``BAYER_PATTERNS``): it is
         demosaiced (OpenCV's bilinear demosaicing) first.
@@ -310,30 +316,132 @@ def demosaic(mosaic, bayer: str) -> np.ndarray:
 
 @njit(nogil=True, cache=True)
 def _colour_excess(rgb, which, out):
-    """``out = clip(round_half_up(v_k - (v_i + v_j) / 2) + EXCESS_OFFSET_DN, 0, 255)`` for channel ``which``, or
-    the largest of the three excesses for ``which = -1``; integer arithmetic."""
+    """``out = clip(round_half_up(v_k - (v_i + v_j) / 2) + EXCESS_OFFSET_DN, 0, 255)`` for
+    channel ``which``, or the largest of the three excesses for ``which = -1``; integer
+    arithmetic, except over a run of rows where the channel is clipped (``_continue_run``).
+
+    The excess in one pass in row order, noting the rows that hold a clipped pixel; then the
+    clipped runs, through those rows only (and the row after each run), keeping per channel
+    and column the row its open run began and the first unclipped row after it.  A run is
+    carried on once the row after that one is read unclipped too: one unclipped row between
+    two clipped runs joins them (JPEG's ringing leaves single pixels under full scale inside
+    a clipped core)."""
+    h, w = out.shape
+    clipped_rows = np.zeros(h, np.bool_)
+    if which < 0:
+        _largest_excess(rgb, out, clipped_rows)
+    else:
+        _excess(rgb, which, (which + 1) % 3, (which + 2) % 3, out, clipped_rows)
+    k0 = 0 if which < 0 else which
+    k1 = 3 if which < 0 else which + 1
+    first = np.full((3, w), -1, np.int64)
+    after = np.full((3, w), -1, np.int64)
+    open_runs = 0
+    for r in range(h):
+        if not clipped_rows[r] and open_runs == 0:
+            continue
+        for c in range(w):
+            for k in range(k0, k1):
+                if np.int32(rgb[r, c, k]) >= CLIPPED_DN:
+                    if first[k, c] < 0:
+                        first[k, c] = r
+                        open_runs += 1
+                    after[k, c] = -1
+                elif first[k, c] >= 0:
+                    if after[k, c] < 0:
+                        after[k, c] = r
+                    else:
+                        _continue_run(rgb, k, c, first[k, c], after[k, c], out)
+                        first[k, c] = -1
+                        after[k, c] = -1
+                        open_runs -= 1
+    if open_runs > 0:
+        for k in range(k0, k1):
+            for c in range(w):
+                if first[k, c] >= 0:
+                    _continue_run(rgb, k, c, first[k, c],
+                                  after[k, c] if after[k, c] >= 0 else h, out)
+
+
+@njit(nogil=True, cache=True)
+def _excess(rgb, k, i, j, out, clipped_rows):
+    """Channel ``k``'s excess into ``out``; ``clipped_rows[r]``: row ``r`` holds a pixel whose
+    channel ``k`` is clipped."""
     h, w = out.shape
     for r in range(h):
+        n_clipped = 0
+        for c in range(w):
+            vk = np.int32(rgb[r, c, k])
+            e2 = 2 * vk - np.int32(rgb[r, c, i]) - np.int32(rgb[r, c, j])
+            n_clipped += vk >= CLIPPED_DN
+            out[r, c] = np.uint8(min(max(((e2 + 1) >> 1) + EXCESS_OFFSET_DN, 0), 255))
+        clipped_rows[r] = n_clipped > 0
+
+
+@njit(nogil=True, cache=True)
+def _largest_excess(rgb, out, clipped_rows):
+    """The largest of the three channels' excesses into ``out``; ``clipped_rows[r]``: row
+    ``r`` holds a pixel with a clipped channel."""
+    h, w = out.shape
+    for r in range(h):
+        n_clipped = 0
         for c in range(w):
             v0 = np.int32(rgb[r, c, 0])
             v1 = np.int32(rgb[r, c, 1])
             v2 = np.int32(rgb[r, c, 2])
-            if which == 0:
-                e2 = 2 * v0 - v1 - v2
-            elif which == 1:
-                e2 = 2 * v1 - v0 - v2
-            elif which == 2:
-                e2 = 2 * v2 - v0 - v1
-            else:
-                e2 = max(2 * v0 - v1 - v2, 2 * v1 - v0 - v2, 2 * v2 - v0 - v1)
-            e = ((e2 + 1) >> 1) + EXCESS_OFFSET_DN
-            # where the laser's channel is clipped its excess is unknown, and the brighter the
-            # line the more the others' crosstalk hides it: censored at full scale
-            if which == 0 and v0 == 255 or which == 1 and v1 == 255 or which == 2 and v2 == 255:
-                e = 255
-            elif which == -1 and max(v0, v1, v2) == 255:
-                e = 255
-            out[r, c] = np.uint8(min(max(e, 0), 255))
+            e2 = max(2 * v0 - v1 - v2, 2 * v1 - v0 - v2, 2 * v2 - v0 - v1)
+            n_clipped += max(v0, v1, v2) >= CLIPPED_DN
+            out[r, c] = np.uint8(min(max(((e2 + 1) >> 1) + EXCESS_OFFSET_DN, 0), 255))
+        clipped_rows[r] = n_clipped > 0
+
+
+@njit(nogil=True, cache=True)
+def _continue_run(rgb, k, c, first, end, out):
+    """Channel ``k``'s excess over its clipped rows ``first <= r < end`` of column ``c``.
+
+    There ``v_k`` no longer grows with the light, and its excess would fall as the others rise
+    (a line bright enough turns white: hollow, or a hole where JPEG's ringing leaves one pixel
+    under full scale): it is carried on from the unclipped rows either side (``b``, ``a``),
+    interpolated along the run (a texture edge under it), plus what the other two channels rose
+    above theirs there: ``e(r) = e_b + t (e_a - e_b) + (o(r) - o_b - t (o_a - o_b)) / 2``,
+    ``o = v_i + v_j``, ``t`` from 0 at ``b`` to 1 at ``a``, or the pixel's own excess where
+    that is larger.  Monotonic in the light where ``v_i`` and ``v_j`` grow with it, so a
+    symmetric line stays symmetric; a white surface (its excess about zero either side, its
+    other channels no brighter inside) stays about zero.  Full scale where it reaches it:
+    clipped, measured from its flanks.  Written where larger than what ``out`` holds (another
+    channel's excess, for ``colour_excess``)."""
+    h = out.shape[0]
+    i = (k + 1) % 3
+    j = (k + 2) % 3
+    b = first - 1
+    a = end
+    if b < 0 and a >= h:  # nothing unclipped to carry on from: the excess as it is
+        for r in range(first, end):
+            e2 = (2 * np.int32(rgb[r, c, k]) - np.int32(rgb[r, c, i])
+                  - np.int32(rgb[r, c, j]))
+            e = min(max(((e2 + 1) >> 1) + EXCESS_OFFSET_DN, 0), 255)
+            if e > out[r, c]:
+                out[r, c] = np.uint8(e)
+        return
+    if b < 0:
+        b = a
+    if a >= h:
+        a = b
+    o_b = np.int32(rgb[b, c, i]) + np.int32(rgb[b, c, j])
+    o_a = np.int32(rgb[a, c, i]) + np.int32(rgb[a, c, j])
+    e_b = 2 * np.int32(rgb[b, c, k]) - o_b
+    e_a = 2 * np.int32(rgb[a, c, k]) - o_a
+    span = max(a - b, 1)
+    for r in range(first, end):
+        t = (r - b) / span
+        o = np.int32(rgb[r, c, i]) + np.int32(rgb[r, c, j])
+        # never under the pixel's own excess: both are lower bounds where it clips, and a
+        # pixel counted clipped by JPEG's margin may be a bright flank's
+        e2 = max(e_b + t * (e_a - e_b) + o - (o_b + t * (o_a - o_b)),
+                 2 * np.int32(rgb[r, c, k]) - o)
+        e = min(max(int(math.floor(0.5 * e2 + 0.5)) + EXCESS_OFFSET_DN, 0), 255)
+        if e > out[r, c]:
+            out[r, c] = np.uint8(e)
 
 
 def estimate_noise(image) -> tuple[float, float]:
@@ -453,12 +561,13 @@ def extract(image, method="cog", *, threshold="auto", window=4, max_width="auto"
         ``-b / (2 c)``; the column stays valid with ``saturated`` True.  ``"reject"``: flagged
         ``Reason.SATURATED`` (historical).
     shoulders : bool
-        ``cog`` weighs only a stripe's top (``SHOULDER_FRACTION`` of its height and up) where
-        the run above its level reaches past the window farther than ``SHOULDER_RUN_WIDTHS``
-        of its width: something lies under the stripe's foot on one side. For a colour
-        camera's excess (``stripe_signal``), whose chroma JPEG's 4:2:0 and demosaicing spread
-        about the line; off for a mono camera, where a speckled line's long run would lose its
-        flanks to it (``docs/stripe.md``).
+        ``cog`` weighs only a stripe's top, above ``SHOULDER_FRACTION`` (half) of its height
+        over its own background, and a clipped peak whose flank fit fails takes the centre of
+        its part above that level (``estimators.top_centroid``).  For a colour camera's excess
+        (``stripe_signal``): JPEG's 4:2:0 chroma and demosaicing spread it to one side of the
+        line, and a printed texture's edge under the line weighs one flank more than the
+        other.  Off for a mono camera, where a speckled line's flanks average its speckle out
+        (``docs/stripe.md``).
     **params
         ``min_width`` (float, px, default ``MIN_WIDTH_PX``): narrower peaks need a neighbour.
         ``double_ratio`` (float, default ``DOUBLE_PEAK_RATIO``).

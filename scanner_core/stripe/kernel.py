@@ -96,14 +96,17 @@ BACKGROUND_CLEAR_SIGMAS = 2.5
 BACKGROUND_FAR_RATIO = 1.6
 BACKGROUND_ROUNDS = 4
 
-# With ``shoulders``: a centroid's run reaching past the window farther than
-# SHOULDER_RUN_WIDTHS of the stripe's sigma-like width from the peak (a Gaussian's run above
-# 5 % of it reaches 2.45) weighs the stripe's top only, above SHOULDER_FRACTION of its height.
-# Off by default: a speckled line's run is long too (0.15 -> 0.19 sigma RMS on a speckled line
-# of sigma 0.5-6 px with it on), where on a colour excess through JPEG's 4:2:0 chroma the run
-# takes in the chroma spread to one side (0.63 -> 0.23 px RMS on a real green line).
-SHOULDER_RUN_WIDTHS = 4.0
-SHOULDER_FRACTION = 0.3
+# With ``shoulders``: ``cog`` weighs the stripe's top only, above SHOULDER_FRACTION of its
+# height over its own background (the half maximum).  A colour excess has shoulders a mono
+# camera's line has not: JPEG's 4:2:0 chroma and demosaicing spread it to one side, and a
+# printed texture's edge under the line (its reflectance, its chroma) weighs one flank more
+# than the other; the top sits where the light is.  Off for mono frames: a speckled line's
+# flanks average its speckle out (0.15 -> 0.19 sigma RMS on a speckled line of sigma 0.5-6 px
+# with only its top weighed).  A clipped colour peak whose flank fit fails (the flanks of an
+# overexposed line's excess are no Gaussian's) takes the centre of its part above that level,
+# the profile linear between the pixels (``top_centroid``: a flat top's pixel sum would sit on
+# whole and half pixels).
+SHOULDER_FRACTION = 0.5
 
 # A peak at least FLAT_MIN_WIDTH_PX wide whose top (within FLAT_LEVEL of its height) runs
 # longer than FLAT_TOP_WIDTHS of its width plus FLAT_TOP_SLACK_ROWS is a plateau (``_flat_top``).
@@ -371,12 +374,6 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
         wmain[j] = wd
         nmain[j] = stats[1]
         ymain[j] = stats[2]
-        if (shoulders and math.isfinite(wd)
-                and window + stats[3] > SHOULDER_RUN_WIDTHS * max(wd, 1.0)):
-            # the centroid's run goes on far past where a stripe this wide ends: something
-            # lies under it (a JPEG's chroma spread to one side of a coloured line); its top
-            ymain[j] = est.cog(img, c, a, h, b + SHOULDER_FRACTION * (p - b), window, bg,
-                               max_walk)
         s = float(sec[j])
         if s > threshold and s >= floor and s >= double_ratio * p:
             r2 = int(a2[j])  # the second candidate's row
@@ -562,6 +559,11 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
             if not math.isfinite(y):  # too few samples for the fit: a narrow stripe?
                 y = est.narrow_clip_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig,
                                            bg_sat)
+            if not math.isfinite(y) and shoulders:
+                y = est.top_centroid(img, c, a, h, b + SHOULDER_FRACTION * (p - b), max_walk)
+        elif method == 0 and shoulders:
+            y = est.cog(img, c, a, h, b + SHOULDER_FRACTION * (p - b), window, math.nan,
+                        max_walk)
         elif method == 0:
             y = y_cog
         elif method == 1:

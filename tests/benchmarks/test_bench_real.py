@@ -40,8 +40,9 @@ def _board_texture(scale):
     return tex, 2 * side
 
 
-def _view(rvec, tvec, rng):
-    """One RGB photograph: the board under white light, the green line on it."""
+def _view(rvec, tvec, rng, fade_from=WIDTH):
+    """One RGB photograph: the board under white light, the green line on it (none from
+    column ``fade_from`` on: a line that fades out)."""
     k = np.array([[FOCAL_PX, 0, WIDTH / 2], [0, FOCAL_PX, HEIGHT / 2], [0, 0, 1.0]])
     rot, _ = cv2.Rodrigues(rvec)
     scale = 8.0
@@ -67,25 +68,31 @@ def _view(rvec, tvec, rng):
             line[u] = v[i] - f[i] * (v[i + 1] - v[i]) / (f[i + 1] - f[i])
     rows = np.arange(HEIGHT)[:, None]
     stripe = 70.0 * np.exp(-0.5 * ((rows - line[None, :]) / 1.3) ** 2)
-    stripe = np.where(inside & np.isfinite(stripe), stripe, 0.0)
+    stripe = np.where(inside & np.isfinite(stripe) & (np.arange(WIDTH) < fade_from), stripe, 0.0)
     grey = board.astype(np.float64)
     rgb = np.stack([grey + 0.10 * stripe, grey + stripe, grey + 0.15 * stripe], axis=-1)
     rgb += rng.normal(0.0, 1.5, rgb.shape)
     return np.clip(np.round(rgb), 0, 255).astype(np.uint8)
 
 
+POSES = [((0.25, -0.2, 0.02), (-60.0, -30.0, 310.0)), ((-0.2, 0.25, -0.05), (-70.0, -45.0, 330.0)),
+         ((0.3, 0.15, 0.1), (-55.0, -40.0, 300.0)), ((-0.15, -0.3, 0.0), (-65.0, -25.0, 320.0)),
+         ((0.05, 0.35, -0.08), (-60.0, -50.0, 340.0))]
+
+
+def _write_set(folder, name, fade_from=WIDTH):
+    views = folder / name / "views"
+    views.mkdir(parents=True)
+    rng = np.random.default_rng(3)
+    for i, (r, t) in enumerate(POSES):
+        rgb = _view(np.array(r), np.array(t), rng, fade_from)
+        assert cv2.imwrite(str(views / f"view{i}.png"), rgb[:, :, ::-1])
+
+
 @pytest.fixture(scope="module")
 def photographs(tmp_path_factory):
     folder = tmp_path_factory.mktemp("sets")
-    views = folder / "synthetic" / "views"
-    views.mkdir(parents=True)
-    rng = np.random.default_rng(3)
-    poses = [((0.25, -0.2, 0.02), (-60.0, -30.0, 310.0)), ((-0.2, 0.25, -0.05), (-70.0, -45.0, 330.0)),
-             ((0.3, 0.15, 0.1), (-55.0, -40.0, 300.0)), ((-0.15, -0.3, 0.0), (-65.0, -25.0, 320.0)),
-             ((0.05, 0.35, -0.08), (-60.0, -50.0, 340.0))]
-    for i, (r, t) in enumerate(poses):
-        rgb = _view(np.array(r), np.array(t), rng)
-        assert cv2.imwrite(str(views / f"view{i}.png"), rgb[:, :, ::-1])
+    _write_set(folder, "synthetic")
     return folder
 
 
@@ -101,6 +108,26 @@ def test_the_bench_scores_a_known_line_and_plane(photographs):
     # the same plane in every view, 300 mm away at 900 px: 0.05 px is about 17 um
     assert fly["rms_plane_um"] < 40.0
     assert fly["whole_pixel_share"] < 0.07
+    # the line is seen in every profile on the target, and measured in each
+    assert figures["profiles_visible"] >= 0.98 * figures["profiles_on_target"]
+    assert fly["measured_visible_share"] >= 0.99
+    # the naive peak finder on flyscan's own signal: the same line, scored alike
+    assert figures["baseline_on_flyscan_signal"]["rms_line_px"] < 2 * base["rms_line_px"]
+
+
+def test_a_profile_where_no_stripe_shows_is_not_counted_as_visible(tmp_path):
+    """The same photographs with the line gone from column 400 on: the profiles there are on
+    the target but show nothing, and are not held against either method."""
+    _write_set(tmp_path, "synthetic", fade_from=400)
+    whole = score_set(SET, tmp_path / "synthetic")
+    _write_set(tmp_path / "full", "synthetic")
+    full = score_set(SET, tmp_path / "full" / "synthetic")
+    assert whole["profiles_on_target"] == full["profiles_on_target"]
+    assert whole["profiles_visible"] < 0.8 * full["profiles_visible"]
+    assert whole["flyscan"]["measured_visible_share"] >= 0.99
+    # and where nothing shows, nothing is measured
+    seen = whole["profiles_visible"] / whole["profiles_on_target"]
+    assert whole["flyscan"]["measured_share"] <= seen + 0.01
 
 
 def test_flyscan_bench_real_writes_its_figures_and_names_what_is_missing(photographs, tmp_path,
