@@ -34,6 +34,7 @@ import numpy as np
 from benchmarks.results import write_json
 from scanner_core.stripe.extractor import (EXCESS_OFFSET_DN, estimate_noise, extract,
                                            stripe_signal)
+from simulator.line_photos import PRESENT_SNR
 
 __all__ = ["PhotoSet", "SETS", "baseline_rows", "naive_signal", "score_set", "run"]
 
@@ -50,11 +51,15 @@ RIGHT_PX = 0.5
 #: Columns whose line point lies closer than this to the target's outline are not counted.
 OUTLINE_MARGIN_PX = 4.0
 #: A profile on the target shows the stripe (a person sees it) where the naive signal's
-#: largest value within VISIBLE_NEAR_PX of the line stands this many of the frame's noise
-#: sigmas over the column's medians VISIBLE_RING_PX away from the line, on each side (an
+#: largest value within VISIBLE_NEAR_PX of the line stands VISIBLE_SIGMAS of the frame's noise
+#: over the column's medians VISIBLE_RING_PX away from the line, on each side (an
 #: overexposed line's excess is hollow across its white core and its red halo spreads a
 #: dozen rows: the core's maximum is read that wide, the sides beyond the halo).
-VISIBLE_SIGMAS = 5.0
+#: VISIBLE_SIGMAS is the synthesised photographs' own (``simulator.line_photos.PRESENT_SNR``:
+#: the extractor's floor is 5 sigma, a peak at 10 stands clear of the noise); the shares
+#: measured at each of VISIBLE_CURVE are reported too.
+VISIBLE_SIGMAS = PRESENT_SNR
+VISIBLE_CURVE = (5.0, 10.0, 20.0)
 VISIBLE_NEAR_PX = 8
 VISIBLE_RING_PX = (15, 45)
 #: The methods scored: flyscan's pipeline, the naive peak finder on the photograph's colour
@@ -378,8 +383,11 @@ def score_photo(rgb, ps: PhotoSet, rvec, tvec, k, dist) -> dict | None:
     ok = np.isfinite(cross)
     board = np.zeros(n_cols, bool)
     board[ok] = inside(line_xy[ok])
-    visible = board & _stripe_visible(naive, cross)
-    out = {"profiles_on_target": int(board.sum()), "profiles_visible": int(visible.sum())}
+    contrast = np.where(board, _stripe_contrast(naive, cross), np.nan)
+    visible = contrast >= VISIBLE_SIGMAS
+    curve = {level: contrast >= level for level in VISIBLE_CURVE}
+    out = {"profiles_on_target": int(board.sum()), "profiles_visible": int(visible.sum()),
+           "profiles_visible_at": {level: int(v.sum()) for level, v in curve.items()}}
     # the target's plane in the camera, for the light plane
     rot, _ = cv2.Rodrigues(rvec)
     plane_n = rot[:, 2]
@@ -399,6 +407,8 @@ def score_photo(rgb, ps: PhotoSet, rvec, tvec, k, dist) -> dict | None:
         points = rays * (plane_d / (rays @ plane_n))[:, None]
         frac = np.abs(rows[cols_b] - np.round(rows[cols_b]))
         out[name] = {"measured": int(len(d)), "measured_visible": int(visible[cols_b].sum()),
+                     "measured_visible_at": {level: int(v[cols_b].sum())
+                                             for level, v in curve.items()},
                      "distance_px": d, "points_mm": points,
                      "whole_pixel": frac < WHOLE_PIXEL_PX}
     b, f = dist_px["baseline"], dist_px["flyscan"]
@@ -408,23 +418,24 @@ def score_photo(rgb, ps: PhotoSet, rvec, tvec, k, dist) -> dict | None:
     return out
 
 
-def _stripe_visible(signal: np.ndarray, cross: np.ndarray) -> np.ndarray:
-    """(W,) bool: the profiles where ``signal`` (H, W) uint8 shows a stripe at rows ``cross``
-    (W,) float (NaN: off the photograph), by ``VISIBLE_SIGMAS`` of the frame's noise
-    (``estimate_noise``) over the column's median beside the line."""
+def _stripe_contrast(signal: np.ndarray, cross: np.ndarray) -> np.ndarray:
+    """(W,) float: how far the stripe stands out at rows ``cross`` (W,) float (NaN: off the
+    photograph) of ``signal`` (H, W) uint8, in the frame's noise sigmas (``estimate_noise``):
+    the largest value within ``VISIBLE_NEAR_PX`` of the line over the higher of the column's
+    medians ``VISIBLE_RING_PX`` away on either side (a texture's edge under the line is no
+    stripe); NaN where a side runs off the photograph."""
     h, w = signal.shape
     noise = estimate_noise(signal)[1]
     near_lo, near_hi = VISIBLE_RING_PX
-    out = np.zeros(w, bool)
+    out = np.full(w, np.nan)
     for c in np.flatnonzero(np.isfinite(cross)):
         r = int(round(float(cross[c])))
         core = signal[max(r - VISIBLE_NEAR_PX, 0):min(r + VISIBLE_NEAR_PX + 1, h), c]
         above = signal[max(r - near_hi, 0):max(r - near_lo + 1, 0), c]
         below = signal[min(r + near_lo, h):min(r + near_hi + 1, h), c]
         if len(core) and len(above) and len(below):
-            # over both sides: a texture's edge under the line is no stripe
             side = max(float(np.median(above)), float(np.median(below)))
-            out[c] = float(core.max()) - side >= VISIBLE_SIGMAS * noise
+            out[c] = (float(core.max()) - side) / noise
     return out
 
 
@@ -471,7 +482,9 @@ def score_set(ps: PhotoSet, root: pathlib.Path, progress=None) -> dict:
     obj = _object_points(ps)
     totals = {"photographs": len(paths), "scored": 0, "profiles_on_target": 0,
               "profiles_visible": 0, "baseline_right": 0, "baseline_right_flyscan_not": 0}
-    pooled = {m: {"d": [], "points": [], "whole": [], "visible": 0} for m in METHODS}
+    visible_at = dict.fromkeys(VISIBLE_CURVE, 0)
+    pooled = {m: {"d": [], "points": [], "whole": [], "visible": 0,
+                  "visible_at": dict.fromkeys(VISIBLE_CURVE, 0)} for m in METHODS}
     for i, (path, rgb, pts) in enumerate(per_photo):
         if progress:
             progress(f"{ps.folder}: {path.name} ({i + 1}/{len(per_photo)})")
@@ -487,8 +500,12 @@ def score_set(ps: PhotoSet, root: pathlib.Path, progress=None) -> dict:
         for key in ("profiles_on_target", "profiles_visible", "baseline_right",
                     "baseline_right_flyscan_not"):
             totals[key] += s[key]
+        for level in VISIBLE_CURVE:
+            visible_at[level] += s["profiles_visible_at"][level]
         for m in pooled:
             pooled[m]["visible"] += s[m]["measured_visible"]
+            for level in VISIBLE_CURVE:
+                pooled[m]["visible_at"][level] += s[m]["measured_visible_at"][level]
             pooled[m]["d"].append(s[m]["distance_px"])
             pooled[m]["points"].append(s[m]["points_mm"])
             pooled[m]["whole"].append(s[m]["whole_pixel"])
@@ -502,6 +519,9 @@ def score_set(ps: PhotoSet, root: pathlib.Path, progress=None) -> dict:
             "measured": int(len(d)),
             "measured_share": len(d) / max(totals["profiles_on_target"], 1),
             "measured_visible_share": p["visible"] / max(totals["profiles_visible"], 1),
+            "measured_visible_share_at_sigmas": {
+                str(level): p["visible_at"][level] / max(visible_at[level], 1)
+                for level in VISIBLE_CURVE},
             "rms_line_px": float(np.sqrt(np.mean(d[near] ** 2))) if near.any() else None,
             "beyond_1px_share": float(np.mean(np.abs(d) > OUTLIER_PX)) if len(d) else None,
             "gross_share": float(np.mean(~near)) if len(d) else None,
@@ -510,6 +530,7 @@ def score_set(ps: PhotoSet, root: pathlib.Path, progress=None) -> dict:
         }
     return {"name": ps.name, "repository": ps.repository, "commit": ps.commit,
             "laser": ps.laser, "camera": camera_from, "source": ps.source, **totals,
+            "profiles_visible_at_sigmas": {str(k): v for k, v in visible_at.items()},
             **{m: figures[m] for m in METHODS}}
 
 
