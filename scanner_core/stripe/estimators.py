@@ -221,14 +221,17 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     memory, and reading them once is what the frame's time allows.  ``out`` (4,) float64
     receives the width (px, inf past ``max_walk``), the count of pixels above ``threshold``
     within ``+-window`` and the centre of gravity above ``t_cog`` (NaN if none), each equal to
-    what the separate function returns (the centroid's sums added in another order), and the
-    rows the centroid's run goes on past the window."""
+    what the separate function returns (the centroid's sums added in another order), the
+    rows the centroid's run goes on past the window, and (where ``out`` holds a fifth) the
+    highest last pixel of a run past the window where it fell under ``t_cog``: a flank ends
+    just over the level, a lit square's edge far over it (0 where no such run ended)."""
     off = t_cog if math.isnan(bg) else bg
     v = float(img[a, c])
     count = 1.0 if v > threshold else 0.0
     s0 = v - off if v > t_cog else 0.0
     s1 = 0.0
     beyond = 0
+    cliff = 0.0
     width_inf = False
     left = right = 0.0
     for side in range(2):
@@ -274,6 +277,8 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
                 s1 += (u - off) * (r - a)
                 beyond += 1
             else:
+                if run and d <= reach and prev > cliff:
+                    cliff = prev  # where the run past the window fell under the level
                 run = False
             prev = u
             if not half and not inside and not run:
@@ -286,6 +291,8 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     out[1] = count
     out[2] = a + s1 / s0 if s0 > 0.0 else math.nan
     out[3] = beyond
+    if out.shape[0] > 4:
+        out[4] = cliff
 
 
 @njit(nogil=True, cache=True)

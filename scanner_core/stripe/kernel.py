@@ -108,6 +108,15 @@ BACKGROUND_ROUNDS = 4
 # whole and half pixels).
 SHOULDER_FRACTION = 0.5
 
+# Without ``shoulders``: a centroid's run past the window that ends at a cliff, its last pixel
+# over the peak's background by more than CLIFF_FRACTION of the peak's height, ended on a
+# texture's edge (a lit square under the line, its plateau followed to the square's edge),
+# not down the stripe's flank (which ends at the level, within a pixel's step of it); the
+# stripe is then weighed above that plateau (the cliff's top plus COG_SIGMAS of noise).  A
+# line across a printed checkerboard whose squares are lit (mono, squares of 24 px, sigma
+# 1.5-3 px): 1.125 -> 0.610 px RMS; the speckled and the plain lines of the tests unchanged.
+CLIFF_FRACTION = 0.25
+
 # A peak at least FLAT_MIN_WIDTH_PX wide whose top (within FLAT_LEVEL of its height) runs
 # longer than FLAT_TOP_WIDTHS of its width plus FLAT_TOP_SLACK_ROWS is a plateau (``_flat_top``).
 FLAT_MIN_WIDTH_PX = 2.0
@@ -313,7 +322,7 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
     two walks itself (through a function holding both, or inside ``_columns``, the loop ran at
     half the speed or less)."""
     h = img.shape[0]
-    stats = np.zeros(4)
+    stats = np.zeros(5)
     n_widths = 0
     for j in range(js, je):
         p = float(mx[j])
@@ -374,6 +383,12 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
         wmain[j] = wd
         nmain[j] = stats[1]
         ymain[j] = stats[2]
+        if (not fast and not shoulders and p < SATURATION_DN and stats[3] > 0
+                and stats[4] > b + CLIFF_FRACTION * (p - b)):
+            # the centroid's run past the window ended at a cliff, not down a flank: a lit
+            # square's edge (a texture under the line); the stripe is what stands over it
+            ymain[j] = est.cog(img, c, a, h, stats[4] + COG_SIGMAS * sig, window, math.nan,
+                               max_walk)
         s = float(sec[j])
         if s > threshold and s >= floor and s >= double_ratio * p:
             r2 = int(a2[j])  # the second candidate's row

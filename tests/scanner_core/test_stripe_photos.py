@@ -174,6 +174,19 @@ def test_a_bright_printed_texture_is_not_a_stripe(square_px, most):
         assert extract(frame).valid.mean() <= most
 
 
+def test_a_mono_line_across_lit_squares_is_not_pulled_into_them():
+    """A mono camera's line across a printed checkerboard whose squares the ambient light
+    shows (squares of 24 px at 70 and 22 DN): where a lit square holds the line, the
+    centroid's run past the window followed the square to its edge (1.125 px RMS, 42 % of
+    the rows more than 1 px off); a run that ends at a cliff is weighed above it.  The naive
+    peak finder still does better here (0.25 px): a square's edge inside the line cuts it."""
+    fly, _ = _measure(LinePhoto(peak_dn=100.0, ambient_dn=60.0, texture_px=24.0,
+                                black_reflectance=0.2, sigma_px=(1.5, 3.0)))
+    assert fly["measured"] >= 0.995
+    assert fly["rms"] < 0.7
+    assert fly["beyond_1px"] < 0.15
+
+
 def test_a_stripe_on_a_bright_surface():
     """A line 50 DN over a surface at 190 DN (a white part under ambient light): it stands
     clear of its own background, not of a fixed level, and is measured whole."""
