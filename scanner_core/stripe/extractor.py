@@ -404,25 +404,20 @@ def _continue_run(rgb, k, c, first, end, out):
     under full scale): it is carried on from the unclipped rows either side (``b``, ``a``),
     interpolated along the run (a texture edge under it), plus what the other two channels rose
     above theirs there: ``e(r) = e_b + t (e_a - e_b) + (o(r) - o_b - t (o_a - o_b)) / 2``,
-    ``o = v_i + v_j``, ``t`` from 0 at ``b`` to 1 at ``a``, or the pixel's own excess where
-    that is larger.  Monotonic in the light where ``v_i`` and ``v_j`` grow with it, so a
-    symmetric line stays symmetric; a white surface (its excess about zero either side, its
-    other channels no brighter inside) stays about zero.  Full scale where it reaches it:
-    clipped, measured from its flanks.  Written where larger than what ``out`` holds (another
-    channel's excess, for ``colour_excess``)."""
+    ``o = v_i + v_j``, ``t`` from 0 at ``b`` to 1 at ``a``.  Monotonic in the light where
+    ``v_i`` and ``v_j`` grow with it, so a symmetric line stays symmetric; a white surface
+    (its excess about zero either side, its other channels no brighter inside) stays about
+    zero.  Full scale where it reaches it: clipped, measured from its flanks.  Written only
+    where larger than what ``out`` holds, the pixel's own excess (or another channel's, for
+    ``colour_excess``): both are lower bounds where the channel clips, and a pixel counted
+    clipped within JPEG's margin may be a bright flank's."""
     h = out.shape[0]
     i = (k + 1) % 3
     j = (k + 2) % 3
     b = first - 1
     a = end
-    if b < 0 and a >= h:  # nothing unclipped to carry on from: the excess as it is
-        for r in range(first, end):
-            e2 = (2 * np.int32(rgb[r, c, k]) - np.int32(rgb[r, c, i])
-                  - np.int32(rgb[r, c, j]))
-            e = min(max(((e2 + 1) >> 1) + EXCESS_OFFSET_DN, 0), 255)
-            if e > out[r, c]:
-                out[r, c] = np.uint8(e)
-        return
+    if b < 0 and a >= h:
+        return  # the whole column clipped: nothing to carry on from, its own excess stays
     if b < 0:
         b = a
     if a >= h:
@@ -435,10 +430,7 @@ def _continue_run(rgb, k, c, first, end, out):
     for r in range(first, end):
         t = (r - b) / span
         o = np.int32(rgb[r, c, i]) + np.int32(rgb[r, c, j])
-        # never under the pixel's own excess: both are lower bounds where it clips, and a
-        # pixel counted clipped by JPEG's margin may be a bright flank's
-        e2 = max(e_b + t * (e_a - e_b) + o - (o_b + t * (o_a - o_b)),
-                 2 * np.int32(rgb[r, c, k]) - o)
+        e2 = e_b + t * (e_a - e_b) + o - (o_b + t * (o_a - o_b))
         e = min(max(int(math.floor(0.5 * e2 + 0.5)) + EXCESS_OFFSET_DN, 0), 255)
         if e > out[r, c]:
             out[r, c] = np.uint8(e)
