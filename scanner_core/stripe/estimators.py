@@ -17,7 +17,7 @@ from scanner_core.numeric.linsolve import solve_in_place
 
 __all__ = ["SATURATION_DN", "FWHM_PER_SIGMA", "fwhm_width", "count_above", "cog",
            "top_centroid", "within_window", "width_count_cog", "parabola", "gaussian3", "blais_rioux",
-           "lsq_gauss", "saturated_centre", "narrow_clip_centre"]
+           "lsq_gauss", "saturated_centre", "narrow_clip_centre", "cut_flank", "uncut_centre"]
 
 # Pixel value taken as saturated (uint8 full scale).
 SATURATION_DN = 255
@@ -38,6 +38,28 @@ NARROW_CLIP_ROWS = 2
 #: the background on either flank, which the fit's offset needs; for the reference stripe
 #: (sigma 1.5 px) that is the default 4 rows.
 LSQ_HALF_WIDTH_SIGMAS = 2.5
+# Half width at half maximum of a Gaussian in sigmas: sqrt(2 ln 2).
+HWHM_PER_SIGMA = 0.5 * FWHM_PER_SIGMA
+#: A flank is cut (a texture's edge under the stripe, its far side dark) where it falls in one
+#: pixel by more than CUT_MIN_FALL of the peak's height over its background and by more than a
+#: Gaussian as wide as the other flank can: CUT_SLOPE / sigma of the height (a unit Gaussian's
+#: steepest slope is 1 / sqrt(e) = 0.607 / sigma; the margin covers the width read short or
+#: long by a pixel's sampling on a narrow stripe, whose peak pixel also reads under its
+#: height), plus CUT_NOISE_SIGMAS of the difference of two pixels' noise.  CUT_MIN_FALL keeps a
+#: speckled stripe's grain (one pixel of a wide flank darker than the next) from passing for
+#: an edge.
+CUT_MIN_FALL = 0.5
+CUT_SLOPE = 0.75
+CUT_NOISE_SIGMAS = 3.0
+#: ... and where the pixel past the fall falls again by less than CUT_STEP_RATIO of it (an
+#: edge between two pixels; one that straddles a pixel splits the step in two falls, and is
+#: found only where one of them holds most of it).
+CUT_STEP_RATIO = 0.25
+#: The whole flank's fit takes its pixels above CUT_RUN_LEVEL of the peak's height over that
+#: flank's own foot.
+CUT_RUN_LEVEL = 0.15
+#: The uncut flank's fit is rejected if its centre leaves the argmax by more than this, px.
+CUT_MAX_SHIFT_PX = 2.0
 
 
 @njit(nogil=True, cache=True)
@@ -505,3 +527,170 @@ def narrow_clip_centre(img, c, a, h, level, bgl):
         s0 += wgt
         s1 += wgt * r
     return s1 / s0 if s0 > 0.0 else math.nan
+
+
+@njit(nogil=True, cache=True)
+def _flank(img, c, a, h, step, half, reach):
+    """Down one flank from row ``a`` (``step`` -1: up the frame, +1: down it) to where it
+    crosses ``half``: the largest one-pixel fall on the way (the last one, out of the part
+    above ``half``, included), the row before it, and the distance from ``a`` to the crossing
+    (the profile linear between pixels; NaN where the frame's edge or ``reach`` comes first).
+    A fall that starts under ``half`` is not looked for: an edge there cuts the stripe's tail,
+    which moves its centroid little."""
+    r = a
+    best = -math.inf
+    r_best = a
+    k = 0
+    while 0 <= r + step < h and k < reach:
+        v1 = float(img[r, c])
+        v0 = float(img[r + step, c])
+        if v1 - v0 > best:
+            best = v1 - v0
+            r_best = r
+        if not v0 > half:
+            return best, r_best, abs(r - a) + (v1 - half) / (v1 - v0)
+        r += step
+        k += 1
+    return best, r_best, math.nan
+
+
+@njit(nogil=True, cache=True)
+def _steepest_fall(half_width, height, noise):
+    """The largest one-pixel fall a Gaussian stripe ``height`` high whose half width at half
+    maximum from its argmax is ``half_width`` (its centre up to half a pixel nearer) shows
+    with pixel noise ``noise``."""
+    sigma = max(half_width - 0.5, 0.3) / HWHM_PER_SIGMA
+    return min(1.0, CUT_SLOPE / sigma) * height + CUT_NOISE_SIGMAS * math.sqrt(2.0) * noise
+
+
+@njit(nogil=True, cache=True)
+def cut_flank(img, c, a, h, bg, noise, reach):
+    """Which flank of the peak at ``a``, if one, a texture's edge cuts.
+
+    Where a dark square's edge crosses the stripe, its far side is the stripe times the dark
+    reflectance: that flank drops in one pixel further than a Gaussian as wide as the other
+    flank can (see ``CUT_MIN_FALL``), and a centroid of the whole stripe is pulled toward the
+    lit side by up to a sigma.
+
+    Parameters
+    ----------
+    bg : float
+        The peak's background, DN (its height is ``img[a, c] - bg``).
+    noise : float
+        The frame's pixel noise sigma, DN.
+    reach : int
+        The farthest row from ``a`` either flank is followed to.
+
+    Returns
+    -------
+    step : int
+        -1 when the flank toward row 0 is cut, +1 the other, 0 when neither or both are.
+    row : int
+        The last row before the cut's fall (on the stripe's lit side).
+    """
+    height = float(img[a, c]) - bg
+    if not height > 0.0:
+        return 0, a
+    half = bg + 0.5 * height
+    fall_up, r_up, hw_up = _flank(img, c, a, h, -1, half, reach)
+    fall_dn, r_dn, hw_dn = _flank(img, c, a, h, 1, half, reach)
+    if not (max(fall_up, fall_dn) > CUT_MIN_FALL * height and math.isfinite(hw_up)
+            and math.isfinite(hw_dn)):
+        return 0, a
+    cut_up = fall_up > max(CUT_MIN_FALL * height, _steepest_fall(hw_dn, height, noise))
+    cut_dn = fall_dn > max(CUT_MIN_FALL * height, _steepest_fall(hw_up, height, noise))
+    if cut_up == cut_dn:
+        return 0, a
+    # the other flank must be a Gaussian's, no steeper than its own width allows: a flat top
+    # between two cliffs (an overexposed colour line's carried-on core through JPEG) is no
+    # stripe cut on one side
+    if cut_up and fall_dn > _steepest_fall(hw_dn, height, noise):
+        return 0, a
+    if cut_dn and fall_up > _steepest_fall(hw_up, height, noise):
+        return 0, a
+    step = -1 if cut_up else 1
+    r_cut = r_up if cut_up else r_dn
+    fall = fall_up if cut_up else fall_dn
+    # an edge is a step: past it the dark side's stripe falls as the lit side's would, times
+    # the dark reflectance; a flank that goes on falling steeply is a flank (the carried-on
+    # core of a colour line whose channel clipped)
+    r_next = r_cut + 2 * step
+    if 0 <= r_next < h and (float(img[r_cut + step, c]) - float(img[r_next, c])
+                            > CUT_STEP_RATIO * fall):
+        return 0, a
+    return step, r_cut
+
+
+@njit(nogil=True, cache=True)
+def uncut_centre(img, c, a, h, step, r_cut, noise, reach):
+    """Centre of a stripe cut on one flank (``cut_flank``'s ``step`` and ``row``), from its
+    other, whole, flank: Guo's weighted fit [6] of a parabola to the logarithm of the profile
+    over that flank's foot,
+
+        ln(v_r - f) = k0 + k1 x + k2 x^2,  x = r - a,  weights (v_r - f)^2,  centre a - k1 / (2 k2),
+
+    over the pixels from the cut to the whole flank's end above ``CUT_RUN_LEVEL`` of the height.
+    The foot ``f`` is where the whole flank stops falling (by more than ``noise`` over two
+    pixels): the lit surface's own level, which the peak's background (read farther out, past
+    the squares) is not.  The centre lies no further than half a pixel past the cut (the
+    edge's side of the last lit pixel): beyond that the flank's fit extrapolates.
+
+    NaN when fewer than 3 pixels stand above the level, the parabola opens upward, or its
+    vertex leaves ``a`` by more than ``CUT_MAX_SHIFT_PX``.
+    """
+    s = -step  # toward the whole flank
+    r = a
+    k = 0
+    while (0 <= r + 2 * s < h and k < reach
+           and (img[r + s, c] < img[r, c] or float(img[r + 2 * s, c]) < float(img[r, c]) - noise)):
+        r += s
+        k += 1
+    if not 0 <= r + s < h:
+        return math.nan
+    foot = 0.5 * (float(img[r, c]) + float(img[r + s, c]))
+    level = foot + CUT_RUN_LEVEL * (float(img[a, c]) - foot)
+    lo = min(a, r_cut)
+    hi = max(a, r_cut)
+    if s > 0:
+        while hi < h - 1 and hi - a < reach and float(img[hi + 1, c]) > level:
+            hi += 1
+    else:
+        while lo > 0 and a - lo < reach and float(img[lo - 1, c]) > level:
+            lo -= 1
+    m = np.zeros((3, 3))
+    v = np.zeros(3)
+    n = 0
+    for rr in range(lo, hi + 1):
+        u = float(img[rr, c]) - foot
+        if not u > level - foot:
+            continue
+        x = float(rr - a)
+        w = u * u
+        y = math.log(u)
+        x2 = x * x
+        m[0, 0] += w
+        m[0, 1] += w * x
+        m[0, 2] += w * x2
+        m[1, 2] += w * x2 * x
+        m[2, 2] += w * x2 * x2
+        v[0] += w * y
+        v[1] += w * x * y
+        v[2] += w * x2 * y
+        n += 1
+    if n < 3:
+        return math.nan
+    m[1, 1] = m[0, 2]
+    m[1, 0] = m[0, 1]
+    m[2, 0] = m[0, 2]
+    m[2, 1] = m[1, 2]
+    if not solve_in_place(m, v):
+        return math.nan
+    if not v[2] < 0.0:
+        return math.nan
+    off = -v[1] / (2.0 * v[2])
+    if not abs(off) <= CUT_MAX_SHIFT_PX:
+        return math.nan
+    edge = r_cut + 0.5 * step
+    if step > 0:
+        return min(a + off, edge)
+    return max(a + off, edge)

@@ -116,6 +116,11 @@ SHOULDER_FRACTION = 0.5
 # line across a printed checkerboard whose squares are lit (mono, squares of 24 px, sigma
 # 1.5-3 px): 1.125 -> 0.610 px RMS; the speckled and the plain lines of the tests unchanged.
 CLIFF_FRACTION = 0.25
+# Without ``shoulders``, a centroid whose stripe a texture's edge cuts (``est.cut_flank``) is
+# replaced by the fit of its whole flank (``est.uncut_centre``).  Not on colour frames: there
+# an overexposed core through JPEG (a flat top between cliffs, a halo beside) passed for a cut
+# stripe on real photographs, and the fit of its other flank read worse than the top's
+# centroid.
 
 # A peak at least FLAT_MIN_WIDTH_PX wide whose top (within FLAT_LEVEL of its height) runs
 # longer than FLAT_TOP_WIDTHS of its width plus FLAT_TOP_SLACK_ROWS is a plateau (``_flat_top``).
@@ -590,6 +595,13 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
         else:
             y0 = est.cog(img, c, a, h, t_c, window, math.nan, max_walk)
             y = est.lsq_gauss(img, c, a, h, t_c, window, y0, wd) if math.isfinite(y0) else y0
+        if method == 0 and not shoulders and not saturated[c] and math.isfinite(y):
+            # a texture's edge across the stripe: its centre from the flank the edge leaves
+            step, r_cut = est.cut_flank(img, c, a, h, b, sig, max_walk)
+            if step != 0:
+                y_cut = est.uncut_centre(img, c, a, h, step, r_cut, sig, max_walk)
+                if math.isfinite(y_cut):
+                    y = y_cut
         yrow[j] = y
     # the gates: a narrow peak continued by a neighbour's, a wide one by a chain of them from a
     # stripe within the gate
