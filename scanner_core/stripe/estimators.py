@@ -622,7 +622,23 @@ def cut_flank(img, c, a, h, bg, noise, reach):
 
 
 @njit(nogil=True, cache=True)
-def uncut_centre(img, c, a, h, step, r_cut, noise, reach):
+def _foot(img, c, r, h, step, noise, reach):
+    """Where the profile, followed from row ``r`` by ``step``, stops falling (by more than
+    ``noise`` over two pixels): the mean of that row and the next, DN (NaN at the frame's
+    edge)."""
+    k = 0
+    while (0 <= r + 2 * step < h and k < reach
+           and (img[r + step, c] < img[r, c]
+                or float(img[r + 2 * step, c]) < float(img[r, c]) - noise)):
+        r += step
+        k += 1
+    if not 0 <= r + step < h:
+        return math.nan
+    return 0.5 * (float(img[r, c]) + float(img[r + step, c]))
+
+
+@njit(nogil=True, cache=True)
+def uncut_centre(img, c, a, h, step, r_cut, noise, reach, same_foot):
     """Centre of a stripe cut on one flank (``cut_flank``'s ``step`` and ``row``), from its
     other, whole, flank: Guo's weighted fit [6] of a parabola to the logarithm of the profile
     over that flank's foot,
@@ -635,19 +651,21 @@ def uncut_centre(img, c, a, h, step, r_cut, noise, reach):
     the squares) is not.  The centre lies no further than half a pixel past the cut (the
     edge's side of the last lit pixel): beyond that the flank's fit extrapolates.
 
+    With ``same_foot`` (a colour excess, where a grey texture's squares read alike), the cut
+    flank's foot must lie within ``CUT_NOISE_SIGMAS`` of ``noise`` of the whole one's: a
+    shoulder beside a bright core (a halo through JPEG) stands on no surface of its own.
+
     NaN when fewer than 3 pixels stand above the level, the parabola opens upward, or its
-    vertex leaves ``a`` by more than ``CUT_MAX_SHIFT_PX``.
+    vertex leaves ``a`` by more than ``CUT_MAX_SHIFT_PX``, or the feet differ.
     """
     s = -step  # toward the whole flank
-    r = a
-    k = 0
-    while (0 <= r + 2 * s < h and k < reach
-           and (img[r + s, c] < img[r, c] or float(img[r + 2 * s, c]) < float(img[r, c]) - noise)):
-        r += s
-        k += 1
-    if not 0 <= r + s < h:
+    foot = _foot(img, c, a, h, s, noise, reach)
+    if not math.isfinite(foot):
         return math.nan
-    foot = 0.5 * (float(img[r, c]) + float(img[r + s, c]))
+    if same_foot:
+        foot_cut = _foot(img, c, r_cut + step, h, step, noise, reach)
+        if not abs(foot_cut - foot) <= CUT_NOISE_SIGMAS * noise:
+            return math.nan
     level = foot + CUT_RUN_LEVEL * (float(img[a, c]) - foot)
     lo = min(a, r_cut)
     hi = max(a, r_cut)

@@ -112,15 +112,14 @@ SHOULDER_FRACTION = 0.5
 # over the peak's background by more than CLIFF_FRACTION of the peak's height, ended on a
 # texture's edge (a lit square under the line, its plateau followed to the square's edge),
 # not down the stripe's flank (which ends at the level, within a pixel's step of it); the
-# stripe is then weighed above that plateau (the cliff's top plus COG_SIGMAS of noise).  A
-# line across a printed checkerboard whose squares are lit (mono, squares of 24 px, sigma
-# 1.5-3 px): 1.125 -> 0.610 px RMS; the speckled and the plain lines of the tests unchanged.
+# stripe is then weighed above that plateau (the cliff's top plus COG_SIGMAS of noise)
+# (docs/stripe.md, a line across printed squares).
 CLIFF_FRACTION = 0.25
-# Without ``shoulders``, a centroid whose stripe a texture's edge cuts (``est.cut_flank``) is
-# replaced by the fit of its whole flank (``est.uncut_centre``).  Not on colour frames: there
-# an overexposed core through JPEG (a flat top between cliffs, a halo beside) passed for a cut
-# stripe on real photographs, and the fit of its other flank read worse than the top's
-# centroid.
+# A centroid whose stripe a texture's edge cuts (``est.cut_flank``) is replaced by the fit of
+# its whole flank (``est.uncut_centre``).  With ``shoulders`` (a colour excess) only where the
+# two flanks' feet agree: on real photographs an overexposed core through JPEG (a flat top
+# between cliffs, a halo beside) passed for a cut stripe, and the fit of its halo read worse
+# than the top's centroid.
 
 # A peak at least FLAT_MIN_WIDTH_PX wide whose top (within FLAT_LEVEL of its height) runs
 # longer than FLAT_TOP_WIDTHS of its width plus FLAT_TOP_SLACK_ROWS is a plateau (``_flat_top``).
@@ -595,11 +594,11 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
         else:
             y0 = est.cog(img, c, a, h, t_c, window, math.nan, max_walk)
             y = est.lsq_gauss(img, c, a, h, t_c, window, y0, wd) if math.isfinite(y0) else y0
-        if method == 0 and not shoulders and not saturated[c] and math.isfinite(y):
+        if method == 0 and not saturated[c] and math.isfinite(y):
             # a texture's edge across the stripe: its centre from the flank the edge leaves
             step, r_cut = est.cut_flank(img, c, a, h, b, sig, max_walk)
             if step != 0:
-                y_cut = est.uncut_centre(img, c, a, h, step, r_cut, sig, max_walk)
+                y_cut = est.uncut_centre(img, c, a, h, step, r_cut, sig, max_walk, shoulders)
                 if math.isfinite(y_cut):
                     y = y_cut
         yrow[j] = y

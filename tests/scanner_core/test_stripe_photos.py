@@ -177,17 +177,24 @@ def test_a_bright_printed_texture_is_not_a_stripe(square_px, most):
         assert extract(frame).valid.mean() <= most
 
 
-@pytest.mark.parametrize("ambient_dn", [60.0, 20.0])
-def test_a_mono_line_across_printed_squares(ambient_dn):
-    """A mono camera's line across a printed checkerboard (squares of 24 px, the dark ones at a
-    fifth of the light ones' reflectance). With the ambient light at 60 DN the squares show
-    (70 and 22 DN): where a lit square holds the line, the centroid's run followed it to its
-    edge (1.125 px RMS before a run ending at a cliff was weighed above it); at 20 DN they
-    barely do, and the edge shows only in the stripe. Where a square's edge cuts the line, its
-    centre comes from the flank the edge leaves whole (0.61 px RMS before, the naive peak
-    finder 0.25): now better than the peak finder."""
-    fly, base = _measure(LinePhoto(peak_dn=100.0, ambient_dn=ambient_dn, texture_px=24.0,
-                                   black_reflectance=0.2, sigma_px=(1.5, 3.0)))
+@pytest.mark.parametrize("photo", [
+    LinePhoto(peak_dn=100.0, ambient_dn=60.0, texture_px=24.0, black_reflectance=0.2,
+              sigma_px=(1.5, 3.0)),
+    LinePhoto(peak_dn=100.0, ambient_dn=20.0, texture_px=24.0, black_reflectance=0.2,
+              sigma_px=(1.5, 3.0)),
+    LinePhoto(laser="red", peak_dn=100.0, background_dn=10.0, ambient_dn=120.0,
+              read_noise_dn=2.0, texture_px=24.0, black_reflectance=0.2, sigma_px=(1.5, 3.0)),
+], ids=["mono-lit-squares", "mono-dim-ambient", "red"])
+def test_a_line_across_printed_squares(photo):
+    """A line across a printed checkerboard (squares of 24 px, the dark ones at a fifth of
+    the light ones' reflectance). On a mono frame with the ambient light at 60 DN the squares
+    show (70 and 22 DN): where a lit square holds the line, the centroid's run followed it to
+    its edge (1.125 px RMS before a run ending at a cliff was weighed above it); at 20 DN they
+    barely do, and the edge shows only in the stripe; in a colour frame's red excess a grey
+    print does not show at all. Where a square's edge cuts the line, its centre comes from
+    the flank the edge leaves whole (before: 0.61, 0.60 and 0.29 px RMS, the naive peak
+    finder 0.25, 0.24 and 0.22): now better than the peak finder."""
+    fly, base = _measure(photo)
     assert fly["measured"] >= 0.995
     assert fly["rms"] <= 0.9 * base["rms"]
     assert fly["within_half"] >= base["within_half"]
@@ -222,10 +229,26 @@ def test_a_cut_flank_is_found_and_the_whole_one_fitted(centre, sigma, edge, dark
     step, r_cut = est.cut_flank(img, 0, a, h, bg, 1.0, 40)
     assert step == (1 if dark_below else -1)
     assert r_cut == (round(edge - 0.5) if dark_below else round(edge + 0.5))
-    y = est.uncut_centre(img, 0, a, h, step, r_cut, 1.0, 40)
+    y = est.uncut_centre(img, 0, a, h, step, r_cut, 1.0, 40, False)
     assert abs(y - centre) < 0.1
     whole = est.cog(img, 0, a, h, bg + 0.15 * (float(img[a, 0]) - bg), 4, math.nan, 40)
     assert abs(whole - centre) > 0.2
+
+
+def test_a_core_on_a_shoulder_is_not_cut_in_a_colour_excess():
+    """A bright core on a shoulder of its own, cut off sharply on the other side (an
+    overexposed red line's excess through JPEG): ``cut_flank`` may take it for a cut stripe,
+    but its whole flank stands on the shoulder, 40 DN above the cut side's foot, where a grey
+    print's squares have the same excess; with ``same_foot`` no centre comes of it."""
+    v = np.full(120, 20.0)
+    v[40:50] = [30.0, 45.0, 60.0, 60.0, 62.0, 60.0, 110.0, 150.0, 160.0, 150.0]
+    v[50:54] = [24.0, 22.0, 21.0, 20.0]
+    img = v.astype(np.uint8)[:, None]
+    a = int(np.argmax(v))
+    step, r_cut = est.cut_flank(img, 0, a, 120, 20.0, 1.0, 40)
+    assert step == 1
+    assert math.isfinite(est.uncut_centre(img, 0, a, 120, step, r_cut, 1.0, 40, False))
+    assert math.isnan(est.uncut_centre(img, 0, a, 120, step, r_cut, 1.0, 40, True))
 
 
 @pytest.mark.parametrize("profile", ["whole", "narrow", "flat top"])
