@@ -244,9 +244,10 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     receives the width (px, inf past ``max_walk``), the count of pixels above ``threshold``
     within ``+-window`` and the centre of gravity above ``t_cog`` (NaN if none), each equal to
     what the separate function returns (the centroid's sums added in another order), the
-    rows the centroid's run goes on past the window, and (where ``out`` holds a fifth) the
-    highest last pixel of a run past the window where it fell under ``t_cog``: a flank ends
-    just over the level, a lit square's edge far over it (0 where no such run ended)."""
+    rows the centroid's run goes on past the window, and (where ``out`` holds six) the
+    highest last pixel of a run past the window where it fell under ``t_cog`` and the largest
+    fall there: a flank ends just over the level, one pixel's slope above the next, a lit
+    square's edge far over it and by a step (0 where no such run ended)."""
     off = t_cog if math.isnan(bg) else bg
     v = float(img[a, c])
     count = 1.0 if v > threshold else 0.0
@@ -254,6 +255,7 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     s1 = 0.0
     beyond = 0
     cliff = 0.0
+    cliff_fall = 0.0
     width_inf = False
     left = right = 0.0
     for side in range(2):
@@ -299,8 +301,10 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
                 s1 += (u - off) * (r - a)
                 beyond += 1
             else:
-                if run and d <= reach and prev > cliff:
-                    cliff = prev  # where the run past the window fell under the level
+                if run and d <= reach:
+                    # where the run past the window fell under the level, and by how much
+                    cliff = max(cliff, prev)
+                    cliff_fall = max(cliff_fall, prev - u)
                 run = False
             prev = u
             if not half and not inside and not run:
@@ -313,8 +317,9 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     out[1] = count
     out[2] = a + s1 / s0 if s0 > 0.0 else math.nan
     out[3] = beyond
-    if out.shape[0] > 4:
+    if out.shape[0] > 5:
         out[4] = cliff
+        out[5] = cliff_fall
 
 
 @njit(nogil=True, cache=True)

@@ -113,8 +113,15 @@ SHOULDER_FRACTION = 0.5
 # texture's edge (a lit square under the line, its plateau followed to the square's edge),
 # not down the stripe's flank (which ends at the level, within a pixel's step of it); the
 # stripe is then weighed above that plateau (the cliff's top plus COG_SIGMAS of noise)
-# (docs/stripe.md, a line across printed squares).
+# (docs/stripe.md, a line across printed squares).  So is a run that goes on past the window
+# by more than CLIFF_RUN_WIDTHS of the stripe's width and ends by a fall of more than
+# CLIFF_NOISE_SIGMAS of two pixels' noise: a Gaussian falls under a level a few noise sigmas
+# over its background within about three sigmas of its centre, and down its flank there by
+# less than the noise; a lit square's plateau, its background probes on the dark squares past
+# it, runs on to the square's edge and drops there.
 CLIFF_FRACTION = 0.25
+CLIFF_RUN_WIDTHS = 3.0
+CLIFF_NOISE_SIGMAS = 3.0 * math.sqrt(2.0)
 # A centroid whose stripe a texture's edge cuts (``est.cut_flank``) is replaced by the fit of
 # its whole flank (``est.uncut_centre``).  With ``shoulders`` (a colour excess) only where the
 # two flanks' feet agree: on real photographs an overexposed core through JPEG (a flat top
@@ -326,7 +333,7 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
     two walks itself (through a function holding both, or inside ``_columns``, the loop ran at
     half the speed or less)."""
     h = img.shape[0]
-    stats = np.zeros(5)
+    stats = np.zeros(6)
     n_widths = 0
     for j in range(js, je):
         p = float(mx[j])
@@ -388,7 +395,9 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
         nmain[j] = stats[1]
         ymain[j] = stats[2]
         if (not fast and not shoulders and p < SATURATION_DN and stats[3] > 0
-                and stats[4] > b + CLIFF_FRACTION * (p - b)):
+                and (stats[4] > b + CLIFF_FRACTION * (p - b)
+                     or (stats[3] > CLIFF_RUN_WIDTHS * stats[0]
+                         and stats[5] > CLIFF_NOISE_SIGMAS * sig))):
             # the centroid's run past the window ended at a cliff, not down a flank: a lit
             # square's edge (a texture under the line); the stripe is what stands over it
             ymain[j] = est.cog(img, c, a, h, stats[4] + COG_SIGMAS * sig, window, math.nan,
