@@ -189,7 +189,8 @@ def within_window(img, c, a, h, level, max_walk, threshold, window, t_cog, bg, o
     half-level run ends inside it, the centroid's run does not go on past it, no ``bg``), as
     fixed-length loops without data-dependent branches: a noisy flank's pixels cross the
     levels at random, and a branch on each costs more than the reads (``out[3]``, the run
-    past the window, is 0).  False (``out`` unset) otherwise: call ``width_count_cog`` then (a separate call, since the general walk's frame
+    past the window, is 0; ``out[6]``, where ``out`` holds it, the largest one-pixel fall
+    away from ``a`` within the window).  False (``out`` unset) otherwise: call ``width_count_cog`` then (a separate call, since the general walk's frame
     made this one cost twice as much when they were one function)."""
     if not (math.isnan(bg) and a > window and a + window < h - 1 and window < max_walk):
         return False
@@ -201,8 +202,13 @@ def within_window(img, c, a, h, level, max_walk, threshold, window, t_cog, bg, o
     up = 0
     alive_down = 1
     alive_up = 1
+    fall = 0.0
+    prev_down = v
+    prev_up = v
     for d in range(1, window + 1):
         u = float(img[a - d, c])
+        fall = max(fall, prev_down - u)
+        prev_down = u
         alive_down = alive_down if u >= level else 0
         down += alive_down
         count += 1.0 if u > threshold else 0.0
@@ -210,6 +216,8 @@ def within_window(img, c, a, h, level, max_walk, threshold, window, t_cog, bg, o
         s0 += wgt
         s1 -= wgt * d
         u = float(img[a + d, c])
+        fall = max(fall, prev_up - u)
+        prev_up = u
         alive_up = alive_up if u >= level else 0
         up += alive_up
         count += 1.0 if u > threshold else 0.0
@@ -232,6 +240,8 @@ def within_window(img, c, a, h, level, max_walk, threshold, window, t_cog, bg, o
     out[1] = count
     out[2] = a + s1 / s0 if s0 > 0.0 else math.nan
     out[3] = 0.0
+    if out.shape[0] > 6:
+        out[6] = fall
     return True
 
 
@@ -244,10 +254,11 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     receives the width (px, inf past ``max_walk``), the count of pixels above ``threshold``
     within ``+-window`` and the centre of gravity above ``t_cog`` (NaN if none), each equal to
     what the separate function returns (the centroid's sums added in another order), the
-    rows the centroid's run goes on past the window, and (where ``out`` holds six) the
+    rows the centroid's run goes on past the window, and (where ``out`` holds seven) the
     highest last pixel of a run past the window where it fell under ``t_cog`` and the largest
-    fall there: a flank ends just over the level, one pixel's slope above the next, a lit
-    square's edge far over it and by a step (0 where no such run ended)."""
+    fall there (a flank ends just over the level, one pixel's slope above the next, a lit
+    square's edge far over it and by a step; 0 where no such run ended), and the largest
+    one-pixel fall away from ``a`` within the window."""
     off = t_cog if math.isnan(bg) else bg
     v = float(img[a, c])
     count = 1.0 if v > threshold else 0.0
@@ -256,6 +267,7 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     beyond = 0
     cliff = 0.0
     cliff_fall = 0.0
+    fall = 0.0
     width_inf = False
     left = right = 0.0
     for side in range(2):
@@ -291,6 +303,7 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
                     half = False
             inside = d <= window
             if inside:
+                fall = max(fall, prev - u)
                 if u > threshold:
                     count += 1.0
                 if u > t_cog:
@@ -317,9 +330,10 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     out[1] = count
     out[2] = a + s1 / s0 if s0 > 0.0 else math.nan
     out[3] = beyond
-    if out.shape[0] > 5:
+    if out.shape[0] > 6:
         out[4] = cliff
         out[5] = cliff_fall
+        out[6] = fall
 
 
 @njit(nogil=True, cache=True)

@@ -123,7 +123,9 @@ CLIFF_FRACTION = 0.25
 CLIFF_RUN_WIDTHS = 3.0
 CLIFF_NOISE_SIGMAS = 3.0 * math.sqrt(2.0)
 # A centroid whose stripe a texture's edge cuts (``est.cut_flank``) is replaced by the fit of
-# its whole flank (``est.uncut_centre``).  With ``shoulders`` (a colour excess) only where the
+# its whole flank (``est.uncut_centre``); tested only where the window's walk saw a one-pixel
+# fall of more than ``est.CUT_MIN_FALL`` of the height (testing every column cost a quarter
+# of the frame's time on a clean one).  With ``shoulders`` (a colour excess) only where the
 # two flanks' feet agree: on real photographs an overexposed core through JPEG (a flat top
 # between cliffs, a halo beside) passed for a cut stripe, and the fit of its halo read worse
 # than the top's centroid.
@@ -326,14 +328,14 @@ def extract_kernel(img, c0, c1, method, auto, thr, window, max_width, auto_width
 @njit(nogil=True, cache=True)
 def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, max_walk, window,
                 shoulders, med, sig, bg, double_ratio, use_window, rmin, rmax, min_width, ncand,
-                wmain, nmain, ymain, bloc, tloc, hist):
+                wmain, nmain, ymain, bloc, tloc, hist, steep):
     """Each column's local background (``bloc``) and threshold (``tloc``), its candidates
     (``ncand``), the main one's width, count above the threshold and centre of gravity, and the
     histogram of the widths; returns the widths counted.  A function of its own, calling the
     two walks itself (through a function holding both, or inside ``_columns``, the loop ran at
     half the speed or less)."""
     h = img.shape[0]
-    stats = np.zeros(6)
+    stats = np.zeros(7)
     n_widths = 0
     for j in range(js, je):
         p = float(mx[j])
@@ -388,6 +390,7 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
         if not (p > t_c and p >= f_c):
             continue
         ncand[j] = 1
+        steep[j] = stats[6]
         if not fast and p < SATURATION_DN and _flat_top(img, c, a, h, b, p, stats[0]):
             stats[0] = math.inf  # a lit surface's plateau, not a peak: too wide
         wd = stats[0]
@@ -492,13 +495,16 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
     # the main peak's count above the threshold and its centre of gravity, read with its width
     nmain = np.zeros(n)
     ymain = np.full(n, np.nan)
+    # the main peak's largest one-pixel fall within its window: where a cut may be
+    steep = np.zeros(n)
     stats = np.empty(4)
     hist = np.zeros(_WIDTH_BINS, np.int64)
     bloc = np.full(n, med)
     tloc = np.full(n, threshold)
     n_widths = _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor,
                            max_walk, window, shoulders, med, sig, bg, double_ratio, use_window,
-                           rmin, rmax, min_width, ncand, wmain, nmain, ymain, bloc, tloc, hist)
+                           rmin, rmax, min_width, ncand, wmain, nmain, ymain, bloc, tloc, hist,
+                           steep)
     core = max_width
     linked = max_width
     if auto_width:
@@ -603,7 +609,8 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
         else:
             y0 = est.cog(img, c, a, h, t_c, window, math.nan, max_walk)
             y = est.lsq_gauss(img, c, a, h, t_c, window, y0, wd) if math.isfinite(y0) else y0
-        if method == 0 and not saturated[c] and math.isfinite(y):
+        if (method == 0 and not saturated[c] and math.isfinite(y)
+                and (choice[j] != 0 or steep[j] > est.CUT_MIN_FALL * (p - b))):
             # a texture's edge across the stripe: its centre from the flank the edge leaves
             step, r_cut = est.cut_flank(img, c, a, h, b, sig, max_walk)
             if step != 0:
