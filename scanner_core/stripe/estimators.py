@@ -674,8 +674,9 @@ def uncut_centre(img, c, a, h, step, r_cut, noise, reach, same_foot):
     flank's foot must lie within ``CUT_NOISE_SIGMAS`` of ``noise`` of the whole one's: a
     shoulder beside a bright core (a halo through JPEG) stands on no surface of its own.
 
-    NaN when fewer than 3 pixels stand above the level, the parabola opens upward, or its
-    vertex leaves ``a`` by more than ``CUT_MAX_SHIFT_PX``, or the feet differ.
+    NaN when fewer than 3 pixels stand above the level, the parabola opens upward (and the
+    flank falls toward the cut), or its vertex leaves ``a`` by more than ``CUT_MAX_SHIFT_PX``
+    on the whole flank's side, or the feet differ.
     """
     s = -step  # toward the whole flank
     foot = _foot(img, c, a, h, s, noise, reach)
@@ -722,12 +723,14 @@ def uncut_centre(img, c, a, h, step, r_cut, noise, reach, same_foot):
     m[2, 1] = m[1, 2]
     if not solve_in_place(m, v):
         return math.nan
+    # the flank still rising toward the cut where it ends (the centre past it, in the dark):
+    # the centre is at the edge
+    edge = r_cut + 0.5 * step
+    if v[1] * step > 0.0 and (v[2] >= 0.0 or -v[1] / (2.0 * v[2]) * step > (edge - a) * step):
+        return edge if abs(edge - a) <= CUT_MAX_SHIFT_PX else math.nan
     if not v[2] < 0.0:
         return math.nan
     off = -v[1] / (2.0 * v[2])
     if not abs(off) <= CUT_MAX_SHIFT_PX:
         return math.nan
-    edge = r_cut + 0.5 * step
-    if step > 0:
-        return min(a + off, edge)
-    return max(a + off, edge)
+    return a + off

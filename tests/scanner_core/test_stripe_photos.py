@@ -251,6 +251,17 @@ def test_a_core_on_a_shoulder_is_not_cut_in_a_colour_excess():
     assert math.isnan(est.uncut_centre(img, 0, a, 120, step, r_cut, 1.0, 40, True))
 
 
+def test_a_centre_past_the_edge_is_put_at_it():
+    """The stripe's centre 0.8 px past a dark square's edge: its lit flank still rises where
+    the edge cuts it, and the centre is put at the edge, half a pixel past the last lit row,
+    not extrapolated into the dark."""
+    img = _cut_column(50.3, 2.0, 49.5, True)
+    a = int(np.argmax(img[:, 0]))
+    step, r_cut = est.cut_flank(img, 0, a, img.shape[0], float(np.median(img[:, 0])), 1.0, 40)
+    assert (step, r_cut) == (1, 49)
+    assert est.uncut_centre(img, 0, a, img.shape[0], step, r_cut, 1.0, 40, False) == 49.5
+
+
 @pytest.mark.parametrize("profile", ["whole", "narrow", "flat top"])
 def test_a_whole_stripe_is_not_cut(profile):
     """No edge: a Gaussian of sigma 2 px, one of 0.6 px (its one-pixel fall is most of its
