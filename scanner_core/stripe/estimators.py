@@ -45,12 +45,17 @@ HWHM_PER_SIGMA = 0.5 * FWHM_PER_SIGMA
 #: Gaussian as wide as the other flank can: CUT_SLOPE / sigma of the height (a unit Gaussian's
 #: steepest slope is 1 / sqrt(e) = 0.607 / sigma; the margin covers the width read short or
 #: long by a pixel's sampling on a narrow stripe, whose peak pixel also reads under its
-#: height), plus CUT_NOISE_SIGMAS of the difference of two pixels' noise.  CUT_MIN_FALL keeps a
-#: speckled stripe's grain (one pixel of a wide flank darker than the next) from passing for
-#: an edge.
+#: height), plus CUT_NOISE_SIGMAS of the difference of two pixels' noise (a frame's thousands
+#: of columns hold a few falls each: at 3 sigmas, noise cut a dim stripe about once a frame;
+#: at 5, about once in two hundred).  CUT_MIN_FALL keeps a speckled stripe's grain (one pixel
+#: of a wide flank darker than the next) from passing for an edge.
 CUT_MIN_FALL = 0.5
 CUT_SLOPE = 0.75
-CUT_NOISE_SIGMAS = 3.0
+CUT_NOISE_SIGMAS = 5.0
+#: The whole flank is no steeper than its own width allows within FLANK_NOISE_SIGMAS of two
+#: pixels' noise (a wider margin let an overexposed core's halo through: a flat top between
+#: two cliffs is no stripe cut on one side).
+FLANK_NOISE_SIGMAS = 3.0
 #: ... and where the pixel past the fall falls again by less than CUT_STEP_RATIO of it (an
 #: edge between two pixels; one that straddles a pixel splits the step in two falls, and is
 #: found only where one of them holds most of it).
@@ -574,12 +579,12 @@ def _flank(img, c, a, h, step, half, reach):
 
 
 @njit(nogil=True, cache=True)
-def _steepest_fall(half_width, height, noise):
+def _steepest_fall(half_width, height, noise, sigmas):
     """The largest one-pixel fall a Gaussian stripe ``height`` high whose half width at half
     maximum from its argmax is ``half_width`` (its centre up to half a pixel nearer) shows
-    with pixel noise ``noise``."""
+    with pixel noise ``noise``, ``sigmas`` of two pixels' noise over the noiseless one."""
     sigma = max(half_width - 0.5, 0.3) / HWHM_PER_SIGMA
-    return min(1.0, CUT_SLOPE / sigma) * height + CUT_NOISE_SIGMAS * math.sqrt(2.0) * noise
+    return min(1.0, CUT_SLOPE / sigma) * height + sigmas * math.sqrt(2.0) * noise
 
 
 @njit(nogil=True, cache=True)
@@ -616,16 +621,18 @@ def cut_flank(img, c, a, h, bg, noise, reach):
     if not (max(fall_up, fall_dn) > CUT_MIN_FALL * height and math.isfinite(hw_up)
             and math.isfinite(hw_dn)):
         return 0, a
-    cut_up = fall_up > max(CUT_MIN_FALL * height, _steepest_fall(hw_dn, height, noise))
-    cut_dn = fall_dn > max(CUT_MIN_FALL * height, _steepest_fall(hw_up, height, noise))
+    cut_up = fall_up > max(CUT_MIN_FALL * height,
+                           _steepest_fall(hw_dn, height, noise, CUT_NOISE_SIGMAS))
+    cut_dn = fall_dn > max(CUT_MIN_FALL * height,
+                           _steepest_fall(hw_up, height, noise, CUT_NOISE_SIGMAS))
     if cut_up == cut_dn:
         return 0, a
     # the other flank must be a Gaussian's, no steeper than its own width allows: a flat top
     # between two cliffs (an overexposed colour line's carried-on core through JPEG) is no
     # stripe cut on one side
-    if cut_up and fall_dn > _steepest_fall(hw_dn, height, noise):
+    if cut_up and fall_dn > _steepest_fall(hw_dn, height, noise, FLANK_NOISE_SIGMAS):
         return 0, a
-    if cut_dn and fall_up > _steepest_fall(hw_up, height, noise):
+    if cut_dn and fall_up > _steepest_fall(hw_up, height, noise, FLANK_NOISE_SIGMAS):
         return 0, a
     step = -1 if cut_up else 1
     r_cut = r_up if cut_up else r_dn
