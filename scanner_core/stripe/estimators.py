@@ -675,7 +675,9 @@ def uncut_centre(img, c, a, h, step, r_cut, noise, reach, same_foot):
     The foot ``f`` is where the whole flank stops falling (by more than ``noise`` over two
     pixels): the lit surface's own level, which the peak's background (read farther out, past
     the squares) is not.  The centre lies no further than half a pixel past the cut (the
-    edge's side of the last lit pixel): beyond that the flank's fit extrapolates.
+    edge's side of the last lit pixel): where the whole flank still rises toward the cut (the
+    centre past the edge, in the dark), the centre is put at the edge, where the fit would
+    extrapolate.
 
     With ``same_foot`` (a colour excess, where a grey texture's squares read alike), the cut
     flank's foot must lie within ``CUT_NOISE_SIGMAS`` of ``noise`` of the whole one's: a

@@ -2,6 +2,7 @@
 process, under a cell PC's usual open-file limit (1024, soft and hard): idle sockets by the
 thousand and slowloris heads are closed, and the cell controller is answered meanwhile."""
 import logging
+import os
 import resource
 import socket
 import time
@@ -10,6 +11,7 @@ import httpx
 import pytest
 
 from running import FAST_PASS, RunningService, wait_for
+from service.connections import ACCEPT_BACKLOG
 
 FILE_LIMIT = 1024
 IDLE_CONNECTIONS = 1100
@@ -49,8 +51,13 @@ def _closed_by_peer(s: socket.socket) -> bool:
         return True
 
 
+def _service_files(service) -> int:
+    return len(os.listdir(f"/proc/{service.process.pid}/fd"))
+
+
 def test_idle_connections_by_the_thousand_stop_nothing(crowded):
     log_before = crowded.log.stat().st_size
+    files_before = _service_files(crowded)
     idle = _open_idle(crowded.port, IDLE_CONNECTIONS)
     try:
         time.sleep(0.5)  # all of them accepted, or waiting in the backlog
@@ -66,11 +73,16 @@ def test_idle_connections_by_the_thousand_stop_nothing(crowded):
         done = wait_for(lambda: httpx.get(f"{crowded.url}/scans/{scan_id}").json()["state"]
                         in ("done", "failed") and True, timeout=30)
         assert done
-        # The idle sockets the service took are closed once their head is late (the others
-        # wait in the kernel's queue, which holds ACCEPT_BACKLOG: they cost it nothing).
-        closed = wait_for(lambda: sum(_closed_by_peer(s) for s in idle) >= IDLE_CONNECTIONS // 2
-                          or None, timeout=HEADER_TIMEOUT_S + 10.0, poll=0.5)
-        assert closed
+        # The idle sockets the service took are closed once their head is late: its
+        # descriptors come back to what it held before the crowd. Counted on the service's
+        # side: a client socket the kernel finished while the accept queue was full reads
+        # ESTABLISHED to the client but is not the service's until a retransmitted SYN-ACK
+        # finds room, so how many the client sees closed within a deadline is the kernel's
+        # timing, not the service's doing.
+        settled = wait_for(lambda: _service_files(crowded) <= files_before + ACCEPT_BACKLOG
+                           or None, timeout=HEADER_TIMEOUT_S + 10.0, poll=0.2)
+        assert settled
+        assert sum(_closed_by_peer(s) for s in idle) >= ACCEPT_BACKLOG
     finally:
         for s in idle:
             s.close()
