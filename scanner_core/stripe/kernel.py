@@ -125,10 +125,10 @@ CLIFF_NOISE_SIGMAS = 3.0 * math.sqrt(2.0)
 # A centroid whose stripe a texture's edge cuts (``est.cut_flank``) is replaced by the fit of
 # its whole flank (``est.uncut_centre``); tested only where the window's walk saw a one-pixel
 # fall of more than ``est.CUT_MIN_FALL`` of the height (on a clean frame, testing every
-# column showed in the frame's time; docs/stripe.md).  With ``shoulders`` (a colour excess) only where the
-# two flanks' feet agree: on real photographs an overexposed core through JPEG (a flat top
-# between cliffs, a halo beside) passed for a cut stripe, and the fit of its halo read worse
-# than the top's centroid.
+# column showed in the frame's time; docs/stripe.md).  With ``shoulders`` (a colour excess)
+# only where the two flanks' feet agree: on real photographs an overexposed core through JPEG
+# (a flat top between cliffs, a halo beside) passed for a cut stripe, and the fit of its halo
+# read worse than the top's centroid.
 
 # A peak at least FLAT_MIN_WIDTH_PX wide whose top (within FLAT_LEVEL of its height) runs
 # longer than FLAT_TOP_WIDTHS of its width plus FLAT_TOP_SLACK_ROWS is a plateau (``_flat_top``).
