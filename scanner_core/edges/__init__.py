@@ -20,8 +20,11 @@ Along the profile (columns in order):
   columns on either side stay neighbours. A larger gap bounded by stripe on one or both sides
   is a drop-out: the part's outline, a hole's rim, a shadow. Each bounding side gets one edge
   point where the stripe's peak intensity falls to half way between its level on that side
-  and the level in the gap ("half the relative step", interpolated between columns), its row
-  extrapolated from that side's rows, then triangulated. When the two sides of a gap lie at
+  and the level in the gap ("half the relative step", interpolated between columns); where
+  the end is sharp (no column but the last lit in part), the last column's lit share of the
+  side's level over the background places it within that column instead, which the half
+  step, interpolated, misses by up to 0.08 px between the column's sides and middle. Its
+  row is extrapolated from that side's rows, then triangulated. When the two sides of a gap lie at
   different ranges (by more than the step threshold and ``FAR_SIDE_SIGMAS`` standard errors
   of their lines extrapolated to the gap's middle), the far side is the boundary of a
   shadow or of an occlusion cast by the near side's edge, not an edge of the part: only the

@@ -321,17 +321,21 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
     gap_level = _median_small(gap, m) if m > 0 else 0.0
     if level < min_contrast * gap_level:
         return False  # a faint stripe fading into the noise: no step to halve
-    half = 0.5 * (level + gap_level)  # half the relative step
-    # the outermost column at or above half, walking in from the end; then interpolate
-    c_in = c_end
-    steps = 0
-    while _peak_at(peak, c_in) < half and steps < hi - lo - 1:
-        c_in -= sign
-        steps += 1
-    p_in = _peak_at(peak, c_in)
-    p_out = _peak_at(peak, c_in + sign)
-    f = (p_in - half) / (p_in - p_out) if p_in > p_out else 0.5
-    u = c_in + sign * min(max(f, 0.0), 1.0)
+    if abs(c_end - cols[k_top]) <= 1.0:
+        # a sharp end: no column but the last (and the gap's first) lit in part
+        u = _sharp_end(peak, dark, c_end, sign, level, gap_level, background)
+    else:
+        half = 0.5 * (level + gap_level)  # half the relative step
+        # the outermost column at or above half, walking in from the end; then interpolate
+        c_in = c_end
+        steps = 0
+        while _peak_at(peak, c_in) < half and steps < hi - lo - 1:
+            c_in -= sign
+            steps += 1
+        p_in = _peak_at(peak, c_in)
+        p_out = _peak_at(peak, c_in + sign)
+        f = (p_in - half) / (p_in - p_out) if p_in > p_out else 0.5
+        u = c_in + sign * min(max(f, 0.0), 1.0)
     cxm, cym, csl, _ = _fit_line(vcol, vrow, lo, hi)  # the side's rows, extrapolated
     v = cym + csl * (u - cxm)
     if not _triangulate(u, v, fx, fy, cx, cy, n, offset, out_pc):
@@ -340,6 +344,34 @@ def _dropout(sign, k_lo, k_hi, k_other, o_lo, o_hi, cols, a, d, pts, vcol, vrow,
     _stripe_end(k_end, sign, lo, hi, c_end, u, v, csl, vcol, vrow, vpeak, background, bent, fx,
                 fy, cx, cy, n, offset, out_pc, out)
     return True
+
+
+@njit(nogil=True, cache=True)
+def _sharp_end(peak, dark, c_end, sign, level, gap_level, background):
+    """Where a sharp drop-out's face ends, px: the inner side of its last lit column `c_end`
+    moved outward by that column's lit width and the first gap column's, each its peak's
+    share of the face's over the background, ``(p - b) / (level - b)`` (DN); a peak no
+    brighter than the gap's (`gap_level`: the noise's highest pixel, or a stripe too faint
+    to be one) holds none.
+
+    A column integrates the light over its width, so the share of a column lit in part is
+    where the edge lies in it, at any place in the column. Where the flank crosses half the
+    step, interpolated between two columns, is exact only at a column's sides and middle:
+    off by up to 0.08 px in between, the same way on every edge that the columns cross at
+    the same rate, as a part's parallel edges carried along the pass do, which turns them
+    together. A blurred end (a flank over more columns) has no such bias to remove, and
+    summing its columns' shares would add their speckle: it is left to the half step."""
+    step = level - background
+    if not step > 0.0:
+        return c_end + 0.5 * sign
+    width = 0.0
+    for c in (c_end, c_end + sign):
+        p = _peak_at(peak, c)
+        if c != c_end and not (0 <= c < peak.shape[0] and dark[c]):
+            break
+        if p > gap_level:
+            width += (p - background) / step
+    return c_end - 0.5 * sign + sign * min(max(width, 0.0), 2.0)
 
 
 @njit(nogil=True, cache=True)
