@@ -177,6 +177,10 @@ class Scan:
     points_partly_lit : int
         Points not kept because their surface reached or left the sheet during the exposure
         (``scanner_core.pipeline.exposure.partly_lit``).
+    measured_box_t : (2, 3) float64 or None
+        The box in {T} (lower and upper corners, mm) outside which the pass measured nothing:
+        the geometric window's inspection volume and margin
+        (``scanner_core.stripe.window.volume_box_t``); None: no such bound.
     edges_occluded : int
         Drop-outs dropped because the camera's view past them ran into the part (an
         occlusion's boundary, not an edge).
@@ -228,6 +232,7 @@ class Scan:
     edges_grazing: int = 0
     edges_aside: object = None
     points_partly_lit: int = 0
+    measured_box_t: np.ndarray | None = None
     placement_std_mm: np.ndarray | None = None
     light_plane_uncertainty: object = None
     normals: np.ndarray | None = None

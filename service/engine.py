@@ -224,7 +224,8 @@ class Engine:
                           self.calibration, self.robot, self.clock_offset_s,
                           fallback_rotation=self.last_rotation_b,
                           merge_exposure_pairs=self.params.exposure.mode == "multiple",
-                          partly_lit_ratio=self.params.partly_lit_ratio))
+                          partly_lit_ratio=self.params.partly_lit_ratio,
+                          measured_box_t=self.params.measured_box_t))
         if record_to is not None:
             try:
                 job.recording = LiveRecording(

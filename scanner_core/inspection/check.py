@@ -327,7 +327,7 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
                  *, profile_spacing_mm: float, point_spacing_mm: float,
                  params: InspectionParams = InspectionParams(), coverage_model=None,
                  occluded=None, sheet_planes_t=None, sensor_positions_t=None,
-                 sheet_frame_ids=None, sharp_edges=None) -> Inspection:
+                 sheet_frame_ids=None, sharp_edges=None, measured_box_t=None) -> Inspection:
     """The check of a cloud against the model at its registered pose.
 
     Parameters
@@ -357,6 +357,8 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
     sharp_edges : scanner_core.pose.models.EdgeModel, optional
         The model's sharp edges (``PartModel.edge_model``): with them a hole narrower than
         twice the profile step is found too (``coverage.missing_samples``).
+    measured_box_t : (2, 3) float, optional
+        ``Scan.measured_box_t``: the model outside it is not expected in the scan.
 
     Returns
     -------
@@ -399,7 +401,7 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
         missing = missing_samples(points_p, coverage_model, occluded, pose_matrix,
                                   sheet_planes_t, sensor_positions_t, point_spacing_mm=along,
                                   frame_ids=frame_ids, sheet_frame_ids=sheet_frame_ids,
-                                  sharp_edges=sharp_edges)
+                                  sharp_edges=sharp_edges, measured_box_t=measured_box_t)
     missing_regions, flanks = _missing_regions(
         points_p, np.nonzero(kinds == 1)[0], np.nonzero((kinds == 2) & (dev < 0))[0], dev,
         frame_ids, missing, samples, sheet_frame_ids, min_area, sample_area,

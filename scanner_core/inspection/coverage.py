@@ -459,7 +459,8 @@ def _facing_all(normals, rays, cos_limit):
 def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.ndarray,
                     sheet_planes_t: np.ndarray, sensor_positions_t: np.ndarray, *,
                     point_spacing_mm: float, frame_ids=None,
-                    sheet_frame_ids=None, sharp_edges=None) -> MissingSamples:
+                    sheet_frame_ids=None, sharp_edges=None,
+                    measured_box_t=None) -> MissingSamples:
     """The model's samples the scan should have seen at this pose and has no point near.
 
     Parameters
@@ -484,6 +485,9 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
         The model's sharp edges, with their tree (``PartModel.edge_model``): with them and
         `frame_ids`, a stretch of a profile ringed by its own covered samples is a core too
         (the module's docstring).
+    measured_box_t : (2, 3) float, optional
+        The box in {T} (lower and upper corners, mm) outside which the pass measured nothing
+        (``Scan.measured_box_t``): a sample outside it at the pose is not expected.
 
     Returns
     -------
@@ -508,6 +512,12 @@ def missing_samples(points_p: np.ndarray, samples, occluded, pose_matrix: np.nda
     point_step = point_spacing_mm if math.isfinite(point_spacing_mm) and point_spacing_mm > 0 \
         else step
     crossed = np.nonzero(frame >= 0)[0]
+    if measured_box_t is not None and len(crossed):
+        # the scanner looks for the stripe only within its volume: a part tilted out of it
+        # (a wide disc's rim above the gripper's plane) is cut off there, not missing
+        box = np.asarray(measured_box_t, dtype=np.float64).reshape(2, 3)
+        at_t = samples.points[crossed] @ rotation.T + translation
+        crossed = crossed[np.all((at_t >= box[0]) & (at_t <= box[1]), axis=1)]
     if not len(crossed):  # the sheets met none of the model (a pass's first frames alone)
         return NONE_MISSING
     q, n = samples.points[crossed], samples.normals[crossed]

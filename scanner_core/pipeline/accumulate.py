@@ -88,12 +88,17 @@ class PassAccumulator:
     merge_exposure_pairs : bool
         Multiple exposure: the scan keeps, per pair of frames, the better exposed measurement
         of each column (``scanner_core.pipeline.exposure.merge_exposure_pairs``).
+    measured_box_t : (2, 3) float64, optional
+        The box in {T} outside which the frames were not measured (``PipelineParams
+        .measured_box_t``): the scan's ``measured_box_t``.
     """
 
     def __init__(self, calibration: Calibration, robot: Robot, clock_offset_s: float = 0.0,
                  fallback_rotation: np.ndarray | None = None, *,
-                 merge_exposure_pairs: bool = False, partly_lit_ratio: float = 0.0):
+                 merge_exposure_pairs: bool = False, partly_lit_ratio: float = 0.0,
+                 measured_box_t: np.ndarray | None = None):
         self.calibration = calibration
+        self.measured_box_t = measured_box_t
         self.merge_exposure_pairs = merge_exposure_pairs
         self.partly_lit_ratio = float(partly_lit_ratio)
         self.robot = robot
@@ -244,6 +249,8 @@ class PassAccumulator:
             marker_residual_px=float(np.median(residuals)) if residuals else float("nan"),
         )
         scan.points_partly_lit = points["points_partly_lit"]
+        scan.measured_box_t = (None if self.measured_box_t is None
+                               else np.array(self.measured_box_t, dtype=np.float64))
         scan.placement_std_mm = self.calibration.marker_offset_std_mm
         scan.light_plane_uncertainty = self.calibration.light_plane_uncertainty
         scan.frames_held_rotation = held

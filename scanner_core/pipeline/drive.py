@@ -89,7 +89,8 @@ def run_pass(frames: Iterable[Frame], calibration: Calibration, robot: Robot,
     tracker = MarkerTracker(calibration, params)
     accumulator = PassAccumulator(calibration, robot, clock_offset_s,
                                   merge_exposure_pairs=params.exposure.mode == "multiple",
-                                  partly_lit_ratio=params.partly_lit_ratio)
+                                  partly_lit_ratio=params.partly_lit_ratio,
+                                  measured_box_t=params.measured_box_t)
     source = iter(frames)
     camera_error = None
     while trigger.state.value in ("armed", "scanning"):

@@ -274,7 +274,8 @@ def inspect_pass(scan: Scan, part_model, pose_matrix: np.ndarray,
                         params=params, coverage_model=part_model.coverage_model,
                         occluded=part_model.occluded, sheet_planes_t=scan.sheet_planes_t,
                         sensor_positions_t=scan.sensor_positions_t,
-                        sheet_frame_ids=scan.tcp_frame_ids, sharp_edges=part_model.edge_model)
+                        sheet_frame_ids=scan.tcp_frame_ids, sharp_edges=part_model.edge_model,
+                        measured_box_t=getattr(scan, "measured_box_t", None))
 
 
 def _inspect(scan: Scan, part_model, pose, pose_report: dict,

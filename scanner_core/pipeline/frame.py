@@ -28,7 +28,7 @@ from scanner_core.pipeline.exposure import ExposureParams
 from scanner_core.geometry import reproject_marker, triangulate_marker, triangulate_stripe
 from scanner_core.pipeline.trigger import TriggerParams
 from scanner_core.types import Frame, MarkerObservation, Profile
-from scanner_core.stripe.window import volume_rows
+from scanner_core.stripe.window import volume_box_t, volume_rows
 
 __all__ = ["PipelineParams", "observe_marker", "MarkerTracker", "marker_in_view",
            "marker_image", "stripe_image", "frame_stripe", "process_frame", "warm_up",
@@ -149,6 +149,14 @@ class PipelineParams:
     stripe_signal: str = "auto"
     bayer: str | None = None
     partly_lit_ratio: float = 0.5
+
+    @property
+    def measured_box_t(self) -> np.ndarray | None:
+        """(2, 3): the box in {T} outside which a pass measures nothing (the geometric
+        window's inspection volume and margin: ``Scan.measured_box_t``); None without the
+        window."""
+        return (volume_box_t(self.inspection_volume_mm, self.window_margin_mm)
+                if self.geometric_window else None)
 
 
 # ---------------------------------------------------------------------------------------------

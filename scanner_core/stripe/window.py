@@ -19,6 +19,15 @@ from scanner_core.geometry.calibration import Calibration
 _BOX_EDGES = np.array([(a, a | (1 << i)) for a in range(8) for i in range(3) if not a & (1 << i)])
 
 
+def volume_box_t(volume_mm, margin_mm: float) -> np.ndarray:
+    """(2, 3) float64: the inspection volume's lower and upper corners in {T}, mm, grown by
+    `margin_mm` on every side: x_T and y_T within half its size either side, z_T from 0 at
+    the gripper to its height (`volume_mm`, (3,))."""
+    vol = np.asarray(volume_mm, dtype=np.float64)
+    return np.array([[-vol[0] / 2, -vol[1] / 2, 0.0], [vol[0] / 2, vol[1] / 2, vol[2]]]) \
+        + np.array([[-margin_mm], [margin_mm]])
+
+
 def volume_section_b(tcp_b, rotation_b, volume_mm, margin_mm: float, plane_b) -> np.ndarray:
     """Corners of the light sheet's section of the inspection volume, {B}, mm.
 
@@ -40,9 +49,7 @@ def volume_section_b(tcp_b, rotation_b, volume_mm, margin_mm: float, plane_b) ->
     (K, 3) float64
         The points where the box's edges cross the sheet (K = 0, or 3 to 6), unordered.
     """
-    vol = np.asarray(volume_mm, dtype=np.float64)
-    lo = np.array([-vol[0] / 2, -vol[1] / 2, 0.0]) - margin_mm
-    hi = np.array([vol[0] / 2, vol[1] / 2, vol[2]]) + margin_mm
+    lo, hi = volume_box_t(volume_mm, margin_mm)
     out = np.empty((len(_BOX_EDGES), 3))
     k = _section(lo, hi, np.asarray(rotation_b, dtype=np.float64),
                  np.asarray(tcp_b, dtype=np.float64),

@@ -92,3 +92,30 @@ def test_the_command_line_puts_a_fault_or_a_mesh_into_the_gripper(tmp_path, bloc
     assert "unknown fault 'dent'" in capsys.readouterr().err
     assert main(["scan", "--demo", "--fault", "double", "--held", str(held),
                  "--out", str(tmp_path / "y")]) == 2
+
+
+def test_a_good_part_tilted_out_of_the_scanners_volume_is_no_fault():
+    """A fan disk (radius 45 mm) held tilted 15 degrees about x_T and 7 about y_T lifts its
+    rim more than 10 mm above the gripper's plane, beyond the inspection volume and its
+    margin, where the geometric window does not look for the stripe: the rim is cut from
+    the scan there, and the check does not call it missing material (it did before the scan
+    carried its measured box)."""
+    import dataclasses
+
+    from simulator.procedural import fan_disk
+
+    disk = fan_disk()
+    part = part_from_mesh(disk, name="fan_disk")
+    misplace = misplacement_matrix([3.2, 1.7, -0.8, -14.7, -7.3, 5.4])
+    scan, report = run_simulated_scan(part, load_cell(), misplacement=misplace, seed=2,
+                                      evaluate=False)
+    box = scan.measured_box_t
+    truth = misplace @ part.grasp
+    lifted = (disk.vertices @ truth[:3, :3].T + truth[:3, 3])[:, 2].min()
+    assert box is not None and lifted < box[0, 2] - 5.0
+    # the rim is cut near the box (the window's rows reach a little past it)
+    assert scan.cloud[:, 2].min() > lifted + 3.0
+    assert report["inspection"]["conforms"], report["inspection"]
+    unbounded = dataclasses.replace(scan, measured_box_t=None)
+    again = inspect_pass(unbounded, part, np.asarray(report["pose"]["matrix"]))
+    assert "missing_material" in again.failing
