@@ -24,9 +24,9 @@ Along the profile (columns in order):
   the end is sharp (no column but the last lit in part), the last column's lit share of the
   side's level over the background places it within that column instead, which the half
   step, interpolated, misses by up to 0.08 px between the column's sides and middle. Its
-  row is extrapolated from that side's rows, then triangulated. When the two sides of a gap lie at
-  different ranges (by more than the step threshold and ``FAR_SIDE_SIGMAS`` standard errors
-  of their lines extrapolated to the gap's middle), the far side is the boundary of a
+  row is extrapolated from that side's rows, then triangulated. When the two sides of a gap
+  lie at different ranges (by more than the step threshold and ``FAR_SIDE_SIGMAS`` standard
+  errors of their lines extrapolated to the gap's middle), the far side is the boundary of a
   shadow or of an occlusion cast by the near side's edge, not an edge of the part: only the
   near side gives an edge point (``EdgeParams.keep_far_side``). A side's level is taken at the
   top of its falling flank, short of where its rows turn (a dimmer chamfer next to the gap

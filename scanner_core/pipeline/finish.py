@@ -275,7 +275,7 @@ def inspect_pass(scan: Scan, part_model, pose_matrix: np.ndarray,
                         occluded=part_model.occluded, sheet_planes_t=scan.sheet_planes_t,
                         sensor_positions_t=scan.sensor_positions_t,
                         sheet_frame_ids=scan.tcp_frame_ids, sharp_edges=part_model.edge_model,
-                        measured_box_t=getattr(scan, "measured_box_t", None))
+                        measured_box_t=scan.measured_box_t)
 
 
 def _inspect(scan: Scan, part_model, pose, pose_report: dict,
