@@ -117,7 +117,7 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, warm: bool = 
     """The fit from `start` ((4, 4) ^T X_P, mm) to convergence; the search's quick
     refinements of many starts are ``scanner_core.pose.quick``. Without `warm`, every
     iteration uses all the points (a start already at a minimum of some of them). With
-    `wander`, a fit whose steps are still ``_WANDER_STEPS`` tolerances or more after
+    `wander`, a fit whose steps are still ``_WANDER_STEP`` or more after
     ``_WANDER_ITERATIONS`` iterations stops there: it roams between minima, and the caller
     has the coarse search to turn to."""
     pose = start.copy()
@@ -151,7 +151,7 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, warm: bool = 
                                or _revisited(visited, pose, step_tol)):
             break
         if (wander and it >= _WANDER_ITERATIONS
-                and float(np.max(np.abs(observed) / step_tol)) >= _WANDER_STEPS):
+                and np.any(np.abs(observed) >= _WANDER_STEP)):
             break
     pose, rows = _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params)
     if rows is None:
@@ -162,6 +162,20 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, warm: bool = 
     rms = float(np.sqrt(np.sum(w * res**2) / np.sum(w))) if len(res) else np.inf
     return _Fit(pose, rms, inlier_fraction, edge_fraction, it, jac, res, w, frames, curves,
                 points, centre, scale)
+
+
+# A fit that places a minimum (the search's, a probe's on a share of the points) stops at
+# this many times the tolerance: a fit on every point settles it from there, and the fits on
+# a subsample agree with it no closer than their own scatter. The settling fit itself stops
+# there too (at 0.1 um and 0.1 mdeg by default): steps below that are tenths of the noise's
+# effect, and took the fits on every point 2 to 8 more iterations (docs/pose.md).
+_SEEK_TOL_FACTOR = 10.0
+
+
+def _seeking(params):
+    """`params` with the tolerance of a fit that places a minimum for another to settle."""
+    return replace(params, tol_mm=params.tol_mm * _SEEK_TOL_FACTOR,
+                   tol_deg=params.tol_deg * _SEEK_TOL_FACTOR)
 
 
 def _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params):
@@ -235,9 +249,10 @@ def _jump(previous, delta, scale) -> float:
     return ratio / (1.0 - ratio) if ratio <= _JUMP_RATIO else 0.0
 
 
-#: A fit from the nominal grasp still stepping this many tolerances (10 um, 10 mdeg at the
-#: defaults) after this many iterations roams (`_fine`'s `wander`).
-_WANDER_ITERATIONS, _WANDER_STEPS = 20, 1000.0
+#: A fit from the nominal grasp still stepping this much (mm along, radians about x, y, z)
+#: after this many iterations roams (`_fine`'s `wander`).
+_WANDER_ITERATIONS = 20
+_WANDER_STEP = np.array([0.01] * 3 + [np.radians(0.01)] * 3)
 
 
 def _settled(sizes: list, step, step_tol) -> bool:

@@ -58,7 +58,7 @@ from scipy.spatial.transform import Rotation
 from scanner_core.pose.confidence import (EDGES_SEARCH_SIGNIFICANCE, MIN_COVERAGE,
                                           _coverage_flags, _flags, _rival_words, _uncertainty,
                                           edges_refute, judge, term_stds)
-from scanner_core.pose.fine import _fine, _subsample, _Terms
+from scanner_core.pose.fine import _fine, _seeking, _subsample, _Terms
 from scanner_core.pose.inputs import (MAX_PROFILE_SPACING_MM, ScanPoseInputs,
                                       add_placement_error, check_inputs, edge_steps)
 from scanner_core.pose.models import (BEVEL_MM, TOWARD_MIN, EdgeModel, SurfaceModel,
@@ -72,10 +72,10 @@ __all__ = ["PoseParams", "SurfaceModel", "EdgeModel", "PoseResult", "register", 
            "AXIS_NAMES", "MIN_POSE_POINTS", "BEVEL_MM", "TOWARD_MIN", "merge_bevels",
            "outline_adjacency", "MAX_PROFILE_SPACING_MM", "MIN_COVERAGE"]
 
-# The search's minimum is settled on every point to this many times the fit's tolerance: it
-# moves a few micrometres, and its last steps below 0.1 um took 2 to 8 more iterations on
-# 6 000 points (bench pose_time's scans: the pose's median 159 -> 144 ms, poses within 0.74 um).
-_SETTLE_TOL_FACTOR = 10.0
+# Fits from a better turn of the last before the coarse search takes over: each turn is
+# within one step of its grid, so this many cover a misplacement of that many steps about
+# the weakest rotation.
+_TURNS_BEFORE_SEARCH = 3
 
 #: A scan with fewer points gives no pose (refused, with the reason), not a guess.
 MIN_POSE_POINTS = 50
@@ -260,6 +260,9 @@ class PoseResult:
         Of the last fit: the one that settled the pose on every point.
     coarse : bool
         Whether the coarse search ran.
+    turns : int
+        Fits the search made from a better turn of its last fit about its weakest rotation
+        (a fit a lobe or a tooth off) before the coarse search or without it.
     time_ms : float
         The registration's time; `normals_ms` before it (`scan_pose`) estimated the normals.
     flags : list of str
@@ -301,6 +304,7 @@ class PoseResult:
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     iterations: int = 0
     coarse: bool = False
+    turns: int = 0
     time_ms: float = 0.0
     flags: list = field(default_factory=list)
     normals_ms: float = 0.0
@@ -346,6 +350,7 @@ class PoseResult:
                           for name, values in self.std_terms().items()},
             "iterations": self.iterations,
             "coarse": self.coarse,
+            "turns": self.turns,
             "flags": list(self.flags),
             "time_ms": round(self.time_ms, 3),
             "normals_ms": round(self.normals_ms, 3),
@@ -431,15 +436,28 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
     search = surface
     if len(surface.points) > params.search_points:
         search = surface.subset(_subsample(len(surface.points), params.search_points, rng))
-    fit = _fine(search, edges, nominal, params, wander=True)
+    # The search's fits on a subsample place a minimum; the fit on every point settles it.
+    seek = params if search is surface else _seeking(params)
+    fit = _fine(search, edges, nominal, seek, wander=True)
     coarse = False
     slid = _turn_deg(fit.pose, nominal) > params.max_fine_turn_deg
-    if (slid or fit.inlier_fraction < params.good_inlier_fraction
-            or edges_refute(fit.edge_fraction, edge_count, params.good_edge_fraction,
-                            EDGES_SEARCH_SIGNIFICANCE)
-            or _better_turn(search, edges, fit.pose, params)):
+    searching = _looks_poor(fit, nominal, edge_count, params)
+    # A fit a lobe or a tooth off is refitted from the turn that fits better, and so on a few
+    # times; the coarse search runs when a fit looks poor or still has a better turn.
+    turn = None if searching else _better_turn(search, edges, fit.pose, params)
+    turns = 0
+    while turn is not None and turns < _TURNS_BEFORE_SEARCH:
+        turns += 1
+        turned = _fine(search, edges, turn, seek)
+        if (_looks_poor(turned, nominal, edge_count, params)
+                or _final_score(search, edges, turned, params)
+                <= _final_score(search, edges, fit, params)):
+            break
+        fit, turn = turned, _better_turn(search, edges, turned.pose, params)
+    searching = searching or turn is not None
+    if searching:
         starts = _coarse(search, edges, nominal, params, rng)
-        candidate = _fine(search, edges, starts[0], params)
+        candidate = _fine(search, edges, starts[0], seek)
         coarse = True
         candidate_slid = _turn_deg(candidate.pose, nominal) > params.max_fine_turn_deg
         if (slid and not candidate_slid) or (
@@ -447,9 +465,7 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
                 > _final_score(search, edges, fit, params)):
             fit = candidate
     if search is not surface:
-        settle = dataclasses.replace(params, tol_mm=params.tol_mm * _SETTLE_TOL_FACTOR,
-                                     tol_deg=params.tol_deg * _SETTLE_TOL_FACTOR)
-        fit = _fine(surface, edges, fit.pose, settle, warm=False)
+        fit = _fine(surface, edges, fit.pose, seek, warm=False)
     before_probes = fit.pose
     # The other minima on every point: on fewer, a rival that fits as well can go unseen
     # (ADIS16480 seen on its end, bench pose: a rival 152 mdeg away, near the truth, missed).
@@ -480,10 +496,20 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
     result = PoseResult(
         matrix=fit.pose, misplacement=fit.pose @ np.linalg.inv(nominal), rms_mm=fit.rms,
         inlier_fraction=fit.inlier_fraction, std=std, free_axes=free_axes,
-        covariance=covariance, iterations=fit.iterations, coarse=coarse, flags=flags,
+        covariance=covariance, iterations=fit.iterations, coarse=coarse, turns=turns, flags=flags,
         rivals=list(rivals), covariance_terms=terms, part_symmetry=equivalents)
     result.time_ms = (time.perf_counter() - t0) * 1e3
     return result
+
+
+def _looks_poor(fit, nominal, edge_count: int, params: PoseParams) -> bool:
+    """Whether a fit of the search sends it to the coarse search: it turned farther from the
+    start than a misplacement can, matches too few of its surface points, or its edge points
+    refute it."""
+    return (_turn_deg(fit.pose, nominal) > params.max_fine_turn_deg
+            or fit.inlier_fraction < params.good_inlier_fraction
+            or edges_refute(fit.edge_fraction, edge_count, params.good_edge_fraction,
+                            EDGES_SEARCH_SIGNIFICANCE))
 
 
 def scan_pose(scan, surface_model: SurfaceModel, nominal, *, edge_model: EdgeModel | None = None,

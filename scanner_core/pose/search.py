@@ -34,8 +34,8 @@ from scipy.spatial.transform import Rotation
 
 from scanner_core.pose.rows import matched_within
 from scanner_core.pose.fine import (_EDGE_SEARCH_MM, _MIN_EDGE_LEVEL, _evenly, _Fit, _fine,
-                                    _information, _linearise, _nearest, _spacing, _subsample,
-                                    _Terms)
+                                    _information, _linearise, _nearest, _seeking, _spacing,
+                                    _subsample, _Terms)
 from scanner_core.pose.quick import _quick_fits
 
 # Model points that seed a coarse candidate's translation.
@@ -180,15 +180,16 @@ _BETTER_TURN = 0.02
 _TURN_CHECK_EXACT = 3
 
 
-def _better_turn(surface: _Terms, edges: _Terms | None, pose, params) -> bool:
-    """Whether a turn of `pose` about its weakest rotation, within one step of the coarse
-    grid, fits the scan better than `pose` itself: a fit that matches most of its points
+def _better_turn(surface: _Terms, edges: _Terms | None, pose, params) -> np.ndarray | None:
+    """The turn of `pose` about its weakest rotation, within one step of the coarse grid,
+    that fits the scan better than `pose` itself, or None: a fit that matches most of its points
     can still sit a lobe or a tooth off (every edge but a keyway's matches), the many-lobed
     outline then pins the wrong turn as tightly as the right one; and a fit from a start
     far off can stop a few degrees short of the truth however firmly its weakest rotation
     is held. The turns are screened through the lookup tables (some 2 ms for 30 turns of
     800 points, against 20 through the KD-trees) and the best few decide through the
-    KD-trees."""
+    KD-trees. The turn found is a start for the fine stage (a fit a lobe off then lands on
+    the right one without the whole coarse search)."""
     rng = np.random.default_rng(params.seed + 1)
     few = surface.subset(_subsample(len(surface.points), params.coarse_points, rng))
     few_edges = None if edges is None else edges.subset(
@@ -201,7 +202,9 @@ def _better_turn(surface: _Terms, edges: _Terms | None, pose, params) -> bool:
     rough = _agreements(few.rough(), _rough(few_edges), turned, *_COARSE_TOL_MM)
     best = turned[np.argsort(-rough, kind="stable")[:_TURN_CHECK_EXACT]]
     own = _agreement(few, few_edges, pose, *_COARSE_TOL_MM)
-    return bool(np.any(_agreements(few, few_edges, best, *_COARSE_TOL_MM) > own + _BETTER_TURN))
+    exact = _agreements(few, few_edges, best, *_COARSE_TOL_MM)
+    winner = int(np.argmax(exact))
+    return best[winner] if exact[winner] > own + _BETTER_TURN else None
 
 
 # The turns about the weakest rotation a converged fit is probed with, degrees: a part held by
@@ -302,7 +305,7 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
         if (score >= own - _PROBE_MARGIN
                 and all(not _same(pose, other, _RIVAL_SAME_DEG * 10, _RIVAL_SAME_MM * 10)
                         for other in [fit.pose] + [f.pose for f in settled])):
-            probe = _fine(mid, edges, pose, params)
+            probe = _fine(mid, edges, pose, _seeking(params) if mid is not surface else params)
             if all(not _same(probe.pose, other, _RIVAL_SAME_DEG * _MID_SAME,
                              _RIVAL_SAME_MM * _MID_SAME)
                    for other in [fit.pose] + [f.pose for f in settled]):
@@ -317,7 +320,9 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
         tolerances = (_FINAL_TOL * params.surface_noise_mm, _FINAL_TOL * params.edge_noise_mm)
         on_all = _agreements(surface, edges, np.stack([f.pose for f in settled]), *tolerances)
         best = max(float(np.max(on_all)), own_final)
-        fits += [_fine(surface, edges, f.pose, params) for f, sc in zip(settled, on_all)
+        # settled on every point as the search's own minimum was
+        settle = _seeking(params) if len(surface.points) > params.search_points else params
+        fits += [_fine(surface, edges, f.pose, settle) for f, sc in zip(settled, on_all)
                  if sc >= best - _MID_MARGIN]
     if len(fits) == 1:
         return fit, []

@@ -111,11 +111,12 @@ def name_symmetry(pose, covariance, rivals, free_axes, model, params) -> dict | 
     loose = 5.0 * params.surface_noise_mm  # pose_search._FINAL_TOL times the scatter
     folds = _candidate_folds(turns)
     fold, matched = None, 0.0
-    if folds:
-        # screened on a few samples, the best few matched on all
-        screen = {n: self_match(model, axis_p, pivot_p, 360.0 / n, tight, _SCREEN_SAMPLES)
-                  for n in folds}
-        top = max(screen.values())
+    screen = {n: self_match(model, axis_p, pivot_p, 360.0 / n, tight, _SCREEN_SAMPLES)
+              for n in folds}
+    # screened on a few samples, the best few matched on all (none when even the best
+    # screened is too far below a near symmetry for its samples' scatter to hide one)
+    top = max(screen.values(), default=0.0)
+    if top >= NEAR - _SCREEN_SLACK:
         scores = {n: self_match(model, axis_p, pivot_p, 360.0 / n, tight)
                   for n, f in screen.items() if f >= top - _SCREEN_SLACK}
         best = max(scores.values())

@@ -342,8 +342,9 @@ def disc():
 def test_a_many_lobed_disc_is_not_left_a_lobe_off(disc, offset, force_coarse):
     """A 38-lobed disc with a keyway, turned in its plane: the lobes hold the fit from the
     nominal grasp a lobe off, matching every edge point but the keyway's (a fit that looks
-    good). A finer turn about the axis the fit pins down least finds the keyway: the coarse
-    search runs, and its sweep between the grid's turns finds the right lobe."""
+    good). A finer turn about the axis the fit pins down least finds the keyway: the fit
+    from that turn lands on the right lobe, or the coarse search runs and its sweep between
+    the grid's turns finds it; forced to run, it finds it too."""
     mesh, nominal, model, edge_model = disc
     truth = misplacement(*offset) @ nominal
     pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=1)
@@ -351,8 +352,23 @@ def test_a_many_lobed_disc_is_not_left_a_lobe_off(disc, offset, force_coarse):
     result = register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
                       edge_frame_ids=edge_frames, edge_model=edge_model, params=params)
     dt, dr = pose_error(result.matrix, truth)
-    assert result.coarse
+    assert result.coarse if force_coarse else (result.coarse or result.turns > 0)
     assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr)
+
+
+def test_a_fit_a_lobe_off_is_refitted_from_its_better_turn_without_the_coarse_search(disc):
+    """The 38-lobed disc a lobe (9.5 degrees) off its nominal grasp: the fit from the grasp
+    settles a lobe off; the turn that fits better starts a fit on the right lobe, and the
+    pose comes without the coarse search."""
+    mesh, nominal, model, edge_model = disc
+    truth = misplacement(1.0, 0.5, -0.5, 2.0, 1.0, -7.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=1)
+    result = register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
+                      edge_frame_ids=edge_frames, edge_model=edge_model)
+    dt, dr = pose_error(result.matrix, truth)
+    assert result.turns >= 1 and not result.coarse
+    assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr)
+    assert result.act
 
 
 def _register_turned(mesh, turn_deg):
