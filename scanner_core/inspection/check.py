@@ -408,8 +408,12 @@ def inspect_scan(cloud_t: np.ndarray, frame_ids: np.ndarray, pose_matrix: np.nda
         LINK_SPACINGS * across)
     regions += missing_regions
     kinds[flanks] = 1  # a chip's flanks are the chip's, not a deformation beside it
+    # A surface bent or warped lies off the model in stretches of its profiles; a point off
+    # alone between points on it is the stripe's (a glint, a mixed peak, the exposure's smear
+    # over a small rounded feature), however many of them one place gathers.
+    stretches = _in_stretches(dev, frame_ids, deform)
     for kind in (0, 2):
-        members = np.nonzero(kinds == kind)[0]
+        members = np.nonzero((kinds == kind) & (stretches if kind == 2 else True))[0]
         if len(members) * sample_area < min_areas[kind]:
             continue
         for group in touching_groups(cloud_t[members], LINK_SPACINGS * across):
@@ -514,6 +518,20 @@ def _noise(dev: np.ndarray, frame_ids: np.ndarray) -> float:
 def _step(value: float) -> float:
     """A sampling step, mm; 0.5 where the scan cannot say (too few profiles or points)."""
     return float(value) if math.isfinite(value) and value > 0 else 0.5
+
+
+def _in_stretches(dev: np.ndarray, frame_ids: np.ndarray, threshold: float) -> np.ndarray:
+    """(N,) bool: the points off the model by more than `threshold` (mm) whose neighbour along
+    their profile, the point before or after them, is off it the same way (`dev`, (N,) mm,
+    signed; ``frame_ids`` (N,), in ``Scan.cloud``'s order: by profile, each by column)."""
+    dev = np.asarray(dev, dtype=np.float64)
+    off = np.where(np.abs(dev) > threshold, np.sign(dev), 0.0)
+    frame_ids = np.asarray(frame_ids)
+    pair = (frame_ids[1:] == frame_ids[:-1]) & (off[1:] == off[:-1]) & (off[1:] != 0.0)
+    inside = np.zeros(len(dev), bool)
+    inside[1:] |= pair
+    inside[:-1] |= pair
+    return inside
 
 
 def point_spacing(cloud_t: np.ndarray, frame_ids: np.ndarray) -> float:

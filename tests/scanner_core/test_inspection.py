@@ -83,6 +83,34 @@ def test_a_recess_is_missing_material_and_a_gentle_bend_a_deformation(plate):
     assert result.sigma_mm == pytest.approx(NOISE_MM, rel=0.25)  # the bend is not noise
 
 
+@pytest.mark.parametrize("signs", ["alternating", "outward"])
+def test_points_off_alone_between_points_on_the_model_are_no_deformation(plate, signs):
+    """A 6 x 6 mm patch where every third point of each profile lies 0.15 mm off the model
+    (beyond ``deform_mm``, within ``extra_mm``), its neighbours on it: glints, mixed peaks or
+    an exposure's smear over a small feature, 14 mm^2 of such points (a deformation counts
+    from 4). No deformation; the whole patch moved as much is one, of its area."""
+    rng = np.random.default_rng(9)
+    x = np.arange(-28.0, 28.0 + 1e-9, POINT_MM)
+    every_third = (np.round((x + 28.0) / POINT_MM).astype(int) % 3 == 0)
+    sign = np.where(np.cumsum(every_third) % 2 == 0, -1.0, 1.0) if signs == "alternating" else 1.0
+
+    def speckle(xs, ys):
+        inside = (np.abs(xs - 4.0) <= 3.0) & (np.abs(ys + 6.0) <= 3.0)
+        return np.where(inside & every_third, 0.15 * sign, 0.0)
+
+    cloud, frames = _scan(rng, speckle)
+    result = _inspect(plate, cloud, frames)
+    assert result.thresholds["deform_mm"] < 0.15 < result.thresholds["extra_mm"]
+    assert result.conforms, result.reasons
+    patch = lambda xs, ys: np.where((np.abs(xs - 4.0) <= 3.0) & (np.abs(ys + 6.0) <= 3.0),
+                                    0.15, 0.0)
+    cloud, frames = _scan(rng, patch)
+    result = _inspect(plate, cloud, frames)
+    assert result.failing == ["deformation"]
+    (region,) = result.regions
+    assert region.area_mm2 == pytest.approx(36.0, rel=0.3)
+
+
 def test_a_small_chip_is_missing_material_from_its_flanks_too(plate):
     """A cone-shaped chip 3 mm across, 0.5 mm deep, under profiles 0.3 mm apart: only its
     middle profile's 3 middle points lie deeper than ``extra_mm`` (0.4 mm: two point steps),
