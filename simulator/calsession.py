@@ -20,8 +20,10 @@ from simulator.render import PartScene, frame_image, FrameTruth
 from simulator.session import simulated_cell
 
 #: The sphere's mesh: an icosphere of this subdivision (81920 faces: its facets lie within
-#: 3 um of the true sphere).
+#: 2 um of the true sphere), scaled so that its surface's mean radius is the sphere's.
 SPHERE_SUBDIVISIONS = 6
+#: Barycentric steps per facet edge of the quadrature of the mesh's mean radius.
+_RADIUS_QUADRATURE_STEPS = 4
 #: Positions of a session: the LED's, half about the part's place in the sheet (the direct
 #: view) and half along the LED's track (the mirror views); the sphere's.
 LED_POSITIONS = 200
@@ -33,10 +35,27 @@ SPHERE_OFFSET_T_MM = (0.0, 0.0, 50.0)
 def sphere_part(radius_mm: float) -> Part:
     """The calibration sphere as a part, held 50 mm above its centre."""
     mesh = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=radius_mm)
+    # Each facet is a chord inside the sphere its corners lie on (1.3 um on average at this
+    # subdivision); the calibration takes every stripe point to lie on the sphere of the given
+    # radius, and the plane's shift took that deficit as a bias of about 1 um.
+    mesh.apply_scale(radius_mm / mean_radius(mesh))
     grasp = np.eye(4)
     grasp[:3, 3] = SPHERE_OFFSET_T_MM  # its centre below the TCP, in the middle of the volume
     return part_from_mesh(mesh, name="sphere", source=f"procedural:sphere r={radius_mm} mm",
                           grasp=grasp)
+
+
+def mean_radius(mesh) -> float:
+    """The mean distance from the origin of a mesh's surface, area-weighted, mm: each facet
+    cut into ``_RADIUS_QUADRATURE_STEPS`` squared equal triangles, each weighed at its
+    centroid (the midpoint rule)."""
+    n = _RADIUS_QUADRATURE_STEPS
+    lattice = ([(i + 1 / 3, j + 1 / 3) for i in range(n) for j in range(n - i)]
+               + [(i + 2 / 3, j + 2 / 3) for i in range(n - 1) for j in range(n - 1 - i)])
+    weights = np.array([(a, b, n - a - b) for a, b in lattice]) / n
+    corners = mesh.vertices[mesh.faces]  # (F, 3, 3)
+    radii = np.linalg.norm(np.einsum("kc,fcd->fkd", weights, corners), axis=2).mean(axis=1)
+    return float(np.average(radii, weights=mesh.area_faces))
 
 
 def plan_geometry(cell: Cell, *, led_offset_t_mm=None, sphere_offset_t_mm=None):

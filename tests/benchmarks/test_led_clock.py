@@ -9,7 +9,9 @@ from benchmarks.led_clock import run
 
 
 def test_a_pass_symmetric_in_speed_keeps_the_clocks_drift_out_of_the_led(tmp_path):
-    result = run(tmp_path, seeds=[1], positions=(100, 20), progress=lambda _: None)
+    # the bench's session (200 LED and 40 sphere positions): with half of them the peak's
+    # own scatter (9-10 um along the pass) is half the ramp's bias
+    result = run(tmp_path, seeds=[1], positions=(200, 40), progress=lambda _: None)
     written = json.loads((tmp_path / "led_clock.json").read_text())
     assert (tmp_path / "led_clock.png").stat().st_size > 10_000
     rows = {r["speed_shape"]: r for r in written["rows"]}
@@ -20,7 +22,7 @@ def test_a_pass_symmetric_in_speed_keeps_the_clocks_drift_out_of_the_led(tmp_pat
         assert max(abs(v) for v in row["led_error_um"]["true_clock"]) < 5.0, row
     ramp = rows["ramp"]["led_error_um"]["fitted"][along]
     peak = rows["peak"]["led_error_um"]["fitted"][along]
-    # cell 1 (31.6 ppm): 18.6 um on the ramp with the bench's 200 positions, 3.2 on the peak
+    # cell 1 (31.6 ppm): 18.7 um on the ramp, 3.8 on the peak
     assert abs(ramp) > 10.0 and abs(peak) < 0.5 * abs(ramp), (ramp, peak)
     # on the ramp, the clock error times the pass's speed is about that LED error
     shift_um = rows["ramp"]["clock_error_ms"]["fitted"] * rows["ramp"]["speed_mm_s"]["median"]
