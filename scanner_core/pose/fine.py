@@ -178,6 +178,13 @@ def _seeking(params):
                    tol_deg=params.tol_deg * _SEEK_TOL_FACTOR)
 
 
+def _settling(params, points: int):
+    """`params` for a pose's fits of its `points` surface points: the search's on its
+    subsample, and those on every point that settle what it placed (`_seeking`), when there
+    are more than ``params.search_points``; `params` itself when the search ran on them all."""
+    return _seeking(params) if points > params.search_points else params
+
+
 def _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params):
     """Take back what the fit moved along free motions, and settle the rest with them held.
 

@@ -58,7 +58,7 @@ from scipy.spatial.transform import Rotation
 from scanner_core.pose.confidence import (EDGES_SEARCH_SIGNIFICANCE, MIN_COVERAGE,
                                           _coverage_flags, _flags, _rival_words, _uncertainty,
                                           edges_refute, judge, term_stds)
-from scanner_core.pose.fine import _fine, _seeking, _subsample, _Terms
+from scanner_core.pose.fine import _fine, _settling, _subsample, _Terms
 from scanner_core.pose.inputs import (MAX_PROFILE_SPACING_MM, ScanPoseInputs,
                                       add_placement_error, check_inputs, edge_steps)
 from scanner_core.pose.models import (BEVEL_MM, TOWARD_MIN, EdgeModel, SurfaceModel,
@@ -437,7 +437,7 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
     if len(surface.points) > params.search_points:
         search = surface.subset(_subsample(len(surface.points), params.search_points, rng))
     # The search's fits on a subsample place a minimum; the fit on every point settles it.
-    seek = params if search is surface else _seeking(params)
+    seek = _settling(params, len(surface.points))
     fit = _fine(search, edges, nominal, seek, wander=True)
     coarse = False
     slid = _turn_deg(fit.pose, nominal) > params.max_fine_turn_deg

@@ -34,8 +34,8 @@ from scipy.spatial.transform import Rotation
 
 from scanner_core.pose.rows import matched_within
 from scanner_core.pose.fine import (_EDGE_SEARCH_MM, _MIN_EDGE_LEVEL, _evenly, _Fit, _fine,
-                                    _information, _linearise, _nearest, _seeking, _spacing,
-                                    _subsample, _Terms)
+                                    _information, _linearise, _nearest, _seeking, _settling,
+                                    _spacing, _subsample, _Terms)
 from scanner_core.pose.quick import _quick_fits
 
 # Model points that seed a coarse candidate's translation.
@@ -321,7 +321,7 @@ def _probe_turns(surface: _Terms, edges: _Terms | None, fit: _Fit, params):
         on_all = _agreements(surface, edges, np.stack([f.pose for f in settled]), *tolerances)
         best = max(float(np.max(on_all)), own_final)
         # settled on every point as the search's own minimum was
-        settle = _seeking(params) if len(surface.points) > params.search_points else params
+        settle = _settling(params, len(surface.points))
         fits += [_fine(surface, edges, f.pose, settle) for f, sc in zip(settled, on_all)
                  if sc >= best - _MID_MARGIN]
     if len(fits) == 1:
