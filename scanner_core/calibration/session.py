@@ -35,6 +35,8 @@ from scanner_core.calibration.plane import (PlaneUncertainty, calibrate_plane, j
                                             plane_parameters, sphere_plane)
 from scanner_core.types import MarkerObservation
 from scanner_core.calibration.views import calibrate_views, fit_physical, project_views, views_as_mirrors
+from scanner_core.devices import Robot
+from scanner_core.geometry.triangulation import marker_views, reproject_marker, triangulate_marker
 
 #: The LED positions fall into this many groups, each left out in turn to see how far the
 #: views' error moves the light plane (`views_jackknife`): ten refits of the views.
@@ -97,14 +99,19 @@ def calibrate_session(session: Session, params: PipelineParams = PipelineParams(
     plane_c = plane.plane_b.transformed(camera.rotation, -camera.rotation @ camera.origin)
     progress(f"light plane: {plane.points} points from {plane.frames} frames, "
              f"{plane.rms_mm * 1e3:.1f} um RMS; sphere centres {plane.centre_rms_mm * 1e3:.1f} um RMS")
+    # The views refitted without each tenth of the LED positions: how far their error moves
+    # the light plane and, through the pass's marker, the LED's offset.
+    refits = None
+    if plane.uncertainty is not None or session.pass_devices is not None:
+        progress(f"views: refitted {VIEW_JACKKNIFE_GROUPS} times, each without a tenth of the "
+                 f"LED positions")
+        refits = refit_views(led_positions_b, led_px, views, session.width, session.height,
+                             seed=seed)
     plane_uncertainty = None  # too few sphere frames to tell
     if plane.uncertainty is not None:
-        progress(f"light plane: its uncertainty, the views refitted {VIEW_JACKKNIFE_GROUPS} "
-                 f"times")
         plane_uncertainty = views_jackknife(
-            led_positions_b, led_px, views, session.width, session.height,
-            lambda cam: sphere_plane(sphere_frames, cam, session.sphere_radius_mm)[0],
-            plane.uncertainty, seed=seed)
+            refits, lambda cam: sphere_plane(sphere_frames, cam, session.sphere_radius_mm)[0],
+            plane.uncertainty)
     led_t = nominal.marker_offset_t.copy() if led_fit is None else np.array(led_fit["led_t_mm"])
     calibration = Calibration(camera, Plane(plane_c.normal, plane_c.offset), mirrors,
                               nominal.direct_columns, led_t, nominal.clock_offset_s,
@@ -112,7 +119,7 @@ def calibrate_session(session: Session, params: PipelineParams = PipelineParams(
     clocks = None
     if session.pass_devices is not None:
         progress("clocks and LED offset: a pass of the robot")
-        calibration, clocks = _led_and_clock(session, calibration, params)
+        calibration, clocks = _led_and_clock(session, calibration, params, refits)
         progress(f"clocks: robot minus camera {clocks['clock_offset_s'] * 1e3:.3f} ms; LED at "
                  f"{np.round(calibration.marker_offset_t, 3).tolist()} mm in {{T}} "
                  f"({clocks['rms_mm'] * 1e3:.1f} um RMS)")
@@ -135,40 +142,104 @@ def calibrate_session(session: Session, params: PipelineParams = PipelineParams(
             "led_px": _per_position_px(views, led_positions_b, led_px).tolist(),
             "sphere_centre_mm": plane.centre_errors_mm.tolist()},
         "led_from_robot": led_fit,
+        # the LED offset's sigma (the file's marker_offset_std_mm) term by term, mm along {T}
+        "led_offset_std_terms_mm": None if clocks is None else clocks["led_std_terms_t_mm"],
     }
     report = _json_safe(report)
     return replace(calibration, provenance=report), report
 
 
-def views_jackknife(points_b, pixels, views, width: int, height: int,
-                    plane_of: Callable, uncertainty: PlaneUncertainty, *,
-                    groups: int = VIEW_JACKKNIFE_GROUPS, seed: int = 0) -> PlaneUncertainty:
+def refit_views(points_b, pixels, views, width: int, height: int, *,
+                groups: int = VIEW_JACKKNIFE_GROUPS, seed: int = 0) -> list[tuple]:
+    """The replicates of the views' delete-a-group jackknife (Efron and Stein 1981): the views
+    refitted without each of `groups` random groups of the LED positions in turn, from the
+    fit's own camera and mirrors.
+
+    Returns
+    -------
+    list of (PinholeCamera, list of Plane)
+        Per group, the camera and the mirror planes.
+    """
+    points_b = np.asarray(points_b, dtype=np.float64)
+    pixels = np.asarray(pixels, dtype=np.float64)
+    label = np.random.default_rng([seed, groups]).permutation(len(points_b)) % groups
+    refits = []
+    for g in range(groups):
+        keep = label != g
+        camera, planes, _ = fit_physical(points_b[keep], pixels[keep], width, height,
+                                         distortion=views.camera.distorted,
+                                         initial=(views.camera, list(views.mirror_planes)))
+        refits.append((camera, list(planes)))
+    return refits
+
+
+def views_jackknife(refits, plane_of: Callable, uncertainty: PlaneUncertainty) -> PlaneUncertainty:
     """The light plane's uncertainty with the views' own: `uncertainty` (the sphere frames'
-    scatter, ``scanner_core.calibration.plane.plane_uncertainty``) plus the delete-a-group jackknife
-    (Efron and Stein 1981) of the plane over the LED positions: the views refitted without
-    each of `groups` random groups of positions (from the fit's own camera and mirrors), and
-    the plane fitted again through each (`plane_of`: camera -> Plane in {B}). The sphere's
-    points come through the direct view's rays, so the views' error tilts and shifts the plane
-    as well (docs/calibration.md measures both against the truth).
+    scatter, ``scanner_core.calibration.plane.plane_uncertainty``) plus the jackknife of the
+    plane fitted again through each of the views' `refits` (`refit_views`; `plane_of`:
+    camera -> Plane in {B}). The sphere's points come through the direct view's rays, so the
+    views' error tilts and shifts the plane as well (docs/calibration.md measures both against
+    the truth).
 
     Returns
     -------
     PlaneUncertainty
         About `uncertainty`'s centre and axes: the two covariances added.
     """
-    points_b = np.asarray(points_b, dtype=np.float64)
-    pixels = np.asarray(pixels, dtype=np.float64)
-    label = np.random.default_rng([seed, groups]).permutation(len(points_b)) % groups
-    thetas = []
-    for g in range(groups):
-        keep = label != g
-        camera, _, _ = fit_physical(points_b[keep], pixels[keep], width, height,
-                                    distortion=views.camera.distorted,
-                                    initial=(views.camera, list(views.mirror_planes)))
-        thetas.append(plane_parameters(plane_of(camera), uncertainty.centre_b,
-                                       uncertainty.axes_b))
+    thetas = [plane_parameters(plane_of(camera), uncertainty.centre_b, uncertainty.axes_b)
+              for camera, _ in refits]
     return replace(uncertainty,
                    covariance=uncertainty.covariance + jackknife_covariance(thetas))
+
+
+def led_views_jackknife(refits, calibration: Calibration, times, marker_b, robot: Robot,
+                        clock_offset_s: float) -> np.ndarray:
+    """How far the views' error moves the LED's offset fitted on a pass: its standard
+    deviation per {T} axis, mm, the jackknife over the views' `refits` (`refit_views`).
+
+    The marker's positions on the pass are projected into the views it was seen in (the
+    calibration's, within each view's strip of columns) and triangulated again through each
+    refit, and the offset and the clock fitted again on them
+    (``scanner_core.pipeline.crosscheck.estimate_led_and_clock``). The views' error moves
+    every position of the pass alike, which the stretches of one pass
+    (``led_offset_spread``) cannot tell from the offset.
+
+    Parameters
+    ----------
+    refits : list of (PinholeCamera, list of Plane)
+    calibration : Calibration
+        The views the pass was triangulated through.
+    times : (N,) float64
+        Camera times, s.
+    marker_b : (N, 3) float64
+        The LED's positions in {B}, mm.
+    robot : Robot
+    clock_offset_s : float
+        The pass's fitted robot-minus-camera clock, s.
+
+    Returns
+    -------
+    (3,) float64
+        mm along x_T, y_T, z_T.
+    """
+    marker_b = np.asarray(marker_b, dtype=np.float64).reshape(-1, 3)
+    pixels = reproject_marker(marker_b, calibration.camera, calibration.mirrors)
+    for view, (c0, c1) in enumerate(calibration.strips):
+        u, v = pixels[:, view, 0], pixels[:, view, 1]
+        outside = ~((u >= c0) & (u < c1) & (v >= 0) & (v < calibration.camera.height))
+        pixels[outside, view] = np.nan
+    seen = np.isfinite(pixels[..., 0]).sum(axis=1) >= 2
+    pixels, times = pixels[seen], np.asarray(times, dtype=np.float64)[seen]
+    columns = [m.columns for m in calibration.mirrors]
+    offsets = []
+    for camera, planes in refits:
+        mirrors = views_as_mirrors(planes, columns)
+        views = marker_views(camera, mirrors)
+        again = np.array([triangulate_marker(px, camera, mirrors, views=views)[0]
+                          for px in pixels])
+        led, _, _ = estimate_led_and_clock(times, again, robot, initial_offset_s=clock_offset_s)
+        offsets.append(led)
+    return np.sqrt(np.diag(jackknife_covariance(offsets)))
 
 
 def _per_position_px(views, points_b, pixels) -> np.ndarray:
@@ -207,8 +278,8 @@ def _led_from_robot(session: Session, led_px: np.ndarray, seed: int):
                                 views_of)
 
 
-def _led_and_clock(session: Session, calibration: Calibration,
-                   params: PipelineParams) -> tuple[Calibration, dict]:
+def _led_and_clock(session: Session, calibration: Calibration, params: PipelineParams,
+                   refits) -> tuple[Calibration, dict]:
     camera, robot = session.pass_devices()
     camera.open()
     robot.connect()
@@ -222,13 +293,19 @@ def _led_and_clock(session: Session, calibration: Calibration,
                                                     calibration.marker_offset_t)
         led, offset, rms = estimate_led_and_clock(scan.tcp_times, marker_b, robot,
                                                   initial_offset_s=calibration.clock_offset_s)
+        # Two terms, added: the pass's own (its stretches fitted apart) and the views' error,
+        # which moves the whole pass alike (docs/calibration.md validates the sum).
         spread = led_offset_spread(scan.tcp_times, marker_b, robot, offset)
+        views_std = led_views_jackknife(refits, calibration, scan.tcp_times, marker_b, robot,
+                                        offset)
     finally:
         camera.close()
         robot.disconnect()
-    led_std = None if not np.isfinite(spread).all() else spread
+    led_std = np.hypot(spread, views_std)
+    led_std = None if not np.isfinite(led_std).all() else led_std
     return (replace(calibration, marker_offset_t=led, clock_offset_s=offset,
                     marker_offset_std_mm=led_std),
             {"clock_offset_s": offset, "led_t_mm": led.tolist(), "rms_mm": rms,
              "led_std_t_mm": None if led_std is None else led_std.tolist(),
+             "led_std_terms_t_mm": {"pass": spread.tolist(), "views": views_std.tolist()},
              "frames": int(len(scan.tcp_times))})

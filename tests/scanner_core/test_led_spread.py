@@ -1,4 +1,5 @@
-"""How well a calibration pass pins the LED's offset (``led_offset_spread``), and how that
+"""How well a calibration pass pins the LED's offset (``led_offset_spread``, the views' error
+through ``led_views_jackknife``), and how that
 uncertainty reaches the calibration file and the pose."""
 from __future__ import annotations
 
@@ -29,22 +30,25 @@ def position(t):
 class SwingRobot:
     connected = True
 
+    def __init__(self, offset_b=np.zeros(3)):
+        self.offset_b = np.asarray(offset_b, dtype=np.float64)
+
     def latest(self):
-        return TcpPose(2.0, position(2.0), ROTATION)
+        return TcpPose(2.0, position(2.0) + self.offset_b, ROTATION)
 
     def pose_at(self, t):
         if not -1.0 <= t <= 2.0:
             raise LookupError(t)
-        return TcpPose(t, position(t), ROTATION)
+        return TcpPose(t, position(t) + self.offset_b, ROTATION)
 
 
-def marker_track(bias_t=lambda f: np.zeros(3), noise_mm=0.002, seed=0):
+def marker_track(bias_t=lambda f: np.zeros(3), noise_mm=0.002, seed=0, offset_b=np.zeros(3)):
     """Camera times and the LED's positions in {B}: the robot's track at the robot's clock,
     plus the LED's offset, plus a bias in {T} that changes along the pass (f: 0 to 1)."""
     rng = np.random.default_rng(seed)
     times = np.arange(0.0, 0.8, 1 / 162.0)
     fraction = times / times[-1]
-    marker = np.array([position(t + CLOCK_S) + ROTATION @ (LED_T + bias_t(f))
+    marker = np.array([position(t + CLOCK_S) + offset_b + ROTATION @ (LED_T + bias_t(f))
                        for t, f in zip(times, fraction)])
     return times, marker + rng.normal(0.0, noise_mm, marker.shape)
 
@@ -76,6 +80,47 @@ def test_too_few_frames_per_stretch_give_no_spread():
     assert np.isnan(led_offset_spread(times[:30], marker[:30], SwingRobot(), CLOCK_S)).all()
     with pytest.raises(ValueError, match="segments"):
         led_offset_spread(times, marker, SwingRobot(), CLOCK_S, segments=1)
+
+
+#: Moves the pass to where the reference cell's three views see the LED, mm in {B}.
+IN_VIEW_B = np.array([75.0, 60.0, -350.0])
+
+
+def _views_moved(calibration, shift_b):
+    """The calibration's camera and mirror planes translated by `shift_b` in {B}, mm: every
+    point they triangulate moves by it."""
+    from dataclasses import replace
+
+    from scanner_core.geometry import Plane
+
+    camera = replace(calibration.camera, origin=calibration.camera.origin + shift_b)
+    planes = [Plane(m.plane.normal, m.plane.offset + float(m.plane.normal @ shift_b))
+              for m in calibration.mirrors]
+    return camera, planes
+
+
+def test_the_views_error_moves_the_led_offset_by_its_jackknife():
+    """Views refitted ten times, each off by a known translation: the pass's marker moves by
+    it, and the LED's offset with it, turned into {T}; the jackknife of the ten offsets gives
+    ``sqrt((G - 1) / G sum (R^T s_g - mean)^2)`` per axis, the translation along the pass
+    included (the clock does not take a constant shift)."""
+    from simulator.cell import load_cell
+    from scanner_core.calibration.session import led_views_jackknife
+
+    calibration = load_cell().calibration
+    robot = SwingRobot(IN_VIEW_B)
+    times, marker = marker_track(noise_mm=0.0, offset_b=IN_VIEW_B)
+    led, clock, _ = estimate_led_and_clock(times, marker, robot)
+    shifts = np.random.default_rng(5).normal(0.0, [0.002, 0.008, 0.004], (10, 3))
+    refits = [_views_moved(calibration, s) for s in shifts]
+    std = led_views_jackknife(refits, calibration, times, marker, robot, clock)
+    moved_t = shifts @ ROTATION  # rows R^T s
+    expected = np.sqrt(np.sum((moved_t - moved_t.mean(axis=0))**2, axis=0) * 9 / 10)
+    np.testing.assert_allclose(std, expected, rtol=0.02, atol=2e-5)
+    assert np.all(std > 0.003), std  # the case bites: microns on every axis
+    same = led_views_jackknife([_views_moved(calibration, np.zeros(3))] * 10, calibration,
+                               times, marker, robot, clock)
+    assert np.all(same < 1e-5), same
 
 
 def test_the_calibration_file_keeps_the_offset_s_uncertainty():
