@@ -220,7 +220,8 @@ def led_views_jackknife(refits, calibration: Calibration, times, marker_b, robot
     Returns
     -------
     (3,) float64
-        mm along x_T, y_T, z_T.
+        mm along x_T, y_T, z_T; NaN where the pass's marker, seen again in the views, no
+        longer fits an offset (fewer than 10 frames in two views).
     """
     marker_b = np.asarray(marker_b, dtype=np.float64).reshape(-1, 3)
     pixels = reproject_marker(marker_b, calibration.camera, calibration.mirrors)
@@ -237,7 +238,11 @@ def led_views_jackknife(refits, calibration: Calibration, times, marker_b, robot
         views = marker_views(camera, mirrors)
         again = np.array([triangulate_marker(px, camera, mirrors, views=views)[0]
                           for px in pixels])
-        led, _, _ = estimate_led_and_clock(times, again, robot, initial_offset_s=clock_offset_s)
+        try:
+            led, _, _ = estimate_led_and_clock(times, again, robot,
+                                               initial_offset_s=clock_offset_s)
+        except ValueError:
+            return np.full(3, np.nan)
         offsets.append(led)
     return np.sqrt(np.diag(jackknife_covariance(offsets)))
 

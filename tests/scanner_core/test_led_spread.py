@@ -121,6 +121,9 @@ def test_the_views_error_moves_the_led_offset_by_its_jackknife():
     same = led_views_jackknife([_views_moved(calibration, np.zeros(3))] * 10, calibration,
                                times, marker, robot, clock)
     assert np.all(same < 1e-5), same
+    # a pass the views do not see: no term (the calibration then writes no sigma)
+    unseen = led_views_jackknife(refits, calibration, times, marker + 1000.0, robot, clock)
+    assert np.isnan(unseen).all()
 
 
 def test_the_calibration_file_keeps_the_offset_s_uncertainty():
