@@ -26,7 +26,8 @@ from scanner_core.geometry.calibration import Calibration
 from scanner_core.calibration.folder import (SESSION_FORMAT, SESSION_VERSION, Session,
                                              SessionError, SessionWriter, load_session,
                                              write_session)
-from scanner_core.pipeline.crosscheck import estimate_led_and_clock, led_offset_spread
+from scanner_core.pipeline.crosscheck import (clock_and_offset_rows, estimate_led_and_clock,
+                                              led_offset_spread, robot_rotations, track_at)
 from scanner_core.geometry import Plane
 from scanner_core.calibration.ledpivot import led_from_robot_poses
 from scanner_core.marker.finder import find_markers
@@ -199,10 +200,10 @@ def led_views_jackknife(refits, calibration: Calibration, times, marker_b, robot
 
     The marker's positions on the pass are projected into the views it was seen in (the
     calibration's, within each view's strip of columns) and triangulated again through each
-    refit, and the offset and the clock fitted again on them
-    (``scanner_core.pipeline.crosscheck.estimate_led_and_clock``). The views' error moves
-    every position of the pass alike, which the stretches of one pass
-    (``led_offset_spread``) cannot tell from the offset.
+    refit, and the offset and the clock fitted again on them, linearised about the pass's
+    fit (``scanner_core.pipeline.crosscheck.estimate_led_and_clock``'s last step: the refits
+    move the marker by microns). The views' error moves every position of the pass alike,
+    which the stretches of one pass (``led_offset_spread``) cannot tell from the offset.
 
     Parameters
     ----------
@@ -220,8 +221,8 @@ def led_views_jackknife(refits, calibration: Calibration, times, marker_b, robot
     Returns
     -------
     (3,) float64
-        mm along x_T, y_T, z_T; NaN where the pass's marker, seen again in the views, no
-        longer fits an offset (fewer than 10 frames in two views).
+        mm along x_T, y_T, z_T; NaN where fewer than 10 of the pass's frames have a robot
+        pose and the marker in two views.
     """
     marker_b = np.asarray(marker_b, dtype=np.float64).reshape(-1, 3)
     pixels = reproject_marker(marker_b, calibration.camera, calibration.mirrors)
@@ -229,21 +230,28 @@ def led_views_jackknife(refits, calibration: Calibration, times, marker_b, robot
         u, v = pixels[:, view, 0], pixels[:, view, 1]
         outside = ~((u >= c0) & (u < c1) & (v >= 0) & (v < calibration.camera.height))
         pixels[outside, view] = np.nan
-    seen = np.isfinite(pixels[..., 0]).sum(axis=1) >= 2
-    pixels, times = pixels[seen], np.asarray(times, dtype=np.float64)[seen]
-    columns = [m.columns for m in calibration.mirrors]
+    times = np.asarray(times, dtype=np.float64)
+    clock = times + clock_offset_s
+    _, velocity, ok = track_at(robot, clock)
+    ok &= np.isfinite(pixels[..., 0]).sum(axis=1) >= 2
+    if ok.sum() < 10:
+        return np.full(3, np.nan)
+    pixels = pixels[ok]
+    rows = clock_and_offset_rows(velocity[ok], robot_rotations(robot, clock[ok]))
+
+    def triangulated(camera, planes):
+        mirrors = views_as_mirrors(planes, [m.columns for m in calibration.mirrors])
+        views = marker_views(camera, mirrors)
+        return np.array([triangulate_marker(px, camera, mirrors, views=views)[0]
+                         for px in pixels])
+
+    here = triangulated(calibration.camera, [m.plane for m in calibration.mirrors])
     offsets = []
     for camera, planes in refits:
-        mirrors = views_as_mirrors(planes, columns)
-        views = marker_views(camera, mirrors)
-        again = np.array([triangulate_marker(px, camera, mirrors, views=views)[0]
-                          for px in pixels])
-        try:
-            led, _, _ = estimate_led_and_clock(times, again, robot,
-                                               initial_offset_s=clock_offset_s)
-        except ValueError:
+        moved = (triangulated(camera, planes) - here).ravel()
+        if not np.isfinite(moved).all():
             return np.full(3, np.nan)
-        offsets.append(led)
+        offsets.append(np.linalg.lstsq(rows, moved, rcond=None)[0][1:])
     return np.sqrt(np.diag(jackknife_covariance(offsets)))
 
 
