@@ -466,13 +466,26 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
             fit = candidate
     if search is not surface:
         fit = _fine(surface, edges, fit.pose, seek, warm=False)
-    before_probes = fit.pose
+    group = model.symmetries
     # The other minima on every point: on fewer, a rival that fits as well can go unseen
     # (ADIS16480 seen on its end, bench pose: a rival 152 mdeg away, near the truth, missed).
-    fit, rivals = _probe_turns(surface, edges, fit, params)
+    probed, rivals = _probe_turns(surface, edges, fit, params)
+    if not coarse and _implausible(probed.pose, nominal, group, params):
+        # The probes went all the way round from a fit that was itself off (a wrong minimum
+        # that matched enough points not to look poor): the coarse search looks near the
+        # start, where a misplacement can put the part, and its minimum is probed as well.
+        coarse = True
+        candidate = _fine(search, edges, _coarse(search, edges, nominal, params, rng)[0], seek)
+        if search is not surface:
+            candidate = _fine(surface, edges, candidate.pose, seek, warm=False)
+        other, other_rivals = _probe_turns(surface, edges, candidate, params)
+        if (not _implausible(other.pose, nominal, group, params)
+                or _final_score(surface, edges, other, params)
+                > _final_score(surface, edges, probed, params)):
+            probed, rivals, fit = other, other_rivals, candidate
+    before_probes, fit = fit.pose, probed
     # A part that maps onto itself under some turns is placed the same by each: the pose is
     # the one nearest the grasp, and the same minimum turned is no rival.
-    group = model.symmetries
     equivalents = None
     if len(group) > 1:
         rivals = [r for r in rivals if not equivalent_to(fit.pose, r, group,
@@ -485,8 +498,8 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
         equivalents = {"order": int(len(group)), "turned_deg": round(turned_deg, 6)}
     covariance, std, free_axes, terms = _uncertainty(fit, params, rivals, sheet)
     flags = _flags(fit, free_axes, edge_count, params)
-    turned = _turn_deg(before_probes @ nearest_equivalent(before_probes, nominal, group),
-                       nominal)
+    turned = max(_turn_deg(pose @ nearest_equivalent(pose, nominal, group), nominal)
+                 for pose in (before_probes, fit.pose))
     if turned > params.max_fine_turn_deg:
         flags.append(f"implausible: the fit turned {turned:.0f} degrees from the start, farther "
                      f"than a misplacement the search covers ({params.max_fine_turn_deg:g})")
@@ -500,6 +513,13 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
         rivals=list(rivals), covariance_terms=terms, part_symmetry=equivalents)
     result.time_ms = (time.perf_counter() - t0) * 1e3
     return result
+
+
+def _implausible(pose, nominal, group, params: PoseParams) -> bool:
+    """Whether `pose` lies farther from the start than a misplacement can put the part
+    (``PoseParams.max_fine_turn_deg``), modulo the part's own turns (`group`)."""
+    return _turn_deg(pose @ nearest_equivalent(pose, nominal, group),
+                     nominal) > params.max_fine_turn_deg
 
 
 def _looks_poor(fit, nominal, edge_count: int, params: PoseParams) -> bool:

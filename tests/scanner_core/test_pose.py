@@ -200,6 +200,47 @@ def test_a_fit_that_slid_onto_another_face_is_not_taken(block, monkeypatch):
     assert not [f for f in result.flags if f.startswith("implausible")]
 
 
+def test_probes_that_swing_the_fit_round_send_it_to_the_coarse_search(block, monkeypatch):
+    """The probes all the way round come back with a turn 180 degrees off (as cycloidal's did
+    from a fine fit 9 degrees and 5 mm off that matched enough points not to look poor: the
+    half turn matched more than it, fewer than the truth): the coarse search runs near the
+    start, its minimum is probed too and taken, without an implausible flag. When every
+    probe swings round, the pose is flagged implausible, whatever the fit before them."""
+    import dataclasses
+
+    import scanner_core.pose.registration as pose_mod
+
+    mesh, nominal, model, edge_model = block
+    truth = misplacement(1.0, -1.0, 0.5, 2.0, -1.0, 3.0) @ nominal
+    pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=7)
+    kwargs = dict(frame_ids=frames, edges_t=edges, edge_frame_ids=edge_frames,
+                  edge_model=edge_model)
+    real, calls = pose_mod._probe_turns, []
+
+    def swing(surface, edges_, fit, params, every=False):
+        probed, rivals = real(surface, edges_, fit, params)
+        calls.append(fit.pose)
+        if len(calls) == 1 or every:
+            half = misplacement(0, 0, 0, 0, 0, 180.0)
+            return dataclasses.replace(probed, pose=probed.pose @ half), rivals
+        return probed, rivals
+
+    monkeypatch.setattr(pose_mod, "_probe_turns", swing)
+    result = register(pts, nrm, model, nominal, **kwargs)
+    dt, dr = pose_error(result.matrix, truth)
+    assert len(calls) == 2 and result.coarse
+    assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.03, (dt, dr)
+    assert not [f for f in result.flags if f.startswith("implausible")]
+
+    calls.clear()
+    monkeypatch.setattr(pose_mod, "_probe_turns",
+                        lambda *args: swing(*args, every=True))
+    swung = register(pts, nrm, model, nominal, **kwargs)
+    assert len(calls) == 2 and swung.coarse
+    (flag,) = [f for f in swung.flags if f.startswith("implausible")]
+    assert re.search(r"turned 1[78]\d degrees", flag), flag
+
+
 def test_a_pose_beyond_the_fine_stage_s_reach_is_flagged_implausible(block):
     """A pose farther from the start than ``max_fine_turn_deg`` (here 5 degrees, the truth 8
     away) is kept only when the coarse search finds none nearer, and says so."""
