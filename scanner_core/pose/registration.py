@@ -498,8 +498,7 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
         equivalents = {"order": int(len(group)), "turned_deg": round(turned_deg, 6)}
     covariance, std, free_axes, terms = _uncertainty(fit, params, rivals, sheet)
     flags = _flags(fit, free_axes, edge_count, params)
-    turned = max(_turn_deg(pose @ nearest_equivalent(pose, nominal, group), nominal)
-                 for pose in (before_probes, fit.pose))
+    turned = max(_turned_from(pose, nominal, group) for pose in (before_probes, fit.pose))
     if turned > params.max_fine_turn_deg:
         flags.append(f"implausible: the fit turned {turned:.0f} degrees from the start, farther "
                      f"than a misplacement the search covers ({params.max_fine_turn_deg:g})")
@@ -515,11 +514,15 @@ def _register(points_t, normals_t, model: SurfaceModel, nominal, *, frame_ids, e
     return result
 
 
+def _turned_from(pose, nominal, group) -> float:
+    """Degrees `pose` turned from the start `nominal`, modulo the part's own turns (`group`)."""
+    return _turn_deg(pose @ nearest_equivalent(pose, nominal, group), nominal)
+
+
 def _implausible(pose, nominal, group, params: PoseParams) -> bool:
     """Whether `pose` lies farther from the start than a misplacement can put the part
-    (``PoseParams.max_fine_turn_deg``), modulo the part's own turns (`group`)."""
-    return _turn_deg(pose @ nearest_equivalent(pose, nominal, group),
-                     nominal) > params.max_fine_turn_deg
+    (``PoseParams.max_fine_turn_deg``)."""
+    return _turned_from(pose, nominal, group) > params.max_fine_turn_deg
 
 
 def _looks_poor(fit, nominal, edge_count: int, params: PoseParams) -> bool:
