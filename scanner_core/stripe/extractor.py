@@ -50,6 +50,9 @@ __all__ = ["METHODS", "POLICIES", "SIGNALS", "BAYER_PATTERNS", "StripeResult", "
            "stripe_signal", "demosaic", "Reason", "estimate_noise", "isolated_runs"]
 
 METHODS = ("cog", "gaussian3", "parabola", "blais_rioux", "lsq_gauss")
+#: Largest `window` (rows): a second peak counts beyond twice it, which the column maxima
+#: track in bytes (``passes.MAX_SEP``).
+MAX_WINDOW = passes.MAX_SEP // 2
 _METHOD_CODE = {name: i for i, name in enumerate(METHODS)}
 #: Peak selection policies (see ``extract``); "reject" is the historical behaviour.
 POLICIES = ("strongest", "nearest", "continuity", "reject")
@@ -503,7 +506,7 @@ def extract(image, method="cog", *, threshold="auto", window=4, max_width="auto"
         Half-size (rows) of the neighbourhood of the argmax used by ``cog`` and ``lsq_gauss``,
         at the least: ``cog`` goes on beyond it while the pixels stay above its threshold,
         ``lsq_gauss`` spans 2.5 of the stripe's sigmas; a second peak counts as separate
-        beyond ``2 * window`` rows and 2.5 of the main peak's sigmas.
+        beyond ``2 * window`` rows and 2.5 of the main peak's sigmas. 2 to ``MAX_WINDOW``.
     max_width : float or "auto"
         Gate on the sigma-like width, px. A number: wider peaks are ``Reason.TOO_WIDE``.
         ``"auto"`` (default): the gate follows the frame's own stripe: ``max(4, 2 * median
@@ -615,8 +618,8 @@ def extract(image, method="cog", *, threshold="auto", window=4, max_width="auto"
     if saturation not in ("fit", "reject"):
         raise ValueError(f"`saturation` must be 'fit' or 'reject', got {saturation!r}")
     window = int(window)
-    if window < 2:
-        raise ValueError(f"`window` must be >= 2, got {window}")
+    if not 2 <= window <= MAX_WINDOW:
+        raise ValueError(f"`window` must be 2 to {MAX_WINDOW} rows, got {window}")
     auto_width = isinstance(max_width, str)
     if auto_width:
         if max_width != "auto":

@@ -15,15 +15,15 @@ at least half the frame to whole rows, and :func:`window_band` limits the rows t
 geometric window reaches (a contiguous block of whole rows: a sequential stream again).
 
 Conventions: ``img`` is ``(H, W)`` uint8, C-contiguous; per-column arrays are indexed from the
-first column read; rows are uint16 (the narrow index type is what lets LLVM vectorise the
-row-major loops).
+first column read; rows are uint16, and bytes within the row-major loops (the narrow index
+type is what lets LLVM vectorise them; :func:`column_max`).
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
-__all__ = ["NOISE_ROW_STEP", "NOISE_RUN_PX", "HALF_IQR_PER_SIGMA", "MIN_NOISE_DN",
+__all__ = ["NOISE_ROW_STEP", "NOISE_RUN_PX", "HALF_IQR_PER_SIGMA", "MIN_NOISE_DN", "MAX_SEP",
            "noise_estimate", "quantile_from_hist", "read_span", "window_band", "column_max",
            "column_max2", "column_max_window"]
 
@@ -145,15 +145,21 @@ def window_band(rmin, rmax, c0, c1, h):
 
 
 @njit(nogil=True, cache=True, inline="always")
-def _max_step(v, m, a, s, r16, lim16):
+def _max_step(v, m, a, s, q, lim):
     """One row of :func:`column_max` for one column: the new maximum, its row and the far
-    second maximum after value ``v`` at row ``r16``."""
-    far = a < lim16
+    second maximum after value ``v`` at row ``q`` (rows and ``lim`` coded as in
+    :func:`column_max`)."""
+    far = a < lim
     lo = min(m, v)
     s = max(s, lo) if far else s
-    a = r16 if v > m else a
+    a = q if v > m else a
     m = max(m, v)
     return m, a, s
+
+
+#: Largest ``sep`` :func:`column_max` takes: a block of rows needs ``sep + 1`` rows before it
+#: and at least one of its own within a uint8's 256 codes.
+MAX_SEP = 254
 
 
 @njit(nogil=True, cache=True)
@@ -163,44 +169,76 @@ def column_max(img, r0, r1, c0, c1, sep, mx, am, sec):
 
     ``sec`` holds the largest value seen more than ``sep`` rows from the running argmax at the
     time it was seen (the old maximum is demoted into it when a new maximum appears far away).
-    Rows ascend, so ``r - am >= 0``.  Branch-free so that the loop vectorises, and four rows
+    Rows ascend, so ``r - am >= 0``.  Branch-free so that the loop vectorises, and eight rows
     at a time: the per-column state stays in registers over them (loaded and stored once per
-    row, it had cost as much as the frame's own reads).  The row of the second maximum is not
-    kept here: it costs half as much again (one more uint16 array per pixel) and only frames
-    with double peaks need it (:func:`column_max2`).
+    row, it had cost as much as the frame's own reads); written out row by row, as a loop
+    over the eight, LLVM does not vectorise it.  Every value is a byte, so that a vector holds
+    32 columns (AVX2): the rows go in blocks of ``256 - (sep + 1)``, each row coded as its
+    offset from ``sep + 1`` rows before its block, where a maximum carried from an older row
+    is coded 0 (every row of the block is more than ``sep`` rows from it either way).  With
+    the argmax held as uint16 the pass cost 1.85 times as much.  The row of the second
+    maximum is not kept here: only frames with double peaks need it (:func:`column_max2`).
+    ``sep`` at most ``MAX_SEP``.
     """
     n = c1 - c0
-    r = r0
-    while r + 4 <= r1:
-        row0 = img[r, c0:c1]
-        row1 = img[r + 1, c0:c1]
-        row2 = img[r + 2, c0:c1]
-        row3 = img[r + 3, c0:c1]
-        # r - a > sep  <=>  a < r - sep: uint16 compares (no widening, so that it vectorises)
-        q0, q1, q2, q3 = np.uint16(r), np.uint16(r + 1), np.uint16(r + 2), np.uint16(r + 3)
-        l0 = np.uint16(max(r - sep, 0))
-        l1 = np.uint16(max(r + 1 - sep, 0))
-        l2 = np.uint16(max(r + 2 - sep, 0))
-        l3 = np.uint16(max(r + 3 - sep, 0))
+    keep = sep + 1
+    code = np.empty(n, np.uint8)
+    b0 = r0
+    while b0 < r1:
+        b1 = min(b0 + 256 - keep, r1)
+        base = max(b0 - keep, 0)
         for j in range(n):
-            m, a, s = _max_step(row0[j], mx[j], am[j], sec[j], q0, l0)
-            m, a, s = _max_step(row1[j], m, a, s, q1, l1)
-            m, a, s = _max_step(row2[j], m, a, s, q2, l2)
-            m, a, s = _max_step(row3[j], m, a, s, q3, l3)
-            mx[j] = m
-            am[j] = a
-            sec[j] = s
-        r += 4
-    while r < r1:
-        row = img[r, c0:c1]
-        q = np.uint16(r)
-        lim = np.uint16(max(r - sep, 0))
+            code[j] = np.uint8(am[j] - base) if am[j] >= base else np.uint8(0)
+        r = b0
+        while r + 8 <= b1:
+            row0 = img[r, c0:c1]
+            row1 = img[r + 1, c0:c1]
+            row2 = img[r + 2, c0:c1]
+            row3 = img[r + 3, c0:c1]
+            row4 = img[r + 4, c0:c1]
+            row5 = img[r + 5, c0:c1]
+            row6 = img[r + 6, c0:c1]
+            row7 = img[r + 7, c0:c1]
+            q0, q1 = np.uint8(r - base), np.uint8(r + 1 - base)
+            q2, q3 = np.uint8(r + 2 - base), np.uint8(r + 3 - base)
+            q4, q5 = np.uint8(r + 4 - base), np.uint8(r + 5 - base)
+            q6, q7 = np.uint8(r + 6 - base), np.uint8(r + 7 - base)
+            # r - a > sep  <=>  a < r - sep, in the block's codes
+            l0 = np.uint8(max(r - sep, base) - base)
+            l1 = np.uint8(max(r + 1 - sep, base) - base)
+            l2 = np.uint8(max(r + 2 - sep, base) - base)
+            l3 = np.uint8(max(r + 3 - sep, base) - base)
+            l4 = np.uint8(max(r + 4 - sep, base) - base)
+            l5 = np.uint8(max(r + 5 - sep, base) - base)
+            l6 = np.uint8(max(r + 6 - sep, base) - base)
+            l7 = np.uint8(max(r + 7 - sep, base) - base)
+            for j in range(n):
+                m, a, s = _max_step(row0[j], mx[j], code[j], sec[j], q0, l0)
+                m, a, s = _max_step(row1[j], m, a, s, q1, l1)
+                m, a, s = _max_step(row2[j], m, a, s, q2, l2)
+                m, a, s = _max_step(row3[j], m, a, s, q3, l3)
+                m, a, s = _max_step(row4[j], m, a, s, q4, l4)
+                m, a, s = _max_step(row5[j], m, a, s, q5, l5)
+                m, a, s = _max_step(row6[j], m, a, s, q6, l6)
+                m, a, s = _max_step(row7[j], m, a, s, q7, l7)
+                mx[j] = m
+                code[j] = a
+                sec[j] = s
+            r += 8
+        while r < b1:
+            row = img[r, c0:c1]
+            q = np.uint8(r - base)
+            lim = np.uint8(max(r - sep, base) - base)
+            for j in range(n):
+                m, a, s = _max_step(row[j], mx[j], code[j], sec[j], q, lim)
+                mx[j] = m
+                code[j] = a
+                sec[j] = s
+            r += 1
         for j in range(n):
-            m, a, s = _max_step(row[j], mx[j], am[j], sec[j], q, lim)
-            mx[j] = m
-            am[j] = a
-            sec[j] = s
-        r += 1
+            if code[j] != 0:  # 0: the maximum carried into the block is still the maximum
+                am[j] = np.uint16(base + code[j])
+        b0 = b1
 
 
 @njit(nogil=True, cache=True)

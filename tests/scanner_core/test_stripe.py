@@ -160,6 +160,8 @@ def test_bad_options_raise():
         extract(img, columns=(5, 40))
     with pytest.raises(ValueError, match="`window`"):
         extract(img, window=1)
+    with pytest.raises(ValueError, match="`window` must be 2 to 127"):
+        extract(img, window=128)
     with pytest.raises(ValueError, match="unknown parameter"):
         extract(img, thresh=3)
 
@@ -210,3 +212,50 @@ def test_single_walks_equal_the_separate_estimators():
         window, max_walk = int(rng.integers(2, 8)), int(rng.integers(3, 40))
         apart, single = _walks(img, am, threshold, t_cog, window, max_walk)
         assert_allclose(single, apart, rtol=0, atol=1e-9, equal_nan=True)
+
+
+def _column_max_by_definition(img, r0, r1, c0, c1, sep):
+    """Per column, row by row: the maximum, its first row, and the largest value seen more
+    than `sep` rows from the running maximum's row when it was seen (the old maximum demoted
+    into it when a new one appears far away)."""
+    n = c1 - c0
+    mx, am, sec = np.zeros(n, np.uint8), np.zeros(n, np.uint16), np.zeros(n, np.uint8)
+    for j in range(n):
+        m, a, s = 0, 0, 0
+        for r in range(r0, r1):
+            v = int(img[r, c0 + j])
+            if r - a > sep:
+                s = max(s, min(m, v))
+            if v > m:
+                m, a = v, r
+        mx[j], am[j], sec[j] = m, a, s
+    return mx, am, sec
+
+
+@pytest.mark.parametrize("kind", ["noise", "ties", "stripes", "ramp"])
+@pytest.mark.parametrize("sep", [0, 8, 40, 254])
+def test_column_maxima_in_byte_blocks_follow_their_definition(kind, sep):
+    """The column maxima read in blocks of rows coded as bytes (``passes.column_max``) give
+    exactly the running maximum, its row and the far second maximum, over frames taller than
+    a byte's 256 rows and at either end of ``sep``."""
+    from scanner_core.stripe import passes
+
+    rng = np.random.default_rng(sep)
+    h, w = 700, 37
+    if kind == "noise":
+        img = rng.integers(0, 256, (h, w), dtype=np.uint8)
+    elif kind == "ties":
+        img = rng.integers(0, 3, (h, w), dtype=np.uint8)
+    elif kind == "stripes":
+        img = rng.normal(12.0, 4.0, (h, w)).clip(0, 255).astype(np.uint8)
+        for c in range(w):
+            for r in rng.integers(0, h, 3):
+                img[max(r - 2, 0):r + 3, c] = rng.integers(20, 256)
+    else:
+        img = np.sort(rng.integers(0, 256, (h, w), dtype=np.uint8), axis=0)
+    for r0, r1, c0, c1 in ((0, h, 0, w), (3, 611, 5, 30), (290, 300, 0, 1), (0, 9, 2, 37)):
+        mx, am, sec = (np.zeros(c1 - c0, t) for t in (np.uint8, np.uint16, np.uint8))
+        passes.column_max(img, r0, r1, c0, c1, sep, mx, am, sec)
+        expected = _column_max_by_definition(img, r0, r1, c0, c1, sep)
+        for got, want in zip((mx, am, sec), expected):
+            np.testing.assert_array_equal(got, want)
