@@ -376,3 +376,38 @@ def test_point_sensors_refuses_mismatched_frames():
     scan.sensor_positions_t = np.zeros((3, 3))
     with pytest.raises(ValueError, match="same frames"):
         point_sensors(scan)
+
+
+@pytest.mark.parametrize("radius", [None, 0.5])
+def test_the_profile_search_finds_what_a_kd_tree_finds(radius):
+    """The neighbours searched profile by profile along their main direction
+    (``normals._profile_neighbours``) are those a KD-tree over the points, each profile kept
+    apart from the others, answers: the same distances in the same order, and the same points
+    (duplicated points, at the same distance, may come in another order), on curved, noisy
+    profiles with duplicates, a one-point profile and a rank with no neighbour on one side."""
+    from scipy.spatial import cKDTree
+
+    from scanner_core.normals import _profile_neighbours
+
+    rng = np.random.default_rng(4)
+    rows = []
+    for rank in range(12):
+        n = 1 if rank == 5 else int(rng.integers(20, 60))
+        s = np.sort(rng.uniform(-4.0, 4.0, n))
+        rows.append(np.column_stack([s, np.full(n, rank * ACROSS_MM),
+                                     0.3 * s**2 + rng.normal(0.0, NOISE_MM, n), np.full(n, rank)]))
+    cloud = np.concatenate(rows)
+    cloud = np.concatenate([cloud, cloud[::7]])  # duplicates: ties broken the same way
+    points, ranks = cloud[:, :3] - cloud[:, :3].mean(axis=0), cloud[:, 3].astype(np.int64)
+    query = rng.choice(len(points), 150, replace=False)
+    bound = np.inf if radius is None else radius
+    index, distance = _profile_neighbours(points, ranks, 9, bound, query)
+    separation = 4.0 * float(np.linalg.norm(np.ptp(points, axis=0))) + 4.0
+    tree = cKDTree(np.column_stack([points, ranks * separation]))
+    for i, offset in enumerate((0, -1, 1)):
+        at = np.column_stack([points[query], (ranks[query] + offset) * separation])
+        d, j = tree.query(at, k=9, distance_upper_bound=min(bound, separation / 2))
+        assert_array_equal(distance[i], d)
+        found = np.isfinite(d)
+        assert_array_equal(points[index[i][found]], points[j[found]])
+        assert np.all(index[i][~np.isfinite(d)] == len(points))
