@@ -1,7 +1,8 @@
 """The registration's numba kernels compiled before the first pose (`warm_up_pose`).
 
-The fine stage's rows, the search's agreement test (``scanner_core.pose.rows``), the lookup
-table's query and `NearestMemo`'s bookkeeping (``scanner_core.pose.nearest_table``) compile on
+The normals' neighbour search and planes (``scanner_core.normals``), the fine stage's rows,
+the search's agreement test (``scanner_core.pose.rows``), the lookup table's query and
+`NearestMemo`'s bookkeeping (``scanner_core.pose.nearest_table``) compile on
 their first call: some 3.7 s on a fresh install (an empty numba cache), some 150 ms loading
 them from the cache, which the first pass's pose would otherwise wait for. The service warms
 them up with the frame kernels (``scanner_core.pipeline.warm_up``), before it streams.
@@ -23,6 +24,7 @@ def warm_up_pose() -> float:
     import trimesh
     from scipy.spatial.transform import Rotation
 
+    from scanner_core.normals import estimate_normals
     from scanner_core.pose.registration import EdgeModel, PoseParams, SurfaceModel, register
     from scanner_core.pose.fine import _Terms
     from scanner_core.pose.quick import _quick_fits
@@ -40,6 +42,8 @@ def warm_up_pose() -> float:
     nominal[:3, :3] = Rotation.from_rotvec(np.radians([0.0, 0.0, 2.0])).as_matrix()
     nominal[:3, 3] = [0.5, 0.0, 0.0]
     params = PoseParams(search_points=200, max_points=800)
+    estimate_normals(points, sensors=np.array([0.0, 0.0, 100.0]),
+                     frame_ids=np.arange(len(points)) // 20, index=np.arange(0, len(points), 2))
     register(points, normals, surface_model, nominal, frame_ids=np.arange(len(points)) // 20,
              edges_t=edges, edge_frame_ids=np.arange(len(edges)) // 4, edge_model=edge_model,
              edge_steps_mm=steps, params=params)
