@@ -18,7 +18,7 @@ The neighbour search runs profile by profile: each profile's points sorted along
 profiles' main direction, searched outward from the query's place and stopped where the gap
 along that direction (a lower bound on the distance) passes the k-th nearest so far. It
 answers what a k-d tree over the points with the profile's rank as a fourth coordinate, scaled
-far beyond the cloud's size, answers, three to four times faster. The planes are fitted point
+far beyond the cloud's size, answers, in less time. The planes are fitted point
 by point in compiled code, the 3 x 3 eigenproblem in closed form. An unstructured cloud (no
 frame ids) is searched with a k-d tree (``scipy.spatial.cKDTree``).
 
@@ -244,7 +244,7 @@ def _profile_neighbours(centred, ranks, k, bound, query_index):
     [...] distances)``, each (M, k), sorted by distance, N and inf where fewer.
 
     Exactly what a KD-tree over the points, each profile apart from the others, answers, and
-    three to four times faster on a scan: each profile's points sorted along the profiles'
+    faster on a scan (docs/pose.md): each profile's points sorted along the profiles'
     main direction ``u`` (the main axis of the points about their profile's mean), and the
     search run outward from the query's place in that order (`_profile_knn`), stopped where
     ``|t - t_q|`` along ``u``, a lower bound on the distance, passes the k-th nearest so far.
@@ -346,8 +346,8 @@ def _plane_fits(pts, index, found, query_index, min_neighbours, min_spread_ratio
     from the query point (translation-invariant; small offsets keep it exact wherever the
     cloud sits), its eigenvalues in closed form (:func:`_symmetric_eigenvalues`) and the
     smallest one's eigenvector as the largest cross product of two rows of ``C - l_min I``
-    (they span the plane it is normal to). A batch of LAPACK's 3 x 3 eigenproblems had cost
-    a third of the normals' time."""
+    (they span the plane it is normal to): no LAPACK call per point (timings in
+    docs/pose.md)."""
     for i in range(len(query_index)):
         q = query_index[i]
         m = 0

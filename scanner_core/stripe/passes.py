@@ -175,8 +175,9 @@ def column_max(img, r0, r1, c0, c1, sep, mx, am, sec):
     over the eight, LLVM does not vectorise it.  Every value is a byte, so that a vector holds
     32 columns (AVX2): the rows go in blocks of ``256 - (sep + 1)``, each row coded as its
     offset from ``sep + 1`` rows before its block, where a maximum carried from an older row
-    is coded 0 (every row of the block is more than ``sep`` rows from it either way).  With
-    the argmax held as uint16 the pass cost 1.85 times as much.  The row of the second
+    is coded 0 (every row of the block is more than ``sep`` rows from it either way): an
+    argmax held as uint16 would halve the columns per vector and widen every mask (timings
+    in docs/stripe.md).  The row of the second
     maximum is not kept here: only frames with double peaks need it (:func:`column_max2`).
     ``sep`` at most ``MAX_SEP``.
     """
