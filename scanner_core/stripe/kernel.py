@@ -137,6 +137,20 @@ FLAT_LEVEL = 0.8
 FLAT_TOP_SLACK_ROWS = 1.5
 FLAT_TOP_WIDTHS = 1.8
 
+# A column whose brightest pixel is no stripe (no peak over its own background, a plateau, a
+# lone pixel) may hold one dimmer than that, where the stripe of the column beside it goes on:
+# on a dark square of a texture lit brighter elsewhere, on a dark part beside a bright one.
+# Beside a column that passed, the rows its peak links to (``_linked``) are searched for the
+# one that stands highest over the lower of the pixels within PROMINENCE_REACH_WIDTHS of the
+# frame's width gate (``core``) on each side (``prominent_peak``: a texture's step stands over
+# neither side's lowest, a bump over both; a stripe is down to 4 % of its height 2.5 of its
+# widths out); it is the stripe if it stands PROMINENCE_MIN_SIGMAS of noise over the higher of
+# the two and is as wide as the frame's stripes are (with ``threshold="auto"`` only).  In a
+# column of noise alone the largest of a link's dozen pixels is about 2 sigmas up and the
+# lowest of ten about 1.5 down: noise stands about 4 sigmas "over" its surround, and rarely 8.
+PROMINENCE_REACH_WIDTHS = 2.5
+PROMINENCE_MIN_SIGMAS = 8.0
+
 # The peak's width, count and centroid are read with the window a compile-time constant when
 # ``window`` is this (the default): the loops over it unrolled, the candidates' pass took half
 # the time.
@@ -227,6 +241,55 @@ def local_background(img, c, a, h, near, far, frame_bg):
     if a + far <= h - 1:
         right = float(min(img[a + near, c], img[a + far, c]))
     return max(frame_bg, left, right)
+
+
+@njit(nogil=True, cache=True)
+def _window_min(pre, suf, s, e, reach):
+    """The minimum of rows ``s .. e`` (``e - s < reach``) from the blocks' prefix and suffix
+    minima: across two blocks the suffix of the first and the prefix of the second; within
+    one, the window starts at its block's start or (cut at the band's end) ends at its end."""
+    if s // reach != e // reach:
+        return min(suf[s], pre[e])
+    return pre[e] if s % reach == 0 else suf[s]
+
+
+@njit(nogil=True, cache=True)
+def prominent_peak(img, c, r0, r1, s0, s1, reach, out):
+    """The row of column ``c`` within ``s0 <= r < s1`` that stands highest over its surround,
+
+        P_r = v_r - max(min(v_{r-reach} .. v_{r-1}), min(v_{r+1} .. v_{r+reach})),
+
+    the windows cut at the band ``r0 <= r < r1`` (a row with no pixel on one side within it
+    is skipped).  A step (a texture's edge) stands over neither side's lowest pixel, a bump
+    over both.  The minima are the running minima of van Herk and Gil-Werman (per block of
+    ``reach`` rows, a prefix and a suffix minimum: three reads a row whatever ``reach``).
+
+    ``out`` (2,) float64 receives the row and the background (the higher of the two minima);
+    returns ``P`` (DN), -inf where no row qualifies."""
+    lo = max(r0, s0 - reach)
+    hi = min(r1, s1 + reach)
+    n = hi - lo
+    best = -math.inf
+    if n < 3 or reach < 1:
+        return best
+    pre = np.empty(n, np.int32)  # minimum from its block's start to the row
+    suf = np.empty(n, np.int32)  # minimum from the row to its block's end
+    for i in range(n):
+        v = np.int32(img[lo + i, c])
+        pre[i] = v if i % reach == 0 else min(pre[i - 1], v)
+    for i in range(n - 1, -1, -1):
+        v = np.int32(img[lo + i, c])
+        suf[i] = v if (i % reach == reach - 1 or i == n - 1) else min(suf[i + 1], v)
+    for i in range(max(s0 - lo, 1), min(s1 - lo, n - 1)):
+        # rows above i from max(i - reach, 0), below to min(i + reach, n - 1)
+        b = max(_window_min(pre, suf, max(i - reach, 0), i - 1, reach),
+                _window_min(pre, suf, i + 1, min(i + reach, n - 1), reach))
+        prom = float(np.int32(img[lo + i, c]) - b)
+        if prom > best:
+            best = prom
+            out[0] = lo + i
+            out[1] = b
+    return best
 
 
 @njit(nogil=True, cache=True)
@@ -326,6 +389,16 @@ def extract_kernel(img, c0, c1, method, auto, thr, window, max_width, auto_width
 
 
 @njit(nogil=True, cache=True)
+def _ends_at_cliff(stats, b, p, sig):
+    """The centroid's run past the window (``est.width_count_cog``'s ``stats``) of a peak ``p``
+    over ``b`` ended at a cliff (``CLIFF_FRACTION``, ``CLIFF_RUN_WIDTHS``), not down a flank."""
+    return (p < SATURATION_DN and stats[3] > 0
+            and (stats[4] > b + CLIFF_FRACTION * (p - b)
+                 or (stats[3] > CLIFF_RUN_WIDTHS * stats[0]
+                     and stats[5] > CLIFF_NOISE_SIGMAS * sig)))
+
+
+@njit(nogil=True, cache=True)
 def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, max_walk, window,
                 shoulders, med, sig, bg, double_ratio, use_window, rmin, rmax, min_width, ncand,
                 wmain, nmain, ymain, bloc, tloc, hist, steep):
@@ -397,10 +470,7 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
         wmain[j] = wd
         nmain[j] = stats[1]
         ymain[j] = stats[2]
-        if (not fast and not shoulders and p < SATURATION_DN and stats[3] > 0
-                and (stats[4] > b + CLIFF_FRACTION * (p - b)
-                     or (stats[3] > CLIFF_RUN_WIDTHS * stats[0]
-                         and stats[5] > CLIFF_NOISE_SIGMAS * sig))):
+        if not fast and not shoulders and _ends_at_cliff(stats, b, p, sig):
             # the centroid's run past the window ended at a cliff, not down a flank: a lit
             # square's edge (a texture under the line); the stripe is what stands over it
             ymain[j] = est.cog(img, c, a, h, stats[4] + COG_SIGMAS * sig, window, math.nan,
@@ -417,6 +487,112 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
             hist[int(wd / WIDTH_BIN_PX)] += 1
             n_widths += 1
     return n_widths
+
+
+@njit(nogil=True, cache=True)
+def _centre(img, c, a, h, p, b, sig, sat, bg_sat, method, shoulders, window, max_walk, y_cog,
+            t_c, wd, bg, test_cut):
+    """The centre row of the peak at row ``a`` of column ``c`` (``p`` DN over a background
+    ``b``; ``y_cog`` its centroid, ``t_c`` its threshold, ``wd`` its width) by ``method``, a
+    saturated one from its flanks; with ``test_cut`` (a fall within the window steep enough,
+    or a reflection chosen) a centroid whose stripe a texture's edge cuts is replaced by its
+    whole flank's fit (``est.cut_flank``, ``est.uncut_centre``)."""
+    y = math.nan
+    if sat:
+        y = est.saturated_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig, window,
+                                 bg_sat, max_walk)
+        if not math.isfinite(y):  # too few samples for the fit: a narrow stripe?
+            y = est.narrow_clip_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig, bg_sat)
+        if not math.isfinite(y) and shoulders:
+            y = est.top_centroid(img, c, a, h, b + SHOULDER_FRACTION * (p - b), max_walk)
+    elif method == 0 and shoulders:
+        y = est.cog(img, c, a, h, b + SHOULDER_FRACTION * (p - b), window, math.nan, max_walk)
+    elif method == 0:
+        y = y_cog
+    elif method == 1:
+        y = est.gaussian3(img, c, a, h, bg)
+    elif method == 2:
+        y = est.parabola(img, c, a, h)
+    elif method == 3:
+        y = est.blais_rioux(img, c, a, h)
+    else:
+        y0 = est.cog(img, c, a, h, t_c, window, math.nan, max_walk)
+        y = est.lsq_gauss(img, c, a, h, t_c, window, y0, wd) if math.isfinite(y0) else y0
+    if method == 0 and not sat and math.isfinite(y) and test_cut:
+        # a texture's edge across the stripe: its centre from the flank the edge leaves
+        step, r_cut = est.cut_flank(img, c, a, h, b, sig, max_walk)
+        if step != 0:
+            y_cut = est.uncut_centre(img, c, a, h, step, r_cut, sig, max_walk, shoulders)
+            if math.isfinite(y_cut):
+                y = y_cut
+    return y
+
+
+@njit(nogil=True, cache=True)
+def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, core, min_width,
+                       max_walk, window, shoulders, method, sig, bg, use_window, rmin, rmax,
+                       peak, width, snr, saturated, reason):
+    """Columns whose peak is no stripe (no peak, too wide, too narrow, unlinked) beside one
+    that passed: the stripe where that one's goes on, dimmer than the column's
+    brightest pixel (``PROMINENCE_*``), swept both ways so that a run of them continues; the
+    gate arrays and outputs updated in place.  A column refused by a policy (saturated,
+    double, outside the geometric window) stays refused."""
+    h = img.shape[0]
+    spot = np.zeros(2)
+    stats = np.zeros(7)
+    for sweep in range(2):
+        j0, j1, d = (js + 1, je, 1) if sweep == 0 else (je - 2, js - 1, -1)
+        for j in range(j0, j1, d):
+            i = j - d  # the neighbour the sweep comes from
+            c = ca + j
+            if ok[j]:
+                continue  # a stripe (a failed fit there is no reason to look elsewhere)
+            if klass[j] == _REJECTED and not (reason[c] == 1 or reason[c] == 4
+                                              or reason[c] == 5):
+                continue
+            if not (ok[i] and math.isfinite(yrow[i])):
+                continue
+            reach = max(2, int(math.ceil(PROMINENCE_REACH_WIDTHS * core)))
+            reach_rows = LINK_ROWS_PX + max(wsel[i], core)
+            s0 = max(r0, int(math.ceil(arow[i] - reach_rows)))
+            s1 = min(r1, int(math.floor(arow[i] + reach_rows)) + 1)
+            if use_window:
+                s0 = max(s0, int(rmin[c]))
+                s1 = min(s1, int(rmax[c]) + 1)
+            if not prominent_peak(img, c, r0, r1, s0, s1, reach, spot) >= (
+                    PROMINENCE_MIN_SIGMAS * sig):
+                continue
+            a = int(spot[0])
+            b = spot[1]
+            p = float(img[a, c])
+            if p >= SATURATION_DN:
+                continue  # the column's brightest: refused as it was
+            t_c = b + AUTO_THRESHOLD_SIGMAS * sig
+            est.width_count_cog(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c, window,
+                                _cog_level(b, sig, p), bg, max_walk, stats)
+            wd = stats[0]
+            if not (min_width <= wd <= core and stats[1] >= MIN_PIXELS_ABOVE
+                    and _linked(arow[i], wsel[i], a, wd)):
+                continue  # a stripe as the frame's others are, where the neighbour's goes on
+            if _flat_top(img, c, a, h, b, p, wd):
+                continue
+            y_cog = stats[2]
+            if not shoulders and _ends_at_cliff(stats, b, p, sig):
+                y_cog = est.cog(img, c, a, h, stats[4] + COG_SIGMAS * sig, window, math.nan,
+                                max_walk)
+            y = _centre(img, c, a, h, p, b, sig, False, b, method, shoulders, window,
+                        max_walk, y_cog, t_c, wd, bg, stats[6] > est.CUT_MIN_FALL * (p - b))
+            if not math.isfinite(y):
+                continue
+            klass[j] = _CORE
+            ok[j] = True
+            arow[j] = a
+            wsel[j] = wd
+            yrow[j] = y
+            peak[c] = p
+            width[c] = wd
+            snr[c] = (p - b) / sig
+            saturated[c] = False
 
 
 @njit(nogil=True, cache=True)
@@ -586,38 +762,12 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
             klass[j] = _CORE
         # the refinement, here while the column's pixels are in the cache (a peak the gates
         # then reject is refined for nothing: rare)
-        y = math.nan
-        if saturated[c]:
-            y = est.saturated_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig, window,
-                                     bg_sat, max_walk)
-            if not math.isfinite(y):  # too few samples for the fit: a narrow stripe?
-                y = est.narrow_clip_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig,
-                                           bg_sat)
-            if not math.isfinite(y) and shoulders:
-                y = est.top_centroid(img, c, a, h, b + SHOULDER_FRACTION * (p - b), max_walk)
-        elif method == 0 and shoulders:
-            y = est.cog(img, c, a, h, b + SHOULDER_FRACTION * (p - b), window, math.nan,
-                        max_walk)
-        elif method == 0:
-            y = y_cog
-        elif method == 1:
-            y = est.gaussian3(img, c, a, h, bg)
-        elif method == 2:
-            y = est.parabola(img, c, a, h)
-        elif method == 3:
-            y = est.blais_rioux(img, c, a, h)
+        test_cut = choice[j] != 0 or steep[j] > est.CUT_MIN_FALL * (p - b)
+        if method == 0 and not shoulders and not saturated[c] and not test_cut:
+            yrow[j] = y_cog  # what _centre returns, without the call: most columns
         else:
-            y0 = est.cog(img, c, a, h, t_c, window, math.nan, max_walk)
-            y = est.lsq_gauss(img, c, a, h, t_c, window, y0, wd) if math.isfinite(y0) else y0
-        if (method == 0 and not saturated[c] and math.isfinite(y)
-                and (choice[j] != 0 or steep[j] > est.CUT_MIN_FALL * (p - b))):
-            # a texture's edge across the stripe: its centre from the flank the edge leaves
-            step, r_cut = est.cut_flank(img, c, a, h, b, sig, max_walk)
-            if step != 0:
-                y_cut = est.uncut_centre(img, c, a, h, step, r_cut, sig, max_walk, shoulders)
-                if math.isfinite(y_cut):
-                    y = y_cut
-        yrow[j] = y
+            yrow[j] = _centre(img, c, a, h, p, b, sig, saturated[c], bg_sat, method,
+                              shoulders, window, max_walk, y_cog, t_c, wd, bg, test_cut)
     # the gates: a narrow peak continued by a neighbour's, a wide one by a chain of them from a
     # stripe within the gate
     ok = np.zeros(n, np.bool_)
@@ -637,6 +787,10 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
         if (klass[j] == _WIDE and not ok[j] and ok[j + 1]
                 and _linked(arow[j + 1], wsel[j + 1], arow[j], wsel[j])):
             ok[j] = True
+    if auto:
+        _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, core,
+                           min_width, max_walk, window, shoulders, method, sig, bg, use_window,
+                           rmin, rmax, peak, width, snr, saturated, reason)
     # the peaks that passed
     for j in range(js, je):
         if klass[j] == _REJECTED:

@@ -259,3 +259,53 @@ def test_column_maxima_in_byte_blocks_follow_their_definition(kind, sep):
         expected = _column_max_by_definition(img, r0, r1, c0, c1, sep)
         for got, want in zip((mx, am, sec), expected):
             np.testing.assert_array_equal(got, want)
+
+
+def _prominence_by_definition(v, r0, r1, s0, s1, reach):
+    """``kernel.prominent_peak``'s row, background and prominence, pixel by pixel."""
+    best, row, back = -np.inf, None, None
+    for r in range(max(s0, r0 + 1), min(s1, r1 - 1)):
+        b = max(v[max(r - reach, r0):r].min(), v[r + 1:min(r + reach, r1 - 1) + 1].min())
+        if v[r] - b > best:
+            best, row, back = v[r] - b, r, b
+    return best, row, back
+
+
+def test_prominent_peak_follows_its_definition():
+    """The row standing highest over the lower pixels within ``reach`` on each side, from
+    blocks' running minima (``kernel.prominent_peak``), is the one its definition gives: any
+    reach, bands cut anywhere, the search band inside or beside them."""
+    from scanner_core.stripe.kernel import prominent_peak
+
+    rng = np.random.default_rng(5)
+    out = np.zeros(2)
+    for _ in range(2000):
+        h = int(rng.integers(3, 80))
+        img = rng.integers(0, 256, (h, 3)).astype(np.uint8)
+        reach = int(rng.integers(1, 20))
+        r0 = int(rng.integers(0, h - 2))
+        r1 = int(rng.integers(r0 + 1, h + 1))
+        s0 = int(rng.integers(r0, r1))
+        s1 = int(rng.integers(s0, r1 + 1))
+        got = prominent_peak(img, 1, r0, r1, s0, s1, reach, out)
+        best, row, back = _prominence_by_definition(img[:, 1].astype(int), r0, r1, s0, s1,
+                                                    reach)
+        assert got == best
+        if row is not None:
+            assert (out[0], out[1]) == (row, back)
+
+
+def test_a_step_is_not_prominent_and_a_bump_is():
+    """A texture's step stands over neither side's lowest pixel; a stripe on the dark side of
+    it, dimmer than the lit side, stands over both."""
+    from scanner_core.stripe.kernel import prominent_peak
+
+    col = np.full(60, 70, np.uint8)
+    col[30:] = 30  # a lit square above row 30, a dark one below
+    out = np.zeros(2)
+    img = col[:, None]
+    assert prominent_peak(img, 0, 0, 60, 0, 60, 8, out) <= 0.0
+    stripe = (30 + 30 * np.exp(-0.5 * ((np.arange(60) - 44.0) / 2.0) ** 2)).astype(np.uint8)
+    col[30:] = stripe[30:]
+    assert prominent_peak(col[:, None], 0, 0, 60, 0, 60, 8, out) == 30.0
+    assert (out[0], out[1]) == (44, 30)

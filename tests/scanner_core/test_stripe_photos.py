@@ -202,6 +202,22 @@ def test_a_line_across_printed_squares(photo):
     assert fly["whole_pixel"] <= WHOLE_PIXEL_MAX
 
 
+def test_a_stripe_dimmer_than_the_lit_squares_it_crosses():
+    """A wide line (sigma 2.5-5 px) across squares of 30 px, the dark ones at 0.4 under 60 DN
+    of ambient light: on a dark square the stripe (40 DN over 34) is dimmer than the lit
+    squares (70 DN) its column crosses too, so the column's brightest pixel is no stripe.
+    Where the stripe beside it goes on, the row that stands highest over its surround is
+    (72 % of the columns measured before). Not yet every column: a stripe 5 px wide on a
+    dark square stands little over its own flanks 2.5 gates out."""
+    fly, base = _measure(LinePhoto(peak_dn=100.0, ambient_dn=60.0, texture_px=30.0,
+                                   black_reflectance=0.4, sigma_px=(2.5, 5.0)))
+    assert fly["measured"] >= 0.93
+    assert fly["within_half"] >= base["within_half"] + 0.25
+    assert fly["beyond_1px"] <= 0.5 * base["beyond_1px"]
+    assert fly["rms"] <= 0.7 * base["rms"]
+    assert fly["whole_pixel"] <= WHOLE_PIXEL_MAX
+
+
 def _cut_column(centre, sigma, edge, dark_below=True, rows=120):
     """One column (rows, 1) uint8: a stripe of ``sigma`` px at ``centre`` over a surface whose
     reflectance falls to 0.2 past the row ``edge`` (10 DN dark level, 60 DN ambient, 100 DN
