@@ -538,6 +538,7 @@ def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cor
     gate arrays and outputs updated in place.  A column refused by a policy (saturated,
     double, outside the geometric window) stays refused."""
     h = img.shape[0]
+    reach = max(2, int(math.ceil(PROMINENCE_REACH_WIDTHS * core)))
     spot = np.zeros(2)
     stats = np.zeros(7)
     for sweep in range(2):
@@ -552,7 +553,6 @@ def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cor
                 continue
             if not (ok[i] and math.isfinite(yrow[i])):
                 continue
-            reach = max(2, int(math.ceil(PROMINENCE_REACH_WIDTHS * core)))
             reach_rows = LINK_ROWS_PX + max(wsel[i], core)
             s0 = max(r0, int(math.ceil(arow[i] - reach_rows)))
             s1 = min(r1, int(math.floor(arow[i] + reach_rows)) + 1)
