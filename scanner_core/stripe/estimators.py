@@ -63,6 +63,16 @@ CUT_STEP_RATIO = 0.25
 #: The whole flank's fit takes its pixels above CUT_RUN_LEVEL of the peak's height over that
 #: flank's own foot.
 CUT_RUN_LEVEL = 0.15
+#: Where the whole flank's half width reads too short for the fall to stand out of it (its
+#: half width taken from the argmax, less half a pixel, and the noise's wide margin: a stripe
+#: of sigma 1.6 px on a dim surface), the pixel past the fall is compared with the whole
+#: flank's own Gaussian extrapolated there (``_falls_past_fit``): a cut where it reads under
+#: it by CUT_MODEL_SLACK of the height plus CUT_MODEL_SIGMAS of its expected spread (the
+#: pixel's noise and the fit's, from the fit's covariance).  A one-sided test on the few
+#: columns whose fall already passes CUT_MIN_FALL, with the foot set as high as the profile
+#: allows; at 3 sigmas a third of the cut stripes on a 12 px print went uncut.
+CUT_MODEL_SLACK = 0.25
+CUT_MODEL_SIGMAS = 2.0
 #: The uncut flank's fit is rejected if its centre leaves the argmax by more than this, px.
 CUT_MAX_SHIFT_PX = 2.0
 
@@ -588,13 +598,74 @@ def _steepest_fall(half_width, height, noise, sigmas):
 
 
 @njit(nogil=True, cache=True)
+def _tail_level(img, c, a, h, step, half_width):
+    """The median of the three pixels from the first past the flank's half-maximum crossing
+    (``half_width`` from row ``a`` by ``step``) on: the surface beside a narrow stripe's
+    flank, or a level above it (a wide stripe's tail), one pixel past a texture's edge there
+    not included (NaN at the frame's edge)."""
+    d = max(2, int(math.ceil(half_width)) + 1)
+    r = a + step * d
+    if not (0 <= r < h and 0 <= r + 2 * step < h):
+        return math.nan
+    v0 = float(img[r, c])
+    v1 = float(img[r + step, c])
+    v2 = float(img[r + 2 * step, c])
+    return max(min(v0, v1), min(max(v0, v1), v2))
+
+
+@njit(nogil=True, cache=True)
+def _falls_past_fit(img, c, a, h, step, r_cut, height, noise, reach, half_width):
+    """Whether the pixel past row ``r_cut`` (by ``step``) reads under the whole flank's own
+    Gaussian there (``_whole_flank_fit``, through ``r_cut``, extrapolated one pixel) by more
+    than ``CUT_MODEL_SLACK`` of the peak's ``height`` plus ``CUT_MODEL_SIGMAS`` of its
+    expected spread,
+
+        spread^2 = noise^2 (1 + e^2 g^T N^-1 g),  g = (1, x, x^2),
+
+    ``e`` the fit's value over its foot at the pixel's ``x = r - a`` and ``N`` its normal
+    matrix.  The foot is the highest the profile allows: the whole flank's walked foot, its
+    level past the half-maximum crossing (``half_width``, ``_tail_level``) and the cut side's
+    own foot (a stripe whose far side is lit is no stripe cut there)."""
+    r_past = r_cut + step
+    if not 0 <= r_past < h:
+        return False
+    foot = _foot(img, c, a, h, -step, noise, reach)
+    if not math.isfinite(foot):
+        return False
+    # the highest foot the profile allows: the whole flank's Gaussian narrowest, the cut
+    # hardest to claim (a narrow stripe's walk runs on past a square's edge a pixel beyond
+    # its tail; a stripe whose far side is lit is no stripe cut there)
+    tail = _tail_level(img, c, a, h, -step, half_width)
+    if math.isfinite(tail):
+        foot = max(foot, tail)
+    foot_cut = _foot(img, c, r_past, h, step, noise, reach)
+    if math.isfinite(foot_cut):
+        foot = max(foot, foot_cut)
+    fit = np.empty(4)
+    normal = np.empty((3, 3))
+    if not _whole_flank_fit(img, c, a, h, step, r_cut, foot, reach, fit, normal):
+        return False
+    x = float(r_past - a)
+    g = np.array([1.0, x, x * x])
+    z = g.copy()
+    if not solve_in_place(normal, z):
+        return False
+    log_var = max(g[0] * z[0] + g[1] * z[1] + g[2] * z[2], 0.0)
+    expected = math.exp(min(fit[1] + fit[2] * x + fit[3] * x * x, 30.0))
+    spread = math.sqrt(noise * noise * (1.0 + expected * expected * log_var))
+    return (fit[0] + expected - float(img[r_past, c])
+            > CUT_MODEL_SLACK * height + CUT_MODEL_SIGMAS * spread)
+
+
+@njit(nogil=True, cache=True)
 def cut_flank(img, c, a, h, bg, noise, reach):
     """Which flank of the peak at ``a``, if one, a texture's edge cuts.
 
     Where a dark square's edge crosses the stripe, its far side is the stripe times the dark
     reflectance: that flank drops in one pixel further than a Gaussian as wide as the other
-    flank can (see ``CUT_MIN_FALL``), and a centroid of the whole stripe is pulled toward the
-    lit side by up to a sigma.
+    flank can (see ``CUT_MIN_FALL``), or, where that width reads short, further than the
+    other flank's own fit extrapolated past the fall (``_falls_past_fit``), and a centroid of
+    the whole stripe is pulled toward the lit side by up to a sigma.
 
     Parameters
     ----------
@@ -625,8 +696,21 @@ def cut_flank(img, c, a, h, bg, noise, reach):
                            _steepest_fall(hw_dn, height, noise, CUT_NOISE_SIGMAS))
     cut_dn = fall_dn > max(CUT_MIN_FALL * height,
                            _steepest_fall(hw_up, height, noise, CUT_NOISE_SIGMAS))
-    if cut_up == cut_dn:
+    if cut_up and cut_dn:
         return 0, a
+    if not (cut_up or cut_dn):
+        # the whole flank's width read short (a narrow stripe's half width from its argmax,
+        # the noise's margin on a dim one): the fall against the whole flank's own fit, where
+        # that flank has no cliff of its own (a print finer than the stripe chops it into
+        # runs between cliffs, none of them a stripe's flank)
+        if not min(fall_up, fall_dn) <= CUT_MIN_FALL * height:
+            return 0, a
+        model_step = -1 if fall_up > fall_dn else 1
+        if not _falls_past_fit(img, c, a, h, model_step, r_up if model_step < 0 else r_dn,
+                               height, noise, reach, hw_dn if model_step < 0 else hw_up):
+            return 0, a
+        cut_up = model_step < 0
+        cut_dn = not cut_up
     # the other flank must be a Gaussian's, no steeper than its own width allows: a flat top
     # between two cliffs (an overexposed colour line's carried-on core through JPEG) is no
     # stripe cut on one side
@@ -664,37 +748,21 @@ def _foot(img, c, r, h, step, noise, reach):
 
 
 @njit(nogil=True, cache=True)
-def uncut_centre(img, c, a, h, step, r_cut, noise, reach, same_foot):
-    """Centre of a stripe cut on one flank (``cut_flank``'s ``step`` and ``row``), from its
-    other, whole, flank: Guo's weighted fit [6] of a parabola to the logarithm of the profile
-    over that flank's foot,
+def _whole_flank_fit(img, c, a, h, step, r_cut, foot, reach, fit, normal):
+    """Guo's weighted fit [6] of a parabola to the logarithm of the profile over the whole
+    flank's foot (the flank away from ``step``),
 
-        ln(v_r - f) = k0 + k1 x + k2 x^2,  x = r - a,  weights (v_r - f)^2,  centre a - k1 / (2 k2),
+        ln(v_r - f) = k0 + k1 x + k2 x^2,  x = r - a,  weights (v_r - f)^2,
 
-    over the pixels from the cut to the whole flank's end above ``CUT_RUN_LEVEL`` of the height.
-    The foot ``f`` is where the whole flank stops falling (by more than ``noise`` over two
-    pixels): the lit surface's own level, which the peak's background (read farther out, past
-    the squares) is not.  The centre lies no further than half a pixel past the cut (the
-    edge's side of the last lit pixel): where the whole flank still rises toward the cut (the
-    centre past the edge, in the dark), the centre is put at the edge, where the fit would
-    extrapolate.
-
-    With ``same_foot`` (a colour excess, where a grey texture's squares read alike), the cut
-    flank's foot must lie within ``CUT_NOISE_SIGMAS`` of ``noise`` of the whole one's: a
-    shoulder beside a bright core (a halo through JPEG) stands on no surface of its own.
-
-    NaN when fewer than 3 pixels stand above the level, the parabola opens upward (and the
-    flank falls toward the cut), or its vertex leaves ``a`` by more than ``CUT_MAX_SHIFT_PX``
-    on the whole flank's side, or the feet differ.
-    """
+    over the pixels from ``r_cut`` to the whole flank's end above ``CUT_RUN_LEVEL`` of the
+    height. The foot ``f`` is where the whole flank stops falling (by more than ``noise``
+    over two pixels): the lit surface's own level, which the peak's background (read farther
+    out, past the squares) is not.  Writes ``f, k0, k1, k2`` into ``fit`` (4,) and the normal
+    matrix (the weights ``(v_r - f)^2``: ``noise^2`` times its inverse is the coefficients'
+    covariance, a pixel's log having the variance ``noise^2 / (v_r - f)^2``) into ``normal``
+    (3, 3); False when the foot is at the frame's edge, fewer than 3 pixels stand above the
+    level, or the system is singular."""
     s = -step  # toward the whole flank
-    foot = _foot(img, c, a, h, s, noise, reach)
-    if not math.isfinite(foot):
-        return math.nan
-    if same_foot:
-        foot_cut = _foot(img, c, r_cut + step, h, step, noise, reach)
-        if not abs(foot_cut - foot) <= CUT_NOISE_SIGMAS * noise:
-            return math.nan
     level = foot + CUT_RUN_LEVEL * (float(img[a, c]) - foot)
     lo = min(a, r_cut)
     hi = max(a, r_cut)
@@ -725,21 +793,58 @@ def uncut_centre(img, c, a, h, step, r_cut, noise, reach, same_foot):
         v[2] += w * x2 * y
         n += 1
     if n < 3:
-        return math.nan
+        return False
     m[1, 1] = m[0, 2]
     m[1, 0] = m[0, 1]
     m[2, 0] = m[0, 2]
     m[2, 1] = m[1, 2]
+    normal[:, :] = m
     if not solve_in_place(m, v):
+        return False
+    fit[0] = foot
+    fit[1] = v[0]
+    fit[2] = v[1]
+    fit[3] = v[2]
+    return True
+
+
+@njit(nogil=True, cache=True)
+def uncut_centre(img, c, a, h, step, r_cut, noise, reach, same_foot):
+    """Centre of a stripe cut on one flank (``cut_flank``'s ``step`` and ``row``), from its
+    other, whole, flank: the vertex ``a - k1 / (2 k2)`` of the parabola fitted to the
+    logarithm of that flank over its foot (``_whole_flank_fit``).  The centre lies no further
+    than half a pixel past the cut (the edge's side of the last lit pixel): where the whole
+    flank still rises toward the cut (the centre past the edge, in the dark), the centre is
+    put at the edge, where the fit would extrapolate.
+
+    With ``same_foot`` (a colour excess, where a grey texture's squares read alike), the cut
+    flank's foot must lie within ``CUT_NOISE_SIGMAS`` of ``noise`` of the whole one's: a
+    shoulder beside a bright core (a halo through JPEG) stands on no surface of its own.
+
+    NaN when the fit fails, the parabola opens upward (and the flank falls toward the cut),
+    or its vertex leaves ``a`` by more than ``CUT_MAX_SHIFT_PX`` on the whole flank's side, or
+    the feet differ.
+    """
+    foot = _foot(img, c, a, h, -step, noise, reach)
+    if not math.isfinite(foot):
         return math.nan
+    fit = np.empty(4)
+    if not _whole_flank_fit(img, c, a, h, step, r_cut, foot, reach, fit, np.empty((3, 3))):
+        return math.nan
+    if same_foot:
+        foot_cut = _foot(img, c, r_cut + step, h, step, noise, reach)
+        if not abs(foot_cut - fit[0]) <= CUT_NOISE_SIGMAS * noise:
+            return math.nan
+    k1 = fit[2]
+    k2 = fit[3]
     # the flank still rising toward the cut where it ends (the centre past it, in the dark):
     # the centre is at the edge
     edge = r_cut + 0.5 * step
-    if v[1] * step > 0.0 and (v[2] >= 0.0 or -v[1] / (2.0 * v[2]) * step > (edge - a) * step):
+    if k1 * step > 0.0 and (k2 >= 0.0 or -k1 / (2.0 * k2) * step > (edge - a) * step):
         return edge if abs(edge - a) <= CUT_MAX_SHIFT_PX else math.nan
-    if not v[2] < 0.0:
+    if not k2 < 0.0:
         return math.nan
-    off = -v[1] / (2.0 * v[2])
+    off = -k1 / (2.0 * k2)
     if not abs(off) <= CUT_MAX_SHIFT_PX:
         return math.nan
     return a + off
