@@ -18,6 +18,8 @@ within 0.02 px of a whole pixel (4 % unbiased), and the profiles the baseline ge
 
 The photographs are not in this repository (their repositories state no licence): clone each
 repository named in ``SETS`` into one folder and give it to ``flyscan bench real DIR``.
+Beside them the bench reports the failures the photographs showed, synthesised with their
+truth (``benchmarks.synthesised_photos``, ``real_synthesised.png``).
 """
 from __future__ import annotations
 
@@ -31,15 +33,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from benchmarks.naive_peaks import BASELINE_DN, baseline_rows, naive_signal
 from benchmarks.results import write_json
+from benchmarks.synthesised_photos import SEEDS, run_cases
 from scanner_core.stripe.extractor import (EXCESS_OFFSET_DN, estimate_noise, extract,
                                            stripe_signal)
 from simulator.line_photos import PRESENT_SNR
 
-__all__ = ["PhotoSet", "SETS", "baseline_rows", "naive_signal", "score_set", "run"]
+__all__ = ["PhotoSet", "SETS", "score_set", "run"]
 
-#: The naive peak finder keeps a column whose argmax reaches this (DN of the signal).
-BASELINE_DN = 20.0
 #: A row is within chance of a whole pixel when its fraction is under this (4 % unbiased).
 WHOLE_PIXEL_PX = 0.02
 #: Off the line by more than this a profile is an outlier; by more than GROSS_PX it is not on
@@ -169,40 +171,6 @@ SETS = (
         source="main.cpp: patternSize (7, 7), patternLength 37.5 mm, circles; Parameters.xml: "
                "the camera"),
 )
-
-
-def baseline_rows(signal: np.ndarray, min_dn: float = BASELINE_DN):
-    """The naive peak finder: per column the argmax and a 3-point parabola through it.
-
-    Returns ``rows`` (W,) float64 (NaN where the argmax is under ``min_dn`` or on the frame's
-    edge) for ``signal`` (H, W) uint8."""
-    img = signal.astype(np.float64)
-    h, w = img.shape
-    cols = np.arange(w)
-    a = np.argmax(img, axis=0)
-    peak = img[a, cols]
-    inner = (a > 0) & (a < h - 1) & (peak >= min_dn)
-    a1 = np.clip(a, 1, h - 2)
-    y0, y1, y2 = img[a1 - 1, cols], img[a1, cols], img[a1 + 1, cols]
-    den = y0 - 2.0 * y1 + y2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        off = np.where(den < 0, 0.5 * (y0 - y2) / den, 0.0)
-    return np.where(inner, a1 + off, np.nan)
-
-
-def naive_signal(rgb: np.ndarray, ps_signal: str) -> np.ndarray:
-    """The signal the naive baseline reads: ``ps_signal``'s channel, or its colour excess
-    ``v_k - (v_i + v_j) / 2`` rounded half up, ``EXCESS_OFFSET_DN`` above zero, clipped to
-    [0, 255] and nothing more (flyscan's ``stripe_signal`` carries the excess on over a clipped
-    channel; the baseline takes the photograph's pixels as they are).
-
-    ``rgb`` (H, W, 3) uint8 -> (H, W) uint8."""
-    channel = {"red": 0, "green": 1, "blue": 2}[ps_signal.split("_")[0]]
-    if not ps_signal.endswith("_excess"):
-        return np.ascontiguousarray(rgb[:, :, channel])
-    v = rgb.astype(np.int32)
-    e2 = 2 * v[:, :, channel] - v[:, :, (channel + 1) % 3] - v[:, :, (channel + 2) % 3]
-    return np.clip(((e2 + 1) >> 1) + EXCESS_OFFSET_DN, 0, 255).astype(np.uint8)
 
 
 def _read_rgb(path: pathlib.Path) -> np.ndarray:
@@ -534,43 +502,69 @@ def score_set(ps: PhotoSet, root: pathlib.Path, progress=None) -> dict:
             **{m: figures[m] for m in METHODS}}
 
 
-def _plot(sets: list[dict], path: pathlib.Path) -> None:
+def _bar_panels(path: pathlib.Path, names: list[str], panels, series, title: str,
+                height_in: float) -> None:
+    """One horizontal bar per name and series in each of ``panels`` ((key, title, scale,
+    the dashed chance line's key or None)); ``series`` is (label, colour, value(index, key))."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [("rms_line_px", "RMS about the line, px", 1.0),
-              ("measured_visible_share", "profiles showing the stripe measured, %", 100.0),
-              ("beyond_1px_share", "profiles > 1 px off the line, %", 100.0),
-              ("whole_pixel_share", "rows within 0.02 px of a whole pixel, %", 100.0)]
-    fig, axes = plt.subplots(1, len(panels), figsize=(17, 4.6))
-    names = [s["name"].replace(", ", ",\n", 1) for s in sets]
-    y = np.arange(len(sets))
-    labels = {"flyscan": "flyscan (defaults)",
-              "baseline": f"argmax + parabola (>= {BASELINE_DN:.0f} DN), the colour excess",
-              "baseline_on_flyscan_signal": "argmax + parabola, flyscan's signal"}
-    for ax, (key, title, scale) in zip(axes, panels):
-        for k, (m, colour) in enumerate(zip(METHODS, ("C0", "C7", "C8"))):
-            vals = [(s[m][key] or 0.0) * scale for s in sets]
-            ax.barh(y + 0.27 * (k - 1), vals, height=0.26, color=colour, label=labels[m])
-        if key == "whole_pixel_share":
+    fig, axes = plt.subplots(1, len(panels), figsize=(17, height_in))
+    y = np.arange(len(names))
+    width = 0.8 / len(series)
+    for ax, (key, panel_title, scale) in zip(axes, panels):
+        for k, (label, colour, value) in enumerate(series):
+            ax.barh(y + width * (k - (len(series) - 1) / 2),
+                    [(value(i, key) or 0.0) * scale for i in range(len(names))],
+                    height=width * 0.95, color=colour, label=label)
+        if key.startswith("whole_pixel"):
             ax.axvline(100 * 2 * WHOLE_PIXEL_PX, color="k", lw=0.8, ls="--")
-        ax.set_title(title, fontsize=10)
+        ax.set_title(panel_title, fontsize=10)
         ax.set_yticks(y)
         ax.set_yticklabels(names if ax is axes[0] else [], fontsize=8)
         ax.invert_yaxis()
     handles, texts = axes[0].get_legend_handles_labels()
-    fig.legend(handles, texts, fontsize=9, loc="lower center", ncol=len(METHODS))
-    fig.suptitle("Real photographs of a laser line on a planar target: flyscan against a naive "
-                 "peak finder")
+    fig.legend(handles, texts, fontsize=9, loc="lower center", ncol=len(series))
+    fig.suptitle(title)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
+def _plot(sets: list[dict], path: pathlib.Path) -> None:
+    labels = {"flyscan": "flyscan (defaults)",
+              "baseline": f"argmax + parabola (>= {BASELINE_DN:.0f} DN), the colour excess",
+              "baseline_on_flyscan_signal": "argmax + parabola, flyscan's signal"}
+    _bar_panels(path, [s["name"].replace(", ", ",\n", 1) for s in sets],
+                [("rms_line_px", "RMS about the line, px", 1.0),
+                 ("measured_visible_share", "profiles showing the stripe measured, %", 100.0),
+                 ("beyond_1px_share", "profiles > 1 px off the line, %", 100.0),
+                 ("whole_pixel_share", "rows within 0.02 px of a whole pixel, %", 100.0)],
+                [(labels[m], colour, lambda i, key, m=m: sets[i][m][key])
+                 for m, colour in zip(METHODS, ("C0", "C7", "C8"))],
+                "Real photographs of a laser line on a planar target: flyscan against a naive "
+                "peak finder", 4.6)
+
+
+def _plot_synthesised(cases: dict, path: pathlib.Path) -> None:
+    names = list(cases)
+    _bar_panels(path, names,
+                [("rms", "RMS about the drawn line, px", 1.0),
+                 ("measured", "columns holding a stripe measured, %", 100.0),
+                 ("beyond_1px", "measured columns > 1 px off, %", 100.0),
+                 ("whole_pixel", "rows within 0.02 px of a whole pixel, %", 100.0)],
+                [(label, colour, lambda i, key, m=m: cases[names[i]][m][key])
+                 for m, colour, label in (("flyscan", "C0", "flyscan (defaults)"),
+                                          ("baseline", "C7", "argmax + parabola"))],
+                "Synthesised photographs (simulator.line_photos, three frames each): flyscan "
+                "against a naive peak finder, scored against the drawn line", 6.4)
+
+
 def run(out_dir: pathlib.Path, folder: pathlib.Path, *, quick: bool = False) -> dict:
-    """Score every set found under ``folder`` and write ``real.json`` and ``real.png``."""
+    """Score every set found under ``folder`` and the synthesised cases, and write
+    ``real.json``, ``real.png`` and ``real_synthesised.png``."""
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     folder = pathlib.Path(folder)
@@ -594,8 +588,17 @@ def run(out_dir: pathlib.Path, folder: pathlib.Path, *, quick: bool = False) -> 
                for s in results}
     for s in results:
         summary[s["name"]]["baseline_right_flyscan_not"] = s["baseline_right_flyscan_not"]
+    synthesised = run_cases(seeds=(0,) if quick else SEEDS,
+                            progress=lambda m: print(m, file=sys.stderr))
+    summary["synthesised"] = {
+        name: {"rms_ratio": c["rms_ratio"],
+               "beyond_1px_share": [c["flyscan"]["beyond_1px"], c["baseline"]["beyond_1px"]],
+               "measured_share": [c["flyscan"]["measured"], c["baseline"]["measured"]]}
+        for name, c in synthesised.items()}
     result = {"sets": results, "missing": missing, "summary": summary,
-              "baseline": f"argmax + 3-point parabola, argmax >= {BASELINE_DN} DN"}
+              "baseline": f"argmax + 3-point parabola, argmax >= {BASELINE_DN} DN",
+              "synthesised": synthesised}
     write_json(out_dir / "real.json", result)
     _plot(results, out_dir / "real.png")
+    _plot_synthesised(synthesised, out_dir / "real_synthesised.png")
     return result

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from benchmarks import real_photos
+from benchmarks import real_photos, synthesised_photos
 from benchmarks.real_photos import PhotoSet, score_set
 from flyscan import main
 
@@ -133,9 +133,16 @@ def test_a_profile_where_no_stripe_shows_is_not_counted_as_visible(tmp_path):
 def test_flyscan_bench_real_writes_its_figures_and_names_what_is_missing(photographs, tmp_path,
                                                                          monkeypatch, capsys):
     monkeypatch.setattr(real_photos, "SETS", real_photos.SETS[:1] + (SET,))
-    assert main(["bench", "real", str(photographs), "--out", str(tmp_path)]) == 0
+    dim = "mono, dim line 15 DN over 1 DN of noise"
+    monkeypatch.setattr(synthesised_photos, "CASES", {dim: synthesised_photos.CASES[dim]})
+    assert main(["bench", "real", str(photographs), "--out", str(tmp_path), "--quick"]) == 0
     result = json.loads((tmp_path / "real.json").read_text())
     assert [s["name"] for s in result["sets"]] == [SET.name]
+    # the synthesised dim line: every column measured, the naive peak finder at 20 DN few
+    assert list(result["synthesised"]) == [dim]
+    assert result["synthesised"][dim]["flyscan"]["measured"] > 0.99
+    assert result["synthesised"][dim]["baseline"]["measured"] < 0.5
+    assert (tmp_path / "real_synthesised.png").stat().st_size > 10_000
     assert result["missing"] and "hjamal3/Light-Stripe-Calibration" in result["missing"][0]
     assert (tmp_path / "real.png").stat().st_size > 10_000
     assert "not scored (missing): clone https://github.com/hjamal3" in capsys.readouterr().err

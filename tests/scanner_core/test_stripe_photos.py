@@ -8,60 +8,21 @@ import math
 import numpy as np
 import pytest
 
-from benchmarks.real_photos import BASELINE_DN, baseline_rows, naive_signal
+from benchmarks.synthesised_photos import DIM, SEEDS, against_naive
 from scanner_core.stripe import estimators as est
 from scanner_core.stripe.extractor import BAYER_PATTERNS, EXCESS_OFFSET_DN, extract, stripe_signal
 from simulator.line_photos import LinePhoto, render_line_photo
 
-SEEDS = (0, 1, 2)
 # Share of the rows within 0.02 px of a whole pixel that an unbiased estimator leaves (4 %),
 # with the sampling spread of ~1900 rows.
 WHOLE_PIXEL_MAX = 0.055
-# A dim line as the photographs showed it: peaks of 15-30 DN over 1 DN of noise.
-DIM = dict(background_dn=4.0, read_noise_dn=1.0, sigma_px=(0.8, 1.6))
-
-
-def _measure(photo: LinePhoto, threshold="auto", signal="auto"):
-    """Over SEEDS, per method (flyscan's ``extract``, the baseline): the share of the columns
-    holding a stripe that are measured, the RMS error (px) over the columns both methods
-    measure within 3 px of the line, the share of its measured columns more than 1 px off,
-    the share of the columns holding a stripe it gets within 0.5 px, the share of its rows
-    within 0.02 px of a whole pixel, and its false columns (a row where no stripe is)."""
-    rows = {"flyscan": [], "baseline": []}
-    truths = []
-    for seed in SEEDS:
-        frame, truth = render_line_photo(photo, np.random.default_rng(seed))
-        image = frame if frame.ndim == 2 else stripe_signal(frame, signal)
-        res = extract(image, threshold=threshold, shoulders=frame.ndim == 3)
-        gate = BASELINE_DN + (EXCESS_OFFSET_DN if frame.ndim == 3 else 0.0)
-        naive = frame if frame.ndim == 2 else naive_signal(frame, f"{photo.laser}_excess")
-        rows["flyscan"].append(np.where(res.valid, res.row, np.nan).astype(np.float64))
-        rows["baseline"].append(baseline_rows(naive, gate))
-        truths.append(truth)
-    line = np.concatenate([t.row for t in truths])
-    present = np.concatenate([t.present for t in truths])
-    r = {k: np.concatenate(v) for k, v in rows.items()}
-    err = {k: v - line for k, v in r.items()}
-    common = present & np.all([np.abs(e) <= 3.0 for e in err.values()], axis=0)
-    figures = []
-    for name in ("flyscan", "baseline"):
-        ok = np.isfinite(r[name]) & present
-        e = err[name]
-        figures.append({"measured": float(ok.sum() / present.sum()),
-                        "rms": float(np.sqrt(np.mean(e[common] ** 2))),
-                        "beyond_1px": float(np.mean(np.abs(e[ok]) > 1.0)),
-                        "within_half": float(np.mean(np.abs(e[present]) <= 0.5)),
-                        "whole_pixel": float(np.mean(np.abs(r[name][ok]
-                                                            - np.round(r[name][ok])) < 0.02)),
-                        "false": int((np.isfinite(r[name]) & ~present).sum())})
-    return figures
 
 
 @pytest.mark.parametrize("peak_dn", [15.0, 30.0])
 def test_a_dim_line_over_a_quiet_floor_is_a_stripe(peak_dn):
     """15 and 30 DN over 1 DN of noise (what a dark part shows): with the defaults every
     column measured, none false, no pixel locking, better than the naive peak finder."""
-    fly, base = _measure(LinePhoto(peak_dn=peak_dn, **DIM))
+    fly, base = against_naive(LinePhoto(peak_dn=peak_dn, **DIM))
     assert fly["measured"] >= 0.995
     assert fly["false"] == 0
     assert fly["whole_pixel"] <= WHOLE_PIXEL_MAX
@@ -72,7 +33,7 @@ def test_no_pixel_locking_under_a_fixed_threshold():
     """A fixed 20 DN threshold near a 30 DN line's top leaves one or two pixels above it:
     the centre still comes from the line's shape, not the brightest pixel's row (which 13 %
     of the rows sat within 0.02 px of when the threshold weighed the centroid)."""
-    fly, _ = _measure(LinePhoto(peak_dn=30.0, **DIM), threshold=20.0)
+    fly, _ = against_naive(LinePhoto(peak_dn=30.0, **DIM), threshold=20.0)
     assert fly["whole_pixel"] <= WHOLE_PIXEL_MAX
 
 
@@ -90,7 +51,7 @@ def test_a_colour_line_through_jpeg(photo):
     ``shoulders`` as the pipeline does a colour frame: every column measured, and against the
     naive peak finder on the same colour excess a smaller RMS, fewer rows off by more than
     1 px, no fewer within 0.5 px."""
-    fly, base = _measure(photo)
+    fly, base = against_naive(photo)
     assert fly["measured"] >= 0.995
     assert fly["false"] == 0
     assert fly["rms"] < base["rms"]
@@ -124,7 +85,7 @@ def test_an_overexposed_line_whose_core_turns_white(texture_px):
     With its excess carried on over the clipped run, every column is measured, and better
     than by the naive peak finder on the bare excess: over a plain surface and over a
     printed checkerboard."""
-    fly, base = _measure(LinePhoto(laser="red", peak_dn=1500.0, background_dn=10.0,
+    fly, base = against_naive(LinePhoto(laser="red", peak_dn=1500.0, background_dn=10.0,
                                    ambient_dn=120.0, read_noise_dn=2.0, sigma_px=(1.5, 3.0),
                                    texture_px=texture_px, black_reflectance=0.2,
                                    jpeg_quality=85))
@@ -196,7 +157,7 @@ def test_a_line_across_printed_squares(photo):
     finder 0.25, 0.24 and 0.22): now better than the peak finder, and on the mono frames with
     no more rows 1 px off than it (with the ambient light at 20 DN, 0.8 % of them were, cut
     stripes whose other flank read too narrow for the fall to stand out)."""
-    fly, base = _measure(photo)
+    fly, base = against_naive(photo)
     assert fly["measured"] >= 0.995
     assert fly["rms"] <= 0.9 * base["rms"]
     assert fly["within_half"] >= base["within_half"]
@@ -213,7 +174,7 @@ def test_a_stripe_dimmer_than_the_lit_squares_it_crosses():
     Where the stripe beside it goes on, the row that stands highest over its surround is
     (72 % of the columns measured before). Not yet every column: a stripe 5 px wide on a
     dark square stands little over its own flanks 2.5 gates out."""
-    fly, base = _measure(LinePhoto(peak_dn=100.0, ambient_dn=60.0, texture_px=30.0,
+    fly, base = against_naive(LinePhoto(peak_dn=100.0, ambient_dn=60.0, texture_px=30.0,
                                    black_reflectance=0.4, sigma_px=(2.5, 5.0)))
     assert fly["measured"] >= 0.93
     assert fly["within_half"] >= base["within_half"] + 0.25
@@ -329,7 +290,7 @@ def test_a_whole_stripe_is_not_cut(profile):
 def test_a_stripe_on_a_bright_surface():
     """A line 50 DN over a surface at 190 DN (a white part under ambient light): it stands
     clear of its own background, not of a fixed level, and is measured whole."""
-    fly, _ = _measure(LinePhoto(peak_dn=50.0, background_dn=10.0, ambient_dn=180.0,
+    fly, _ = against_naive(LinePhoto(peak_dn=50.0, background_dn=10.0, ambient_dn=180.0,
                                 sigma_px=(1.0, 2.0)))
     assert fly["measured"] >= 0.995
     assert fly["false"] == 0
