@@ -70,9 +70,11 @@ CUT_RUN_LEVEL = 0.15
 #: it by CUT_MODEL_SLACK of the height plus CUT_MODEL_SIGMAS of its expected spread (the
 #: pixel's noise and the fit's, from the fit's covariance).  A one-sided test on the few
 #: columns whose fall already passes CUT_MIN_FALL, with the foot set as high as the profile
-#: allows; at 3 sigmas a third of the cut stripes on a 12 px print went uncut.
-CUT_MODEL_SLACK = 0.25
-CUT_MODEL_SIGMAS = 2.0
+#: allows.  The slack and the sigmas trade cuts missed on a 12 px print against whole dim
+#: stripes (15 DN over 1 DN of noise, whose pixels' own shot noise the frame's noise leaves
+#: out) taken for cut: at 2 sigmas and a tenth of the height one such stripe in 1900 was.
+CUT_MODEL_SLACK = 0.1
+CUT_MODEL_SIGMAS = 2.5
 #: The uncut flank's fit is rejected if its centre leaves the argmax by more than this, px.
 CUT_MAX_SHIFT_PX = 2.0
 
