@@ -504,8 +504,9 @@ def score_set(ps: PhotoSet, root: pathlib.Path, progress=None) -> dict:
 
 def _bar_panels(path: pathlib.Path, names: list[str], panels, series, title: str,
                 height_in: float) -> None:
-    """One horizontal bar per name and series in each of ``panels`` ((key, title, scale,
-    the dashed chance line's key or None)); ``series`` is (label, colour, value(index, key))."""
+    """One horizontal bar per name and series in each of ``panels`` ((key, title, scale); a
+    ``whole_pixel`` key gets chance's line, dashed); ``series`` is (label, colour,
+    value(index, key))."""
     import matplotlib
 
     matplotlib.use("Agg")

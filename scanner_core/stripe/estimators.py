@@ -757,13 +757,12 @@ def _whole_flank_fit(img, c, a, h, step, r_cut, foot, reach, fit, normal):
         ln(v_r - f) = k0 + k1 x + k2 x^2,  x = r - a,  weights (v_r - f)^2,
 
     over the pixels from ``r_cut`` to the whole flank's end above ``CUT_RUN_LEVEL`` of the
-    height. The foot ``f`` is where the whole flank stops falling (by more than ``noise``
-    over two pixels): the lit surface's own level, which the peak's background (read farther
-    out, past the squares) is not.  Writes ``f, k0, k1, k2`` into ``fit`` (4,) and the normal
-    matrix (the weights ``(v_r - f)^2``: ``noise^2`` times its inverse is the coefficients'
-    covariance, a pixel's log having the variance ``noise^2 / (v_r - f)^2``) into ``normal``
-    (3, 3); False when the foot is at the frame's edge, fewer than 3 pixels stand above the
-    level, or the system is singular."""
+    height over ``foot`` (``f``, DN: the lit surface's own level, the caller's choice; the
+    peak's background, read farther out past the squares, is not it).  Writes ``f, k0, k1,
+    k2`` into ``fit`` (4,) and the normal matrix (the weights ``(v_r - f)^2``: a pixel's log
+    has the variance ``noise^2 / (v_r - f)^2``, so ``noise^2`` times its inverse is the
+    coefficients' covariance) into ``normal`` (3, 3); False when fewer than 3 pixels stand
+    above the level or the system is singular."""
     s = -step  # toward the whole flank
     level = foot + CUT_RUN_LEVEL * (float(img[a, c]) - foot)
     lo = min(a, r_cut)
@@ -814,7 +813,8 @@ def _whole_flank_fit(img, c, a, h, step, r_cut, foot, reach, fit, normal):
 def uncut_centre(img, c, a, h, step, r_cut, noise, reach, same_foot):
     """Centre of a stripe cut on one flank (``cut_flank``'s ``step`` and ``row``), from its
     other, whole, flank: the vertex ``a - k1 / (2 k2)`` of the parabola fitted to the
-    logarithm of that flank over its foot (``_whole_flank_fit``).  The centre lies no further
+    logarithm of that flank (``_whole_flank_fit``) over its foot, where it stops falling (by
+    more than ``noise`` over two pixels, ``_foot``).  The centre lies no further
     than half a pixel past the cut (the edge's side of the last lit pixel): where the whole
     flank still rises toward the cut (the centre past the edge, in the dark), the centre is
     put at the edge, where the fit would extrapolate.
