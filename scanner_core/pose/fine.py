@@ -354,11 +354,34 @@ def _surface_rows(terms: _Terms, poses, centre, gate, noise_mm):
     local = (terms.points[None] - translation[:, None]) @ rotation  # (P, N, 3) in {P}
     dist, nearest = _nearest(terms, local, rotation[:, 2], gate + 2.0 * _spacing(terms.model))
     normals = terms.normals if terms.normals is not None else np.full(terms.points.shape, np.nan)
+    valid = np.isfinite(dist)
+    if not terms.approximate and isinstance(terms.model, SurfaceModel):
+        valid &= ~_across_a_crease(terms.model, local, valid, nearest)
     # Scan normals point to the sensor, model normals out of the part: the same way up.
     return plane_rows(terms.points, normals, terms.model.points, terms.model.normals,
-                      nearest, np.isfinite(dist), rotation, translation, centre, gate,
+                      nearest, valid, rotation, translation, centre, gate,
                       noise_mm, terms.agreement, False, _MIN_EDGE_LEVEL, _MAD_TO_SIGMA,
                       _TUKEY_C, _MIN_SIGMA_MM)
+
+
+def _across_a_crease(model: SurfaceModel, local, found, nearest) -> np.ndarray:
+    """(P, N) bool: the points `found` a match whose sample lies beside a crease
+    (``SurfaceModel.crease_planes``) and which lie nearer the crease's other face's plane
+    than their sample's: a point of one face matched to a sample of the other, a spacing
+    away, which would read its distance across to that face's plane (a rim's top-face point
+    measured to the wall below it). They are left unmatched: the face they lie on has its
+    own points."""
+    index = np.where(found, nearest, 0).reshape(-1)
+    other = model.crease_planes[index]
+    beside = found.reshape(-1) & np.isfinite(other[:, 0])
+    out = np.zeros(index.shape, bool)
+    if beside.any():
+        p = local.reshape(-1, 3)[beside]
+        sample = index[beside]
+        own = np.abs(np.einsum("ij,ij->i", model.normals[sample], p - model.points[sample]))
+        across = np.abs(np.einsum("ij,ij->i", other[beside, :3], p) - other[beside, 3])
+        out[np.nonzero(beside)[0]] = across < own
+    return out.reshape(found.shape)
 
 
 def _edge_rows(terms: _Terms, poses, centre, gate, noise_mm):

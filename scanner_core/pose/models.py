@@ -34,6 +34,13 @@ BEVEL_MM = 0.4
 #: lie on one edge curve (`EdgeModel.curves`).
 _CURVE_SPACINGS = 2.0
 _CURVE_DEG = 10.0
+#: Samples whose normals differ by more than this, degrees, lie on two faces of a crease
+#: (`SurfaceModel.crease_planes`): the edge model's feature angle (`EdgeModel.from_mesh`),
+#: an edge the scanner sees. Below it two faces are a curved surface's facets, where a
+#: point's nearest sample is as good as its neighbour's (a round shaft's 128 sides).
+CREASE_DEG = 30.0
+#: The nearest samples a sample's crease neighbour is looked for among.
+CREASE_NEIGHBOURS = 8
 #: Where an edge model without edges keeps its one unreachable point, mm.
 _NOWHERE_MM = 1e9
 #: How far from the models their lookup tables (`scanner_core.pose.nearest_table`) answer, mm:
@@ -72,7 +79,10 @@ class SurfaceModel:
         """Sample a mesh evenly by area, each sample with its face's normal.
 
         Point-to-plane distances to a sample's plane are exact on planar faces whatever the
-        spacing; the spacing only decides which face a point finds near an edge.
+        spacing; the spacing only decides which face a point finds near an edge: there a
+        point of one face can find its nearest sample on the other, and read its distance to
+        that face's plane (a rim's top-face point measured across to the wall below): the
+        fine fit leaves such a point unmatched (`crease_planes`).
 
         Parameters
         ----------
@@ -125,6 +135,29 @@ class SurfaceModel:
         """A lookup table of the nearest sample (`scanner_core.pose.nearest_table`), for the
         search's screening: approximate, O(1) a point."""
         return _lookup(self, LOOKUP_BAND_MM["surface"])
+
+    @cached_property
+    def crease_planes(self) -> np.ndarray:
+        """(M, 4) float64: for each sample beside a crease, the plane ``(n, d)`` (``n . x =
+        d``) of its ``CREASE_NEIGHBOURS`` nearest samples' whose normal is furthest from its
+        own, where that is more than ``CREASE_DEG`` degrees; NaN rows elsewhere. A point
+        matched to the sample that lies nearer that plane than the sample's own lies on the
+        crease's other face, and the fine fit leaves it unmatched
+        (``scanner_core.pose.fine``). Built on first use (`scanner_core.cad` builds it when
+        a part is armed) and kept."""
+        planes = np.full((len(self.points), 4), np.nan)
+        if len(self.points) <= 1:
+            return planes
+        k = min(CREASE_NEIGHBOURS, len(self.points) - 1)
+        _, index = self.tree.query(self.points, k=k + 1)
+        index = index[:, 1:]
+        cosine = np.einsum("mj,mkj->mk", self.normals, self.normals[index])
+        far = np.argmin(cosine, axis=1)
+        rows = np.nonzero(cosine[np.arange(len(far)), far] < np.cos(np.radians(CREASE_DEG)))[0]
+        other = index[rows, far[rows]]
+        planes[rows, :3] = self.normals[other]
+        planes[rows, 3] = np.einsum("ij,ij->i", self.normals[other], self.points[other])
+        return planes
 
     @cached_property
     def seed_cache(self) -> dict:

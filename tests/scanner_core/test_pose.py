@@ -1047,3 +1047,31 @@ def test_a_fit_a_turn_off_a_better_minimum_is_moved_there_however_firmly_held(
     dt, dr = pose_error(probed.pose, truth)
     assert np.abs(dt).max() < 0.01 and np.abs(dr).max() < 0.02, (dt, dr)
     assert rivals == []
+
+
+def test_a_point_beside_a_rim_matched_to_the_other_face_is_left_unmatched():
+    # Points on a box's top face within a sample spacing of its rim: the nearest sample of
+    # many lies on the wall below, whose plane reads their distance across to the wall.
+    from scanner_core.pose.fine import _across_a_crease
+
+    model = SurfaceModel.from_mesh(trimesh.creation.box(extents=(40.0, 30.0, 10.0)),
+                                   spacing_mm=0.5)
+    rng = np.random.default_rng(5)
+    n = 2000
+    lateral = rng.uniform(0.01, 0.5, n)                  # in from the rim x = 20, mm
+    height = rng.normal(0.0, 0.005, n)                   # off the top face z = 5, mm
+    points = np.column_stack([20.0 - lateral, rng.uniform(-12.0, 12.0, n), 5.0 + height])
+    _, nearest = model.tree.query(points)
+    on_wall = np.abs(model.normals[nearest, 0]) > 0.9
+    assert on_wall.sum() > 50                            # the failure this corrects occurs
+    across = _across_a_crease(model, points[None], np.ones((1, n), bool), nearest[None])[0]
+    # a wall sample's point whose height is less than its distance in from the rim is the
+    # top face's, and left out; every top-face sample's point is kept
+    assert across[on_wall & (np.abs(height) < lateral)].all()
+    assert not across[~on_wall].any()
+
+
+def test_a_model_without_its_mesh_has_no_crease_planes_where_its_normals_agree():
+    plane = SurfaceModel.from_points(np.column_stack([np.arange(50.0), np.zeros(50), np.zeros(50)]),
+                                     np.tile([0.0, 0.0, 1.0], (50, 1)))
+    assert np.isnan(plane.crease_planes).all()
