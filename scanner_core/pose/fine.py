@@ -355,7 +355,7 @@ def _surface_rows(terms: _Terms, poses, centre, gate, noise_mm):
     dist, nearest = _nearest(terms, local, rotation[:, 2], gate + 2.0 * _spacing(terms.model))
     normals = terms.normals if terms.normals is not None else np.full(terms.points.shape, np.nan)
     valid = np.isfinite(dist)
-    if not terms.approximate and isinstance(terms.model, SurfaceModel):
+    if not terms.approximate:
         valid &= ~_across_a_crease(terms.model, local, valid, nearest)
     # Scan normals point to the sensor, model normals out of the part: the same way up.
     return plane_rows(terms.points, normals, terms.model.points, terms.model.normals,
