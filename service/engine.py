@@ -39,6 +39,7 @@ from scanner_core.types import Frame, MarkerObservation
 from service.engine_status import engine_status
 from service.jobs import ScanJob, new_scan_id
 from service.live_recording import LiveRecording
+from scanner_core.recording.replay import REPORTS_UNTIL_SETTING
 
 log = logging.getLogger("flyscan.engine")
 
@@ -175,8 +176,7 @@ class Engine:
         to the pass's end is recorded with the robot's samples and ``part_model``, the part's
         CAD model (``scanner_core.recording``); the recording stops rather than leave less
         than ``record_keep_free_bytes`` free."""
-        if not self.cross_check_state.clock_offset_estimated:
-            self._coarse_clock_offset()
+        self.clock_offset_for_lookups()
         with self._lock:
             job = self._arm_locked(part, timeout_s, context, record_to, part_model,
                                    record_keep_free_bytes)
@@ -205,6 +205,14 @@ class Engine:
     def clock_offset_s(self) -> float:
         """Robot minus camera clock, s: the one the next pass starts from."""
         return self.cross_check_state.clock_offset_s
+
+    def clock_offset_for_lookups(self) -> float:
+        """Robot minus camera clock, s, to look the robot's poses up by a frame's time: the
+        one a pass estimated, or before any has, the coarse one from the newest pose and
+        frame (a calibration session's first still frame comes before any pass)."""
+        if not self.cross_check_state.clock_offset_estimated:
+            self._coarse_clock_offset()
+        return self.clock_offset_s
 
     def _arm_locked(self, part, timeout_s, context, record_to, part_model,
                     record_keep_free_bytes=0) -> ScanJob:
@@ -518,6 +526,10 @@ class Engine:
                 created=job.created)
             self.cross_check_state = outcome.cross_check_state
             job.state, job.reason = outcome.state, outcome.reason
+            if job.recording is not None and outcome.cross_check is not None:
+                # a replay's robot then ends its reports where this check's did
+                job.recording.keep(REPORTS_UNTIL_SETTING,
+                                   outcome.cross_check.get("reports_until_s"))
             return outcome
 
         self.on_scan(job, scan, finish_with)

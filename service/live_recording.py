@@ -10,15 +10,19 @@ scan has been published and stored: it never delays a scan.
 from __future__ import annotations
 
 import errno
+import json
 import logging
 import queue
 import threading
 from pathlib import Path
 
+import numpy as np
+
 from scanner_core.geometry.calibration import Calibration
 from scanner_core.devices import Camera, Robot
 from scanner_core.types import Frame
 from scanner_core.recording import ROBOT_MARGIN_S, PassRecorder, robot_samples
+from scanner_core.recording.replay import REPORTS_UNTIL_SETTING
 from service.store import free_bytes
 
 log = logging.getLogger("flyscan.recording")
@@ -81,6 +85,12 @@ class LiveRecording:
                 self.error = f"frame {frame.frame_id}: {exc}"
                 log.error("recording %s failed: %s", self.folder, self.error)
 
+    def keep(self, name: str, value) -> None:
+        """One more setting (JSON-serialisable), kept once the pass has ended: what the replay
+        needs that the pass learned only at its end."""
+        json.dumps(value, allow_nan=False)
+        self._recorder.settings[name] = value
+
     def finish(self, robot: Robot, clock_offset_s: float) -> dict:
         """Wait for the frames to be written, add the robot's samples over the pass, and move
         the recording into place. Returns what ``GET /scans/{id}`` shows of it."""
@@ -92,8 +102,16 @@ class LiveRecording:
             self._recorder.abort()
             return {"path": None, "error": self.error}
         try:
+            # up to the newest report the pass's cross-check read, which its replay ends at
+            until = self._recorder.settings.get(REPORTS_UNTIL_SETTING)
             samples = robot_samples(robot, min(self._times) + clock_offset_s - ROBOT_MARGIN_S,
-                                     max(self._times) + clock_offset_s + ROBOT_MARGIN_S)
+                                    max(max(self._times) + clock_offset_s + ROBOT_MARGIN_S,
+                                        -np.inf if until is None else until))
+            if until is not None:  # off the sample grid: the report itself
+                try:
+                    samples.append(robot.pose_at(until))
+                except (LookupError, RuntimeError):  # gone from its history: one sample early
+                    pass
             self._recorder.add_robot_poses(samples)
             path = self._recorder.finish()
         except (OSError, ValueError) as exc:

@@ -45,6 +45,6 @@ def open_robot(spec: str | None):
         from scanner_core.recording import load_recording
         from scanner_core.recording.replay import ReplayRobot
 
-        return ReplayRobot(load_recording(spec[len("replay:"):]).robot_samples)
+        return ReplayRobot.of(load_recording(spec[len("replay:"):]))
     forms = "\n  ".join(ROBOT_SPEC_FORMS)
     raise ValueError(f"unknown robot {spec!r}; accepted forms:\n  {forms}")

@@ -298,7 +298,7 @@ def load_session(folder) -> Session:
         recording = load_recording(folder / "pass")
 
         def pass_devices():
-            return ReplayCamera(recording), ReplayRobot(recording.robot_samples)
+            return ReplayCamera(recording), ReplayRobot.of(recording)
     try:
         nominal.check_image_size(width, height)
     except CalibrationError as exc:

@@ -32,7 +32,7 @@ import numpy as np
 
 from scanner_core.pipeline.crosscheck import (DEFAULT_TOLERANCE_MM, MAX_DRIFT_STEP_S, MAX_OFFSET_STEP_S,
                                               cross_check, robot_positions)
-from scanner_core.devices import Robot
+from scanner_core.devices import Robot, TcpPose
 from scanner_core.edges.kinds import reclassify_with_model
 from scanner_core.inspection import Inspection, InspectionParams, inspect_scan, point_spacing
 from scanner_core.pose.ahead import PoseAhead, inputs_pose_report
@@ -202,12 +202,17 @@ def check_against_robot(scan: Scan, robot: Robot, state: CrossCheckState, *,
         ``held_rotation_fraction`` (of the frames placed), ``flagged`` and the ``reason``.
     state : CrossCheckState
     """
+    _await_reports(robot, scan.tcp_times, state.clock_offset_s)
+    # The reports the check reads are those it had once it stopped waiting: one arriving
+    # while it runs would change its samples halfway, and a recording of the pass keeps this
+    # cut-off so that its replay reads the same ones (``ReplayRobot``).
+    robot = _ReportedBy(robot)
+
     def check(correction, offset_s, max_step_s):
         return cross_check(scan.tcp_times, scan.tcp_positions_b, robot, clock_offset_s=offset_s,
                            max_offset_step_s=max_step_s, led_correction_t_mm=correction,
                            tolerance_mm=state.tolerance_mm)
 
-    _await_reports(robot, scan.tcp_times, state.clock_offset_s)
     max_step_s = MAX_DRIFT_STEP_S if state.clock_offset_estimated else MAX_OFFSET_STEP_S
     result = check(state.led_correction_t_mm, state.clock_offset_s, max_step_s)
     if state.led_correction_t_mm is None and result["samples"] and result["offset_estimated"]:
@@ -236,7 +241,37 @@ def check_against_robot(scan: Scan, robot: Robot, state: CrossCheckState, *,
     if result.get("offset_estimated") and not result.get("flagged"):
         state = dataclasses.replace(state, clock_offset_s=float(result["clock_offset_s"]),
                                     clock_offset_estimated=True)
+    result["reports_until_s"] = robot.until
     return result, state
+
+
+class _ReportedBy:
+    """A robot as it stood when made: its look-ups end at the report that was its newest then
+    (``until``, robot clock, s; None when none had arrived or it was not connected), whatever
+    arrives after."""
+
+    def __init__(self, robot: Robot):
+        self._robot = robot
+        self.connected = bool(robot.connected)
+        self.until = None
+        if self.connected:
+            try:
+                self.until = float(robot.latest().t)
+            except RuntimeError:  # none has arrived
+                pass
+
+    def latest(self) -> TcpPose:
+        try:
+            if self.until is not None:
+                return self._robot.pose_at(self.until)
+        except LookupError:  # gone from a bounded history since
+            pass
+        raise RuntimeError("no robot report had arrived at the check")
+
+    def pose_at(self, t: float) -> TcpPose:
+        if self.until is None or t > self.until:
+            raise LookupError(f"t = {t:.4f} s is past the robot's reports at the check")
+        return self._robot.pose_at(t)
 
 
 def _await_reports(robot: Robot, tcp_times, clock_offset_s: float,

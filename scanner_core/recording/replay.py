@@ -19,7 +19,13 @@ from scanner_core.types import Frame
 from scanner_core.recording.format import ROBOT_COLUMNS
 from scanner_core.recording.reader import Recording
 
-__all__ = ["ReplayCamera", "ReplayRobot", "replay_recording", "replay_pass"]
+__all__ = ["ReplayCamera", "ReplayRobot", "replay_recording", "replay_pass",
+           "REPORTS_UNTIL_SETTING"]
+
+#: The recording's setting that keeps the robot time of the newest report the live pass's
+#: cross-check had (``scanner_core.pipeline.finish.check_against_robot``'s
+#: ``reports_until_s``).
+REPORTS_UNTIL_SETTING = "cross_check_reports_until_s"
 
 
 class ReplayCamera:
@@ -83,23 +89,41 @@ class ReplayRobot(RobotConnection):
 
     It knows the whole recording from the start (a live robot only knows the past): its
     answers for a time are the ones the live robot would have given once that time had
-    passed. Not thread-safe for connect/disconnect; the look-ups only read.
+    passed. Its newest report (:meth:`latest`) is the one the live pass's cross-check had
+    when it ran, where the recording kept it: a check that ran before the robot's report for
+    the pass's last frame arrived reads as many samples again. Not thread-safe for
+    connect/disconnect; the look-ups only read.
 
     Parameters
     ----------
     samples : (M, 13) float64
-        See the module docstring (robot.npy).
+        See ``scanner_core.recording`` (robot.npy).
+    reports_until_s : float, optional
+        The robot time of the newest report the live cross-check had
+        (``settings["cross_check_reports_until_s"]``, :meth:`of`); default the last sample's.
     """
 
     _not_connected = "ReplayRobot is not connected"
 
-    def __init__(self, samples: np.ndarray):
+    def __init__(self, samples: np.ndarray, reports_until_s: float | None = None):
         samples = np.asarray(samples, dtype=np.float64)
         if samples.ndim != 2 or samples.shape[1] != ROBOT_COLUMNS:
             raise ValueError(f"robot samples must be (M, {ROBOT_COLUMNS}), got {samples.shape}")
         self._t = samples[:, 0].copy()
         self._p = samples[:, 1:4].copy()
         self._r = samples[:, 4:].reshape(-1, 3, 3).copy()
+        self._newest = len(self._t) - 1
+        if reports_until_s is not None and len(self._t):
+            if not np.isfinite(reports_until_s):
+                raise ValueError(f"reports_until_s must be finite, got {reports_until_s!r}")
+            self._newest = max(int(np.searchsorted(self._t, reports_until_s, side="right")) - 1,
+                               0)
+
+    @classmethod
+    def of(cls, recording: Recording) -> "ReplayRobot":
+        """The robot of `recording`, its newest report the one its cross-check had."""
+        until = recording.settings.get(REPORTS_UNTIL_SETTING)
+        return cls(recording.robot_samples, None if until is None else float(until))
 
     def _check(self) -> None:
         self._require_connected()
@@ -107,9 +131,11 @@ class ReplayRobot(RobotConnection):
             raise RuntimeError("the recording holds no robot sample")
 
     def latest(self) -> TcpPose:
-        """The last recorded sample."""
+        """The newest report the live cross-check had; the last recorded sample where the
+        recording does not say."""
         self._check()
-        return TcpPose(float(self._t[-1]), self._p[-1].copy(), self._r[-1].copy())
+        i = self._newest
+        return TcpPose(float(self._t[i]), self._p[i].copy(), self._r[i].copy())
 
     def pose_at(self, t: float) -> TcpPose:
         """The pose at robot time ``t``: positions interpolated linearly between the two
@@ -196,7 +222,7 @@ def replay_pass(recording: Recording, part=None, *, params=None, pose_params=Non
     settings = recording.settings
     if register and part is None:
         part = recording.part()
-    return run_session(ReplayCamera(recording), ReplayRobot(recording.robot_samples),
+    return run_session(ReplayCamera(recording), ReplayRobot.of(recording),
                        recording.calibration,
                        params=recorded_params(recording) if params is None else params,
                        part_model=part, register=register, pose_params=pose_params,

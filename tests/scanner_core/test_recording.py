@@ -2,15 +2,18 @@
 import json
 import shutil
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from scanner_core.devices import Camera, CameraClosed, CameraTimeout, Robot, TcpPose
+from scanner_core.devices import (Camera, CameraClosed, CameraTimeout, Robot, RobotConnection,
+                                   TcpPose)
+from scanner_core.pipeline.finish import CrossCheckState, check_against_robot
 from scanner_core.pipeline import camera_frames, run_pass, warm_up
 from scanner_core.types import Frame
 from scanner_core.recording import FORMAT_VERSION, PassRecorder, RecordingError, load_recording
-from scanner_core.recording.replay import ReplayCamera, ReplayRobot
+from scanner_core.recording.replay import REPORTS_UNTIL_SETTING, ReplayCamera, ReplayRobot
 from simulator.devices import ROBOT_RATE_HZ
 from simulator.session import simulated_cell
 
@@ -108,6 +111,52 @@ def test_replay_robot_matches_the_simulated_robot(recorded):
         robot.pose_at(times[0] - 1e-3)
     robot.disconnect()
     assert not robot.connected
+
+
+class _LateRobot(RobotConnection):
+    """A live robot whose reports for the pass's last frames have not arrived yet: its
+    history ends at ``until``."""
+
+    def __init__(self, recorded: ReplayRobot, until: float):
+        self._recorded, self._until = recorded, until
+
+    def latest(self) -> TcpPose:
+        return self._recorded.pose_at(self._until)
+
+    def pose_at(self, t: float) -> TcpPose:
+        if t > self._until:
+            raise LookupError("not reported yet")
+        return self._recorded.pose_at(t)
+
+
+def test_a_replay_checks_the_samples_its_live_check_had(recorded):
+    """A live cross-check that ran before the robot's reports for the pass's last frames
+    arrived checked fewer frames; the replay, its robot ending its reports where the live
+    check's did, checks the same ones, not all the recording holds."""
+    recording, live = load_recording(recorded["folder"]), recorded["live"]
+    full = ReplayRobot(recording.robot_samples)
+    full.connect()
+    state = CrossCheckState()
+    # a report's time (the camera's and the robot's clocks agree here), some frames before
+    # the pass's last
+    times = recording.robot_samples[:, 0]
+    until = float(times[np.searchsorted(times, live.tcp_times[-6]) - 1])
+    late = _LateRobot(full, until)
+    late.connect()
+    live_check, _ = check_against_robot(live, late, state)
+    assert live_check["reports_until_s"] == pytest.approx(until, abs=1e-12)
+    everything, _ = check_against_robot(live, full, state)
+    assert everything["reports_until_s"] == recording.robot_samples[-1, 0]
+    assert 0 < live_check["samples"] < everything["samples"]
+    replay_robot = ReplayRobot.of(replace(recording, settings={
+        REPORTS_UNTIL_SETTING: live_check["reports_until_s"]}))
+    replay_robot.connect()
+    assert replay_robot.latest().t == until
+    replayed, _ = check_against_robot(live, replay_robot, state)
+    for key in ("samples", "rms_mm", "max_mm", "clock_offset_s", "mean_difference_t_mm"):
+        assert replayed[key] == live_check[key], key
+    with pytest.raises(ValueError, match="finite"):
+        ReplayRobot(recording.robot_samples, float("nan"))
 
 
 def test_replay_robot_slerps_a_turning_gripper():

@@ -32,7 +32,7 @@ def _same_report(report, live):
     assert report["points"] == live["points"] and report["edge_points"] == live["edge_points"]
     assert report["edge_kinds"] == live["edge_kinds"]
     for key in ("samples", "rms_mm", "max_mm", "clock_offset_s", "flagged",
-                "mean_difference_t_mm", "led_correction_t_mm"):
+                "mean_difference_t_mm", "led_correction_t_mm", "reports_until_s"):
         np.testing.assert_allclose(report["cross_check"][key], live["cross_check"][key],
                                    rtol=1e-9, atol=1e-12, err_msg=key)
     np.testing.assert_allclose(report["pose"]["matrix"], live["pose"]["matrix"], atol=1e-9)
@@ -54,6 +54,10 @@ def test_record_then_replay_gives_the_live_report(service, recorded, tmp_path):
     replay = xyz_array(parse_ply((tmp_path / "replay" / "cloud.ply").read_bytes()))
     np.testing.assert_array_equal(replay, live_cloud)
     assert live["cross_check"]["samples"] > 20  # one per profile of the pass
+    # the robot's reports the live check had: the replay reads those, not all recorded
+    from scanner_core.recording import load_recording
+    settings = load_recording(folder).settings
+    assert settings["cross_check_reports_until_s"] == live["cross_check"]["reports_until_s"]
     _same_report(report, live)
 
 
