@@ -269,11 +269,12 @@ class CalibrationSessions:
         ready = arrived + SETTLE_S + AVERAGE_S / 2  # robot clock
         deadline = time.monotonic() + CAPTURE_TIMEOUT_S
         while True:
-            offset = engine.clock_offset_s
+            offset = engine.clock_offset_for_lookups()
             frame = _wait(lambda: (lambda f: f if f is not None and f[0].t + offset >= ready
-                                   else None)(engine.latest), "a frame after the robot settled")[0]
+                                   else None)(engine.latest), "frame after the robot settled")[0]
             t_robot = frame.t + offset
-            _wait(lambda: _newest_t(robot) >= t_robot + AVERAGE_S / 2, "the robot's reports")
+            _wait(lambda: _newest_t(robot) >= t_robot + AVERAGE_S / 2,
+                  "robot report for the frame")
             poses = robot_samples(robot, t_robot - AVERAGE_S / 2, t_robot + AVERAGE_S / 2)
             positions = np.array([p.position for p in poses]).reshape(-1, 3)
             if len(poses) and np.max(np.linalg.norm(positions - np.median(positions, axis=0),

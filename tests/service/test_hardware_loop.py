@@ -30,8 +30,7 @@ def _scan(client, **request):
         client.get(f"/scans/{scan_id}").json()))
 
 
-@pytest.fixture(scope="module")
-def robot_service(tmp_path_factory):
+def _serving(tmp_path_factory):
     settings = Settings(robot=f"ur://{free_loopback_host(60)}",
                         data=tmp_path_factory.mktemp("hil") / "data",
                         zmq=f"tcp://127.0.0.1:{free_port()}")
@@ -40,6 +39,23 @@ def robot_service(tmp_path_factory):
     with serve_in_thread(create_app(service=service)) as client:
         wait_for(lambda: client.get("/status").json()["robot"]["connected"], timeout=10)
         yield client, service
+
+
+@pytest.fixture(scope="module")
+def robot_service(tmp_path_factory):
+    yield from _serving(tmp_path_factory)
+
+
+def test_a_calibration_step_before_any_scan_finds_its_still_frame(tmp_path_factory):
+    """The service's first act a calibration session's step: no pass has estimated the
+    robot's clock (7.25 s ahead of the camera's), and the still frame is still found by it."""
+    for client, _ in _serving(tmp_path_factory):
+        info = client.post("/calibration/sessions", json={"led_count": 12,
+                                                          "sphere_count": 3}).json()
+        captured = client.post(f"/calibration/sessions/{info['session_id']}/steps/0")
+        assert captured.status_code == 200, captured.text
+        step = captured.json()
+        assert step["off_plan_mm"] < 1e-6 and step["samples"] >= 40, step
 
 
 def test_the_real_client_cross_checks_a_consistent_pass(robot_service):
