@@ -192,7 +192,7 @@ class EdgeModel:
     spacing_mm: float = 0.1
 
     @classmethod
-    def from_mesh(cls, mesh, *, feature_angle_deg: float = 30.0, spacing_mm: float = 0.1,
+    def from_mesh(cls, mesh, *, feature_angle_deg: float = CREASE_DEG, spacing_mm: float = 0.1,
                   bevel_mm: float = BEVEL_MM, view=None) -> "EdgeModel":
         """Sample the mesh's sharp edges: faces meeting at more than `feature_angle_deg`, and
         the boundary of an open mesh; the two edges of a bevel narrower than `bevel_mm` (a
