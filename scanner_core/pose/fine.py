@@ -22,7 +22,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from scanner_core.pose.rows import plane_rows
+from scanner_core.pose.rows import across_a_crease, plane_rows
 from scanner_core.pose.nearest_table import NearestMemo
 from scanner_core.pose.models import EdgeModel, SurfaceModel
 
@@ -371,17 +371,9 @@ def _across_a_crease(model: SurfaceModel, local, found, nearest) -> np.ndarray:
     away, which would read its distance across to that face's plane (a rim's top-face point
     measured to the wall below it). They are left unmatched: the face they lie on has its
     own points."""
-    index = np.where(found, nearest, 0).reshape(-1)
-    other = model.crease_planes[index]
-    beside = found.reshape(-1) & np.isfinite(other[:, 0])
-    out = np.zeros(index.shape, bool)
-    if beside.any():
-        p = local.reshape(-1, 3)[beside]
-        sample = index[beside]
-        own = np.abs(np.einsum("ij,ij->i", model.normals[sample], p - model.points[sample]))
-        across = np.abs(np.einsum("ij,ij->i", other[beside, :3], p) - other[beside, 3])
-        out[np.nonzero(beside)[0]] = across < own
-    return out.reshape(found.shape)
+    return across_a_crease(local.reshape(-1, 3), found.reshape(-1),
+                           nearest.reshape(-1).astype(np.int64), model.crease_planes,
+                           model.points, model.normals).reshape(found.shape)
 
 
 def _edge_rows(terms: _Terms, poses, centre, gate, noise_mm):

@@ -183,3 +183,27 @@ def matched_within(local, nearest, valid, model_points, model_vectors, scan_norm
                              + zz * (vx * oy - vy * ox))
                 matched[p, i] = level > min_level and across <= tol * level
     return matched
+
+
+@njit(nogil=True, cache=True)
+def across_a_crease(points, found, nearest, crease_planes, model_points, model_normals):
+    """(K,) bool: the `points` ((K, 3) mm, in {P}) `found` a match (their `nearest` model
+    sample, (K,) int64) whose sample lies beside a crease (a finite row of `crease_planes`,
+    (M, 4): the plane ``n . x = c`` of its crease neighbour's face) and which lie nearer that
+    plane than their sample's own (``|n_q . (x - q)|``)."""
+    out = np.zeros(len(points), np.bool_)
+    for i in range(len(points)):
+        if not found[i]:
+            continue
+        j = nearest[i]
+        if not np.isfinite(crease_planes[j, 0]):
+            continue
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        own = abs(model_normals[j, 0] * (x - model_points[j, 0])
+                  + model_normals[j, 1] * (y - model_points[j, 1])
+                  + model_normals[j, 2] * (z - model_points[j, 2]))
+        across = abs(crease_planes[j, 0] * x + crease_planes[j, 1] * y
+                     + crease_planes[j, 2] * z - crease_planes[j, 3])
+        out[i] = across < own
+    return out
+
