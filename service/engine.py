@@ -176,7 +176,11 @@ class Engine:
         to the pass's end is recorded with the robot's samples and ``part_model``, the part's
         CAD model (``scanner_core.recording``); the recording stops rather than leave less
         than ``record_keep_free_bytes`` free."""
-        self.clock_offset_for_lookups()
+        if not self.cross_check_state.clock_offset_estimated:
+            coarse = self._coarse_clock_offset()
+            if coarse is not None:
+                self.cross_check_state = dataclasses.replace(self.cross_check_state,
+                                                             clock_offset_s=coarse)
         with self._lock:
             job = self._arm_locked(part, timeout_s, context, record_to, part_model,
                                    record_keep_free_bytes)
@@ -184,22 +188,21 @@ class Engine:
             self.on_pass_armed(job)
         return job
 
-    def _coarse_clock_offset(self) -> None:
+    def _coarse_clock_offset(self) -> float | None:
         """Robot minus camera clock from the newest pose and the newest frame, to a few ms
         (the age of each): enough to look the robot's poses up during the first pass, whose
         track then estimates the offset properly (``scanner_core.pipeline.crosscheck``). A real robot's
         clock counts from its controller's start, a camera's from its own: without this the
-        first pass would find no pose at all."""
+        first pass would find no pose at all. None without a frame or a report."""
         newest_frame = self._newest_frame_clock
         if newest_frame is None or not self.robot.connected:
-            return
+            return None
         try:
             robot_t = self.robot.latest().t
         except RuntimeError:
-            return
+            return None
         frame_t, received = newest_frame
-        self.cross_check_state = dataclasses.replace(
-            self.cross_check_state, clock_offset_s=robot_t - (frame_t + time.monotonic() - received))
+        return robot_t - (frame_t + time.monotonic() - received)
 
     @property
     def clock_offset_s(self) -> float:
@@ -210,9 +213,11 @@ class Engine:
         """Robot minus camera clock, s, to look the robot's poses up by a frame's time: the
         one a pass estimated, or before any has, the coarse one from the newest pose and
         frame (a calibration session's first still frame comes before any pass)."""
-        if not self.cross_check_state.clock_offset_estimated:
-            self._coarse_clock_offset()
-        return self.clock_offset_s
+        state = self.cross_check_state
+        if state.clock_offset_estimated:
+            return state.clock_offset_s
+        coarse = self._coarse_clock_offset()  # read only: the finisher owns the state
+        return state.clock_offset_s if coarse is None else coarse
 
     def _arm_locked(self, part, timeout_s, context, record_to, part_model,
                     record_keep_free_bytes=0) -> ScanJob:
@@ -528,8 +533,12 @@ class Engine:
             job.state, job.reason = outcome.state, outcome.reason
             if job.recording is not None and outcome.cross_check is not None:
                 # a replay's robot then ends its reports where this check's did
-                job.recording.keep(REPORTS_UNTIL_SETTING,
-                                   outcome.cross_check.get("reports_until_s"))
+                try:
+                    job.recording.keep(REPORTS_UNTIL_SETTING,
+                                       outcome.cross_check.get("reports_until_s"))
+                except (TypeError, ValueError):  # a recording never fails a scan
+                    log.exception("recording of %s: the check's report cut-off not kept",
+                                  job.scan_id)
             return outcome
 
         self.on_scan(job, scan, finish_with)

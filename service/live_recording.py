@@ -16,8 +16,6 @@ import queue
 import threading
 from pathlib import Path
 
-import numpy as np
-
 from scanner_core.geometry.calibration import Calibration
 from scanner_core.devices import Camera, Robot
 from scanner_core.types import Frame
@@ -27,6 +25,11 @@ from service.store import free_bytes
 
 log = logging.getLogger("flyscan.recording")
 
+#: The robot's samples are recorded up to the newest report the pass's cross-check read, when
+#: it came at most this long after the pass (s): the check runs after the pose and waits for
+#: the last frame's report; a cut-off much later is a clock offset gone wrong, whose samples
+#: (and the look-ups that make them) would only hold up the finisher.
+REPORTS_AFTER_PASS_S = 5.0
 
 
 class LiveRecording:
@@ -92,8 +95,10 @@ class LiveRecording:
         self._recorder.settings[name] = value
 
     def finish(self, robot: Robot, clock_offset_s: float) -> dict:
-        """Wait for the frames to be written, add the robot's samples over the pass, and move
-        the recording into place. Returns what ``GET /scans/{id}`` shows of it."""
+        """Wait for the frames to be written, add the robot's samples over the pass (and on
+        to the newest report its cross-check read, `keep`'s ``REPORTS_UNTIL_SETTING``, within
+        ``REPORTS_AFTER_PASS_S``), and move the recording into place. Returns what
+        ``GET /scans/{id}`` shows of it."""
         self._queue.put(None)
         self._thread.join()
         if self.error is None and not self._times:
@@ -102,16 +107,20 @@ class LiveRecording:
             self._recorder.abort()
             return {"path": None, "error": self.error}
         try:
-            # up to the newest report the pass's cross-check read, which its replay ends at
-            until = self._recorder.settings.get(REPORTS_UNTIL_SETTING)
+            end = max(self._times) + clock_offset_s + ROBOT_MARGIN_S
             samples = robot_samples(robot, min(self._times) + clock_offset_s - ROBOT_MARGIN_S,
-                                    max(max(self._times) + clock_offset_s + ROBOT_MARGIN_S,
-                                        -np.inf if until is None else until))
-            if until is not None:  # off the sample grid: the report itself
+                                    end)
+            # Up to the newest report the pass's cross-check read, which its replay's robot
+            # ends at, and that report itself (off the samples' grid on a real robot).
+            until = self._recorder.settings.get(REPORTS_UNTIL_SETTING)
+            if until is not None and until <= end + REPORTS_AFTER_PASS_S:
+                if until > end:
+                    samples += robot_samples(robot, end, until)
                 try:
                     samples.append(robot.pose_at(until))
-                except (LookupError, RuntimeError):  # gone from its history: one sample early
+                except (LookupError, RuntimeError):  # gone from its history: the replay interpolates
                     pass
+                samples.sort(key=lambda pose: pose.t)
             self._recorder.add_robot_poses(samples)
             path = self._recorder.finish()
         except (OSError, ValueError) as exc:

@@ -206,4 +206,3 @@ def across_a_crease(points, found, nearest, crease_planes, model_points, model_n
                      + crease_planes[j, 2] * z - crease_planes[j, 3])
         out[i] = across < own
     return out
-

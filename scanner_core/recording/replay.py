@@ -89,10 +89,11 @@ class ReplayRobot(RobotConnection):
 
     It knows the whole recording from the start (a live robot only knows the past): its
     answers for a time are the ones the live robot would have given once that time had
-    passed. Its newest report (:meth:`latest`) is the one the live pass's cross-check had
-    when it ran, where the recording kept it: a check that ran before the robot's report for
-    the pass's last frame arrived reads as many samples again. Not thread-safe for
-    connect/disconnect; the look-ups only read.
+    passed, whatever `reports_until_s`. Its newest report (:meth:`latest`) is the one the live
+    pass's cross-check had when it ran, where the recording kept it: a check that ran before
+    the robot's reports for the pass's last frames arrived is replayed on as many (the check
+    reads the robot up to its newest report, ``scanner_core.pipeline.finish
+    .check_against_robot``). Not thread-safe for connect/disconnect; the look-ups only read.
 
     Parameters
     ----------
@@ -100,7 +101,8 @@ class ReplayRobot(RobotConnection):
         See ``scanner_core.recording`` (robot.npy).
     reports_until_s : float, optional
         The robot time of the newest report the live cross-check had
-        (``settings["cross_check_reports_until_s"]``, :meth:`of`); default the last sample's.
+        (``settings["cross_check_reports_until_s"]``, :meth:`of`); -inf: it had none; default
+        the last sample's.
     """
 
     _not_connected = "ReplayRobot is not connected"
@@ -112,18 +114,20 @@ class ReplayRobot(RobotConnection):
         self._t = samples[:, 0].copy()
         self._p = samples[:, 1:4].copy()
         self._r = samples[:, 4:].reshape(-1, 3, 3).copy()
-        self._newest = len(self._t) - 1
-        if reports_until_s is not None and len(self._t):
-            if not np.isfinite(reports_until_s):
-                raise ValueError(f"reports_until_s must be finite, got {reports_until_s!r}")
-            self._newest = max(int(np.searchsorted(self._t, reports_until_s, side="right")) - 1,
-                               0)
+        if reports_until_s is not None and not (np.isfinite(reports_until_s)
+                                                or reports_until_s == -np.inf):
+            raise ValueError(f"reports_until_s must be finite or -inf, got {reports_until_s!r}")
+        self._until = reports_until_s
 
     @classmethod
     def of(cls, recording: Recording) -> "ReplayRobot":
-        """The robot of `recording`, its newest report the one its cross-check had."""
-        until = recording.settings.get(REPORTS_UNTIL_SETTING)
-        return cls(recording.robot_samples, None if until is None else float(until))
+        """The robot of `recording`, its newest report the one its cross-check had (a
+        recording made before the cut-off was kept: its last sample)."""
+        settings = recording.settings
+        if REPORTS_UNTIL_SETTING not in settings:
+            return cls(recording.robot_samples)
+        until = settings[REPORTS_UNTIL_SETTING]
+        return cls(recording.robot_samples, -np.inf if until is None else float(until))
 
     def _check(self) -> None:
         self._require_connected()
@@ -131,11 +135,16 @@ class ReplayRobot(RobotConnection):
             raise RuntimeError("the recording holds no robot sample")
 
     def latest(self) -> TcpPose:
-        """The newest report the live cross-check had; the last recorded sample where the
-        recording does not say."""
+        """The newest report the live cross-check had (the pose at its time); the last
+        recorded sample where the recording does not say, or where that report lies past
+        the samples. RuntimeError where the check had none."""
         self._check()
-        i = self._newest
-        return TcpPose(float(self._t[i]), self._p[i].copy(), self._r[i].copy())
+        until = self._until
+        if until is None or until >= self._t[-1]:
+            return TcpPose(float(self._t[-1]), self._p[-1].copy(), self._r[-1].copy())
+        if until < self._t[0]:
+            raise RuntimeError("no robot report had arrived when the recorded pass was checked")
+        return self.pose_at(until)
 
     def pose_at(self, t: float) -> TcpPose:
         """The pose at robot time ``t``: positions interpolated linearly between the two

@@ -157,6 +157,12 @@ def test_a_replay_checks_the_samples_its_live_check_had(recorded):
         assert replayed[key] == live_check[key], key
     with pytest.raises(ValueError, match="finite"):
         ReplayRobot(recording.robot_samples, float("nan"))
+    # a live check that had no report at all: the replay's has none either
+    none_yet = ReplayRobot.of(replace(recording, settings={REPORTS_UNTIL_SETTING: None}))
+    none_yet.connect()
+    with pytest.raises(RuntimeError, match="no robot report"):
+        none_yet.latest()
+    assert check_against_robot(live, none_yet, state)[0]["samples"] == 0
 
 
 def test_replay_robot_slerps_a_turning_gripper():

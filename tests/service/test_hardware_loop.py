@@ -1,5 +1,6 @@
 """The service with the real ur-rtde client against the RTDE emulator (its own process), as
 ``flyscan serve --sim --robot ur://HOST`` runs it; and a recorded pass replayed offline."""
+import contextlib
 import time
 
 import numpy as np
@@ -30,6 +31,7 @@ def _scan(client, **request):
         client.get(f"/scans/{scan_id}").json()))
 
 
+@contextlib.contextmanager
 def _serving(tmp_path_factory):
     settings = Settings(robot=f"ur://{free_loopback_host(60)}",
                         data=tmp_path_factory.mktemp("hil") / "data",
@@ -43,13 +45,14 @@ def _serving(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def robot_service(tmp_path_factory):
-    yield from _serving(tmp_path_factory)
+    with _serving(tmp_path_factory) as served:
+        yield served
 
 
 def test_a_calibration_step_before_any_scan_finds_its_still_frame(tmp_path_factory):
     """The service's first act a calibration session's step: no pass has estimated the
     robot's clock (7.25 s ahead of the camera's), and the still frame is still found by it."""
-    for client, _ in _serving(tmp_path_factory):
+    with _serving(tmp_path_factory) as (client, _):
         info = client.post("/calibration/sessions", json={"led_count": 12,
                                                           "sphere_count": 3}).json()
         captured = client.post(f"/calibration/sessions/{info['session_id']}/steps/0")
