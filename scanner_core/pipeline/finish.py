@@ -198,9 +198,10 @@ def check_against_robot(scan: Scan, robot: Robot, state: CrossCheckState, *,
     check : dict
         ``scanner_core.pipeline.crosscheck.cross_check``'s on the robot's reports up to its
         newest when the check began (``reports_until_s``, robot clock, s; None: it had none),
-        with ``led_correction_learned`` when it learned the correction; when frames were placed on a held rotation and the robot has
-        no pose for some of the pass's frames (lost for part of it) ``frames_held_rotation``,
-        ``held_rotation_fraction`` (of the frames placed), ``flagged`` and the ``reason``.
+        with ``led_correction_learned`` when it learned the correction; when frames were
+        placed on a held rotation and the robot has no pose for some of the pass's frames
+        (lost for part of it) ``frames_held_rotation``, ``held_rotation_fraction`` (of the
+        frames placed), ``flagged`` and the ``reason``.
     state : CrossCheckState
     """
     _await_reports(robot, scan.tcp_times, state.clock_offset_s)
