@@ -372,7 +372,7 @@ def _across_a_crease(model: SurfaceModel, local, found, nearest) -> np.ndarray:
     measured to the wall below it). They are left unmatched: the face they lie on has its
     own points."""
     return across_a_crease(local.reshape(-1, 3), found.reshape(-1),
-                           nearest.reshape(-1).astype(np.int64), model.crease_planes,
+                           np.asarray(nearest.reshape(-1), dtype=np.int64), model.crease_planes,
                            model.points, model.normals).reshape(found.shape)
 
 
