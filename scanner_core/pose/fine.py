@@ -54,8 +54,6 @@ _JUMP_DEG = 5.0
 _JUMP_RATIO = 0.95
 # Information below this fraction of the strongest is no information (numerical zero).
 _SINGULAR = 1e-10
-# Queries with more points than this use both cores.
-_THREADED_QUERY = 50_000
 # Floor of the robust scale, mm: no scan is better than this, and noise-free test data must
 # not make the weights infinite.
 _MIN_SIGMA_MM = 0.001
@@ -76,8 +74,8 @@ class _Terms:
     model: SurfaceModel | EdgeModel
     agreement: float = -1.0     # least cosine between `normals` and a match's normal
     steps_mm: np.ndarray | None = None  # edges: a step's height, 0 for a drop-out
-    approximate: bool = False   # matched through the model's lookup table, not its KD-tree
-    # the KD-tree's answers at one pose at a time, remembered between a fit's iterations
+    approximate: bool = False   # matched through the model's lookup table, not its grid
+    # the grid's exact answers at one pose at a time, remembered between a fit's iterations
     memo: NearestMemo | None = field(default=None, init=False, repr=False, compare=False)
 
     def subset(self, index) -> "_Terms":
@@ -90,7 +88,7 @@ class _Terms:
 
     def rough(self) -> "_Terms":
         """The same points matched through the model's lookup table
-        (``scanner_core.pose.nearest_table``) instead of its KD-tree: what the search screens
+        (``scanner_core.pose.nearest_table``) instead of its exact grid: what the search screens
         candidates with, whose points lie millimetres off the model."""
         return replace(self, approximate=True)
 
@@ -313,16 +311,12 @@ def _nearest(terms: _Terms, local, up, bound):
         def query(points):
             return terms.model.lookup.query(points, bound)
     else:
-        # Threads pay off only for large queries (each call starts its own).
-        workers = -1 if int(np.prod(shape)) > _THREADED_QUERY else 1
-
         def query(points):
-            return terms.model.tree.query(points, k=1, distance_upper_bound=bound,
-                                          workers=workers)
+            return terms.model.grid.query(points, k=1, distance_upper_bound=bound)
     if not terms.approximate and len(shape) == 2 and shape[0] == 1:
         # one pose: the fit's iterations ask again only where the answer may have changed
         if terms.memo is None:
-            terms.memo = NearestMemo(terms.model.tree)
+            terms.memo = NearestMemo(terms.model.grid)
         dist, nearest = terms.memo.query(local.reshape(-1, 3), bound)
     else:
         dist, nearest = query(local.reshape(-1, 3))

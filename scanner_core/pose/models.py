@@ -9,8 +9,10 @@ its sharp edges, sampled in {P}.
   seen from the sensor where there is one (`outline_adjacency`, with the mesh's other edge
   tests in ``scanner_core.edges.mesh``).
 
-Each keeps a KD-tree over its points and a lookup table of them for the search's screening
-(`lookup`), built on first use. Units: mm.
+Each keeps a KD-tree over its points (`tree`: the neighbours of its own samples, and the
+points far from it), an exact grid search of them (`grid`: the fits' and the decisive
+scores' nearest samples) and a lookup table for the search's screening (`lookup`), built on
+first use. Units: mm.
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-from scanner_core.pose.nearest_table import NearestTable
+from scanner_core.pose.nearest_table import NearestGrid, NearestTable
 from scanner_core.edges.mesh import TOWARD_MIN, boundary_edges, outline_adjacency
 from scanner_core.pose.symmetry import exact_symmetries, surface_moments
 
@@ -118,6 +120,12 @@ class SurfaceModel:
     @cached_property
     def tree(self) -> cKDTree:
         return _tree(self.points)
+
+    @cached_property
+    def grid(self) -> NearestGrid:
+        """The exact nearest samples of the fits and of the scores that decide
+        (`scanner_core.pose.nearest_table.NearestGrid`), the KD-tree answering far points."""
+        return _grid(self)
 
     @cached_property
     def symmetries(self) -> np.ndarray:
@@ -238,6 +246,11 @@ class EdgeModel:
         return _tree(self.points if len(self.points) else np.full((1, 3), _NOWHERE_MM))
 
     @cached_property
+    def grid(self) -> NearestGrid:
+        """As `SurfaceModel.grid`."""
+        return _grid(self)
+
+    @cached_property
     def lookup(self) -> NearestTable:
         """As `SurfaceModel.lookup`."""
         return _lookup(self, LOOKUP_BAND_MM["edge"])
@@ -268,11 +281,19 @@ class EdgeModel:
 
 
 def _tree(points) -> cKDTree:
-    """A KD-tree over a model's points, built once per part and queried some hundred times
-    a pose. Sliding-midpoint splits (not balanced): on the reference parts' 150 000-400 000
+    """A KD-tree over a model's points, built once per part: its own samples' neighbours,
+    and the points its grid and lookup table leave to it. Sliding-midpoint splits (not balanced): on the reference parts' 150 000-400 000
     samples it builds in about two thirds of the time and answers the pose's queries about
     10 % sooner; a nearest neighbour is a nearest neighbour either way."""
     return cKDTree(points, balanced_tree=False)
+
+
+def _grid(model) -> NearestGrid:
+    tree = model.tree
+
+    def by_tree(points, k, bound):
+        return tree.query(points, k=k, distance_upper_bound=bound)
+    return NearestGrid(tree.data, far=by_tree)
 
 
 def _lookup(model, band_mm: float) -> NearestTable:

@@ -21,10 +21,10 @@ stage when the nominal grasp is no good start, and which other minima fit as wel
 The quick refinements of the coarse grid and of the probes, the probes' sweep all the way
 round, and the scores that only place a seed (the coarse sweep's turns, a probe peak's best
 turn) match their points through the models' lookup tables (``_Terms.rough``,
-``scanner_core.pose.nearest_table``): their points lie millimetres off the model, where a KD-tree
-query is slow (an edge point searches 15 mm), and a seed is refined before anything is
+``scanner_core.pose.nearest_table``): their points lie millimetres off the model, where an
+exact query is slow (an edge point searches 15 mm), and a seed is refined before anything is
 decided on it. The scores that rank refined candidates and decide (the better turn, the final
-scores, the rival margins), and every full fit, use the KD-trees.
+scores, the rival margins), and every full fit, use the exact search (the models' grids).
 """
 from __future__ import annotations
 
@@ -176,7 +176,7 @@ def _coarse(surface: _Terms, edges: _Terms | None, nominal, params, rng) -> list
 # of the edge points) sends a fit that looked good to the coarse search.
 _BETTER_TURN = 0.02
 # The turns of the check scored through the lookup tables, the best this many of them again
-# through the KD-trees, which decide.
+# through the exact search, which decides.
 _TURN_CHECK_EXACT = 3
 
 
@@ -188,7 +188,7 @@ def _better_turn(surface: _Terms, edges: _Terms | None, pose, params) -> np.ndar
     far off can stop a few degrees short of the truth however firmly its weakest rotation
     is held. The turns are screened through the lookup tables (some 2 ms for 30 turns of
     800 points, against 20 through the KD-trees) and the best few decide through the
-    KD-trees. The turn found is a start for the fine stage (a fit a lobe off then lands on
+    exact search. The turn found is a start for the fine stage (a fit a lobe off then lands on
     the right one without the whole coarse search)."""
     rng = np.random.default_rng(params.seed + 1)
     few = surface.subset(_subsample(len(surface.points), params.coarse_points, rng))

@@ -2,8 +2,8 @@
 
 The normals' neighbour search and planes (``scanner_core.normals``), the fine stage's rows
 and crease test, the search's agreement test (``scanner_core.pose.rows``), the lookup table's
-query and `NearestMemo`'s bookkeeping (``scanner_core.pose.nearest_table``) compile on their
-first call: some 3.7 s on a fresh install (an empty numba cache), some 150 ms loading
+and the grid's queries and `NearestMemo`'s bookkeeping (``scanner_core.pose.nearest_table``)
+compile on their first call: some 3.7 s on a fresh install (an empty numba cache), some 150 ms loading
 them from the cache, which the first pass's pose would otherwise wait for. The service warms
 them up with the frame kernels (``scanner_core.pipeline.warm_up``), before it streams.
 """

@@ -1,11 +1,12 @@
-"""The nearest-point lookup table the registration's search screens with, and the fine fit's
-stopping and acceleration: checked against the KD-tree and against the plain iteration."""
+"""The nearest-point lookup table the registration's search screens with, the exact grid and
+memo the fits query, and the fine fit's stopping and acceleration: checked against the
+KD-tree and against the plain iteration."""
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
 import scanner_core.pose.fine as pose_fine
-from scanner_core.pose.nearest_table import NearestMemo, NearestTable
+from scanner_core.pose.nearest_table import FAR_SHELLS, NearestGrid, NearestMemo, NearestTable
 from scanner_core.pose.registration import EdgeModel, PoseParams, SurfaceModel, register
 from simulator.parts import block_with_holes_and_steps, centred_grasp
 from test_pose import lobed_disc, misplacement, pose_error, synthetic_scan
@@ -56,8 +57,67 @@ def test_a_bound_is_honoured_and_beyond_the_band_the_tree_answers(surface):
     assert calls and np.allclose(dist, exact) and np.array_equal(index, nearest)
 
 
+@pytest.mark.parametrize("k", [1, 2])
+@pytest.mark.parametrize("spread_mm", [0.0, 0.05, 0.6, 4.0, 30.0])
+@pytest.mark.parametrize("with_far", [True, False])
+def test_the_grid_answers_as_the_tree(surface, k, spread_mm, with_far):
+    """On the samples, near them, millimetres off, and far outside the grid's box, under
+    bounds from a tenth of a millimetre to none: the same nearest points at the same
+    distances as the KD-tree, whether the far points go to the tree or the grid searches on."""
+    points, tree = surface
+    far_calls = []
+
+    def far(queries, kk, bound):
+        far_calls.append(len(queries))
+        return tree.query(queries, k=kk, distance_upper_bound=bound)
+
+    grid = NearestGrid(points, far=far if with_far else None)
+    rng = np.random.default_rng(int(spread_mm * 100) + k)
+    queries = points[rng.choice(len(points), 1500)] + rng.normal(0, spread_mm, (1500, 3))
+    for bound in (0.1, 1.0, 6.0, np.inf):
+        dist, index = grid.query(queries, k=k, distance_upper_bound=bound)
+        exact, nearest = tree.query(queries, k=k, distance_upper_bound=bound)
+        assert np.array_equal(np.isfinite(dist), np.isfinite(exact))
+        found = np.isfinite(exact)
+        assert np.array_equal(dist[found], exact[found])
+        assert np.array_equal(index[found], nearest[found])
+        assert np.all(index[~found] == len(points))
+    # a point farther than the grid's shells is the tree's when there is one
+    assert bool(far_calls) == (with_far and spread_mm * 3 > FAR_SHELLS * grid.cell_mm)
+
+
+def test_the_grid_sizes_its_cells_to_its_points():
+    """A surface's samples and an edge's (a line of them) each get cells holding about a
+    dozen; ties (a point on every sample of a regular grid) are answered at the tie's
+    distance; a single point, and points that are no points, are handled."""
+    plane = np.stack(np.meshgrid(np.arange(0, 40, 0.25), np.arange(0, 30, 0.25), [0.0]),
+                     axis=-1).reshape(-1, 3)
+    line = np.stack([np.arange(0, 50, 0.1), np.zeros(500), np.zeros(500)], axis=1)
+    for points in (plane, line):
+        grid = NearestGrid(points)
+        cells = np.floor((points - grid.origin) / grid.cell_mm).astype(int)
+        per_cell = len(points) / len(np.unique(cells, axis=0))
+        assert 6 <= per_cell <= 24, per_cell
+    grid = NearestGrid(plane)
+    queries = plane[::97] + [0.125, 0.125, 0.0]  # equidistant from four samples
+    dist, index = grid.query(queries, k=2, distance_upper_bound=1.0)
+    assert np.allclose(dist, np.hypot(0.125, 0.125), rtol=0, atol=1e-12)
+    assert np.allclose(np.linalg.norm(plane[index] - queries[:, None], axis=2), dist)
+    assert np.all(index[:, 0] != index[:, 1])
+    one = NearestGrid(np.array([[1.0, 2.0, 3.0]]))
+    dist, index = one.query(np.array([[1.0, 2.0, 5.0], [np.nan, 0.0, 0.0]]), k=2)
+    assert dist[0, 0] == 2.0 and index[0, 0] == 0 and np.isinf(dist[0, 1]) and index[0, 1] == 1
+    assert np.all(np.isinf(dist[1])) and np.all(index[1] == 1)
+    with pytest.raises(ValueError, match="k must be 1 or 2"):
+        one.query(np.zeros((1, 3)), k=3)
+    for bad in (np.zeros((0, 3)), np.array([[0.0, np.inf, 0.0]])):
+        with pytest.raises(ValueError, match="grid"):
+            NearestGrid(bad)
+
+
 @pytest.mark.parametrize("step_mm", [0.0005, 0.02, 0.5])
-def test_a_remembered_query_is_a_fresh_query(surface, step_mm):
+@pytest.mark.parametrize("searched_by", ["tree", "grid"])
+def test_a_remembered_query_is_a_fresh_query(surface, step_mm, searched_by):
     """Points moving as a fit's do (micrometres late, half a millimetre early), some far off
     the part, under bounds that shrink and grow: the memo answers as the tree does, and asks
     it again about fewer points the less they move."""
@@ -65,12 +125,13 @@ def test_a_remembered_query_is_a_fresh_query(surface, step_mm):
     rng = np.random.default_rng(3)
     moving = points[rng.choice(len(points), 2000)] + rng.normal(0, 0.1, (2000, 3))
     moving[:100, 2] += 8.0  # above the block: no match within the smaller bounds
-    memo = NearestMemo(tree)
+    search = tree if searched_by == "tree" else NearestGrid(points)
+    memo = NearestMemo(search)
     asked = []
-    original = tree.query
+    original = search.query
 
-    class Counting:  # the same tree, counting the points it is asked about
-        n, data = tree.n, tree.data
+    class Counting:  # the same search, counting the points it is asked about
+        n, data = search.n, search.data
 
         def query(self, queries, **kw):
             asked.append(len(queries))
