@@ -77,9 +77,11 @@ def side_by_side(part: Part, inputs=None, *, cell: Cell | None = None, runs: int
     t0 = time.perf_counter()
     model = SurfaceModel.from_mesh(part.mesh)
     model.tree  # noqa: B018
+    model.grid  # noqa: B018
     t1 = time.perf_counter()
     edge_model = part.edge_model
     edge_model.tree  # noqa: B018
+    edge_model.grid  # noqa: B018
     t2 = time.perf_counter()
     methods, skipped = _side_methods(part, model, edge_model)
     cases = []

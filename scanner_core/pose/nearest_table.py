@@ -231,7 +231,7 @@ def _look_up(points, origin, voxel_mm, table, set_points, bound):
 
 class NearestGrid:
     """Exact nearest points of a set from a grid of cells: ``cKDTree.query``'s answer for
-    k of 1 or 2 within a bound.
+    k of 1 or 2 within a bound (the same distances; of samples equally near, perhaps another).
 
     Parameters
     ----------
@@ -268,6 +268,9 @@ class NearestGrid:
         self.n = len(self.data)
         self.origin = self.data.min(axis=0)
         extent = self.data.max(axis=0) - self.origin
+        if not extent.max() < _MAX_EXTENT_MM:
+            raise ValueError(f"a grid's points span {extent.max():.3g} mm, more than "
+                             f"{_MAX_EXTENT_MM:g} (a unit's mistake?)")
         # The samples' spacing and dimension (a surface, a line) are not known here: the
         # side is found from the set's own occupancy, a secant in log-log (a cell holds
         # ~ side^d points), from the side an even spread over the box would take.
@@ -335,6 +338,8 @@ class NearestGrid:
         dist, index, unresolved = _grid_nearest(points, self.sorted, self.order, self.start,
                                                 self.origin, self.cell_mm, self.shape, k,
                                                 float(distance_upper_bound), shells)
+        if unresolved.any() and not np.isfinite(points[unresolved]).all():
+            raise ValueError("a grid's query points must be finite")  # as cKDTree's
         if self.far is not None and unresolved.any():
             far_dist, far_index = self.far(points[unresolved], k, distance_upper_bound)
             dist[unresolved] = np.reshape(far_dist, (-1, k))
@@ -344,6 +349,8 @@ class NearestGrid:
 
 #: Shells of cells a grid query searches before it hands the point to `NearestGrid.far`.
 FAR_SHELLS = 4
+# A grid spans at most this (mm): beyond, its cells' indices would overflow.
+_MAX_EXTENT_MM = 1e9
 
 
 @njit(nogil=True, cache=True)
@@ -373,6 +380,7 @@ def _grid_nearest(points, cell_points, order, start, origin, cell_mm, shape, k, 
         py = (qy - origin[1]) / cell_mm
         pz = (qz - origin[2]) / cell_mm
         if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            unresolved[i] = True  # the caller refuses it
             continue
         cx = min(max(int(np.floor(px)), 0), nx - 1)
         cy = min(max(int(np.floor(py)), 0), ny - 1)

@@ -89,7 +89,8 @@ def test_the_grid_answers_as_the_tree(surface, k, spread_mm, with_far):
 def test_the_grid_sizes_its_cells_to_its_points():
     """A surface's samples and an edge's (a line of them) each get cells holding about a
     dozen; ties (a point on every sample of a regular grid) are answered at the tie's
-    distance; a single point, and points that are no points, are handled."""
+    distance; a single point, a query a million kilometres off, a query that is no point
+    (refused) and sets that are none are handled."""
     plane = np.stack(np.meshgrid(np.arange(0, 40, 0.25), np.arange(0, 30, 0.25), [0.0]),
                      axis=-1).reshape(-1, 3)
     line = np.stack([np.arange(0, 50, 0.1), np.zeros(500), np.zeros(500)], axis=1)
@@ -105,12 +106,15 @@ def test_the_grid_sizes_its_cells_to_its_points():
     assert np.allclose(np.linalg.norm(plane[index] - queries[:, None], axis=2), dist)
     assert np.all(index[:, 0] != index[:, 1])
     one = NearestGrid(np.array([[1.0, 2.0, 3.0]]))
-    dist, index = one.query(np.array([[1.0, 2.0, 5.0], [np.nan, 0.0, 0.0]]), k=2)
+    dist, index = one.query(np.array([[1.0, 2.0, 5.0], [1e12, 0.0, 0.0]]), k=2)
     assert dist[0, 0] == 2.0 and index[0, 0] == 0 and np.isinf(dist[0, 1]) and index[0, 1] == 1
-    assert np.all(np.isinf(dist[1])) and np.all(index[1] == 1)
+    assert dist[1, 0] == pytest.approx(1e12) and np.isinf(dist[1, 1]) and index[1, 1] == 1
     with pytest.raises(ValueError, match="k must be 1 or 2"):
         one.query(np.zeros((1, 3)), k=3)
-    for bad in (np.zeros((0, 3)), np.array([[0.0, np.inf, 0.0]])):
+    with pytest.raises(ValueError, match="finite"):  # refused, as the KD-tree refuses it
+        one.query(np.array([[np.nan, 0.0, 0.0]]))
+    for bad in (np.zeros((0, 3)), np.array([[0.0, np.inf, 0.0]]),
+                np.array([[0.0] * 3, [1e200] * 3])):
         with pytest.raises(ValueError, match="grid"):
             NearestGrid(bad)
 
