@@ -156,7 +156,8 @@ class PartModel:
         # in its KD-tree's leaf order, neighbours side by side in memory: the check's loops
         # over the samples then read the cloud's points near each in turn, not at random
         order = sampled.tree.indices
-        return replace(sampled, points=sampled.points[order], normals=sampled.normals[order])
+        return replace(sampled, points=sampled.points[order], normals=sampled.normals[order],
+                       faces=sampled.faces[order])
 
     def occluded(self, origins, directions) -> np.ndarray:
         """Whether rays (origins (R, 3), directions (R, 3), {P} mm) meet the part: (R,) bool.

@@ -6,7 +6,9 @@ the scan leaves free, and the flags.
   frame's placement error (the marker's triangulation), so they are not independent, and
   the sandwich takes that from the residuals themselves. The edge points along one edge of
   the model share an error too: their offsets are pooled over the scan's edge curves and
-  added (`_two_way_meat`, `_shared_offsets`). It is scaled by ``PoseParams.sigma_inflation`` (1 by default), taken
+  added (`_two_way_meat`, `_shared_offsets`); so do the surface points of one model face
+  across the profiles, whose offsets are measured face by face (`_face_offsets`). It is
+  scaled by ``PoseParams.sigma_inflation`` (1 by default), taken
   about the {T} origin, and widened by each rival minimum the search found
   (``scanner_core.pose.search._probe_turns``) and by the light plane's uncertainty carried
   through the fit (`_sheet_response`); ``pose_inputs.add_placement_error`` adds the marker's
@@ -43,6 +45,10 @@ _RMS_FLAG = 5.0
 # t's nu / (nu - 2) at nu = 3 (at 2 and below it has none).
 _MIN_FREEDOM = 3
 _FEW_FREEDOM_FACTOR = 3.0
+# A face whose offset the fit takes up by more than this is not measured (`_face_offsets`):
+# the fit holds a motion on it more than on all the others together, and what its rows
+# show of its offset, given back, is mostly their noise.
+_MAX_FACE_LEVERAGE = 0.5
 # A cluster's leverage is capped at 1 minus this (`_leverage_corrected`).
 _MIN_SLACK = 0.05
 # A free motion's turn part (scaled, of a unit motion) below this is round-off: it slides.
@@ -62,13 +68,15 @@ EDGES_SEARCH_SIGNIFICANCE, EDGES_POOR_SIGNIFICANCE = 0.05, 0.01
 #: The terms of a pose's covariance, in the order ``PoseResult.std_terms`` lists them.
 #: ``profiles``: the measurement noise through the fit, the points of a profile clustered
 #: (each frame's placement error); ``edges``: the offsets the edge points along one model
-#: edge share, pooled over the scan's edges; ``inflation``: what
+#: edge share, pooled over the scan's edges; ``faces``: the offsets the surface points of one
+#: model face share across the profiles, measured on each face the fit does not take up
+#: (`_face_offsets`); ``inflation``: what
 #: ``PoseParams.sigma_inflation`` adds to those two; ``free``: the slack of the motions the
 #: scan leaves free; ``rivals``: the other minima that fit as well; ``light_plane``: the
 #: calibration's light plane, on which every profile was triangulated; ``marker``: the
 #: calibration's marker offset; ``robot``: the robot's orientation report.
-COVARIANCE_TERMS = ("profiles", "edges", "inflation", "free", "rivals", "light_plane", "marker",
-                    "robot")
+COVARIANCE_TERMS = ("profiles", "edges", "faces", "inflation", "free", "rivals", "light_plane",
+                    "marker", "robot")
 
 
 def _uncertainty(fit: _Fit, params, rivals=(), sheet=None) -> tuple[np.ndarray, np.ndarray, list,
@@ -100,6 +108,8 @@ def _uncertainty(fit: _Fit, params, rivals=(), sheet=None) -> tuple[np.ndarray, 
     to_origin = np.eye(6)
     to_origin[:3, 3:] = cross
     terms = {"profiles": profiles, "edges": sandwich - profiles,
+             "faces": info_inv @ _face_offsets(js, fit.weights, fit.residuals, fit.frames,
+                                               fit.faces, info_inv) @ info_inv * unscale,
              "inflation": sandwich * (params.sigma_inflation**2 - 1.0),
              "free": _free_prior(vectors[:, ~strong], s, params)}
     if sheet is not None:
@@ -214,6 +224,64 @@ def _two_way_meat(js, weights, residuals, frames, curves, info_inv):
     by_curve = _leverage_corrected(x[edge], e[edge], curves[edge], info_inv)
     by_frame = _leverage_corrected(x[edge], e[edge], frames[edge], info_inv)
     return by_profile, by_profile + shared + _positive_part(by_curve - by_frame - shared)
+
+
+def _face_offsets(js, weights, residuals, frames, faces, info_inv) -> np.ndarray:
+    """(6, 6) "meat" of the offsets the surface rows of one model face share across profiles
+    (`faces`, (K,), -1 for a row of no face): a face off by ``o_c`` along its normal as a
+    whole (a chamfer the exposure's blur smears, a face the sensor sees at a slant) pulls the
+    motion by ``o_c g_c``, ``g_c = sum_{i in c} w_i J_i``, which the profiles' clusters take
+    as independent draws frame by frame: ``sum_f g_cf g_cf^T`` where the face's offset gives
+    ``g_c g_c^T``. What is added is the difference, ``o_c^2 (g_c g_c^T - sum_f g_cf
+    g_cf^T)``, summed over the faces and its negative eigenvalues dropped.
+
+    ``o_c^2`` is measured on each face: the weighted mean ``m_c`` of its rows' residuals,
+    each given back what the fit took up of the face's (`_cluster_residuals`), less the
+    mean's own variance over the face's profiles (cluster-robust, ``F_c / (F_c - 1) sum_f
+    (sum_{i in c, f} w_i (r_i - m_c))^2 / (sum_{i in c} w_i)^2``): ``m_c^2 - v_c``, unbiased
+    where the face has no offset. Only faces seen in two profiles or more whose offset the
+    fit takes up by at most half (``h_c = g_c^T H^-1 g_c / sum_{i in c} w_i``, at most
+    ``_MAX_FACE_LEVERAGE``): a face that holds a motion alone (the top face, the height)
+    reads as no offset whatever it is, the same as the profiles' own clusters see it. `js` ((K, 6)) are the rows in scaled
+    units, `info_inv` ((6, 6)) the inverse of their information."""
+    dims = js.shape[1]
+    on_face = faces >= 0
+    if not on_face.any():
+        return np.zeros((dims, dims))
+    x = js[on_face] * weights[on_face, None]          # w_i J_i
+    w, r = weights[on_face], residuals[on_face]
+    root = np.sqrt(w)
+    _, face = np.unique(faces[on_face], return_inverse=True)
+    face = face.reshape(-1)
+    given_back = _cluster_residuals(js[on_face] * root[:, None], r * root, face, info_inv) / root
+    count = face.max() + 1
+    mass = np.bincount(face, weights=w, minlength=count)
+    mean = np.bincount(face, weights=w * given_back, minlength=count) / mass
+    pull = _sums(face, x, count)
+    leverage = np.einsum("gi,ij,gj->g", pull, info_inv, pull) / mass
+    # per face and profile: the spread of the mean and the pulls frame by frame
+    profile = frames[on_face] - frames[on_face].min()
+    _, cell = np.unique(face * (profile.max() + 1) + profile, return_inverse=True)
+    cell = cell.reshape(-1)
+    cell_face = np.zeros(cell.max() + 1, np.int64)
+    cell_face[cell] = face
+    spread = np.bincount(cell, weights=w * (given_back - mean[face]))
+    profiles = np.bincount(cell_face, minlength=count)
+    variance = np.bincount(cell_face, weights=spread**2, minlength=count) / mass**2
+    variance *= profiles / np.maximum(profiles - 1, 1)
+    cell_pull = _sums(cell, x, len(cell_face))
+    within = _sums(cell_face, np.einsum("ci,cj->cij", cell_pull, cell_pull).reshape(-1, dims**2),
+                   count).reshape(count, dims, dims)
+    offset2 = np.where((profiles >= 2) & (leverage <= _MAX_FACE_LEVERAGE),
+                       mean**2 - variance, 0.0)
+    meat = np.einsum("c,cij->ij", offset2, pull[:, :, None] * pull[:, None, :] - within)
+    return _positive_part(meat)
+
+
+def _sums(group, values, count) -> np.ndarray:
+    """(count, D): the rows of `values` ((K, D)) summed by `group` ((K,) in 0..count-1)."""
+    return np.stack([np.bincount(group, weights=column, minlength=count)
+                     for column in values.T], axis=1)
 
 
 def _positive_part(matrix) -> np.ndarray:

@@ -105,6 +105,7 @@ class _Fit:
     weights: np.ndarray         # (K,)
     frames: np.ndarray          # (K,) frame of each inlier
     curves: np.ndarray          # (K,) model edge curve of each edge row, -1 for surfaces
+    faces: np.ndarray           # (K,) model face of each surface row, -1 for edges or none
     points: np.ndarray          # (K, 3) the scan point of each row, {T}
     centre: np.ndarray          # (3,)
     scale_mm: float             # radius that makes rotations comparable with translations
@@ -154,12 +155,12 @@ def _fine(surface: _Terms, edges: _Terms | None, start, params, *, warm: bool = 
     pose, rows = _hold_free_motions(surface, edges, start, pose, centre, scale, gates, params)
     if rows is None:
         rows, _ = _linearise(surface, edges, pose, centre, gates, params)
-    jac, res, w, frames, matched, curves, points = rows
+    jac, res, w, frames, matched, curves, faces, points = rows
     inlier_fraction = matched / max(len(surface.points), 1)
     edge_fraction = ((len(res) - matched) / len(edges.points)) if edges is not None else 1.0
     rms = float(np.sqrt(np.sum(w * res**2) / np.sum(w))) if len(res) else np.inf
     return _Fit(pose, rms, inlier_fraction, edge_fraction, it, jac, res, w, frames, curves,
-                points, centre, scale)
+                faces, points, centre, scale)
 
 
 # A fit that places a minimum (the search's, a probe's on a share of the points) stops at
@@ -273,10 +274,11 @@ def _linearise(surface, edges, pose, centre, gates, params):
     """Residuals, Jacobian rows, robust weights and frames of all correspondences at `pose`
     (the rows of weight 0 left out).
 
-    Returns ``(jacobian, residuals, weights, frames, surface_inliers, curves, points)``
-    (``curves``: the model edge curve each row matched, ``EdgeModel.curves``, -1 for a
-    surface row; ``points``: each row's scan point) and the robust scale of each kind
-    (surface, edges).
+    Returns ``(jacobian, residuals, weights, frames, surface_inliers, curves, faces,
+    points)`` (``curves``: the model edge curve each row matched, ``EdgeModel.curves``, -1
+    for a surface row; ``faces``: the model face each surface row matched,
+    ``SurfaceModel.faces``, -1 for an edge row or a model without faces; ``points``: each
+    row's scan point) and the robust scale of each kind (surface, edges).
     """
     parts, sigmas = [], []
     for terms, rows, gate, noise_mm in ((surface, _surface_rows, gates[0], params.surface_noise_mm),
@@ -284,16 +286,20 @@ def _linearise(surface, edges, pose, centre, gates, params):
         if terms is None:
             sigmas.append(np.inf)
             continue
-        jac, res, w, sigma, *nearest = rows(terms, pose[None], centre, gate, noise_mm)
+        jac, res, w, sigma, nearest = rows(terms, pose[None], centre, gate, noise_mm)
         keep = w[0] > 0
-        # `_edge_rows` also gives the model sample each point matched: its edge curve
-        curves = (terms.model.curves[nearest[0][0][keep]] if nearest
-                  else np.full(int(keep.sum()), -1, np.int64))
+        matched = nearest[0][keep]
+        none = np.full(len(matched), -1, np.int64)
+        if terms is edges:  # the model sample each row matched: its edge curve, its face
+            curves, faces = terms.model.curves[matched], none
+        else:
+            model_faces = getattr(terms.model, "faces", None)
+            curves, faces = none, (none if model_faces is None else model_faces[matched])
         parts.append((jac[0][keep], res[0][keep], w[0][keep], terms.frames[keep], curves,
-                      terms.points[keep]))
+                      faces, terms.points[keep]))
         sigmas.append(float(sigma[0]))
-    jac, res, w, frames, curves, points = (np.concatenate(x) for x in zip(*parts))
-    return (jac, res, w, frames, len(parts[0][1]), curves, points), sigmas
+    jac, res, w, frames, curves, faces, points = (np.concatenate(x) for x in zip(*parts))
+    return (jac, res, w, frames, len(parts[0][1]), curves, faces, points), sigmas
 
 
 def _nearest(terms: _Terms, local, up, bound):
@@ -342,8 +348,8 @@ def _surface_rows(terms: _Terms, poses, centre, gate, noise_mm):
     residual of scan point s matched to model point q (normal n) is ``n . (s - X q)`` in
     {T}; a motion (t, w) about `centre` changes it by ``-[n, (s - centre) x n] . (t, w)``.
     Returns (P, N, 6) rows, (P, N) residuals and weights (0 for a point with no match,
-    whose normal disagrees or beyond the gate) and (P,) robust scales
-    (``scanner_core.pose.rows.plane_rows``)."""
+    whose normal disagrees or beyond the gate), (P,) robust scales
+    (``scanner_core.pose.rows.plane_rows``) and the model sample each point matched, (P, N)."""
     rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
     local = (terms.points[None] - translation[:, None]) @ rotation  # (P, N, 3) in {P}
     dist, nearest = _nearest(terms, local, rotation[:, 2], gate + 2.0 * _spacing(terms.model))
@@ -352,10 +358,11 @@ def _surface_rows(terms: _Terms, poses, centre, gate, noise_mm):
     if not terms.approximate:
         valid &= ~_across_a_crease(terms.model, local, valid, nearest)
     # Scan normals point to the sensor, model normals out of the part: the same way up.
-    return plane_rows(terms.points, normals, terms.model.points, terms.model.normals,
+    rows = plane_rows(terms.points, normals, terms.model.points, terms.model.normals,
                       nearest, valid, rotation, translation, centre, gate,
                       noise_mm, terms.agreement, False, _MIN_EDGE_LEVEL, _MAD_TO_SIGMA,
                       _TUKEY_C, _MIN_SIGMA_MM)
+    return (*rows, nearest)
 
 
 def _across_a_crease(model: SurfaceModel, local, found, nearest) -> np.ndarray:

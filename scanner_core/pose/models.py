@@ -68,12 +68,18 @@ class SurfaceModel:
         The surface's centroid, principal axes and second moments
         (``pose_symmetry.surface_moments``) of the mesh it was sampled from; None: of the
         samples, when first needed.
+    faces : (M,) int64 or None
+        The face each sample lies on: the mesh's triangles joined across edges where they
+        meet at under ``CREASE_DEG`` (a flat face, a cylinder's wall, a chamfer), numbered
+        from 0; None where the model has no mesh (`from_points`). The scan's points on one
+        face share what shifts that face as a whole (``scanner_core.pose.confidence``).
     """
 
     points: np.ndarray
     normals: np.ndarray
     spacing_mm: float = 0.5
     moments: tuple | None = None
+    faces: np.ndarray | None = None
 
     @classmethod
     def from_mesh(cls, mesh, *, spacing_mm: float = 0.25, max_points: int = 400_000,
@@ -103,7 +109,7 @@ class SurfaceModel:
         points, faces = trimesh.sample.sample_surface(mesh, count, seed=rng_state)
         normals = np.asarray(mesh.face_normals, dtype=np.float64)[faces]
         return cls(np.asarray(points, dtype=np.float64), normals, float(np.sqrt(area / count)),
-                   surface_moments(mesh))
+                   surface_moments(mesh), smooth_faces(mesh)[faces])
 
     @classmethod
     def from_points(cls, points, normals) -> "SurfaceModel":
@@ -278,6 +284,18 @@ class EdgeModel:
         pairs = pairs[cosine > np.cos(np.radians(_CURVE_DEG))]
         graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
         return connected_components(graph, directed=False)[1].astype(np.int64)
+
+
+def smooth_faces(mesh, crease_deg: float = CREASE_DEG) -> np.ndarray:
+    """(F,) int64: each triangle's face, the triangles joined across the edges where they meet
+    at under `crease_deg` degrees (connected components), numbered from 0."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(mesh.faces)
+    pairs = np.asarray(mesh.face_adjacency)[mesh.face_adjacency_angles < np.radians(crease_deg)]
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
 def _tree(points) -> cKDTree:

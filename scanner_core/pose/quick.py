@@ -57,8 +57,8 @@ def _quick_fits(surface: _Terms, edges: _Terms | None, starts, params, *, iterat
         if not len(index):
             break
         current = poses[index]
-        jac, res, w, _ = _surface_rows(surface, current, centre, gate_mm,
-                                       params.surface_noise_mm)
+        jac, res, w, *_ = _surface_rows(surface, current, centre, gate_mm,
+                                        params.surface_noise_mm)
         if edges is not None and len(edges.points):
             e_jac, e_res, e_w, *_ = _edge_rows(edges, current, centre, gate_mm,
                                                params.edge_noise_mm)

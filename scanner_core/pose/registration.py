@@ -279,9 +279,9 @@ class PoseResult:
         Why not to act; empty when `act`.
     covariance_terms : dict of str to (6, 6) float64
         `covariance` as the sum of its terms (``pose_confidence.COVARIANCE_TERMS``: the
-        profiles' noise through the fit, the edges' shared offsets, the inflation, the free
-        motions' slack, the rivals, the calibration's light plane and marker offset, the
-        robot's orientation report), each in the units of `covariance`.
+        profiles' noise through the fit, the edges' and the faces' shared offsets, the
+        inflation, the free motions' slack, the rivals, the calibration's light plane and
+        marker offset, the robot's orientation report), each in the units of `covariance`.
     symmetry : dict or None
         The near symmetry that leaves a rotation loose, when one is found
         (``scanner_core.pose.symmetry.name_symmetry``): ``{"label": "87-fold about z_T",

@@ -1004,7 +1004,8 @@ def test_the_terms_add_up_to_the_reported_sigma(block):
                       edge_frame_ids=edge_frames, edge_model=edge_model)
     add_placement_error(result, [0.002, 0.015, 0.001], 0.003)
     terms = result.std_terms()
-    assert set(terms) == {"profiles", "edges", "inflation", "free", "rivals", "marker", "robot"}
+    assert set(terms) == {"profiles", "edges", "faces", "inflation", "free", "rivals", "marker",
+                          "robot"}
     total = sum(np.sign(v) * v**2 for v in terms.values())
     assert_allclose(np.sqrt(total), result.std, rtol=1e-9)
     assert_allclose(terms["marker"][:3], [0.002, 0.015, 0.001])
@@ -1075,3 +1076,68 @@ def test_a_model_without_its_mesh_has_no_crease_planes_where_its_normals_agree()
     plane = SurfaceModel.from_points(np.column_stack([np.arange(50.0), np.zeros(50), np.zeros(50)]),
                                      np.tile([0.0, 0.0, 1.0], (50, 1)))
     assert np.isnan(plane.crease_planes).all()
+
+
+def _chamfered_block():
+    """A block 60 x 40 x 10 mm whose top edges are chamfered 4 mm at 45 degrees all round: a
+    top face, four chamfers facing +-x and +-y (seen by the sensor) and walls."""
+    bottom = [(x, y, 0.0) for x in (-30.0, 30.0) for y in (-20.0, 20.0)]
+    shoulder = [(x, y, 6.0) for x in (-30.0, 30.0) for y in (-20.0, 20.0)]
+    top = [(x, y, 10.0) for x in (-26.0, 26.0) for y in (-16.0, 16.0)]
+    return trimesh.convex.convex_hull(np.array(bottom + shoulder + top))
+
+
+@pytest.mark.parametrize("face_offset_um", [0.0, 4.0])
+def test_a_face_shifted_as_a_whole_is_in_the_sigma(face_offset_um):
+    """The block's two chamfers facing +-x moved along their normals by an offset each, the
+    same in every profile (a face the exposure's blur smears, say): the profiles' clusters
+    take the face's rows frame by frame as independent and report x_T two to three times too
+    precisely; the faces' term (`confidence._face_offsets`, measured on each face from its
+    own residuals) covers the error. Without an offset it adds next to nothing: the sigma is
+    honest both ways. (The chamfers facing +-y hold y_T alone, their offsets taken up half
+    each by the fit: one draw of their difference is all a scan shows of it, docs/place.md.)"""
+    mesh = _chamfered_block()
+    nominal = centred_grasp(mesh)
+    model, edge_model = SurfaceModel.from_mesh(mesh), EdgeModel.from_mesh(mesh)
+    z_with, z_without, ratio = [], [], []
+    for seed in range(16):
+        rng = np.random.default_rng(seed)
+        truth = misplacement(*rng.uniform(-0.5, 0.5, 3), *rng.uniform(-1.0, 1.0, 3)) @ nominal
+        pts, nrm, frames, edges, edge_frames = synthetic_scan(mesh, truth, seed=seed,
+                                                              frame_sigma_mm=0.002)
+        leaning = nrm @ truth[:3, 0]  # a chamfer's normal leans +-0.71 along x
+        for side in (1.0, -1.0):
+            on_chamfer = np.abs(leaning - side * np.sqrt(0.5)) < 0.05
+            pts[on_chamfer] += rng.normal(0.0, face_offset_um * 1e-3) * nrm[on_chamfer]
+        result = register(pts, nrm, model, nominal, frame_ids=frames, edges_t=edges,
+                          edge_frame_ids=edge_frames, edge_model=edge_model)
+        assert not result.free_axes
+        error = pose_error(result.matrix, truth)[0][0]  # mm along x_T, as the sigma
+        faces, sigma = result.std_terms()["faces"][0], result.std[0]
+        without = np.sqrt(max(sigma**2 - np.sign(faces) * faces**2, 0.0))
+        z_with.append(error / sigma)
+        z_without.append(error / without)
+        ratio.append(sigma / without)
+    rms_with, rms_without = (float(np.sqrt(np.mean(np.square(z)))) for z in (z_with, z_without))
+    if face_offset_um:
+        assert rms_without > 1.8, rms_without       # the profiles' clusters alone: too precise
+        assert 0.7 < rms_with < 1.5, rms_with
+        assert np.median(ratio) > 1.5, ratio
+    else:
+        assert np.median(ratio) < 1.1, ratio
+        assert 0.7 < rms_with < 1.5, rms_with
+
+
+def test_a_model_s_faces_are_its_smooth_pieces():
+    """`SurfaceModel.faces`: the chamfered block's top, four chamfers, four walls and bottom
+    are ten faces, each sample on the face whose normal it has; a 64-sided cylinder is its
+    wall and two caps; a model from points has none."""
+    model = SurfaceModel.from_mesh(_chamfered_block(), spacing_mm=0.5)
+    assert len(np.unique(model.faces)) == 10
+    for face in np.unique(model.faces):
+        normals = model.normals[model.faces == face]
+        assert np.allclose(normals, normals[0], atol=1e-9)
+    cylinder = SurfaceModel.from_mesh(trimesh.creation.cylinder(10.0, 20.0, sections=64),
+                                      spacing_mm=0.5)
+    assert len(np.unique(cylinder.faces)) == 3
+    assert SurfaceModel.from_points(model.points, model.normals).faces is None
