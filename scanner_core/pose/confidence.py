@@ -6,10 +6,10 @@ the scan leaves free, and the flags.
   frame's placement error (the marker's triangulation), so they are not independent, and
   the sandwich takes that from the residuals themselves. The edge points along one edge of
   the model share an error too: their offsets are pooled over the scan's edge curves and
-  added (`_two_way_meat`, `_shared_offsets`); so do the surface points of one model face
-  across the profiles, whose offsets are measured face by face (`_face_offsets`). It is
-  scaled by ``PoseParams.sigma_inflation`` (1 by default), taken
-  about the {T} origin, and widened by each rival minimum the search found
+  added (`_two_way_meat`, `_shared_offsets`). Those two are scaled by
+  ``PoseParams.sigma_inflation`` (1 by default). The surface points of one model face share
+  an offset across the profiles too, measured face by face and added (`_face_offsets`). The
+  whole is taken about the {T} origin, and widened by each rival minimum the search found
   (``scanner_core.pose.search._probe_turns``) and by the light plane's uncertainty carried
   through the fit (`_sheet_response`); ``pose_inputs.add_placement_error`` adds the marker's
   and the robot's. Each term is kept (``COVARIANCE_TERMS``, `term_stds`).
@@ -65,15 +65,14 @@ MIN_COVERAGE = 0.9
 EDGES_SEARCH_SIGNIFICANCE, EDGES_POOR_SIGNIFICANCE = 0.05, 0.01
 
 
-#: The terms of a pose's covariance, in the order ``PoseResult.std_terms`` lists them.
-#: ``profiles``: the measurement noise through the fit, the points of a profile clustered
-#: (each frame's placement error); ``edges``: the offsets the edge points along one model
-#: edge share, pooled over the scan's edges; ``faces``: the offsets the surface points of one
-#: model face share across the profiles, measured on each face the fit does not take up
-#: (`_face_offsets`); ``inflation``: what
-#: ``PoseParams.sigma_inflation`` adds to those two; ``free``: the slack of the motions the
-#: scan leaves free; ``rivals``: the other minima that fit as well; ``light_plane``: the
-#: calibration's light plane, on which every profile was triangulated; ``marker``: the
+#: The terms of a pose's covariance, in the order ``PoseResult.std_terms`` lists them. ``profiles``:
+#: the measurement noise through the fit, the points of a profile clustered (each frame's placement
+#: error); ``edges``: the offsets the edge points along one model edge share, pooled over the scan's
+#: edges; ``faces``: the offsets the surface points of one model face share across the profiles,
+#: measured on each face the fit does not take up (`_face_offsets`); ``inflation``: what
+#: ``PoseParams.sigma_inflation`` adds to the profiles' and the edges' terms; ``free``: the slack of
+#: the motions the scan leaves free; ``rivals``: the other minima that fit as well; ``light_plane``:
+#: the calibration's light plane, on which every profile was triangulated; ``marker``: the
 #: calibration's marker offset; ``robot``: the robot's orientation report.
 COVARIANCE_TERMS = ("profiles", "edges", "faces", "inflation", "free", "rivals", "light_plane",
                     "marker", "robot")
@@ -238,8 +237,11 @@ def _face_offsets(js, weights, residuals, frames, faces, info_inv) -> np.ndarray
     ``o_c^2`` is measured on each face: the weighted mean ``m_c`` of its rows' residuals,
     each given back what the fit took up of the face's (`_cluster_residuals`), less the
     mean's own variance over the face's profiles (cluster-robust, ``F_c / (F_c - 1) sum_f
-    (sum_{i in c, f} w_i (r_i - m_c))^2 / (sum_{i in c} w_i)^2``): ``m_c^2 - v_c``, unbiased
-    where the face has no offset. Only faces seen in two profiles or more whose offset the
+    (sum_{i in c, f} w_i (r_i - m_c))^2 / (sum_{i in c} w_i)^2``): ``m_c^2 - v_c``. It is
+    not unbiased: the given-back mean also carries the error of the fit without the face,
+    which ``v_c`` leaves out (a face with no offset reads a little), and ``v_c`` counts the
+    profiles' own placement errors, which the other faces take up from ``m_c`` (an offset
+    reads a little small); docs/place.md gives their size. Only faces seen in two profiles or more whose offset the
     fit takes up by at most half (``h_c = g_c^T H^-1 g_c / sum_{i in c} w_i``, at most
     ``_MAX_FACE_LEVERAGE``): a face that holds a motion alone (the top face, the height)
     reads as no offset whatever it is, the same as the profiles' own clusters see it. `js` ((K, 6)) are the rows in scaled
