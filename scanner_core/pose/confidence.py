@@ -241,11 +241,12 @@ def _face_offsets(js, weights, residuals, frames, faces, info_inv) -> np.ndarray
     not unbiased: the given-back mean also carries the error of the fit without the face,
     which ``v_c`` leaves out (a face with no offset reads a little), and ``v_c`` counts the
     profiles' own placement errors, which the other faces take up from ``m_c`` (an offset
-    reads a little small); docs/place.md gives their size. Only faces seen in two profiles or more whose offset the
-    fit takes up by at most half (``h_c = g_c^T H^-1 g_c / sum_{i in c} w_i``, at most
-    ``_MAX_FACE_LEVERAGE``): a face that holds a motion alone (the top face, the height)
-    reads as no offset whatever it is, the same as the profiles' own clusters see it. `js` ((K, 6)) are the rows in scaled
-    units, `info_inv` ((6, 6)) the inverse of their information."""
+    reads a little small); docs/place.md gives their size. Only faces seen in two profiles
+    or more whose offset the fit takes up by at most half
+    (``h_c = g_c^T H^-1 g_c / sum_{i in c} w_i``, at most ``_MAX_FACE_LEVERAGE``): a face
+    that holds a motion alone (the top face, the height) reads as no offset whatever it is,
+    the same as the profiles' own clusters see it. `js` ((K, 6)) are the rows in scaled units, `info_inv` ((6, 6)) the
+    inverse of their information."""
     dims = js.shape[1]
     on_face = faces >= 0
     if not on_face.any():
@@ -312,8 +313,7 @@ def _shared_offsets(x, e, weights, curves, info_inv) -> np.ndarray:
     inverse = inverse.reshape(-1)
     root = np.sqrt(weights)
     corrected = _cluster_residuals(x, e, inverse, info_inv) / root
-    pull = np.zeros((len(sizes), x.shape[1]))
-    np.add.at(pull, inverse, x * root[:, None])
+    pull = _sums(inverse, x * root[:, None], len(sizes))
     total = np.bincount(inverse, weights=corrected, minlength=len(sizes))
     squares = np.bincount(inverse, weights=corrected**2, minlength=len(sizes))
     many = sizes >= 2

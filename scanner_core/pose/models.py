@@ -300,9 +300,10 @@ def smooth_faces(mesh, crease_deg: float = CREASE_DEG) -> np.ndarray:
 
 def _tree(points) -> cKDTree:
     """A KD-tree over a model's points, built once per part: its own samples' neighbours,
-    and the points its grid and lookup table leave to it. Sliding-midpoint splits (not balanced): on the reference parts' 150 000-400 000
-    samples it builds in about two thirds of the time and answers the pose's queries about
-    10 % sooner; a nearest neighbour is a nearest neighbour either way."""
+    and the points its grid and lookup table leave to it. Sliding-midpoint splits (not
+    balanced): on the reference parts' 150 000-400 000 samples it builds in about two thirds
+    of the time and answers its queries about 10 % sooner; a nearest neighbour is a nearest
+    neighbour either way."""
     return cKDTree(points, balanced_tree=False)
 
 

@@ -281,20 +281,19 @@ class NearestGrid:
         sides = [self._bounded(max(float(np.cbrt(np.prod(extent + 1e-6) / self.n)), 1e-3),
                                extent, max_cells)]
         sides.append(self._bounded(2.0 * sides[0], extent, max_cells))
-        counts = [per_cell(side) for side in sides]
+        occupancy = [per_cell(side) for side in sides]
         for _ in range(6):
-            if abs(np.log(counts[-1] / points_per_cell)) < np.log(1.25):
+            if abs(np.log(occupancy[-1] / points_per_cell)) < np.log(1.25):
                 break
-            slope = np.log(counts[-1] / counts[-2]) / np.log(sides[-1] / sides[-2])
-            step = np.log(points_per_cell / counts[-1]) / np.clip(slope, 0.5, 3.0) \
+            slope = np.log(occupancy[-1] / occupancy[-2]) / np.log(sides[-1] / sides[-2])
+            step = np.log(points_per_cell / occupancy[-1]) / np.clip(slope, 0.5, 3.0) \
                 if np.isfinite(slope) else np.log(2.0)
             sides.append(self._bounded(sides[-1] * float(np.exp(np.clip(step, -3.0, 3.0))),
                                        extent, max_cells))
             if sides[-1] == sides[-2]:  # held at the grid's size bound
                 break
-            counts.append(per_cell(sides[-1]))
-        cell = sides[len(counts) - 1]
-        self.cell_mm = self._bounded(cell, extent, max_cells)
+            occupancy.append(per_cell(sides[-1]))
+        self.cell_mm = sides[len(occupancy) - 1]  # the last side measured (each is bounded)
         self.shape = self._shape(self.cell_mm, extent)
         flat = self._flat(self._cells(self.data, self.cell_mm, extent), self.cell_mm, extent)
         self.order = np.argsort(flat, kind="stable").astype(np.int64)
