@@ -7,7 +7,9 @@ the scan leaves free, and the flags.
   the sandwich takes that from the residuals themselves. The edge points along one edge of
   the model share an error too: their offsets are pooled over the scan's edge curves and
   added (`_two_way_meat`, `_shared_offsets`). Those two are scaled by
-  ``PoseParams.sigma_inflation`` (1 by default). The surface points of one model face share
+  ``PoseParams.sigma_inflation`` (1 by default). An axis that few profiles hold has its
+  profiles' variance measured from few independent draws: it is widened to Student's t's on
+  their degrees of freedom (`_profile_freedom`). The surface points of one model face share
   an offset across the profiles too, measured face by face and added (`_face_offsets`). The
   whole is taken about the {T} origin, and widened by each rival minimum the search found
   (``scanner_core.pose.search._probe_turns``) and by the light plane's uncertainty carried
@@ -40,9 +42,10 @@ _AXIS_LABELS = ("x_T", "y_T", "z_T")
 _TOUCHED = 0.2
 # A fit whose residuals exceed this many times the expected scatter is flagged.
 _RMS_FLAG = 5.0
-# The edges' shared offsets rest on what the fit leaves of the curves (`_shared_offsets`): with
-# this many degrees of freedom or fewer, their variance is taken this many times, Student's
-# t's nu / (nu - 2) at nu = 3 (at 2 and below it has none).
+# A variance measured from few independent draws (the edges' shared offsets, `_shared_offsets`;
+# the profiles' scatter along an axis few of them hold, `_profile_freedom`) is widened to
+# Student's t's, nu / (nu - 2) times (`_t_variance_factor`); with this many degrees of freedom
+# or fewer, this many times: the factor at nu = 3 (at 2 and below t has no variance).
 _MIN_FREEDOM = 3
 _FEW_FREEDOM_FACTOR = 3.0
 # A face whose offset the fit takes up by more than this is not measured (`_face_offsets`):
@@ -65,17 +68,19 @@ MIN_COVERAGE = 0.9
 EDGES_SEARCH_SIGNIFICANCE, EDGES_POOR_SIGNIFICANCE = 0.05, 0.01
 
 
-#: The terms of a pose's covariance, in the order ``PoseResult.std_terms`` lists them. ``profiles``:
-#: the measurement noise through the fit, the points of a profile clustered (each frame's placement
-#: error); ``edges``: the offsets the edge points along one model edge share, pooled over the scan's
-#: edges; ``faces``: the offsets the surface points of one model face share across the profiles,
+#: The terms of a pose's covariance, in the order ``PoseResult.std_terms`` lists them.
+#: ``profiles``: the measurement noise through the fit, the points of a profile clustered (each
+#: frame's placement error); ``few_profiles``: what that variance, measured from the scatter of
+#: the few profiles that hold an axis, leaves open (Student's t, `_profile_freedom`); ``edges``:
+#: the offsets the edge points along one model edge share, pooled over the scan's edges;
+#: ``faces``: the offsets the surface points of one model face share across the profiles,
 #: measured on each face the fit does not take up (`_face_offsets`); ``inflation``: what
-#: ``PoseParams.sigma_inflation`` adds to the profiles' and the edges' terms; ``free``: the slack of
-#: the motions the scan leaves free; ``rivals``: the other minima that fit as well; ``light_plane``:
-#: the calibration's light plane, on which every profile was triangulated; ``marker``: the
-#: calibration's marker offset; ``robot``: the robot's orientation report.
-COVARIANCE_TERMS = ("profiles", "edges", "faces", "inflation", "free", "rivals", "light_plane",
-                    "marker", "robot")
+#: ``PoseParams.sigma_inflation`` adds to the profiles' and the edges' terms; ``free``: the
+#: slack of the motions the scan leaves free; ``rivals``: the other minima that fit as well;
+#: ``light_plane``: the calibration's light plane, on which every profile was triangulated;
+#: ``marker``: the calibration's marker offset; ``robot``: the robot's orientation report.
+COVARIANCE_TERMS = ("profiles", "few_profiles", "edges", "faces", "inflation", "free", "rivals",
+                    "light_plane", "marker", "robot")
 
 
 def _uncertainty(fit: _Fit, params, rivals=(), sheet=None) -> tuple[np.ndarray, np.ndarray, list,
@@ -115,6 +120,10 @@ def _uncertainty(fit: _Fit, params, rivals=(), sheet=None) -> tuple[np.ndarray, 
         response = _sheet_response(fit, js, info_inv, s, sheet[0], sheet[1])
         terms["light_plane"] = response @ sheet[2] @ response.T
     terms = {name: to_origin @ term @ to_origin.T for name, term in terms.items()}
+    freedom = _profile_freedom(js * np.sqrt(fit.weights)[:, None], fit.frames, info_inv,
+                               to_origin / s[None, :])
+    spread = np.sqrt(_t_variance_factor(freedom) - 1.0)
+    terms["few_profiles"] = terms["profiles"] * np.outer(spread, spread)
     terms["rivals"] = np.zeros((6, 6))
     for rival in rivals:
         m = _rival_motion(fit.pose, rival)
@@ -225,6 +234,54 @@ def _two_way_meat(js, weights, residuals, frames, curves, info_inv):
     return by_profile, by_profile + shared + _positive_part(by_curve - by_frame - shared)
 
 
+def _profile_freedom(x, frames, info_inv, readout) -> np.ndarray:
+    """(A,): the degrees of freedom of each reported axis's profile-clustered variance (the
+    CR3 sandwich of `_two_way_meat` clustered by `frames`, (K,)), Satterthwaite's ``nu = (tr
+    G)^2 / tr G^2`` under the working model of independent rows of equal variance (Bell and
+    McCaffrey 2002).
+
+    An axis's variance is ``sum_g u_g^2``, ``u_g = l^T X_g^T A_g e_g`` over the profiles g,
+    ``l = H^-1 R^T a`` its contrast (`readout` R, (A, 6), maps the scaled motion to the
+    reported axes), ``A_g = (I - H_gg)^-1``. With ``e = M eps``, ``M = I - X H^-1 X^T``, the
+    ``u_g`` are correlated normals, ``Cov(u_g, u_h) = G_gh = a_g^T M_gh a_h``, ``a_g = A_g X_g
+    l = X_g m_g``, ``m_g = (I - H^-1 B_g)^-1 l`` (``B_g = X_g^T X_g``; push-through), so
+    ``G = diag(m_g^T B_g m_g) - b H^-1 b^T``, ``b_g = B_g m_g``: all in the motion's six
+    dimensions. An axis that few profiles hold (the turn about the pass's axis on a small
+    part, seen at its two ends) has few degrees of freedom however many profiles the scan
+    has, and its variance, measured from their scatter, is as uncertain as a variance from as
+    many draws. `x` ((K, 6)) are the weighted rows in scaled units, `info_inv` ((6, 6)) the
+    inverse of their information; leverages capped as in `_leave_out_moves`.
+    """
+    _, inverse = np.unique(frames, return_inverse=True)
+    _, _, gram = _cluster_grams(x, inverse.reshape(-1))                        # B_g
+    root, basis, slack = _leverage_basis(gram, info_inv)
+    contrasts = info_inv @ readout.T                                          # (6, A): l
+    # (I - H^-1 B)^-1 l = l + L U diag(1 / slack) U^T L^T B l
+    along = np.einsum("gji,jk,gka->gia", basis, root.T, gram @ contrasts) / slack[:, :, None]
+    m = contrasts[None] + np.einsum("ij,gjk,gka->gia", root, basis, along)   # (G, 6, A)
+    b = gram @ m
+    own = np.einsum("gia,gia->ga", m, b)                                      # m_g^T B_g m_g
+    spread = b.transpose(2, 0, 1) @ info_inv                                  # (A, G, 6)
+    cross = np.einsum("agi,gia->ga", spread, b)                               # b_g^T H^-1 b_g
+    gram_b = np.einsum("gia,gja->aij", b, b)                                  # sum_g b_g b_g^T
+    both = info_inv[None] @ gram_b
+    trace = own.sum(axis=0) - np.einsum("aii->a", both)
+    square = (np.sum(own**2, axis=0) - 2.0 * np.sum(own * cross, axis=0)
+              + np.einsum("aij,aji->a", both, both))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(square > 0.0, trace**2 / square, np.inf)
+
+
+def _t_variance_factor(freedom) -> np.ndarray:
+    """Student's t's variance over its scale's, ``nu / (nu - 2)``, for `freedom` nu (any
+    shape); ``_FEW_FREEDOM_FACTOR`` at ``_MIN_FREEDOM`` or fewer (at 2 and below it has
+    none); 1 where nu is infinite."""
+    nu = np.asarray(freedom, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        factor = np.where(nu > _MIN_FREEDOM, nu / (nu - 2.0), _FEW_FREEDOM_FACTOR)
+    return np.where(np.isinf(nu), 1.0, factor)
+
+
 def _face_offsets(js, weights, residuals, frames, faces, info_inv) -> np.ndarray:
     """(6, 6) "meat" of the offsets the surface rows of one model face share across profiles
     (`faces`, (K,), -1 for a row of no face): a face off by ``o_c`` along its normal as a
@@ -325,7 +382,7 @@ def _shared_offsets(x, e, weights, curves, info_inv) -> np.ndarray:
     mass = np.bincount(inverse, weights=weights, minlength=len(sizes))
     leverage = np.einsum("gi,ij,gj->g", pull, info_inv, pull) / mass
     freedom = float(np.sum(1.0 - np.clip(leverage[many], 0.0, 1.0)))
-    tau2 *= freedom / (freedom - 2.0) if freedom > _MIN_FREEDOM else _FEW_FREEDOM_FACTOR
+    tau2 *= float(_t_variance_factor(freedom))
     return tau2 * pull.T @ pull
 
 
@@ -363,18 +420,31 @@ def _leave_out_moves(x, e, inverse, info_inv):
     Returns the rows' order by cluster, each cluster's first row in it, the (G, 6) moves and
     the (G, 6) scores ``s_g`` with the (G, 6, 6) ``B_g``.
     """
-    order = np.argsort(inverse, kind="stable")
-    starts = np.r_[0, np.nonzero(np.diff(inverse[order]))[0] + 1]
-    xs = x[order]
-    scores = np.add.reduceat(xs * e[order, None], starts, axis=0)
-    gram = np.add.reduceat(xs[:, :, None] * xs[:, None, :], starts, axis=0)
-    values, vectors = np.linalg.eigh(info_inv)
-    root = vectors * np.sqrt(np.clip(values, 0.0, None))                      # L
-    leverages, basis = np.linalg.eigh(root.T @ gram @ root)                   # L^T B_g L
-    slack = np.maximum(1.0 - leverages, _MIN_SLACK)
+    order, starts, gram = _cluster_grams(x, inverse)
+    scores = np.add.reduceat(x[order] * e[order, None], starts, axis=0)
+    root, basis, slack = _leverage_basis(gram, info_inv)
     along = np.einsum("gji,gj->gi", basis, scores @ root) / slack
     moves = np.einsum("gij,gj->gi", basis, along) @ root.T
     return order, starts, moves, (scores, gram)
+
+
+def _cluster_grams(x, inverse):
+    """The rows' order by cluster (`inverse`, (K,) cluster index), each cluster's first row
+    in it, and the (G, 6, 6) ``B_g = X_g^T X_g`` of the rows `x` ((K, 6))."""
+    order = np.argsort(inverse, kind="stable")
+    starts = np.r_[0, np.nonzero(np.diff(inverse[order]))[0] + 1]
+    xs = x[order]
+    return order, starts, np.add.reduceat(xs[:, :, None] * xs[:, None, :], starts, axis=0)
+
+
+def _leverage_basis(gram, info_inv):
+    """``L`` ((6, 6), ``L L^T = info_inv``), and per cluster the eigenvectors ``U_g`` ((G, 6,
+    6)) of ``L^T B_g L`` (`gram`) and one minus its eigenvalues, the cluster's leverages,
+    capped below at ``_MIN_SLACK`` ((G, 6))."""
+    values, vectors = np.linalg.eigh(info_inv)
+    root = vectors * np.sqrt(np.clip(values, 0.0, None))
+    leverages, basis = np.linalg.eigh(root.T @ gram @ root)
+    return root, basis, np.maximum(1.0 - leverages, _MIN_SLACK)
 
 
 def _free_prior(free_scaled, s, params) -> np.ndarray:

@@ -1004,8 +1004,8 @@ def test_the_terms_add_up_to_the_reported_sigma(block):
                       edge_frame_ids=edge_frames, edge_model=edge_model)
     add_placement_error(result, [0.002, 0.015, 0.001], 0.003)
     terms = result.std_terms()
-    assert set(terms) == {"profiles", "edges", "faces", "inflation", "free", "rivals", "marker",
-                          "robot"}
+    assert set(terms) == {"profiles", "few_profiles", "edges", "faces", "inflation", "free",
+                          "rivals", "marker", "robot"}
     total = sum(np.sign(v) * v**2 for v in terms.values())
     assert_allclose(np.sqrt(total), result.std, rtol=1e-9)
     assert_allclose(terms["marker"][:3], [0.002, 0.015, 0.001])
