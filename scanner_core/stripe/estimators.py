@@ -56,9 +56,11 @@ CUT_NOISE_SIGMAS = 5.0
 #: pixels' noise (a wider margin let an overexposed core's halo through: a flat top between
 #: two cliffs is no stripe cut on one side).
 FLANK_NOISE_SIGMAS = 3.0
-#: ... and where the pixel past the fall falls again by less than CUT_STEP_RATIO of it (an
-#: edge between two pixels; one that straddles a pixel splits the step in two falls, and is
-#: found only where one of them holds most of it).
+#: ... and where the pixel past the fall falls again by less than CUT_STEP_RATIO of it, and
+#: FLANK_NOISE_SIGMAS of two pixels' noise (an edge between two pixels; one that straddles a
+#: pixel splits the step in two falls, and is found only where one of them holds most of it;
+#: the dark square's own share of a stripe cut near its centre goes on falling, by its
+#: reflectance's share of the stripe's slope).
 CUT_STEP_RATIO = 0.25
 #: The whole flank's fit takes its pixels above CUT_RUN_LEVEL of the peak's height over that
 #: flank's own foot.
@@ -77,6 +79,11 @@ CUT_MODEL_SLACK = 0.1
 CUT_MODEL_SIGMAS = 2.5
 #: The uncut flank's fit is rejected if its centre leaves the argmax by more than this, px.
 CUT_MAX_SHIFT_PX = 2.0
+#: The uncut flank's foot is looked for no further from the argmax than this many of the
+#: stripe's widths (sigmas) plus a row: a Gaussian has fallen to its foot within three, and a
+#: walk that goes on falling past them has left the stripe (a print finer than the line: into
+#: the next dark square, a surface under the flank's fit that widens it).
+CUT_FOOT_WIDTHS = 3.0
 
 
 @njit(nogil=True, cache=True)
@@ -275,7 +282,9 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     highest last pixel of a run past the window where it fell under ``t_cog`` and the largest
     fall there (a flank ends just over the level, one pixel's slope above the next, a lit
     square's edge far over it and by a step; 0 where no such run ended), and the largest
-    one-pixel fall away from ``a`` within the window."""
+    one-pixel fall away from ``a`` within the window; (where it holds eight) the most any such
+    run fell from the window's edge pixel to its last (a flank falls all along it, a surface
+    just over the level stays flat; -inf where no run ended)."""
     off = t_cog if math.isnan(bg) else bg
     v = float(img[a, c])
     count = 1.0 if v > threshold else 0.0
@@ -284,6 +293,7 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
     beyond = 0
     cliff = 0.0
     cliff_fall = 0.0
+    run_drop = -math.inf
     fall = 0.0
     width_inf = False
     left = right = 0.0
@@ -300,6 +310,7 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
         if side == 1 and w_end > h - 1:
             w_end = h - 1
         run = img[w_end, c] > t_cog  # the run beyond the window starts at its edge pixel
+        run_top = float(img[w_end, c])
         r = a
         while r != end:
             r += step
@@ -335,6 +346,7 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
                     # where the run past the window fell under the level, and by how much
                     cliff = max(cliff, prev)
                     cliff_fall = max(cliff_fall, prev - u)
+                    run_drop = max(run_drop, run_top - prev)
                 run = False
             prev = u
             if not half and not inside and not run:
@@ -351,6 +363,8 @@ def width_count_cog(img, c, a, h, level, max_walk, threshold, window, t_cog, bg,
         out[4] = cliff
         out[5] = cliff_fall
         out[6] = fall
+    if out.shape[0] > 7:
+        out[7] = run_drop
 
 
 @njit(nogil=True, cache=True)
@@ -704,10 +718,14 @@ def cut_flank(img, c, a, h, bg, noise, reach):
         # the whole flank's width read short (a narrow stripe's half width from its argmax,
         # the noise's margin on a dim one): the fall against the whole flank's own fit, where
         # that flank has no cliff of its own (a print finer than the stripe chops it into
-        # runs between cliffs, none of them a stripe's flank)
-        if not min(fall_up, fall_dn) <= CUT_MIN_FALL * height:
-            return 0, a
+        # runs between cliffs, none of them a stripe's flank): it falls by no more than half
+        # the height in one pixel, or than a Gaussian as wide as itself (a narrow stripe's
+        # whole flank falls by more than half its height from the argmax)
         model_step = -1 if fall_up > fall_dn else 1
+        whole_fall, whole_hw = (fall_dn, hw_dn) if model_step < 0 else (fall_up, hw_up)
+        if not whole_fall <= max(CUT_MIN_FALL * height,
+                                 _steepest_fall(whole_hw, height, noise, FLANK_NOISE_SIGMAS)):
+            return 0, a
         if not _falls_past_fit(img, c, a, h, model_step, r_up if model_step < 0 else r_dn,
                                height, noise, reach, hw_dn if model_step < 0 else hw_up):
             return 0, a
@@ -728,7 +746,8 @@ def cut_flank(img, c, a, h, bg, noise, reach):
     # core of a colour line whose channel clipped)
     r_next = r_cut + 2 * step
     if 0 <= r_next < h and (float(img[r_cut + step, c]) - float(img[r_next, c])
-                            > CUT_STEP_RATIO * fall):
+                            > CUT_STEP_RATIO * fall
+                            + FLANK_NOISE_SIGMAS * math.sqrt(2.0) * noise):
         return 0, a
     return step, r_cut
 
@@ -773,6 +792,13 @@ def _whole_flank_fit(img, c, a, h, step, r_cut, foot, reach, fit, normal):
     else:
         while lo > 0 and a - lo < reach and float(img[lo - 1, c]) > level:
             lo -= 1
+    if hi - lo < 2:
+        # a narrow stripe's flank: the next pixel over the foot is its third point
+        if s > 0 and hi < h - 1 and float(img[hi + 1, c]) > foot:
+            hi += 1
+        elif s < 0 and lo > 0 and float(img[lo - 1, c]) > foot:
+            lo -= 1
+        level = foot
     m = np.zeros((3, 3))
     v = np.zeros(3)
     n = 0
@@ -810,11 +836,12 @@ def _whole_flank_fit(img, c, a, h, step, r_cut, foot, reach, fit, normal):
 
 
 @njit(nogil=True, cache=True)
-def uncut_centre(img, c, a, h, step, r_cut, noise, reach, same_foot):
+def uncut_centre(img, c, a, h, step, r_cut, noise, reach, width, same_foot):
     """Centre of a stripe cut on one flank (``cut_flank``'s ``step`` and ``row``), from its
     other, whole, flank: the vertex ``a - k1 / (2 k2)`` of the parabola fitted to the
     logarithm of that flank (``_whole_flank_fit``) over its foot, where it stops falling (by
-    more than ``noise`` over two pixels, ``_foot``).  The centre lies no further
+    more than ``noise`` over two pixels, ``_foot``), at most ``CUT_FOOT_WIDTHS`` of the
+    stripe's ``width`` (its sigma, px; NaN: ``reach``) and a row out.  The centre lies no further
     than half a pixel past the cut (the edge's side of the last lit pixel): where the whole
     flank still rises toward the cut (the centre past the edge, in the dark), the centre is
     put at the edge, where the fit would extrapolate.
@@ -827,7 +854,10 @@ def uncut_centre(img, c, a, h, step, r_cut, noise, reach, same_foot):
     or its vertex leaves ``a`` by more than ``CUT_MAX_SHIFT_PX`` on the whole flank's side, or
     the feet differ.
     """
-    foot = _foot(img, c, a, h, -step, noise, reach)
+    foot_reach = reach
+    if math.isfinite(width):
+        foot_reach = min(reach, int(math.ceil(CUT_FOOT_WIDTHS * width)) + 1)
+    foot = _foot(img, c, a, h, -step, noise, foot_reach)
     if not math.isfinite(foot):
         return math.nan
     fit = np.empty(4)

@@ -118,8 +118,16 @@ SHOULDER_FRACTION = 0.5
 # CLIFF_NOISE_SIGMAS of two pixels' noise: a Gaussian falls under a level a few noise sigmas
 # over its background within about three sigmas of its centre, and down its flank there by
 # less than the noise; a lit square's plateau, its background probes on the dark squares past
-# it, runs on to the square's edge and drops there.
+# it, runs on to the square's edge and drops there.  Or that run, as long, stays flat: it falls
+# from the window's edge to its end by no more than CLIFF_NOISE_SIGMAS of two pixels' noise (a
+# lit square just over the level, its run broken by the noise, not by its edge), where a
+# flank falls all along it.
 CLIFF_FRACTION = 0.25
+#: A narrow stripe's centroid stands on the window's ends where they read more than this many
+#: noise sigmas over the peak's background (``_surface_centroid``): a lit square about the
+#: stripe; each end the mean of two pixels, the higher end taken, so noise alone passes it in
+#: about one column of two hundred (the higher level costs a dim stripe its flanks).
+SURFACE_SIGMAS = 2.0
 CLIFF_RUN_WIDTHS = 3.0
 CLIFF_NOISE_SIGMAS = 3.0 * math.sqrt(2.0)
 # A centroid whose stripe a texture's edge cuts (``est.cut_flank``) is replaced by the fit of
@@ -391,11 +399,37 @@ def extract_kernel(img, c0, c1, method, auto, thr, window, max_width, auto_width
 @njit(nogil=True, cache=True)
 def _ends_at_cliff(stats, b, p, sig):
     """The centroid's run past the window (``est.width_count_cog``'s ``stats``) of a peak ``p``
-    over ``b`` ended at a cliff (``CLIFF_FRACTION``, ``CLIFF_RUN_WIDTHS``), not down a flank."""
+    over ``b`` ended at a cliff, or ran flat over a surface (``CLIFF_FRACTION``,
+    ``CLIFF_RUN_WIDTHS``), not down a flank."""
     return (p < SATURATION_DN and stats[3] > 0
             and (stats[4] > b + CLIFF_FRACTION * (p - b)
                  or (stats[3] > CLIFF_RUN_WIDTHS * stats[0]
-                     and stats[5] > CLIFF_NOISE_SIGMAS * sig)))
+                     and (stats[5] > CLIFF_NOISE_SIGMAS * sig
+                          or stats[7] <= CLIFF_NOISE_SIGMAS * sig))))
+
+
+@njit(nogil=True, cache=True)
+def _surface_centroid(img, c, a, h, p, b, sig, stats, window, max_walk, bg):
+    """The centroid of the peak ``p`` at row ``a`` over ``b`` (``stats`` from
+    ``est.width_count_cog`` or ``est.within_window``), weighed above the surface it stands on
+    where that lies over ``b``: a lit square past the window's edge (``_ends_at_cliff``), or,
+    for a stripe that has fallen within ``BACKGROUND_CLEAR_SIGMAS`` of its widths a row inside
+    the window's edge, the higher of the window's two ends (each the mean of its last pixel and
+    the next) by more than ``SURFACE_SIGMAS`` noise sigmas.  ``b``, read three and five windows out, can lie on
+    the dark squares past a lit one the stripe crosses; a centroid over ``b`` then weighs the
+    lit pixels beside the stripe, by ``v - level`` each, as far as the noise lifts each over
+    the level: about a third of a pixel on a narrow stripe over a lit square (sigma 0.6-1.2
+    px, squares of 24 px) where the naive peak finder's three pixels read 0.07."""
+    if not _ends_at_cliff(stats, b, p, sig):
+        if (not math.isnan(bg) or p >= SATURATION_DN or a <= window or a + window >= h - 1
+                or not BACKGROUND_CLEAR_SIGMAS * stats[0] <= window - 1):
+            return stats[2]
+        s = 0.5 * max(float(img[a - window, c]) + float(img[a - window - 1, c]),
+                      float(img[a + window, c]) + float(img[a + window + 1, c]))
+        if not s > b + SURFACE_SIGMAS * sig:
+            return stats[2]
+        return est.cog(img, c, a, h, _cog_level(s, sig, p), window, math.nan, max_walk)
+    return est.cog(img, c, a, h, stats[4] + COG_SIGMAS * sig, window, math.nan, max_walk)
 
 
 @njit(nogil=True, cache=True)
@@ -408,7 +442,7 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
     two walks itself (through a function holding both, or inside ``_columns``, the loop ran at
     half the speed or less)."""
     h = img.shape[0]
-    stats = np.zeros(7)
+    stats = np.zeros(8)
     n_widths = 0
     for j in range(js, je):
         p = float(mx[j])
@@ -470,11 +504,10 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
         wmain[j] = wd
         nmain[j] = stats[1]
         ymain[j] = stats[2]
-        if not fast and not shoulders and _ends_at_cliff(stats, b, p, sig):
-            # the centroid's run past the window ended at a cliff, not down a flank: a lit
-            # square's edge (a texture under the line); the stripe is what stands over it
-            ymain[j] = est.cog(img, c, a, h, stats[4] + COG_SIGMAS * sig, window, math.nan,
-                               max_walk)
+        if not shoulders and (not fast or BACKGROUND_CLEAR_SIGMAS * stats[0] <= window - 1):
+            # a lit surface under the line (a texture): the stripe is what stands over it (a
+            # peak within its window has no run past it: only a narrow one's ends are read)
+            ymain[j] = _surface_centroid(img, c, a, h, p, b, sig, stats, window, max_walk, bg)
         s = float(sec[j])
         if s > threshold and s >= floor and s >= double_ratio * p:
             r2 = int(a2[j])  # the second candidate's row
@@ -522,7 +555,7 @@ def _centre(img, c, a, h, p, b, sig, sat, bg_sat, method, shoulders, window, max
         # a texture's edge across the stripe: its centre from the flank the edge leaves
         step, r_cut = est.cut_flank(img, c, a, h, b, sig, max_walk)
         if step != 0:
-            y_cut = est.uncut_centre(img, c, a, h, step, r_cut, sig, max_walk, shoulders)
+            y_cut = est.uncut_centre(img, c, a, h, step, r_cut, sig, max_walk, wd, shoulders)
             if math.isfinite(y_cut):
                 y = y_cut
     return y
@@ -540,7 +573,7 @@ def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cor
     h = img.shape[0]
     reach = max(2, int(math.ceil(PROMINENCE_REACH_WIDTHS * core)))
     spot = np.zeros(2)
-    stats = np.zeros(7)
+    stats = np.zeros(8)
     for sweep in range(2):
         j0, j1, d = (js + 1, je, 1) if sweep == 0 else (je - 2, js - 1, -1)
         for j in range(j0, j1, d):
@@ -577,9 +610,8 @@ def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cor
             if _flat_top(img, c, a, h, b, p, wd):
                 continue
             y_cog = stats[2]
-            if not shoulders and _ends_at_cliff(stats, b, p, sig):
-                y_cog = est.cog(img, c, a, h, stats[4] + COG_SIGMAS * sig, window, math.nan,
-                                max_walk)
+            if not shoulders:
+                y_cog = _surface_centroid(img, c, a, h, p, b, sig, stats, window, max_walk, bg)
             y = _centre(img, c, a, h, p, b, sig, False, b, method, shoulders, window,
                         max_walk, y_cog, t_c, wd, bg, stats[6] > est.CUT_MIN_FALL * (p - b))
             if not math.isfinite(y):
@@ -673,7 +705,7 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
     ymain = np.full(n, np.nan)
     # the main peak's largest one-pixel fall within its window: where a cut may be
     steep = np.zeros(n)
-    stats = np.empty(4)
+    stats = np.zeros(8)
     hist = np.zeros(_WIDTH_BINS, np.int64)
     bloc = np.full(n, med)
     tloc = np.full(n, threshold)
@@ -728,6 +760,8 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
             est.width_count_cog(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c, window,
                                 _cog_level(b, sig, p), bg, max_walk, stats)
             wd, above, y_cog = stats[0], stats[1], stats[2]
+            if not shoulders:
+                y_cog = _surface_centroid(img, c, a, h, p, b, sig, stats, window, max_walk, bg)
         else:
             p = float(mx[j])
             a = int(am[j])
