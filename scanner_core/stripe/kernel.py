@@ -125,9 +125,13 @@ SHOULDER_FRACTION = 0.5
 CLIFF_FRACTION = 0.25
 #: A narrow stripe's centroid stands on the window's ends where they read more than this many
 #: noise sigmas over the peak's background (``_surface_centroid``): a lit square about the
-#: stripe; each end the mean of two pixels, the higher end taken, so noise alone passes it in
-#: about one column of two hundred (the higher level costs a dim stripe its flanks).
+#: stripe; each end the mean of the two pixels just past the window, the higher end taken, so
+#: noise alone passes it in about one column of two hundred (the higher level costs a dim
+#: stripe its flanks), and only where the two pixels differ by no more than
+#: SURFACE_FLAT_SIGMAS: a flat surface, where a wide stripe whose measured width a fine print
+#: cut short still falls.
 SURFACE_SIGMAS = 2.0
+SURFACE_FLAT_SIGMAS = 2.0
 CLIFF_RUN_WIDTHS = 3.0
 CLIFF_NOISE_SIGMAS = 3.0 * math.sqrt(2.0)
 # A centroid whose stripe a texture's edge cuts (``est.cut_flank``) is replaced by the fit of
@@ -414,18 +418,25 @@ def _surface_centroid(img, c, a, h, p, b, sig, stats, window, max_walk, bg):
     ``est.width_count_cog`` or ``est.within_window``), weighed above the surface it stands on
     where that lies over ``b``: a lit square past the window's edge (``_ends_at_cliff``), or,
     for a stripe that has fallen within ``BACKGROUND_CLEAR_SIGMAS`` of its widths a row inside
-    the window's edge, the higher of the window's two ends (each the mean of its last pixel and
-    the next) by more than ``SURFACE_SIGMAS`` noise sigmas.  ``b``, read three and five windows out, can lie on
+    the window's edge, the higher of the two pixel pairs just past the window (each pair's
+    mean, where its two pixels differ by no more than ``SURFACE_FLAT_SIGMAS`` noise sigmas:
+    a surface, not the flank of a stripe whose width a texture cut short) by more than
+    ``SURFACE_SIGMAS`` noise sigmas.  ``b``, read three and five windows out, can lie on
     the dark squares past a lit one the stripe crosses; a centroid over ``b`` then weighs the
     lit pixels beside the stripe, by ``v - level`` each, as far as the noise lifts each over
     the level: about a third of a pixel on a narrow stripe over a lit square (sigma 0.6-1.2
     px, squares of 24 px) where the naive peak finder's three pixels read 0.07."""
     if not _ends_at_cliff(stats, b, p, sig):
-        if (not math.isnan(bg) or p >= SATURATION_DN or a <= window or a + window >= h - 1
+        if (not math.isnan(bg) or p >= SATURATION_DN or a <= window + 1
+                or a + window + 1 >= h - 1
                 or not BACKGROUND_CLEAR_SIGMAS * stats[0] <= window - 1):
             return stats[2]
-        s = 0.5 * max(float(img[a - window, c]) + float(img[a - window - 1, c]),
-                      float(img[a + window, c]) + float(img[a + window + 1, c]))
+        s = -math.inf
+        for step in (-1, 1):
+            near = float(img[a + step * (window + 1), c])
+            far = float(img[a + step * (window + 2), c])
+            if abs(near - far) <= SURFACE_FLAT_SIGMAS * sig:  # a surface, not a flank
+                s = max(s, 0.5 * (near + far))
         if not s > b + SURFACE_SIGMAS * sig:
             return stats[2]
         return est.cog(img, c, a, h, _cog_level(s, sig, p), window, math.nan, max_walk)
