@@ -573,6 +573,42 @@ def _centre(img, c, a, h, p, b, sig, sat, bg_sat, method, shoulders, window, max
 
 
 @njit(nogil=True, cache=True)
+def _continued_stripe(img, c, h, r0, r1, a_prev, w_prev, reach_rows, use_window, rmin, rmax,
+                      reach, core, min_width, max_walk, window, shoulders, method, sig, bg,
+                      spot, stats):
+    """The centre of the stripe in column ``c`` where its neighbour's (at row ``a_prev``,
+    width ``w_prev``) goes on, within ``reach_rows`` of it: the most prominent row there
+    (``prominent_peak``; its row and background left in ``spot``, its walk in ``stats``) if
+    it is a stripe as the frame's others are and linked to the neighbour's; NaN otherwise."""
+    s0 = max(r0, int(math.ceil(a_prev - reach_rows)))
+    s1 = min(r1, int(math.floor(a_prev + reach_rows)) + 1)
+    if use_window:
+        s0 = max(s0, int(rmin[c]))
+        s1 = min(s1, int(rmax[c]) + 1)
+    if not prominent_peak(img, c, r0, r1, s0, s1, reach, spot) >= PROMINENCE_MIN_SIGMAS * sig:
+        return math.nan
+    a = int(spot[0])
+    b = spot[1]
+    p = float(img[a, c])
+    if p >= SATURATION_DN:
+        return math.nan  # the column's brightest: refused as it was
+    t_c = b + AUTO_THRESHOLD_SIGMAS * sig
+    est.width_count_cog(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c, window,
+                        _cog_level(b, sig, p), bg, max_walk, stats)
+    wd = stats[0]
+    if not (min_width <= wd <= core and stats[1] >= MIN_PIXELS_ABOVE
+            and _linked(a_prev, w_prev, a, wd)):
+        return math.nan  # a stripe as the frame's others are, where the neighbour's goes on
+    if _flat_top(img, c, a, h, b, p, wd):
+        return math.nan
+    y_cog = stats[2]
+    if not shoulders:
+        y_cog = _surface_centroid(img, c, a, h, p, b, sig, stats, window, max_walk, bg)
+    return _centre(img, c, a, h, p, b, sig, False, b, method, shoulders, window, max_walk,
+                   y_cog, t_c, wd, bg, stats[6] > est.CUT_MIN_FALL * (p - b))
+
+
+@njit(nogil=True, cache=True)
 def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, core, min_width,
                        max_walk, window, shoulders, method, sig, bg, use_window, rmin, rmax,
                        peak, width, snr, saturated, reason):
@@ -597,36 +633,23 @@ def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cor
                 continue
             if not (ok[i] and math.isfinite(yrow[i])):
                 continue
-            reach_rows = LINK_ROWS_PX + max(wsel[i], core)
-            s0 = max(r0, int(math.ceil(arow[i] - reach_rows)))
-            s1 = min(r1, int(math.floor(arow[i] + reach_rows)) + 1)
-            if use_window:
-                s0 = max(s0, int(rmin[c]))
-                s1 = min(s1, int(rmax[c]) + 1)
-            if not prominent_peak(img, c, r0, r1, s0, s1, reach, spot) >= (
-                    PROMINENCE_MIN_SIGMAS * sig):
+            # where the neighbour's stripe goes on first (its own width), then as far as the
+            # frame's widest stripe links: a lit square's corner in the wider rows can stand
+            # higher over its surround than the stripe and hide it
+            y = math.nan
+            for k in range(2 if wsel[i] < core else 1):
+                spread = wsel[i] if k == 0 else core
+                y = _continued_stripe(img, c, h, r0, r1, arow[i], wsel[i], LINK_ROWS_PX + spread,
+                                      use_window, rmin, rmax, reach, core, min_width, max_walk,
+                                      window, shoulders, method, sig, bg, spot, stats)
+                if math.isfinite(y):
+                    break
+            if not math.isfinite(y):
                 continue
             a = int(spot[0])
             b = spot[1]
             p = float(img[a, c])
-            if p >= SATURATION_DN:
-                continue  # the column's brightest: refused as it was
-            t_c = b + AUTO_THRESHOLD_SIGMAS * sig
-            est.width_count_cog(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c, window,
-                                _cog_level(b, sig, p), bg, max_walk, stats)
             wd = stats[0]
-            if not (min_width <= wd <= core and stats[1] >= MIN_PIXELS_ABOVE
-                    and _linked(arow[i], wsel[i], a, wd)):
-                continue  # a stripe as the frame's others are, where the neighbour's goes on
-            if _flat_top(img, c, a, h, b, p, wd):
-                continue
-            y_cog = stats[2]
-            if not shoulders:
-                y_cog = _surface_centroid(img, c, a, h, p, b, sig, stats, window, max_walk, bg)
-            y = _centre(img, c, a, h, p, b, sig, False, b, method, shoulders, window,
-                        max_walk, y_cog, t_c, wd, bg, stats[6] > est.CUT_MIN_FALL * (p - b))
-            if not math.isfinite(y):
-                continue
             klass[j] = _CORE
             ok[j] = True
             arow[j] = a

@@ -201,11 +201,13 @@ def test_a_stripe_dimmer_than_the_lit_squares_it_crosses():
     of ambient light: on a dark square the stripe (40 DN over 34) is dimmer than the lit
     squares (70 DN) its column crosses too, so the column's brightest pixel is no stripe.
     Where the stripe beside it goes on, the row that stands highest over its surround is
-    (72 % of the columns measured before). Not yet every column: a stripe 5 px wide on a
-    dark square stands little over its own flanks 2.5 gates out."""
+    (72 % of the columns measured before), looked for near the neighbour's row first (a lit
+    square's corner farther off stood higher and hid it in runs of 20-30 columns: 94.4 %).
+    Not yet every column: a stripe 5 px wide on a dark square stands little over its own
+    flanks 2.5 gates out."""
     fly, base = against_naive(LinePhoto(peak_dn=100.0, ambient_dn=60.0, texture_px=30.0,
                                    black_reflectance=0.4, sigma_px=(2.5, 5.0)))
-    assert fly["measured"] >= 0.93
+    assert fly["measured"] >= 0.965
     assert fly["within_half"] >= base["within_half"] + 0.25
     assert fly["beyond_1px"] <= 0.5 * base["beyond_1px"]
     assert fly["rms"] <= 0.7 * base["rms"]
