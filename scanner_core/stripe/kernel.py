@@ -123,17 +123,17 @@ SHOULDER_FRACTION = 0.5
 # lit square just over the level, its run broken by the noise, not by its edge), where a
 # flank falls all along it.
 CLIFF_FRACTION = 0.25
-#: A narrow stripe's centroid stands on the window's ends where they read more than this many
-#: noise sigmas over the peak's background (``_surface_centroid``): a lit square about the
-#: stripe; each end the mean of the two pixels just past the window, the higher end taken, so
-#: noise alone passes it in about one column of two hundred (the higher level costs a dim
-#: stripe its flanks), and only where the two pixels differ by no more than
-#: SURFACE_FLAT_SIGMAS: a flat surface, where a wide stripe whose measured width a fine print
-#: cut short still falls.
-SURFACE_SIGMAS = 2.0
-SURFACE_FLAT_SIGMAS = 2.0
 CLIFF_RUN_WIDTHS = 3.0
 CLIFF_NOISE_SIGMAS = 3.0 * math.sqrt(2.0)
+# A narrow stripe's centroid stands on the surface just past its window where that reads
+# more than SURFACE_SIGMAS noise sigmas over the peak's background (``_surface_centroid``): a
+# lit square about the stripe.  Each side's surface is the mean of the two pixels past the
+# window, the higher side's taken, so noise alone passes it in about one column of two
+# hundred (the higher level costs a dim stripe its flanks); and only where the two pixels
+# differ by no more than SURFACE_FLAT_SIGMAS: a flat surface, where a wide stripe whose
+# measured width a fine print cut short still falls.
+SURFACE_SIGMAS = 2.0
+SURFACE_FLAT_SIGMAS = 2.0
 # A centroid whose stripe a texture's edge cuts (``est.cut_flank``) is replaced by the fit of
 # its whole flank (``est.uncut_centre``); tested only where the window's walk saw a one-pixel
 # fall of more than ``est.CUT_MIN_FALL`` of the height (on a clean frame, testing every
@@ -424,8 +424,7 @@ def _surface_centroid(img, c, a, h, p, b, sig, stats, window, max_walk, bg):
     ``SURFACE_SIGMAS`` noise sigmas.  ``b``, read three and five windows out, can lie on
     the dark squares past a lit one the stripe crosses; a centroid over ``b`` then weighs the
     lit pixels beside the stripe, by ``v - level`` each, as far as the noise lifts each over
-    the level: about a third of a pixel on a narrow stripe over a lit square (sigma 0.6-1.2
-    px, squares of 24 px) where the naive peak finder's three pixels read 0.07."""
+    the level, at random (docs/stripe.md)."""
     if not _ends_at_cliff(stats, b, p, sig):
         if (not math.isnan(bg) or p >= SATURATION_DN or a <= window + 1
                 or a + window + 1 >= h - 1
