@@ -77,6 +77,14 @@ CUT_RUN_LEVEL = 0.15
 #: out) taken for cut: at 2 sigmas and a tenth of the height one such stripe in 1900 was.
 CUT_MODEL_SLACK = 0.1
 CUT_MODEL_SIGMAS = 2.5
+#: ... and by CUT_EDGE_MODEL_SIGMAS where the cut side's own foot lies under the whole
+#: flank's by more than CUT_SURFACES_SIGMAS of the noise: two surfaces, so an edge lies
+#: within the reach and the test need only say where.  A narrow stripe cut at its centre on a
+#: dim print keeps two or three pixels of whole flank, whose extrapolation spreads wide: the
+#: narrower margin finds it four times as often, and takes a narrow whole stripe for cut now
+#: and then where a dark square lies just past its steep side (docs/stripe.md).
+CUT_SURFACES_SIGMAS = 4.0
+CUT_EDGE_MODEL_SIGMAS = 1.5
 #: The uncut flank's fit is rejected if its centre leaves the argmax by more than this, px.
 CUT_MAX_SHIFT_PX = 2.0
 #: The uncut flank's foot is looked for no further from the argmax than this many of the
@@ -634,7 +642,8 @@ def _falls_past_fit(img, c, a, h, step, r_cut, height, noise, reach, half_width)
     """Whether the pixel past row ``r_cut`` (by ``step``) reads under the whole flank's own
     Gaussian there (``_whole_flank_fit``, through ``r_cut``, extrapolated one pixel) by more
     than ``CUT_MODEL_SLACK`` of the peak's ``height`` plus ``CUT_MODEL_SIGMAS`` of its
-    expected spread,
+    expected spread (``CUT_EDGE_MODEL_SIGMAS`` where the cut side's own foot lies under the
+    whole flank's: two surfaces),
 
         spread^2 = noise^2 (1 + e^2 g^T N^-1 g),  g = (1, x, x^2),
 
@@ -648,6 +657,7 @@ def _falls_past_fit(img, c, a, h, step, r_cut, height, noise, reach, half_width)
     foot = _foot(img, c, a, h, -step, noise, reach)
     if not math.isfinite(foot):
         return False
+    foot_whole = foot
     # the highest foot the profile allows: the whole flank's Gaussian narrowest, the cut
     # hardest to claim (a narrow stripe's walk runs on past a square's edge a pixel beyond
     # its tail; a stripe whose far side is lit is no stripe cut there)
@@ -655,7 +665,10 @@ def _falls_past_fit(img, c, a, h, step, r_cut, height, noise, reach, half_width)
     if math.isfinite(tail):
         foot = max(foot, tail)
     foot_cut = _foot(img, c, r_past, h, step, noise, reach)
+    sigmas = CUT_MODEL_SIGMAS
     if math.isfinite(foot_cut):
+        if foot_cut < foot_whole - CUT_SURFACES_SIGMAS * noise:
+            sigmas = CUT_EDGE_MODEL_SIGMAS  # the surfaces differ: an edge lies between them
         foot = max(foot, foot_cut)
     fit = np.empty(4)
     normal = np.empty((3, 3))
@@ -670,7 +683,7 @@ def _falls_past_fit(img, c, a, h, step, r_cut, height, noise, reach, half_width)
     expected = math.exp(min(fit[1] + fit[2] * x + fit[3] * x * x, 30.0))
     spread = math.sqrt(noise * noise * (1.0 + expected * expected * log_var))
     return (fit[0] + expected - float(img[r_past, c])
-            > CUT_MODEL_SLACK * height + CUT_MODEL_SIGMAS * spread)
+            > CUT_MODEL_SLACK * height + sigmas * spread)
 
 
 @njit(nogil=True, cache=True)

