@@ -594,7 +594,9 @@ def run(out_dir: pathlib.Path, folder: pathlib.Path, *, quick: bool = False) -> 
     summary["synthesised"] = {
         name: {"rms_ratio": c["rms_ratio"],
                "beyond_1px_share": [c["flyscan"]["beyond_1px"], c["baseline"]["beyond_1px"]],
-               "measured_share": [c["flyscan"]["measured"], c["baseline"]["measured"]]}
+               "measured_share": [c["flyscan"]["measured"], c["baseline"]["measured"]],
+               "false_off_line": [c["flyscan"]["false_off_line"],
+                                  c["baseline"]["false_off_line"]]}
         for name, c in synthesised.items()}
     result = {"sets": results, "missing": missing, "summary": summary,
               "baseline": f"argmax + 3-point parabola, argmax >= {BASELINE_DN} DN",

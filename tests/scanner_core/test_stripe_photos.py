@@ -156,7 +156,10 @@ def test_a_line_across_printed_squares(photo):
     the flank the edge leaves whole (before: 0.61, 0.60 and 0.29 px RMS, the naive peak
     finder 0.25, 0.24 and 0.22): now better than the peak finder, and on the mono frames with
     no more rows 1 px off than it (with the ambient light at 20 DN, 0.8 % of them were, cut
-    stripes whose other flank read too narrow for the fall to stand out)."""
+    stripes whose other flank read too narrow for the fall to stand out). On the dark
+    squares, where the line is under 10 noise sigmas, fewer rows more than 1 px off than the
+    peak finder gives (249, 246 and 273 over three frames against 950, 884 and 358), though
+    most of the rows flyscan gives there are off."""
     fly, base = against_naive(photo)
     assert fly["measured"] >= 0.995
     assert fly["rms"] <= 0.9 * base["rms"]
@@ -165,6 +168,7 @@ def test_a_line_across_printed_squares(photo):
     if not photo.laser:  # a mono frame
         assert fly["beyond_1px"] <= base["beyond_1px"]
     assert fly["whole_pixel"] <= WHOLE_PIXEL_MAX
+    assert fly["false_off_line"] < base["false_off_line"]
 
 
 @pytest.mark.parametrize("ambient_dn, rms_ratio", [(60.0, 0.8), (20.0, 0.95)])
