@@ -9,6 +9,11 @@ import pytest
 from clients.http_client import FlyscanClient
 from clients.ply import parse_ply, xyz_array
 
+#: The live pass must keep up with the simulated camera: beside another worker's load it lost
+#: frames (26 of a pass's 45: 18 profiles where the check wants more than 20). Runs after the
+#: parallel suite, alone (`make test`).
+pytestmark = pytest.mark.alone
+
 
 def _flyscan(*args, timeout=120):
     return subprocess.run([sys.executable, "-m", "flyscan", *args], capture_output=True,
