@@ -17,7 +17,8 @@ from scanner_core.numeric.linsolve import solve_in_place
 
 __all__ = ["SATURATION_DN", "FWHM_PER_SIGMA", "fwhm_width", "count_above", "cog",
            "top_centroid", "within_window", "width_count_cog", "parabola", "gaussian3", "blais_rioux",
-           "lsq_gauss", "saturated_centre", "narrow_clip_centre", "cut_flank", "uncut_centre"]
+           "lsq_gauss", "saturated_centre", "narrow_clip_centre", "cut_flank", "uncut_centre",
+           "narrow_cut", "narrow_cut_centre"]
 
 # Pixel value taken as saturated (uint8 full scale).
 SATURATION_DN = 255
@@ -92,6 +93,14 @@ CUT_MAX_SHIFT_PX = 2.0
 #: walk that goes on falling past them has left the stripe (a print finer than the line: into
 #: the next dark square, a surface under the flank's fit that widens it).
 CUT_FOOT_WIDTHS = 3.0
+#: A narrow stripe cut near its centre keeps two pixels of whole flank, too few for its own
+#: fit: it is told by its three pixels about the argmax (``narrow_cut``), the cut side's read
+#: NARROW_CUT_NOISE_SIGMAS of noise high, implying a Gaussian narrower than the narrowest
+#: stripe, where that side lies on a darker surface (``CUT_SURFACES_SIGMAS``) and the whole
+#: side's foot stands within NARROW_CUT_FOOT of the peak's height over its background (the
+#: surface the stripe lies on, not a dip in a speckled top).
+NARROW_CUT_NOISE_SIGMAS = 1.0
+NARROW_CUT_FOOT = 0.25
 
 
 @njit(nogil=True, cache=True)
@@ -893,3 +902,77 @@ def uncut_centre(img, c, a, h, step, r_cut, noise, reach, width, same_foot):
     if not abs(off) <= CUT_MAX_SHIFT_PX:
         return math.nan
     return a + off
+
+
+@njit(nogil=True, cache=True)
+def _two_pixel_flank(img, c, a, h, step, noise, reach, out):
+    """The whole flank from row ``a`` by ``step`` where it is two pixels above its foot: the
+    argmax and the next over ``CUT_RUN_LEVEL`` of the height, the one after under it.  Writes
+    the foot (``_foot``, DN) and the two pixels over it into ``out`` (3,); False otherwise."""
+    if not (0 <= a + 2 * step < h and 0 <= a - step < h):
+        return False
+    foot = _foot(img, c, a, h, step, noise, reach)
+    if not math.isfinite(foot):
+        return False
+    u0 = float(img[a, c]) - foot
+    u1 = float(img[a + step, c]) - foot
+    if not (u0 >= u1 > CUT_RUN_LEVEL * u0
+            and float(img[a + 2 * step, c]) - foot <= CUT_RUN_LEVEL * u0):
+        return False
+    out[0] = foot
+    out[1] = u0
+    out[2] = u1
+    return True
+
+
+@njit(nogil=True, cache=True)
+def narrow_cut(img, c, a, h, bg, noise, reach, min_width):
+    """Which flank of a narrow peak at ``a``, if one, a texture's edge cuts next to the argmax,
+    where ``cut_flank`` finds none (its whole flank's fit needs three pixels).
+
+    The three pixels about the argmax, over the whole flank's foot ``f``, the cut side's read
+    ``NARROW_CUT_NOISE_SIGMAS`` of ``noise`` high (``u_c``), bound the width of a Gaussian
+    through them: ``1 / sigma^2 = ln(u_0 / u_w) + ln(u_0 / u_c)``, the same for any centre.
+    Under ``min_width`` (px), and with the cut side's foot under the whole side's by
+    ``CUT_SURFACES_SIGMAS`` of noise (two surfaces: a dark square past the cut) and the whole
+    side's foot within ``NARROW_CUT_FOOT`` of the height over ``bg``, the stripe is cut.
+
+    Returns the cut side: -1 toward row 0, +1 the other, 0 none (both: the narrower bound).
+    """
+    height = float(img[a, c]) - bg
+    if not height > 0.0:
+        return 0
+    flank = np.empty(3)
+    best = min_width
+    side = 0
+    for cut in (-1, 1):
+        if not _two_pixel_flank(img, c, a, h, -cut, noise, reach, flank):
+            continue
+        foot, u0, u1 = flank[0], flank[1], flank[2]
+        if not foot - bg <= NARROW_CUT_FOOT * height:
+            continue
+        if not _foot(img, c, a + cut, h, cut, noise, reach) < foot - CUT_SURFACES_SIGMAS * noise:
+            continue
+        uc = float(img[a + cut, c]) - foot + NARROW_CUT_NOISE_SIGMAS * noise
+        inverse = math.log(u0 / u1) + (math.log(u0 / uc) if uc > 0.0 else math.inf)
+        if inverse > 0.0 and 1.0 / math.sqrt(inverse) < best:
+            best = 1.0 / math.sqrt(inverse)
+            side = cut
+    return side
+
+
+@njit(nogil=True, cache=True)
+def narrow_cut_centre(img, c, a, h, cut, sigma, noise, reach):
+    """Centre of a narrow stripe cut next to its argmax (``narrow_cut``'s side ``cut``) from its
+    two whole pixels and a width ``sigma`` (px) taken elsewhere (the stripe's beside it):
+
+        y = a - cut / 2 + cut sigma^2 ln(u_0 / u_w),
+
+    the Gaussian of that width through both, no further than the edge (``a + cut / 2``).  NaN
+    where the flank is not two pixels over its foot."""
+    flank = np.empty(3)
+    if not _two_pixel_flank(img, c, a, h, -cut, noise, reach, flank):
+        return math.nan
+    y = a - 0.5 * cut + cut * sigma * sigma * math.log(flank[1] / flank[2])
+    edge = a + 0.5 * cut
+    return edge if (y - edge) * cut > 0.0 else y

@@ -142,6 +142,17 @@ SURFACE_FLAT_SIGMAS = 2.0
 # (a flat top between cliffs, a halo beside) passed for a cut stripe, and the fit of its halo
 # read worse than the top's centroid.
 
+# A narrow stripe cut next to its argmax (``est.narrow_cut``) keeps two whole pixels: its
+# centre is the Gaussian's through them with the width of the uncut stripes about it
+# (``_narrow_cuts``), those within NARROW_CUT_SPAN columns that stand at least
+# NARROW_CUT_PEAK_RATIO as high over the noise (on the same lit surface, not on a dark square,
+# whose stripe reads narrower), where NARROW_CUT_MIN_COLUMNS are.  CUT_FIT marks a centre
+# taken from a cut stripe's whole flank (``est.uncut_centre``).
+NARROW_CUT_SPAN = 30
+NARROW_CUT_PEAK_RATIO = 0.7
+NARROW_CUT_MIN_COLUMNS = 5
+CUT_FIT = 2
+
 # A peak at least FLAT_MIN_WIDTH_PX wide whose top (within FLAT_LEVEL of its height) runs
 # longer than FLAT_TOP_WIDTHS of its width plus FLAT_TOP_SLACK_ROWS is a plateau (``_flat_top``).
 FLAT_MIN_WIDTH_PX = 2.0
@@ -534,13 +545,18 @@ def _candidates(img, ca, js, je, mx, am, sec, a2, auto, thr, threshold, floor, m
 
 @njit(nogil=True, cache=True)
 def _centre(img, c, a, h, p, b, sig, sat, bg_sat, method, shoulders, window, max_walk, y_cog,
-            t_c, wd, bg, test_cut):
+            t_c, wd, bg, test_cut, min_width):
     """The centre row of the peak at row ``a`` of column ``c`` (``p`` DN over a background
     ``b``; ``y_cog`` its centroid, ``t_c`` its threshold, ``wd`` its width) by ``method``, a
     saturated one from its flanks; with ``test_cut`` (a fall within the window steep enough,
     or a reflection chosen) a centroid whose stripe a texture's edge cuts is replaced by its
-    whole flank's fit (``est.cut_flank``, ``est.uncut_centre``)."""
+    whole flank's fit (``est.cut_flank``, ``est.uncut_centre``).
+
+    Returns the centre and how it was cut: ``CUT_FIT`` (replaced by the fit), -1 or +1 (a
+    narrow stripe cut next to its argmax on that side, ``est.narrow_cut``: the centroid is
+    left for ``_narrow_cuts``), 0 (not cut)."""
     y = math.nan
+    kind = 0
     if sat:
         y = est.saturated_centre(img, c, a, h, bg_sat + SAT_FIT_MIN_SIGMAS * sig, window,
                                  bg_sat, max_walk)
@@ -568,7 +584,37 @@ def _centre(img, c, a, h, p, b, sig, sat, bg_sat, method, shoulders, window, max
             y_cut = est.uncut_centre(img, c, a, h, step, r_cut, sig, max_walk, wd, shoulders)
             if math.isfinite(y_cut):
                 y = y_cut
-    return y
+                kind = CUT_FIT
+        else:
+            kind = est.narrow_cut(img, c, a, h, b, sig, max_walk, min_width)
+    return y, kind
+
+
+@njit(nogil=True, cache=True)
+def _narrow_cuts(img, ca, js, je, ok, cut, arow, yrow, width, snr, sig, max_walk):
+    """The columns whose narrow stripe a texture's edge cuts next to its argmax (``cut`` -1 or
+    +1, ``est.narrow_cut``): the centre from their two whole pixels (``est.narrow_cut_centre``)
+    with the median width of the uncut stripes within ``NARROW_CUT_SPAN`` columns that stand
+    at least ``NARROW_CUT_PEAK_RATIO`` as high over the noise (the same surface's, lit); a
+    column without ``NARROW_CUT_MIN_COLUMNS`` such keeps its centroid."""
+    h = img.shape[0]
+    widths = np.empty(2 * NARROW_CUT_SPAN)
+    for j in range(js, je):
+        if not (ok[j] and (cut[j] == -1 or cut[j] == 1)):
+            continue
+        c = ca + j
+        n = 0
+        for i in range(max(js, j - NARROW_CUT_SPAN), min(je, j + NARROW_CUT_SPAN + 1)):
+            if (i != j and ok[i] and cut[i] == 0 and math.isfinite(width[ca + i])
+                    and snr[ca + i] >= NARROW_CUT_PEAK_RATIO * snr[c]):
+                widths[n] = width[ca + i]
+                n += 1
+        if n < NARROW_CUT_MIN_COLUMNS:
+            continue
+        y = est.narrow_cut_centre(img, c, int(arow[j]), h, int(cut[j]),
+                                  np.median(widths[:n]), sig, max_walk)
+        if math.isfinite(y):
+            yrow[j] = y
 
 
 @njit(nogil=True, cache=True)
@@ -578,39 +624,41 @@ def _continued_stripe(img, c, h, r0, r1, a_prev, w_prev, reach_rows, use_window,
     """The centre of the stripe in column ``c`` where its neighbour's (at row ``a_prev``,
     width ``w_prev``) goes on, within ``reach_rows`` of it: the most prominent row there
     (``prominent_peak``; its row and background left in ``spot``, its walk in ``stats``) if
-    it is a stripe as the frame's others are and linked to the neighbour's; NaN otherwise."""
+    it is a stripe as the frame's others are and linked to the neighbour's; NaN otherwise.
+    With it, how it was cut (``_centre``)."""
     s0 = max(r0, int(math.ceil(a_prev - reach_rows)))
     s1 = min(r1, int(math.floor(a_prev + reach_rows)) + 1)
     if use_window:
         s0 = max(s0, int(rmin[c]))
         s1 = min(s1, int(rmax[c]) + 1)
     if not prominent_peak(img, c, r0, r1, s0, s1, reach, spot) >= PROMINENCE_MIN_SIGMAS * sig:
-        return math.nan
+        return math.nan, 0
     a = int(spot[0])
     b = spot[1]
     p = float(img[a, c])
     if p >= SATURATION_DN:
-        return math.nan  # the column's brightest: refused as it was
+        return math.nan, 0  # the column's brightest: refused as it was
     t_c = b + AUTO_THRESHOLD_SIGMAS * sig
     est.width_count_cog(img, c, a, h, 0.5 * (p + t_c), max_walk, t_c, window,
                         _cog_level(b, sig, p), bg, max_walk, stats)
     wd = stats[0]
     if not (min_width <= wd <= core and stats[1] >= MIN_PIXELS_ABOVE
             and _linked(a_prev, w_prev, a, wd)):
-        return math.nan  # a stripe as the frame's others are, where the neighbour's goes on
+        return math.nan, 0  # a stripe as the frame's others are, where the neighbour's goes on
     if _flat_top(img, c, a, h, b, p, wd):
-        return math.nan
+        return math.nan, 0
     y_cog = stats[2]
     if not shoulders:
         y_cog = _surface_centroid(img, c, a, h, p, b, sig, stats, window, max_walk, bg)
     return _centre(img, c, a, h, p, b, sig, False, b, method, shoulders, window, max_walk,
-                   y_cog, t_c, wd, bg, stats[6] > est.CUT_MIN_FALL * (p - b))
+                   y_cog, t_c, wd, bg, stats[6] > est.CUT_MIN_FALL * (p - b),
+                   min_width)
 
 
 @njit(nogil=True, cache=True)
-def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, core, min_width,
-                       max_walk, window, shoulders, method, sig, bg, use_window, rmin, rmax,
-                       peak, width, snr, saturated, reason):
+def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cut, core,
+                       min_width, max_walk, window, shoulders, method, sig, bg, use_window, rmin,
+                       rmax, peak, width, snr, saturated, reason):
     """Columns whose peak is no stripe (no peak, too wide, too narrow, unlinked) beside one
     that passed: the stripe where that one's goes on, dimmer than the column's
     brightest pixel (``PROMINENCE_*``), swept both ways so that a run of them continues; the
@@ -636,11 +684,13 @@ def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cor
             # frame's widest stripe links: a lit square's corner in the wider rows can stand
             # higher over its surround than the stripe and hide it
             y = math.nan
+            kind = 0
             for k in range(2 if wsel[i] < core else 1):
                 spread = wsel[i] if k == 0 else core
-                y = _continued_stripe(img, c, h, r0, r1, arow[i], wsel[i], LINK_ROWS_PX + spread,
-                                      use_window, rmin, rmax, reach, core, min_width, max_walk,
-                                      window, shoulders, method, sig, bg, spot, stats)
+                y, kind = _continued_stripe(img, c, h, r0, r1, arow[i], wsel[i],
+                                            LINK_ROWS_PX + spread, use_window, rmin, rmax, reach,
+                                            core, min_width, max_walk, window, shoulders, method,
+                                            sig, bg, spot, stats)
                 if math.isfinite(y):
                     break
             if not math.isfinite(y):
@@ -654,6 +704,7 @@ def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cor
             arow[j] = a
             wsel[j] = wd
             yrow[j] = y
+            cut[j] = kind
             peak[c] = p
             width[c] = wd
             snr[c] = (p - b) / sig
@@ -770,6 +821,7 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
     arow = np.zeros(n, np.int64)
     wsel = np.full(n, np.inf)
     yrow = np.full(n, np.nan)
+    cut = np.zeros(n, np.int8)
     for j in range(js, je):
         c = ca + j
         n_peaks[c] = ncand[j]
@@ -833,8 +885,9 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
         if method == 0 and not shoulders and not saturated[c] and not test_cut:
             yrow[j] = y_cog  # what _centre returns, without the call: most columns
         else:
-            yrow[j] = _centre(img, c, a, h, p, b, sig, saturated[c], bg_sat, method,
-                              shoulders, window, max_walk, y_cog, t_c, wd, bg, test_cut)
+            yrow[j], cut[j] = _centre(img, c, a, h, p, b, sig, saturated[c], bg_sat, method,
+                                      shoulders, window, max_walk, y_cog, t_c, wd, bg, test_cut,
+                                      min_width)
     # the gates: a narrow peak continued by a neighbour's, a wide one by a chain of them from a
     # stripe within the gate
     ok = np.zeros(n, np.bool_)
@@ -855,9 +908,10 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
                 and _linked(arow[j + 1], wsel[j + 1], arow[j], wsel[j])):
             ok[j] = True
     if auto:
-        _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, core,
+        _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cut, core,
                            min_width, max_walk, window, shoulders, method, sig, bg, use_window,
                            rmin, rmax, peak, width, snr, saturated, reason)
+    _narrow_cuts(img, ca, js, je, ok, cut, arow, yrow, width, snr, sig, max_walk)
     # the peaks that passed
     for j in range(js, je):
         if klass[j] == _REJECTED:
