@@ -304,9 +304,11 @@ def test_a_cold_start_loses_no_frame(tmp_path):
         deadline = time.monotonic() + 120
         while job.state not in ("done", "failed") and time.monotonic() < deadline:
             time.sleep(0.05)
-        time.sleep(0.5)  # stored
+        while ("points" not in service.scan_info(job.scan_id)
+               and time.monotonic() < deadline):  # the finisher's pose, inspection and store
+            time.sleep(0.05)
         print(job.state, job.frames_dropped, job.queue_overflows,
-              service.scan_info(job.scan_id)["points"])
+              service.scan_info(job.scan_id).get("points", "unfinished"))
         print(sorted(k for k, n in kernels().items() if n > before.get(k, 0)))
         service.stop()
     """)
@@ -321,7 +323,7 @@ def test_a_cold_start_loses_no_frame(tmp_path):
     assert delivered > 100  # a second of idle frames at 162 fps
     assert lost <= 2, (lost, delivered)
     state, dropped, overflows, points = first_pass.split()
-    assert state == "done" and int(points) > 1000, first_pass
+    assert state == "done" and points.isdigit() and int(points) > 1000, first_pass
     assert int(dropped) <= 2 and int(overflows) == 0, first_pass
 
 
