@@ -170,7 +170,7 @@ def test_a_line_across_printed_squares(photo):
     assert fly["false_off_line"] < base["false_off_line"]
 
 
-@pytest.mark.parametrize("ambient_dn, rms_ratio", [(60.0, 0.8), (20.0, 0.9)])
+@pytest.mark.parametrize("ambient_dn, rms_ratio", [(60.0, 0.8), (20.0, 0.8)])
 def test_a_narrow_line_over_a_print(ambient_dn, rms_ratio):
     """A narrow line (sigma 0.6-1.2 px) across squares of 24 px. Under 60 DN of ambient
     light its background, read 12 and 20 rows out, lies on the dark squares past the lit one
@@ -180,8 +180,8 @@ def test_a_narrow_line_over_a_print(ambient_dn, rms_ratio):
     square's edge lies within half a pixel of its centre, half the stripe is dark and both
     methods miss by 0.4-0.9 px; the fit's narrower margin where the two surfaces differ finds
     more of those cuts, and a stripe cut next to its argmax, two whole pixels left, takes the
-    width of the uncut stripes beside it (0.91 -> 0.82 of the peak finder's RMS); no row more
-    than 1 px off."""
+    width of the uncut stripes beside it (0.91 -> 0.82 of the peak finder's RMS), and the two
+    surfaces are told at 3 noise sigmas (0.72); no row more than 1 px off."""
     fly, base = against_naive(LinePhoto(peak_dn=100.0, ambient_dn=ambient_dn, texture_px=24.0,
                                         black_reflectance=0.2, sigma_px=(0.6, 1.2)))
     assert fly["measured"] >= 0.995
@@ -196,12 +196,15 @@ def test_a_print_finer_than_the_line():
     further than three of its widths out (the walk had run on into the next dark square, and
     the fit widened toward the cut: 0.282 px RMS and 1.84 % of the rows more than 1 px off,
     the naive peak finder 0.261 px and none); a stripe cut near its centre is still cut where
-    the dark square's share of it goes on falling past the edge."""
+    the dark square's share of it goes on falling past the edge. The lit and dark squares'
+    feet, 14 DN apart over 3.6 DN of noise, are two surfaces at 3 noise sigmas (not at 4),
+    and the fit's narrower margin finds more of the cuts: 0.81 -> 0.73 of the peak finder's
+    RMS, 0.61 -> 0.31 % of the rows more than 1 px off."""
     fly, base = against_naive(LinePhoto(peak_dn=60.0, ambient_dn=20.0, texture_px=12.0,
                                         black_reflectance=0.3, sigma_px=(1.0, 2.5)))
     assert fly["measured"] >= 0.995
-    assert fly["rms"] <= 0.9 * base["rms"]
-    assert fly["beyond_1px"] < 0.01
+    assert fly["rms"] <= 0.8 * base["rms"]
+    assert fly["beyond_1px"] < 0.005
     assert fly["whole_pixel"] <= WHOLE_PIXEL_MAX
 
 
