@@ -199,7 +199,8 @@ def test_a_pass_through_the_service_gives_the_simulated_cameras_cloud(emulated, 
                 wait_for(lambda: 2 <= newest_id() % cycle < lead_in, timeout=60.0, poll=0.005)
                 start = newest_id()
                 scan_id = client.post("/scans", json={}).json()["scan_id"]
-                # armed before the frame the service had handled when it answered
+                # the service had handled no frame past the lead-in when it answered: armed
+                # before the marker came into view
                 armed_before_the_marker = newest_id() - start + start % cycle < 2 * lead_in
                 if fault is not None:
                     fault(start)
