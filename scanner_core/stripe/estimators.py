@@ -599,7 +599,7 @@ def narrow_clip_centre(img, c, a, h, level, bgl):
 
 
 @njit(nogil=True, cache=True)
-def _flank(img, c, a, h, step, half, reach):
+def flank_crossing(img, c, a, h, step, half, reach):
     """Down one flank from row ``a`` (``step`` -1: up the frame, +1: down it) to where it
     crosses ``half``: the largest one-pixel fall on the way (the last one, out of the part
     above ``half``, included), the row before it, and the distance from ``a`` to the crossing
@@ -727,8 +727,8 @@ def cut_flank(img, c, a, h, bg, noise, reach):
     if not height > 0.0:
         return 0, a
     half = bg + 0.5 * height
-    fall_up, r_up, hw_up = _flank(img, c, a, h, -1, half, reach)
-    fall_dn, r_dn, hw_dn = _flank(img, c, a, h, 1, half, reach)
+    fall_up, r_up, hw_up = flank_crossing(img, c, a, h, -1, half, reach)
+    fall_dn, r_dn, hw_dn = flank_crossing(img, c, a, h, 1, half, reach)
     if not (max(fall_up, fall_dn) > CUT_MIN_FALL * height and math.isfinite(hw_up)
             and math.isfinite(hw_dn)):
         return 0, a
@@ -884,13 +884,22 @@ def uncut_centre(img, c, a, h, step, r_cut, noise, reach, width, same_foot):
     foot = _foot(img, c, a, h, -step, noise, foot_reach)
     if not math.isfinite(foot):
         return math.nan
+    if same_foot:
+        foot_cut = _foot(img, c, r_cut + step, h, step, noise, reach)
+        if not abs(foot_cut - foot) <= CUT_NOISE_SIGMAS * noise:
+            return math.nan
+    return flank_vertex(img, c, a, h, step, r_cut, foot, reach)
+
+
+@njit(nogil=True, cache=True)
+def flank_vertex(img, c, a, h, step, r_cut, foot, reach):
+    """Centre of a stripe cut on one flank (the cut past row ``r_cut`` by ``step``), from
+    its whole flank over ``foot`` (DN): ``uncut_centre`` with the foot given, the edge where
+    the flank still rises toward it.  NaN when the fit fails, the parabola opens upward, or
+    its vertex leaves ``a`` by more than ``CUT_MAX_SHIFT_PX``."""
     fit = np.empty(4)
     if not _whole_flank_fit(img, c, a, h, step, r_cut, foot, reach, fit, np.empty((3, 3))):
         return math.nan
-    if same_foot:
-        foot_cut = _foot(img, c, r_cut + step, h, step, noise, reach)
-        if not abs(foot_cut - fit[0]) <= CUT_NOISE_SIGMAS * noise:
-            return math.nan
     k1 = fit[2]
     k2 = fit[3]
     # the flank still rising toward the cut where it ends (the centre past it, in the dark):

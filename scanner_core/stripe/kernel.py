@@ -174,6 +174,33 @@ FLAT_TOP_WIDTHS = 1.8
 PROMINENCE_REACH_WIDTHS = 2.5
 PROMINENCE_MIN_SIGMAS = 8.0
 
+# A stripe whose centre lies on a dark surface past a lit one's edge (a line dimmer than the
+# lit squares of a texture, crossing a dark one): the lit surface's last rows hold the
+# stripe's flank, brighter than its centre, and are the column's brightest pixels, a peak a
+# fraction of a pixel wide (under PAST_EDGE_WIDTH_RATIO of the frame's typical width) that
+# falls into the dark over the edge's two rows (its own lit in part), by half its height and
+# by PAST_EDGE_ASYMMETRY times its fall on the other side (a narrow stripe falls alike on
+# both).  Past that fall, within PAST_EDGE_REACH_WIDTHS of the frame's width gate, the
+# brightest row on the dark surface is the stripe where it stands PROMINENCE_MIN_SIGMAS of
+# noise over the lowest beyond it, over the lowest between it and the edge by
+# PAST_EDGE_DIP_SIGMAS and PAST_EDGE_DIP_FRACTION of its height (a peak, not the dark
+# surface's own share of a stripe centred on the lit side, falling from the edge), is at least
+# twice as wide as the peak it replaces, is not flat on top, and where the surface beyond it
+# (the median of PAST_EDGE_SURFACE_ROWS pixels past its flank) lies no higher than that dip
+# and a noise sigma (a lit surface past a dark line is no darker surface).  A lone pixel
+# refused as too narrow, anywhere in its column, gets its stripe only where that continues a
+# stripe within PAST_EDGE_GAP columns.  Mono frames only: on colour frames a speckled line's
+# lobe past a dip passed for such an end (docs/stripe.md).  The search where a stripe goes on
+# then continues those found, and they it, for PAST_EDGE_ROUNDS rounds at most.
+PAST_EDGE_WIDTH_RATIO = 0.5
+PAST_EDGE_REACH_WIDTHS = 3.0
+PAST_EDGE_DIP_SIGMAS = 2.0
+PAST_EDGE_DIP_FRACTION = 0.15
+PAST_EDGE_SURFACE_ROWS = 5
+PAST_EDGE_GAP = 2
+PAST_EDGE_ASYMMETRY = 1.5
+PAST_EDGE_ROUNDS = 3
+
 # The peak's width, count and centroid are read with the window a compile-time constant when
 # ``window`` is this (the default): the loops over it unrolled, the candidates' pass took half
 # the time.
@@ -656,6 +683,147 @@ def _continued_stripe(img, c, h, r0, r1, a_prev, w_prev, reach_rows, use_window,
 
 
 @njit(nogil=True, cache=True)
+def _surface_level(img, c, r, step):
+    """The median of ``PAST_EDGE_SURFACE_ROWS`` pixels of column ``c`` from row ``r`` on by
+    ``step``, DN: a surface's level (a minimum would follow its noise down)."""
+    v = np.empty(PAST_EDGE_SURFACE_ROWS)
+    for k in range(PAST_EDGE_SURFACE_ROWS):
+        v[k] = float(img[r + step * k, c])
+    return np.median(v)
+
+
+@njit(nogil=True, cache=True)
+def _stripe_past_edge(img, c, h, r0, r1, a, step, rows, reach, min_width, max_width, max_walk,
+                      sig, use_window, rmin, rmax):
+    """The stripe in column ``c`` on the darker surface past the edge that ends a brighter
+    one at row ``a`` (``step`` toward the darker; the row after ``a`` is the edge's own),
+    within ``rows`` of ``a`` (``PAST_EDGE_*``): the brightest row there, ``f`` the lowest
+    within ``reach`` rows beyond it, its width (px, sigma-like) from the half maximum over
+    ``f`` of its flank away from the edge, ``min_width`` to ``max_width``; its centre from
+    the darker surface's pixels over ``f``, the edge's side cut (``est.flank_vertex``).
+
+    Returns the centre (NaN if none), the peak's row, ``f`` and the width."""
+    none = (math.nan, -1, math.nan, math.nan)
+    first = a + 2 * step  # the darker surface's first whole row
+    lo, hi = (first, a + rows) if step > 0 else (a - rows, first)
+    lo = max(lo, r0)
+    hi = min(hi, r1 - 1)
+    if use_window:
+        lo = max(lo, int(rmin[c]))
+        hi = min(hi, int(rmax[c]))
+    if hi - lo < 2:
+        return none
+    m = lo
+    for r in range(lo, hi + 1):
+        if img[r, c] > img[m, c]:
+            m = r
+    if m == first:
+        return none  # falling from the edge: no peak past it
+    near = math.inf
+    for r in range(min(first, m - step), max(first, m - step) + 1):
+        near = min(near, float(img[r, c]))
+    far = math.inf
+    for k in range(1, reach + 1):
+        r = m + step * k
+        if r < r0 or r >= r1:
+            break
+        far = min(far, float(img[r, c]))
+    p = float(img[m, c])
+    dip = max(PAST_EDGE_DIP_SIGMAS * sig, PAST_EDGE_DIP_FRACTION * (p - far))
+    if not (p - far >= PROMINENCE_MIN_SIGMAS * sig and p - near >= dip and p < SATURATION_DN):
+        return none
+    half_width = est.flank_crossing(img, c, m, h, step, 0.5 * (p + far), max_walk)[2]
+    wd = half_width / est.HWHM_PER_SIGMA
+    if not min_width <= wd <= max_width or _flat_top(img, c, m, h, far, p, wd):
+        return none
+    k0 = int(math.ceil(BACKGROUND_CLEAR_SIGMAS * wd))
+    if not (0 <= m + step * (k0 + PAST_EDGE_SURFACE_ROWS - 1) < h
+            and _surface_level(img, c, m + step * k0, step) <= near + sig):
+        return none  # a brighter surface beyond it: the stripe's flank past a dark line
+    return est.flank_vertex(img, c, m, h, -step, first, far, max_walk), m, far, wd
+
+
+@njit(nogil=True, cache=True)
+def _past_edge_candidates(img, ca, js, je, r0, r1, klass, arow, wsel, typical, core, linked,
+                          min_width, max_walk, sig, use_window, rmin, rmax, snr, reason, corner,
+                          found):
+    """Per column ``js <= j < je`` (index ``j - js``): ``corner``, the row of a peak that may
+    be a brighter surface's end on the stripe's flank (-1 if none: no narrow peak, or no
+    edge's fall beside it), and ``found``, the stripe on the darker surface past that edge
+    (``_stripe_past_edge``: centre, row, background, width; NaN if none)."""
+    h = img.shape[0]
+    rows = int(math.ceil(PAST_EDGE_REACH_WIDTHS * core))
+    reach = max(2, int(math.ceil(PROMINENCE_REACH_WIDTHS * core)))
+    narrow = PAST_EDGE_WIDTH_RATIO * typical
+    for k in range(je - js):
+        j = js + k
+        c = ca + j
+        if not ((klass[j] != _REJECTED or reason[c] == 5) and wsel[j] < narrow):
+            continue  # no narrow peak (TOO_NARROW: a lone pixel)
+        a = int(arow[j])
+        if a < 2 or a > h - 3:
+            continue
+        # the edge's fall, over two rows (the row the edge crosses is lit in part), steeper
+        # than the brighter surface's flank rising to it (a narrow stripe falls alike)
+        step = 1 if img[a + 2, c] < img[a - 2, c] else -1
+        fall = float(img[a, c]) - float(img[a + 2 * step, c])
+        other = float(img[a, c]) - float(img[a - 2 * step, c])
+        if not (fall > est.CUT_MIN_FALL * snr[c] * sig and fall >= PAST_EDGE_ASYMMETRY * other):
+            continue
+        corner[k] = a
+        y, m, b, wd = _stripe_past_edge(img, c, h, r0, r1, a, step, rows, reach,
+                                        max(min_width, narrow), linked, max_walk, sig,
+                                        use_window, rmin, rmax)
+        if math.isfinite(y) and wsel[j] < PAST_EDGE_WIDTH_RATIO * wd:
+            found[k, 0] = y
+            found[k, 1] = m
+            found[k, 2] = b
+            found[k, 3] = wd
+
+
+@njit(nogil=True, cache=True)
+def _stripes_past_edges(img, ca, js, je, klass, ok, arow, wsel, yrow, cut, peak, width, snr,
+                        saturated, sig, corner, found):
+    """The stripes past the edges of ``_past_edge_candidates``, in place of the peaks before
+    them; a lone pixel's (refused as too narrow: anywhere in its column) only where it
+    continues a stripe within ``PAST_EDGE_GAP`` columns (``_linked``), swept both ways.  The
+    gate arrays and outputs updated in place; returns how many were taken."""
+    n = je - js
+    taken = 0
+    for sweep in range(2):
+        k0, k1, d = (0, n, 1) if sweep == 0 else (n - 1, -1, -1)
+        for k in range(k0, k1, d):
+            j = js + k
+            if not (math.isfinite(found[k, 0]) and corner[k] >= 0 and arow[j] == corner[k]):
+                continue  # none, taken, or its stripe found otherwise since
+            m = found[k, 1]
+            wd = found[k, 3]
+            if not ok[j]:
+                beside = False
+                for g in range(1, PAST_EDGE_GAP + 1):
+                    for i in (k - g, k + g):
+                        if (0 <= i < n and ok[js + i] and arow[js + i] != corner[i]
+                                and _linked(arow[js + i], wsel[js + i], m, wd)):
+                            beside = True
+                if not beside:
+                    continue
+            c = ca + j
+            p = float(img[int(m), c])
+            klass[j] = _CORE
+            ok[j] = True
+            arow[j] = int(m)
+            wsel[j] = wd
+            yrow[j] = found[k, 0]
+            cut[j] = CUT_FIT
+            peak[c] = p
+            width[c] = wd
+            snr[c] = (p - found[k, 2]) / sig
+            saturated[c] = False
+            taken += 1
+    return taken
+
+
+@njit(nogil=True, cache=True)
 def _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cut, core,
                        min_width, max_walk, window, shoulders, method, sig, bg, use_window, rmin,
                        rmax, peak, width, snr, saturated, reason):
@@ -799,6 +967,7 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
                            steep)
     core = max_width
     linked = max_width
+    typical = math.nan
     if auto_width:
         if n_widths >= WIDTH_MIN_SAMPLES:
             # bin k holds widths in [k, k + 1) * WIDTH_BIN_PX; the quantile puts it at k +- 0.5
@@ -908,9 +1077,22 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
                 and _linked(arow[j + 1], wsel[j + 1], arow[j], wsel[j])):
             ok[j] = True
     if auto:
-        _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cut, core,
-                           min_width, max_walk, window, shoulders, method, sig, bg, use_window,
-                           rmin, rmax, peak, width, snr, saturated, reason)
+        corner = np.full(n, -1, np.int64)
+        found = np.full((n, 4), math.nan)
+        if math.isfinite(typical) and not shoulders:
+            _past_edge_candidates(img, ca, js, je, r0, r1, klass, arow, wsel, typical, core,
+                                  linked, min_width, max_walk, sig, use_window, rmin, rmax, snr,
+                                  reason, corner[js:je], found[js:je])
+        for _ in range(PAST_EDGE_ROUNDS):
+            # the stripes past the edges continue those that passed, and the search where a
+            # stripe goes on continues them in turn
+            taken = _stripes_past_edges(img, ca, js, je, klass, ok, arow, wsel, yrow, cut, peak,
+                                        width, snr, saturated, sig, corner[js:je], found[js:je])
+            _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cut, core,
+                               min_width, max_walk, window, shoulders, method, sig, bg,
+                               use_window, rmin, rmax, peak, width, snr, saturated, reason)
+            if taken == 0:
+                break
     _narrow_cuts(img, ca, js, je, ok, cut, arow, yrow, width, snr, sig, max_walk)
     # the peaks that passed
     for j in range(js, je):
