@@ -184,7 +184,8 @@ PROMINENCE_MIN_SIGMAS = 8.0
 # brightest row on the dark surface is the stripe where it stands PROMINENCE_MIN_SIGMAS of
 # noise over the lowest beyond it, over the lowest between it and the edge by
 # PAST_EDGE_DIP_SIGMAS and PAST_EDGE_DIP_FRACTION of its height (a peak, not the dark
-# surface's own share of a stripe centred on the lit side, falling from the edge), is at least
+# surface's own share of a stripe centred on the lit side, falling from the edge) or, too near
+# the edge to dip, with its centre PAST_EDGE_DEPTH_PX past the dark's first row, is at least
 # twice as wide as the peak it replaces, is not flat on top, and where the surface beyond it
 # (the median of PAST_EDGE_SURFACE_ROWS pixels past its flank) lies no higher than that dip
 # and a noise sigma (a lit surface past a dark line is no darker surface).  A lone pixel
@@ -196,6 +197,7 @@ PAST_EDGE_WIDTH_RATIO = 0.5
 PAST_EDGE_REACH_WIDTHS = 3.0
 PAST_EDGE_DIP_SIGMAS = 2.0
 PAST_EDGE_DIP_FRACTION = 0.15
+PAST_EDGE_DEPTH_PX = 1.0
 PAST_EDGE_SURFACE_ROWS = 5
 PAST_EDGE_GAP = 2
 PAST_EDGE_ASYMMETRY = 1.5
@@ -717,11 +719,10 @@ def _stripe_past_edge(img, c, h, r0, r1, a, step, rows, reach, min_width, max_wi
     for r in range(lo, hi + 1):
         if img[r, c] > img[m, c]:
             m = r
-    if m == first:
-        return none  # falling from the edge: no peak past it
-    near = math.inf
+    near = math.inf  # the lowest between it and the edge (none where it is the first row)
     for r in range(min(first, m - step), max(first, m - step) + 1):
-        near = min(near, float(img[r, c]))
+        if r != first - step:
+            near = min(near, float(img[r, c]))
     far = math.inf
     for k in range(1, reach + 1):
         r = m + step * k
@@ -729,18 +730,21 @@ def _stripe_past_edge(img, c, h, r0, r1, a, step, rows, reach, min_width, max_wi
             break
         far = min(far, float(img[r, c]))
     p = float(img[m, c])
-    dip = max(PAST_EDGE_DIP_SIGMAS * sig, PAST_EDGE_DIP_FRACTION * (p - far))
-    if not (p - far >= PROMINENCE_MIN_SIGMAS * sig and p - near >= dip and p < SATURATION_DN):
+    if not (p - far >= PROMINENCE_MIN_SIGMAS * sig and p < SATURATION_DN):
         return none
+    dips = p - near >= max(PAST_EDGE_DIP_SIGMAS * sig, PAST_EDGE_DIP_FRACTION * (p - far))
     half_width = est.flank_crossing(img, c, m, h, step, 0.5 * (p + far), max_walk)[2]
     wd = half_width / est.HWHM_PER_SIGMA
     if not min_width <= wd <= max_width or _flat_top(img, c, m, h, far, p, wd):
         return none
     k0 = int(math.ceil(BACKGROUND_CLEAR_SIGMAS * wd))
     if not (0 <= m + step * (k0 + PAST_EDGE_SURFACE_ROWS - 1) < h
-            and _surface_level(img, c, m + step * k0, step) <= near + sig):
+            and _surface_level(img, c, m + step * k0, step) <= min(near, p) + sig):
         return none  # a brighter surface beyond it: the stripe's flank past a dark line
-    return est.flank_vertex(img, c, m, h, -step, first, far, max_walk), m, far, wd
+    y = est.flank_vertex(img, c, m, h, -step, first, far, max_walk)
+    if not (dips or (y - first) * step >= PAST_EDGE_DEPTH_PX):
+        return none  # the dark surface's share of a stripe on the bright one, falling
+    return y, m, far, wd
 
 
 @njit(nogil=True, cache=True)
