@@ -79,22 +79,31 @@ def test_the_page_shows_the_live_status_and_a_scan_armed_from_it(page, service):
         "         return img.getAttribute('src') !== src && img.complete && img.naturalWidth > 0; }",
         arg=first_src, timeout=5_000)
 
-    # Arm from the page; everything below happens without a reload.
+    # Arm from the page; everything below happens without a reload. A pass the machine fell
+    # behind (frames of it never arrived: CI's other workers load it) fails, as the service
+    # reports it; the page is then armed again, at most three times.
     page.evaluate("window.__notReloaded = true")
     cloud_before = page.get_attribute("#cloud", "src")
-    known = {row.get_attribute("data-scan-id") for row in page.locator("#scans tr[data-scan-id]").all()}
-    page.click("#arm")
     result = page.locator("#arm-result")
-    expect(result).to_have_attribute("data-scan-id", re.compile(".+"))
-    scan_id = result.get_attribute("data-scan-id")
-    assert scan_id not in known
-    expect(result).to_contain_text(scan_id)
+    for _ in range(3):
+        known = {row.get_attribute("data-scan-id")
+                 for row in page.locator("#scans tr[data-scan-id]").all()}
+        previous = result.get_attribute("data-scan-id")
+        page.click("#arm")
+        page.wait_for_function(
+            "prev => { const id = document.getElementById('arm-result')"
+            ".getAttribute('data-scan-id'); return !!id && id !== prev; }", arg=previous)
+        scan_id = result.get_attribute("data-scan-id")
+        assert scan_id not in known
+        expect(result).to_contain_text(scan_id)
 
-    row = page.locator(f'#scans tr[data-scan-id="{scan_id}"]')
-    expect(row).to_have_count(1)
-    state_cell = row.locator("td.st")
-    expect(state_cell).to_have_text(re.compile("^(done|failed)$"), timeout=SCAN_TIMEOUT_MS)
-    info = httpx.get(f"{service.url}/scans/{scan_id}").json()
+        row = page.locator(f'#scans tr[data-scan-id="{scan_id}"]')
+        expect(row).to_have_count(1)
+        state_cell = row.locator("td.st")
+        expect(state_cell).to_have_text(re.compile("^(done|failed)$"), timeout=SCAN_TIMEOUT_MS)
+        info = httpx.get(f"{service.url}/scans/{scan_id}").json()
+        if state_cell.inner_text() == "done" or "fell behind" not in (info.get("reason") or ""):
+            break
     assert state_cell.inner_text() == "done", info
     # The robot's link and the scan's cross-check, as the service reports them.
     expect(page.locator("#robot")).to_have_text("connected")
