@@ -1081,17 +1081,21 @@ def _columns(img, c0, c1, method, auto, thr, window, max_width, auto_width, min_
                 and _linked(arow[j + 1], wsel[j + 1], arow[j], wsel[j])):
             ok[j] = True
     if auto:
-        corner = np.full(n, -1, np.int64)
-        found = np.full((n, 4), math.nan)
-        if math.isfinite(typical) and not shoulders:
+        past_edges = math.isfinite(typical) and not shoulders
+        m_cols = je - js if past_edges else 0  # no arrays where there is nothing to look for
+        corner = np.full(m_cols, -1, np.int64)
+        found = np.full((m_cols, 4), math.nan)
+        if past_edges:
             _past_edge_candidates(img, ca, js, je, r0, r1, klass, arow, wsel, typical, core,
                                   linked, min_width, max_walk, sig, use_window, rmin, rmax, snr,
-                                  reason, corner[js:je], found[js:je])
+                                  reason, corner, found)
         for _ in range(PAST_EDGE_ROUNDS):
             # the stripes past the edges continue those that passed, and the search where a
             # stripe goes on continues them in turn
-            taken = _stripes_past_edges(img, ca, js, je, klass, ok, arow, wsel, yrow, cut, peak,
-                                        width, snr, saturated, sig, corner[js:je], found[js:je])
+            taken = 0
+            if past_edges:
+                taken = _stripes_past_edges(img, ca, js, je, klass, ok, arow, wsel, yrow, cut,
+                                            peak, width, snr, saturated, sig, corner, found)
             _continued_stripes(img, ca, js, je, r0, r1, klass, ok, arow, wsel, yrow, cut, core,
                                min_width, max_walk, window, shoulders, method, sig, bg,
                                use_window, rmin, rmax, peak, width, snr, saturated, reason)
