@@ -719,7 +719,7 @@ def _stripe_past_edge(img, c, h, r0, r1, a, step, rows, reach, min_width, max_wi
     for r in range(lo, hi + 1):
         if img[r, c] > img[m, c]:
             m = r
-    near = math.inf  # the lowest between it and the edge (none where it is the first row)
+    near = math.inf  # the lowest between it and the edge (itself where it is the first row)
     for r in range(min(first, m - step), max(first, m - step) + 1):
         if r != first - step:
             near = min(near, float(img[r, c]))
